@@ -1,0 +1,1 @@
+"""The rig daemon: sequences a scan (depth sweep, TSDF, focus plan, capture) and owns time."""

@@ -1,0 +1,1 @@
+"""Simulated hardware and the simulated world (subjects) the simulators see."""
