@@ -1,0 +1,131 @@
+"""Virtual time for simulated scans: an asyncio event loop whose clock jumps when every task waits.
+
+The daemon, the drivers and the in-process simulators read time only through the event loop
+(``loop.time()``, ``asyncio.sleep``, ``asyncio.timeout``). Run them on a :class:`VirtualTimeLoop`
+and a whole scan happens in simulated time: whenever nothing is ready to run and no byte is waiting
+to be read, the clock jumps straight to the next timer. The order of events then depends only on
+the simulated timeline, never on how fast or loaded the machine is, so the same seed gives the
+same scan (the approach of Klipper's batch mode and ophyd-async's simulated runs).
+
+Two things stop the clock instead of advancing it:
+
+* a job handed to ``run_in_executor`` (ray casting, TSDF, planning): simulated time stands still
+  until it finishes, so its real duration never leaks into the timeline;
+* nothing scheduled at all: the loop then waits for real I/O (a control-socket client, say).
+
+With ``time_scale`` set, each jump is paced to ``delay / time_scale`` real seconds so a person can
+watch a simulated scan at, for example, 10x real time; the timeline is the same either way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import selectors
+import time
+from collections.abc import Coroutine
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+
+class VirtualTimeStall(RuntimeError):
+    """Every task waits, no timer is scheduled and no real I/O arrived within the idle limit."""
+
+
+class _PacedSelector:
+    """Wraps the loop's selector: polls real I/O, then advances virtual time instead of sleeping."""
+
+    def __init__(self, real: selectors.BaseSelector, loop: VirtualTimeLoop) -> None:
+        self._real = real
+        self._loop = loop
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._real, name)
+
+    def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
+        events = self._real.select(0)
+        if events or timeout == 0:
+            return events
+        loop = self._loop
+        if loop.pending_jobs:
+            return self._real.select(None)
+        if timeout is None:
+            events = self._real.select(loop.idle_real_timeout)
+            if not events and loop.idle_real_timeout is not None:
+                raise VirtualTimeStall(
+                    f"virtual time stalled at t={loop.time():.6f} s: every task waits, no timer is "
+                    f"scheduled and no I/O arrived within {loop.idle_real_timeout:g} s"
+                )
+            return events
+        if loop.time_scale is None:
+            loop.advance(timeout)
+            return []
+        started = time.monotonic()
+        events = self._real.select(timeout / loop.time_scale)
+        if events:
+            loop.advance(min(timeout, (time.monotonic() - started) * loop.time_scale))
+        else:
+            loop.advance(timeout)
+        return events
+
+
+class VirtualTimeLoop(asyncio.SelectorEventLoop):
+    """A selector event loop on a virtual clock (seconds, starting at ``start``).
+
+    Args:
+        time_scale: None runs as fast as possible; X paces virtual time at X times real time.
+        start: the virtual clock's reading when the loop is created, s.
+        idle_real_timeout: with nothing scheduled, how long (real s) to wait for outside I/O before
+            raising :class:`VirtualTimeStall`; None waits for ever (a daemon waiting for commands).
+    """
+
+    def __init__(
+        self,
+        *,
+        time_scale: float | None = None,
+        start: float = 0.0,
+        idle_real_timeout: float | None = None,
+    ) -> None:
+        super().__init__()
+        if time_scale is not None and not time_scale > 0:
+            self.close()
+            raise ValueError(f"time_scale must be positive or None, got {time_scale!r}")
+        self.time_scale = time_scale
+        self.idle_real_timeout = idle_real_timeout
+        self.pending_jobs = 0
+        self._now = float(start)
+        self._selector = _PacedSelector(self._selector, self)  # type: ignore[has-type]
+
+    def time(self) -> float:
+        return self._now
+
+    def advance(self, seconds: float) -> None:
+        """Move the virtual clock forward (never back)."""
+        if seconds > 0:
+            self._now += seconds
+
+    def run_in_executor(self, executor: Any, func: Any, *args: Any) -> asyncio.Future[Any]:
+        future = super().run_in_executor(executor, func, *args)
+        self.pending_jobs += 1
+        future.add_done_callback(self._job_done)
+        return future
+
+    def _job_done(self, _future: asyncio.Future[Any]) -> None:
+        self.pending_jobs -= 1
+
+
+def run_virtual(
+    coro: Coroutine[Any, Any, T],
+    *,
+    time_scale: float | None = None,
+    idle_real_timeout: float | None = None,
+    debug: bool | None = None,
+) -> T:
+    """Run a coroutine to completion on a fresh :class:`VirtualTimeLoop` (like ``asyncio.run``)."""
+    with asyncio.Runner(
+        debug=debug,
+        loop_factory=lambda: VirtualTimeLoop(
+            time_scale=time_scale, idle_real_timeout=idle_real_timeout
+        ),
+    ) as runner:
+        return runner.run(coro)

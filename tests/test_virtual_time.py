@@ -1,0 +1,120 @@
+"""The virtual-time event loop that simulated scans run on."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+
+import pytest
+
+from drivers.sim.clock import VirtualTimeLoop, VirtualTimeStall, run_virtual
+
+
+def test_sleep_advances_the_virtual_clock_exactly():
+    async def main() -> tuple[float, float]:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        await asyncio.sleep(3600.0)
+        return start, loop.time()
+
+    start, end = run_virtual(main())
+    assert start == 0.0
+    assert end == pytest.approx(3600.0, abs=1e-9)
+
+
+async def _interleaved(log: list[tuple[float, str]]) -> None:
+    loop = asyncio.get_running_loop()
+
+    async def ticker(name: str, period: float, count: int) -> None:
+        for _ in range(count):
+            await asyncio.sleep(period)
+            log.append((round(loop.time(), 9), name))
+
+    await asyncio.gather(ticker("heartbeat", 0.1, 30), ticker("pdo", 0.005, 500), ticker("slow", 0.7, 4))
+
+
+def test_the_same_program_gives_the_same_timeline_at_any_time_scale():
+    fast: list[tuple[float, str]] = []
+    paced: list[tuple[float, str]] = []
+    run_virtual(_interleaved(fast))
+    run_virtual(_interleaved(paced), time_scale=1000.0)
+    assert fast == paced
+    assert [name for _, name in fast].count("heartbeat") == 30
+
+
+def test_timeouts_fire_on_virtual_time():
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        with pytest.raises(TimeoutError):
+            async with asyncio.timeout(2.5):
+                await asyncio.Event().wait()
+        return loop.time()
+
+    assert run_virtual(main()) == pytest.approx(2.5)
+
+
+def test_clock_stands_still_while_an_executor_job_runs():
+    release = threading.Event()
+
+    def job() -> str:
+        release.wait(5.0)
+        return "planned"
+
+    async def main() -> list[str]:
+        order: list[str] = []
+
+        async def timer() -> None:
+            await asyncio.sleep(10.0)
+            order.append("timer")
+
+        async def compute() -> None:
+            result = await asyncio.get_running_loop().run_in_executor(None, job)
+            order.append(result)
+
+        timer_task = asyncio.create_task(timer())
+        compute_task = asyncio.create_task(compute())
+        await asyncio.sleep(0)
+        threading.Timer(0.05, release.set).start()
+        await asyncio.gather(timer_task, compute_task)
+        return order
+
+    assert run_virtual(main()) == ["planned", "timer"]
+
+
+def test_socketpair_bytes_arrive_without_a_time_jump():
+    async def main() -> tuple[bytes, float]:
+        loop = asyncio.get_running_loop()
+        a, b = socket.socketpair()
+        reader, a_writer = await asyncio.open_connection(sock=a)
+        _, writer = await asyncio.open_connection(sock=b)
+
+        async def send_later() -> None:
+            await asyncio.sleep(5.0)
+            writer.write(b"frame")
+            await writer.drain()
+
+        sender = asyncio.create_task(send_later())
+        data = await reader.readexactly(5)
+        arrived = loop.time()
+        await sender
+        writer.close()
+        a_writer.close()
+        return data, arrived
+
+    data, arrived = run_virtual(main())
+    assert data == b"frame"
+    assert arrived == pytest.approx(5.0)
+
+
+def test_a_deadlocked_simulation_is_reported_instead_of_hanging():
+    async def main() -> None:
+        await asyncio.Event().wait()
+
+    with pytest.raises(VirtualTimeStall, match="virtual time stalled"):
+        run_virtual(main(), idle_real_timeout=0.05)
+
+
+def test_time_scale_must_be_positive():
+    with pytest.raises(ValueError, match="time_scale"):
+        VirtualTimeLoop(time_scale=0.0)
