@@ -1,0 +1,54 @@
+"""Depth frame type and the protocol every depth camera backend implements.
+
+Real (RealSense, bag playback) and simulated cameras all yield ``DepthFrame`` objects stamped on the
+host event-loop clock, so the sweep can tag each frame with the beam angle from the motor trace.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import AsyncIterator, Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """One depth image.
+
+    depth: (H, W) uint16 in units of ``depth_unit_mm``; 0 means no measurement (hole).
+    timestamp_s: host event-loop clock when the frame arrived.
+    device_timestamp_ms: the camera's own clock (for diagnostics, not for tagging).
+    intrinsics: (3, 3) pinhole K in pixels for this image.
+    """
+
+    camera_id: str
+    frame_number: int
+    timestamp_s: float
+    device_timestamp_ms: float
+    depth: np.ndarray
+    depth_unit_mm: float
+    intrinsics: np.ndarray
+
+    def depth_mm(self) -> np.ndarray:
+        """(H, W) float32 depth in mm, 0 where there is no measurement."""
+        return self.depth.astype(np.float32) * np.float32(self.depth_unit_mm)
+
+
+@runtime_checkable
+class DepthCamera(Protocol):
+    """A streaming depth camera: start it, iterate frames, stop it."""
+
+    id: str
+
+    async def start(self) -> None:
+        """Open the device and start streaming."""
+        ...
+
+    def frames(self) -> AsyncIterator[DepthFrame]:
+        """Frames in arrival order, stamped on the event-loop clock."""
+        ...
+
+    async def stop(self) -> None:
+        """Stop streaming and release the device (idempotent)."""
+        ...
