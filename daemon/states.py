@@ -1,0 +1,193 @@
+"""The scan state machine: states, the table of allowed transitions, and status events.
+
+The table is data, so a reviewer can read the whole life of a scan in one place and a test can
+walk every edge. Leaving FAULT is only possible through :meth:`ScanStateMachine.reset`
+(Klipper's latched shutdown): a scan, a retry or a restart can never clear a fault by itself.
+Every transition is logged with its cause and published to the subscribers (the control API
+streams them to clients).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import structlog
+
+from daemon.errors import IllegalTransition
+
+log = structlog.get_logger("daemon.states")
+
+
+class ScanState(enum.Enum):
+    IDLE = "IDLE"
+    PREPARING = "PREPARING"
+    DEPTH_SWEEP = "DEPTH_SWEEP"
+    RECONSTRUCTING = "RECONSTRUCTING"
+    PLANNING = "PLANNING"
+    CAPTURING = "CAPTURING"
+    RETAKING = "RETAKING"
+    STORING = "STORING"
+    ABORTING = "ABORTING"
+    FAULT = "FAULT"
+
+
+class ScanOutcome(enum.Enum):
+    """How a scan ended (recorded in its manifest)."""
+
+    COMPLETED = "COMPLETED"
+    ABORTED = "ABORTED"
+    FAULTED = "FAULTED"
+
+
+S = ScanState
+_ACTIVE = (S.PREPARING, S.DEPTH_SWEEP, S.RECONSTRUCTING, S.PLANNING, S.CAPTURING, S.RETAKING)
+
+TRANSITIONS: dict[ScanState, frozenset[ScanState]] = {
+    S.IDLE: frozenset({S.PREPARING, S.FAULT}),
+    S.PREPARING: frozenset({S.DEPTH_SWEEP, S.ABORTING, S.FAULT}),
+    S.DEPTH_SWEEP: frozenset({S.RECONSTRUCTING, S.ABORTING, S.FAULT}),
+    S.RECONSTRUCTING: frozenset({S.PLANNING, S.ABORTING, S.FAULT}),
+    S.PLANNING: frozenset({S.CAPTURING, S.ABORTING, S.FAULT}),
+    S.CAPTURING: frozenset({S.RETAKING, S.STORING, S.ABORTING, S.FAULT}),
+    S.RETAKING: frozenset({S.STORING, S.ABORTING, S.FAULT}),
+    S.STORING: frozenset({S.IDLE, S.FAULT}),
+    S.ABORTING: frozenset({S.STORING, S.IDLE, S.FAULT}),
+    S.FAULT: frozenset({S.IDLE}),
+}
+"""Allowed transitions. FAULT -> IDLE exists only for :meth:`ScanStateMachine.reset`."""
+
+ACTIVE_STATES = frozenset(_ACTIVE)
+"""States in which the beam may move under the scan's control."""
+
+
+@dataclass(frozen=True)
+class StatusEvent:
+    """One status event: a state transition or a progress report.
+
+    Attributes:
+        kind: "transition" or "progress".
+        state: the state after the event.
+        previous: the state before a transition (same as ``state`` for progress).
+        cause: why, in words.
+        time_s: event-loop clock, s.
+        scan_id: the scan the event belongs to, or None outside a scan.
+        data: extra key-value facts (counts, angles); JSON-serialisable.
+    """
+
+    kind: str
+    state: ScanState
+    previous: ScanState
+    cause: str
+    time_s: float
+    scan_id: str | None = None
+    data: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "state": self.state.value,
+            "previous": self.previous.value,
+            "cause": self.cause,
+            "time_s": self.time_s,
+            "scan_id": self.scan_id,
+            "data": dict(self.data),
+        }
+
+
+class ScanStateMachine:
+    """Holds the rig's scan state; refuses transitions outside :data:`TRANSITIONS`.
+
+    Subscribers each get their own bounded queue; a slow subscriber loses its oldest events
+    rather than stalling the scan.
+    """
+
+    QUEUE_SIZE = 256
+
+    def __init__(self, *, name: str = "rig") -> None:
+        self.name = name
+        self.state = ScanState.IDLE
+        self.scan_id: str | None = None
+        self.fault_causes: list[str] = []
+        self.history: list[StatusEvent] = []
+        self._subscribers: set[asyncio.Queue[StatusEvent]] = set()
+        self._changed = asyncio.Event()
+
+    @property
+    def fault_latched(self) -> bool:
+        return self.state is ScanState.FAULT
+
+    def allowed(self, to: ScanState) -> bool:
+        return to in TRANSITIONS[self.state] and not (
+            self.state is ScanState.FAULT and to is ScanState.IDLE
+        )
+
+    def transition(self, to: ScanState, cause: str, **data: Any) -> StatusEvent:
+        """Move to ``to``; raises :class:`IllegalTransition` if the table forbids it.
+
+        A request for the current state is refused too, except FAULT -> FAULT, which only
+        adds the new cause to the latched ones (every fault handler reports).
+        """
+        if to is ScanState.FAULT:
+            self.fault_causes.append(cause)
+            if self.state is ScanState.FAULT:
+                return self._emit("progress", ScanState.FAULT, cause, data)
+        if not self.allowed(to):
+            raise IllegalTransition(self.state.value, to.value, cause)
+        return self._emit("transition", to, cause, data)
+
+    def reset(self, cause: str) -> StatusEvent:
+        """Clear a latched FAULT (the operator's explicit reset); only valid in FAULT."""
+        if self.state is not ScanState.FAULT:
+            raise IllegalTransition(self.state.value, ScanState.IDLE.value, f"reset: {cause}")
+        self.fault_causes = []
+        return self._emit("transition", ScanState.IDLE, f"reset: {cause}", {})
+
+    def progress(self, cause: str, **data: Any) -> StatusEvent:
+        """Publish a progress event without changing state."""
+        return self._emit("progress", self.state, cause, data)
+
+    def subscribe(self) -> AsyncIterator[StatusEvent]:
+        """Status events from now on, until the subscriber stops iterating."""
+        queue: asyncio.Queue[StatusEvent] = asyncio.Queue(self.QUEUE_SIZE)
+        self._subscribers.add(queue)
+        return self._drain(queue)
+
+    async def _drain(self, queue: asyncio.Queue[StatusEvent]) -> AsyncIterator[StatusEvent]:
+        try:
+            while True:
+                yield await queue.get()
+        finally:
+            self._subscribers.discard(queue)
+
+    async def wait_for(self, *states: ScanState) -> ScanState:
+        """Wait until the machine is in one of ``states``."""
+        while self.state not in states:
+            self._changed.clear()
+            await self._changed.wait()
+        return self.state
+
+    def _emit(self, kind: str, to: ScanState, cause: str, data: dict[str, Any]) -> StatusEvent:
+        try:
+            now = asyncio.get_running_loop().time()
+        except RuntimeError:
+            now = 0.0
+        event = StatusEvent(kind, to, self.state, cause, now, self.scan_id, data)
+        if kind == "transition":
+            log.info("scan_transition", rig=self.name, previous=self.state.value,
+                     state=to.value, cause=cause, scan_id=self.scan_id, **data)
+        else:
+            log.debug("scan_progress", rig=self.name, state=to.value, cause=cause, **data)
+        self.state = to
+        self.history.append(event)
+        if len(self.history) > 4 * self.QUEUE_SIZE:
+            del self.history[: self.QUEUE_SIZE]
+        for queue in self._subscribers:
+            if queue.full():
+                queue.get_nowait()
+            queue.put_nowait(event)
+        self._changed.set()
+        return event
