@@ -82,3 +82,14 @@ class SweepFailed(DaemonError):
         self.frames = frames
         self.needed = needed
         super().__init__(f"depth camera {camera}: {frames} frames in the sweep, needed {needed}")
+
+
+class CaptureMissed(DaemonError):
+    """One pose was not captured at its angle (phone error, lens late, beam already past)."""
+
+    def __init__(self, camera: str, angle_index: int, angle_deg: float, reason: str) -> None:
+        self.camera = camera
+        self.angle_index = angle_index
+        self.angle_deg = angle_deg
+        self.reason = reason
+        super().__init__(f"{camera}: capture at angle {angle_index} ({angle_deg:.2f} deg) missed: {reason}")

@@ -1,0 +1,131 @@
+"""Latched shutdown: e-stop, drive fault and lost heartbeat stop the beam and latch FAULT.
+
+Modelled on Klipper's shutdown: the first trip runs every registered handler (quick stop of the
+drive, the panel's fault light...), each under its own timeout and even if another one fails;
+the failures become further fault causes instead of log lines. Only :meth:`SafetyMonitor.reset`,
+the operator's explicit reset, clears the latch.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import structlog
+
+from daemon.errors import FaultLatched
+from daemon.states import ScanState, ScanStateMachine
+
+log = structlog.get_logger("daemon.safety")
+
+Handler = Callable[[], Awaitable[Any]]
+
+
+class SafetyMonitor:
+    """Watches the drive, runs the shutdown handlers on a trip, and holds the latch.
+
+    Args:
+        machine: the scan state machine; a trip moves it to FAULT from any state.
+        drive: the beam drive (``fault``, ``latest``); watched every ``POLL_S``.
+    """
+
+    POLL_S = 0.02
+    HANDLER_TIMEOUT_S = 2.0
+    STALE_SAMPLE_S = 0.5
+    """No encoder sample for this long while the stream is expected means the drive is gone."""
+
+    def __init__(self, machine: ScanStateMachine, drive: Any) -> None:
+        self.machine = machine
+        self.drive = drive
+        self.tripped = asyncio.Event()
+        self.causes: list[str] = []
+        self.expect_samples = False
+        self._handlers: list[tuple[str, Handler]] = []
+        self._listeners: list[Callable[[str], None]] = []
+        self._watch: asyncio.Task[None] | None = None
+
+    def add_handler(self, name: str, handler: Handler) -> None:
+        """A shutdown action, run on every trip in registration order (concurrently)."""
+        self._handlers.append((name, handler))
+
+    def on_trip(self, listener: Callable[[str], None]) -> None:
+        """Called synchronously with the cause as soon as a trip happens (cancel the scan)."""
+        self._listeners.append(listener)
+
+    @property
+    def latched(self) -> bool:
+        return self.tripped.is_set()
+
+    def check(self) -> None:
+        """Raise :class:`FaultLatched` if a fault is latched (before moving anything)."""
+        if self.latched:
+            raise FaultLatched(self.causes)
+
+    async def trip(self, source: str, detail: str) -> None:
+        """Latch a fault and run every shutdown handler; a second trip only adds its cause."""
+        cause = f"{source}: {detail}"
+        first = not self.latched
+        self.causes.append(cause)
+        self.tripped.set()
+        self.machine.transition(ScanState.FAULT, cause)
+        log.error("safety_trip", source=source, detail=detail, first=first)
+        if not first:
+            return
+        for listener in self._listeners:
+            listener(cause)
+        results = await asyncio.gather(
+            *(self._run(name, handler) for name, handler in self._handlers), return_exceptions=True
+        )
+        for (name, _), result in zip(self._handlers, results):
+            if isinstance(result, BaseException):
+                failure = f"shutdown handler {name} failed: {type(result).__name__}: {result}"
+                self.causes.append(failure)
+                self.machine.transition(ScanState.FAULT, failure)
+
+    async def _run(self, name: str, handler: Handler) -> None:
+        async with asyncio.timeout(self.HANDLER_TIMEOUT_S):
+            await handler()
+
+    async def reset(self, cause: str, recover: Handler) -> None:
+        """Clear the latch after ``recover`` (fault reset, re-enable) succeeded."""
+        await recover()
+        self.causes = []
+        self.tripped.clear()
+        if self.machine.fault_latched:
+            self.machine.reset(cause)
+
+    # ------------------------------------------------------------------ drive watch
+
+    def start(self) -> None:
+        if self._watch is None:
+            self._watch = asyncio.create_task(self._watch_drive(), name="safety-watch")
+
+    async def stop(self) -> None:
+        if self._watch is not None:
+            self._watch.cancel()
+            try:
+                await self._watch
+            except asyncio.CancelledError:
+                pass
+            self._watch = None
+
+    async def _watch_drive(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(self.POLL_S)
+            if self.latched:
+                continue
+            fault = getattr(self.drive, "fault", None)
+            if fault is not None:
+                await self.trip(getattr(self.drive, "name", "beam"), f"{type(fault).__name__}: {fault}")
+                continue
+            latest = getattr(self.drive, "latest", None)
+            if self.expect_samples and latest is not None:
+                age = loop.time() - latest.time_s
+                if age > self.STALE_SAMPLE_S:
+                    await self.trip(
+                        getattr(self.drive, "name", "beam"),
+                        f"encoder stream stalled: last sample {age:.3f} s ago at "
+                        f"{latest.angle_deg:.3f} deg (limit {self.STALE_SAMPLE_S:g} s)",
+                    )
