@@ -1,0 +1,277 @@
+"""Simulated depth camera: ray-cast depth frames of the simulated subject with a RealSense-like error model.
+
+The subject (a trimesh in mm) and the floor are put once into an Open3D ``RaycastingScene``;
+each frame casts one ray per pixel from the depth camera's pose at the current beam angle. Ray
+directions are pinhole directions with z = 1 in the camera frame, so ``t_hit`` is z-depth.
+
+Error model (active stereo, D415 class):
+- depth noise with RMS ``z^2 * subpixel / (fx * baseline)`` (grows with depth squared);
+- quantisation to the depth unit;
+- holes where the incidence angle exceeds ``grazing_limit_deg`` and at silhouette edges
+  (depth discontinuities), as stereo matching fails there;
+- no depth outside ``[min_range_mm, max_range_mm]``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+import trimesh
+
+from drivers.depth.base import DepthFrame
+from planner.poses import depth_camera_pose
+from planner.rig import DepthCamera as DepthCameraConfig
+from planner.rig import DepthCameraModel, Rig
+from planner.sweep import BeamTrace, PosedDepth, Sweep
+
+log = structlog.get_logger(__name__)
+
+#: A depth jump larger than this between neighbouring pixels (relative to depth) is a silhouette edge.
+EDGE_JUMP_RELATIVE = 0.03
+#: Pixels within this many pixels of a silhouette edge get no depth.
+EDGE_WIDTH_PX = 2
+#: Half the side of the square floor put under the subject (mm).
+FLOOR_HALF_SIDE_MM = 2500.0
+
+
+class DepthScene:
+    """A subject mesh standing on a floor, ready for ray casting (build once per subject).
+
+    mesh: the subject in mm, world frame (z up, feet on z = 0). floor: add the z = 0 floor square.
+    """
+
+    def __init__(self, mesh: trimesh.Trimesh, *, floor: bool = True) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+            o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
+        )
+        if floor:
+            s = FLOOR_HALF_SIDE_MM
+            verts = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], dtype=np.float32)
+            faces = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
+            self.scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(faces))
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cast rays from one origin. directions: (N, 3) world. Returns t_hit (N,) and normals (N, 3)."""
+        rays = np.empty((len(directions), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = directions
+        ans = self.scene.cast_rays(self._o3d.core.Tensor(rays))
+        return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
+
+
+class DepthRenderer:
+    """Renders depth images (uint16, depth units) of a :class:`DepthScene` for one camera model."""
+
+    def __init__(self, scene: DepthScene, model: DepthCameraModel) -> None:
+        self.scene = scene
+        self.model = model
+        u, v = np.meshgrid(
+            np.arange(model.width_px, dtype=np.float64), np.arange(model.height_px, dtype=np.float64)
+        )
+        self._rays_camera = np.stack(
+            [(u - model.cx_px) / model.fx_px, (v - model.cy_px) / model.fy_px, np.ones_like(u)], axis=-1
+        ).reshape(-1, 3)
+
+    def true_depth(self, camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) float z-depth in mm (inf where nothing is hit) and (H, W) cos of incidence."""
+        m = self.model
+        rotation, origin = camera_to_world[:3, :3], camera_to_world[:3, 3]
+        directions = self._rays_camera @ rotation.T
+        t_hit, normals = self.scene.cast(origin, directions)
+        lengths = np.linalg.norm(directions, axis=1)
+        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, directions)) / lengths
+        return t_hit.reshape(m.height_px, m.width_px), cos_incidence.reshape(m.height_px, m.width_px)
+
+    def render(self, camera_to_world: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        """(H, W) uint16 depth in depth units, 0 = hole. rng None renders without noise (still quantised)."""
+        m = self.model
+        z, cos_incidence = self.true_depth(camera_to_world)
+        valid = np.isfinite(z) & (z >= m.min_range_mm) & (z <= m.max_range_mm)
+        valid &= cos_incidence >= math.cos(math.radians(m.grazing_limit_deg))
+        valid &= ~silhouette_edges(z)
+        if rng is not None:
+            sigma = np.where(valid, z, 0.0) ** 2 * (m.subpixel_px / (m.fx_px * m.baseline_mm))
+            z = z + rng.standard_normal(z.shape) * sigma
+        units = np.where(valid, np.rint(z / m.depth_unit_mm), 0.0)
+        return np.clip(units, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
+
+def silhouette_edges(z: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels within EDGE_WIDTH_PX of a depth discontinuity (inf counts as far)."""
+    finite = np.where(np.isfinite(z), z, 1e9)
+    jump = np.zeros(z.shape, dtype=bool)
+    for axis in (0, 1):
+        d = np.abs(np.diff(finite, axis=axis))
+        near = np.minimum(np.delete(finite, 0, axis=axis), np.delete(finite, -1, axis=axis))
+        step = d > EDGE_JUMP_RELATIVE * near
+        if axis == 0:
+            jump[1:] |= step
+            jump[:-1] |= step
+        else:
+            jump[:, 1:] |= step
+            jump[:, :-1] |= step
+    grown = jump.copy()
+    for _ in range(EDGE_WIDTH_PX - 1):
+        g = grown.copy()
+        g[1:] |= grown[:-1]
+        g[:-1] |= grown[1:]
+        g[:, 1:] |= grown[:, :-1]
+        g[:, :-1] |= grown[:, 1:]
+        grown = g
+    return grown
+
+
+@dataclass
+class DepthFaults:
+    """Injected faults: frame numbers to drop or deliver empty, and a frame after which streaming stops."""
+
+    drop_frames: set[int] = field(default_factory=set)
+    empty_frames: set[int] = field(default_factory=set)
+    stop_after_frame: int | None = None
+
+
+class SimulatedDepthCamera:
+    """A depth camera on the beam that streams ray-cast frames on the shared event-loop clock.
+
+    beam_angle_deg: callable event-loop time (s) -> beam angle (deg), supplied by the sim wiring
+    (e.g. the simulated drive's true angle). Frames come at ``model.fps`` from ``start()``.
+    """
+
+    def __init__(
+        self,
+        camera: DepthCameraConfig,
+        model: DepthCameraModel,
+        subject: trimesh.Trimesh | DepthScene,
+        beam_angle_deg: Callable[[float], float],
+        *,
+        seed: int = 0,
+        noise: bool = True,
+        faults: DepthFaults | None = None,
+    ) -> None:
+        self.id = camera.id
+        self.camera = camera
+        self.model = model
+        scene = subject if isinstance(subject, DepthScene) else DepthScene(subject)
+        self.renderer = DepthRenderer(scene, model)
+        self.beam_angle_deg = beam_angle_deg
+        self.faults = faults or DepthFaults()
+        self._rng = np.random.default_rng(seed) if noise else None
+        self._t0: float | None = None
+        self._frame_number = 0
+
+    async def start(self) -> None:
+        """Start streaming: frame k is exposed at start time + k / fps."""
+        self._t0 = asyncio.get_running_loop().time()
+        self._frame_number = 0
+        log.info("depth_sim.start", camera=self.id, fps=self.model.fps)
+
+    async def stop(self) -> None:
+        """Stop streaming (idempotent)."""
+        if self._t0 is not None:
+            log.info("depth_sim.stop", camera=self.id, frames=self._frame_number)
+        self._t0 = None
+
+    def drop_next(self, n: int) -> None:
+        """Fault: the next n frames are lost."""
+        self.faults.drop_frames.update(range(self._frame_number, self._frame_number + n))
+
+    def stop_streaming(self) -> None:
+        """Fault: the camera silently stops delivering frames (the USB link stalls)."""
+        self.faults.stop_after_frame = self._frame_number - 1
+
+    async def frames(self) -> AsyncIterator[DepthFrame]:
+        """Frames in order; a stopped camera stalls (the consumer's timeout decides)."""
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.model.fps
+        while self._t0 is not None:
+            k = self._frame_number
+            await asyncio.sleep(max(0.0, self._t0 + k * period - loop.time()))
+            if self._t0 is None:
+                return
+            stop_after = self.faults.stop_after_frame
+            if stop_after is not None and k > stop_after:
+                await asyncio.Event().wait()
+            self._frame_number += 1
+            if k in self.faults.drop_frames:
+                continue
+            t = loop.time()
+            yield self.render_frame(k, t)
+
+    def render_frame(self, frame_number: int, time_s: float) -> DepthFrame:
+        """The frame exposed at event-loop time time_s (beam angle from the angle source)."""
+        m = self.model
+        if frame_number in self.faults.empty_frames:
+            depth = np.zeros((m.height_px, m.width_px), dtype=np.uint16)
+        else:
+            pose = depth_camera_pose(self.camera, math.radians(self.beam_angle_deg(time_s)))
+            depth = self.renderer.render(pose, self._rng)
+        return DepthFrame(
+            camera_id=self.id,
+            frame_number=frame_number,
+            timestamp_s=time_s,
+            device_timestamp_ms=frame_number * 1000.0 / m.fps,
+            depth=depth,
+            depth_unit_mm=m.depth_unit_mm,
+            intrinsics=m.intrinsic_matrix,
+        )
+
+
+def sweep_frame_times(rig: Rig) -> np.ndarray:
+    """(F,) float seconds from the sweep start: 30 fps-style frame times of a constant-speed sweep."""
+    s, m = rig.depth_sweep, rig.depth_camera_model
+    duration = (s.end_deg - s.start_deg) / s.speed_deg_s
+    return np.arange(int(math.floor(duration * m.fps + 1e-9)) + 1) / m.fps
+
+
+def simulate_sweep(
+    body: trimesh.Trimesh | DepthScene,
+    rig: Rig,
+    seed: int = 0,
+    noise: bool = True,
+    *,
+    frame_spacing_deg: float | None = None,
+) -> Sweep:
+    """A depth sweep at ``depth_sweep.speed_deg_s`` without an event loop (tools and tests).
+
+    Every depth camera renders the frames a constant-speed sweep from start_deg to end_deg would
+    produce at the model's fps; with frame_spacing_deg only frames about that many degrees apart are
+    rendered (the ones the TSDF would keep), which saves ray casting time.
+    """
+    s, m = rig.depth_sweep, rig.depth_camera_model
+    scene = body if isinstance(body, DepthScene) else DepthScene(body)
+    renderer = DepthRenderer(scene, m)
+    times = sweep_frame_times(rig)
+    trace = BeamTrace(np.array([0.0, times[-1]]), s.start_deg + s.speed_deg_s * np.array([0.0, times[-1]]))
+    stride = 1
+    if frame_spacing_deg is not None:
+        stride = max(1, int(round(frame_spacing_deg * m.fps / s.speed_deg_s)))
+    keep = np.unique(np.r_[np.arange(0, len(times), stride), len(times) - 1])
+    frames = []
+    for i, camera in enumerate(rig.depth_cameras):
+        rng = np.random.default_rng([seed, i]) if noise else None
+        for k in keep:
+            angle = float(trace.angle_at(times[k]))
+            pose = depth_camera_pose(camera, math.radians(angle))
+            frames.append(
+                PosedDepth(
+                    camera_id=camera.id,
+                    frame_number=int(k),
+                    timestamp_s=float(times[k]),
+                    beam_angle_deg=angle,
+                    depth=renderer.render(pose, rng),
+                    depth_unit_mm=m.depth_unit_mm,
+                    intrinsics=m.intrinsic_matrix,
+                    camera_to_world=pose,
+                )
+            )
+    return Sweep(tuple(frames), trace)

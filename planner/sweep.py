@@ -1,0 +1,162 @@
+"""Depth sweep geometry: tag depth frames with the beam angle and the camera pose at that angle.
+
+The beam angle of a frame is interpolated in the motor's position trace (event-loop time, beam
+angle) at the frame's host timestamp; the frame's camera-to-world pose is the beam rotation applied
+to the depth camera's extrinsics from the rig file. Pure computation: frames are any objects with
+the ``DepthFrame`` attributes (camera_id, frame_number, timestamp_s, depth, depth_unit_mm,
+intrinsics).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from planner.poses import depth_camera_pose
+from planner.rig import Rig
+from planner.shape_errors import BadTrace, FrameOutsideTrace, UnknownDepthCamera
+
+
+class FrameLike(Protocol):
+    camera_id: str
+    frame_number: int
+    timestamp_s: float
+    depth: np.ndarray
+    depth_unit_mm: float
+    intrinsics: np.ndarray
+
+
+@dataclass(frozen=True)
+class BeamTrace:
+    """The beam's recorded position: time_s (N,) increasing event-loop seconds, angle_deg (N,) unwrapped."""
+
+    time_s: np.ndarray
+    angle_deg: np.ndarray
+
+    def __post_init__(self) -> None:
+        t, a = np.asarray(self.time_s, dtype=float), np.asarray(self.angle_deg, dtype=float)
+        if t.ndim != 1 or t.shape != a.shape:
+            raise BadTrace(f"beam trace times {t.shape} and angles {a.shape} must be equal-length 1-D")
+        if len(t) < 2:
+            raise BadTrace(f"beam trace has {len(t)} samples, need at least 2 to interpolate")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(a))):
+            raise BadTrace("beam trace holds non-finite times or angles")
+        steps = np.diff(t)
+        if np.any(steps <= 0):
+            i = int(np.argmin(steps))
+            raise BadTrace(f"beam trace times must increase; sample {i + 1} at {t[i + 1]:.6f} s follows {t[i]:.6f} s")
+        object.__setattr__(self, "time_s", t)
+        object.__setattr__(self, "angle_deg", a)
+
+    @classmethod
+    def from_samples(cls, samples: Iterable[object]) -> BeamTrace:
+        """From motor samples with ``time_s`` and ``angle_deg`` (e.g. BeamSample), duplicates in time dropped."""
+        pairs = sorted({float(s.time_s): float(s.angle_deg) for s in samples}.items())  # type: ignore[attr-defined]
+        return cls(np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]))
+
+    @property
+    def start_s(self) -> float:
+        return float(self.time_s[0])
+
+    @property
+    def end_s(self) -> float:
+        return float(self.time_s[-1])
+
+    def covers(self, time_s: float) -> bool:
+        return self.start_s <= time_s <= self.end_s
+
+    def angle_at(self, time_s: float | np.ndarray) -> np.ndarray:
+        """Beam angle (deg) at event-loop time(s), linear between samples; no extrapolation."""
+        t = np.asarray(time_s, dtype=float)
+        if np.any((t < self.start_s) | (t > self.end_s)):
+            raise BadTrace(
+                f"time(s) {t.min():.4f}..{t.max():.4f} s outside the trace [{self.start_s:.4f}, {self.end_s:.4f}] s"
+            )
+        return np.interp(t, self.time_s, self.angle_deg)
+
+
+@dataclass(frozen=True)
+class PosedDepth:
+    """A depth frame with its beam angle and pose.
+
+    depth: (H, W) uint16 in depth units (0 = hole); intrinsics (3, 3); camera_to_world (4, 4) mm,
+    OpenCV camera axes.
+    """
+
+    camera_id: str
+    frame_number: int
+    timestamp_s: float
+    beam_angle_deg: float
+    depth: np.ndarray
+    depth_unit_mm: float
+    intrinsics: np.ndarray
+    camera_to_world: np.ndarray
+
+    @property
+    def valid_pixels(self) -> int:
+        return int(np.count_nonzero(self.depth))
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """Posed frames of a depth sweep and the beam trace they were tagged with."""
+
+    frames: tuple[PosedDepth, ...]
+    trace: BeamTrace
+
+    def per_camera(self) -> dict[str, int]:
+        counts: dict[str, int] = {}
+        for f in self.frames:
+            counts[f.camera_id] = counts.get(f.camera_id, 0) + 1
+        return counts
+
+
+def tag_frame(frame: FrameLike, trace: BeamTrace, rig: Rig) -> PosedDepth:
+    """The frame with its interpolated beam angle and camera-to-world pose.
+
+    Raises FrameOutsideTrace when the frame's timestamp is not covered by the trace, and
+    UnknownDepthCamera when the rig has no camera of that id.
+    """
+    cameras = {c.id: c for c in rig.depth_cameras}
+    if frame.camera_id not in cameras:
+        raise UnknownDepthCamera(frame.camera_id, sorted(cameras))
+    if not trace.covers(frame.timestamp_s):
+        raise FrameOutsideTrace(frame.camera_id, frame.frame_number, frame.timestamp_s, trace.start_s, trace.end_s)
+    angle = float(trace.angle_at(frame.timestamp_s))
+    return PosedDepth(
+        camera_id=frame.camera_id,
+        frame_number=frame.frame_number,
+        timestamp_s=frame.timestamp_s,
+        beam_angle_deg=angle,
+        depth=frame.depth,
+        depth_unit_mm=frame.depth_unit_mm,
+        intrinsics=np.asarray(frame.intrinsics, dtype=float),
+        camera_to_world=depth_camera_pose(cameras[frame.camera_id], math.radians(angle)),
+    )
+
+
+def tag_frames(frames: Sequence[FrameLike], trace: BeamTrace, rig: Rig) -> Sweep:
+    """Tag every frame (all must lie inside the trace; see :func:`tag_frame`)."""
+    return Sweep(tuple(tag_frame(f, trace, rig) for f in frames), trace)
+
+
+def select_by_spacing(frames: Sequence[PosedDepth], spacing_deg: float) -> list[PosedDepth]:
+    """Per camera, keep frames at least spacing_deg of beam rotation apart (first frame kept).
+
+    Consecutive 30 fps frames a fraction of a degree apart add little to the fusion but cost
+    integration time; empty frames are skipped so a later frame can take their place.
+    """
+    kept: list[PosedDepth] = []
+    last: dict[str, float] = {}
+    for f in sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s)):
+        if f.valid_pixels == 0:
+            continue
+        prev = last.get(f.camera_id)
+        if prev is None or abs(f.beam_angle_deg - prev) >= spacing_deg - 1e-9:
+            kept.append(f)
+            last[f.camera_id] = f.beam_angle_deg
+    return kept

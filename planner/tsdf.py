@@ -1,0 +1,172 @@
+"""TSDF shape estimate: fuse a posed depth sweep into an Open3D VoxelBlockGrid and extract the subject.
+
+Steps: pick frames a fixed beam-angle step apart per camera; integrate them on the CPU (units mm:
+voxel size, truncation and weight threshold from ``rig.tsdf``); extract the zero-level triangle mesh;
+keep the subject only (inside the scan-volume cylinder, above the floor, largest connected
+component); validate that it is a plausible, fully contained person. The result is a trimesh in mm.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+import trimesh
+
+from planner.rig import Rig
+from planner.shape_errors import ImplausibleSubject, NoSubject, SubjectTouchesBoundary, TooFewFrames
+from planner.sweep import PosedDepth, select_by_spacing
+
+log = structlog.get_logger(__name__)
+
+#: Beam rotation between fused frames of one camera (deg); 30 fps at 30 deg/s gives 1 deg steps.
+FRAME_SPACING_DEG = 3.0
+#: Fewer usable frames than this cannot cover a person from all sides.
+MIN_FRAMES = 12
+#: Depth images are decimated by this factor before fusion (a pixel stays well under a voxel).
+DECIMATION = 2
+#: Voxel blocks are block_resolution^3 voxels.
+BLOCK_RESOLUTION = 8
+#: A surface within this many voxels of the volume's side or top counts as touching it.
+BOUNDARY_MARGIN_VOXELS = 1.5
+#: A person: height and horizontal extent ranges (mm).
+HEIGHT_RANGE_MM = (900.0, 2300.0)
+EXTENT_RANGE_MM = (150.0, 1200.0)
+
+
+@dataclass(frozen=True)
+class TsdfResult:
+    """The subject mesh (mm) and how it was made."""
+
+    mesh: trimesh.Trimesh
+    frames_used: int
+    per_camera: dict[str, int]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def _decimate(depth: np.ndarray, intrinsics: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keep every factor-th pixel; K scaled so pixel centres stay consistent."""
+    if factor == 1:
+        return depth, intrinsics
+    d = np.ascontiguousarray(depth[::factor, ::factor])
+    k = intrinsics.copy()
+    k[0, 0] /= factor
+    k[1, 1] /= factor
+    k[0, 2] /= factor
+    k[1, 2] /= factor
+    return d, k
+
+
+def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
+    """Fuse posed frames into a VoxelBlockGrid (mm units). Returns the open3d VoxelBlockGrid."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    cfg = rig.tsdf
+    device = o3c.Device("CPU:0")
+    vbg = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight"),
+        attr_dtypes=(o3c.float32, o3c.float32),
+        attr_channels=((1), (1)),
+        voxel_size=cfg.voxel_mm,
+        block_resolution=BLOCK_RESOLUTION,
+        block_count=40_000,
+        device=device,
+    )
+    depth_max = rig.depth_camera_model.max_range_mm
+    for f in frames:
+        depth, k = _decimate(f.depth, f.intrinsics, DECIMATION)
+        image = o3d.t.geometry.Image(o3c.Tensor(depth))
+        intrinsic = o3c.Tensor(k, dtype=o3c.float64)
+        extrinsic = o3c.Tensor(np.linalg.inv(f.camera_to_world), dtype=o3c.float64)
+        scale = 1.0 / f.depth_unit_mm
+        blocks = vbg.compute_unique_block_coordinates(
+            image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels
+        )
+        vbg.integrate(blocks, image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels)
+    return vbg
+
+
+def _subject(mesh: trimesh.Trimesh, rig: Rig) -> trimesh.Trimesh:
+    """Crop to the scan cylinder above the floor and keep the largest connected component."""
+    import open3d as o3d
+
+    cfg = rig.tsdf
+    v = mesh.vertices
+    r = np.hypot(v[:, 0], v[:, 1])
+    inside = (r <= cfg.volume_radius_mm) & (v[:, 2] >= cfg.floor_clearance_mm) & (v[:, 2] <= cfg.volume_height_mm)
+    faces = mesh.faces[inside[mesh.faces].all(axis=1)]
+    if len(faces) == 0:
+        raise NoSubject(
+            f"no surface above {cfg.floor_clearance_mm:g} mm within radius {cfg.volume_radius_mm:g} mm "
+            f"and height {cfg.volume_height_mm:g} mm"
+        )
+    legacy = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(faces.astype(np.int32))
+    )
+    labels, counts, _ = legacy.cluster_connected_triangles()
+    labels = np.asarray(labels)
+    keep = faces[labels == int(np.argmax(np.asarray(counts)))]
+    used = np.unique(keep)
+    remap = np.full(len(v), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return trimesh.Trimesh(v[used], remap[keep], process=False)
+
+
+def _validate(subject: trimesh.Trimesh, rig: Rig) -> None:
+    cfg = rig.tsdf
+    v = subject.vertices
+    height = float(v[:, 2].max())
+    extent = float(np.max(v[:, :2].max(axis=0) - v[:, :2].min(axis=0)))
+    if height < 0.5 * HEIGHT_RANGE_MM[0] and extent < EXTENT_RANGE_MM[0]:
+        raise NoSubject(f"largest object is {height:.0f} mm tall and {extent:.0f} mm wide: clutter, not a person")
+    margin = BOUNDARY_MARGIN_VOXELS * cfg.voxel_mm
+    r = np.hypot(v[:, 0], v[:, 1])
+    if r.max() >= cfg.volume_radius_mm - margin:
+        i = int(np.argmax(r))
+        raise SubjectTouchesBoundary(
+            "side", math.degrees(math.atan2(v[i, 1], v[i, 0])), float(v[i, 2]), float(r[i]), cfg.volume_radius_mm
+        )
+    if height >= cfg.volume_height_mm - margin:
+        i = int(np.argmax(v[:, 2]))
+        raise SubjectTouchesBoundary(
+            "top", math.degrees(math.atan2(v[i, 1], v[i, 0])), height, float(r[i]), cfg.volume_height_mm
+        )
+    if not HEIGHT_RANGE_MM[0] <= height <= HEIGHT_RANGE_MM[1]:
+        raise ImplausibleSubject("height", height, *HEIGHT_RANGE_MM)
+    if not EXTENT_RANGE_MM[0] <= extent <= EXTENT_RANGE_MM[1]:
+        raise ImplausibleSubject("horizontal extent", extent, *EXTENT_RANGE_MM)
+
+
+def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True) -> TsdfResult:
+    """Fuse a depth sweep into the subject's surface mesh (mm).
+
+    validate=False skips the person-size and containment checks (analytic test shapes); a missing
+    subject and too few frames are refused either way.
+    """
+    t0 = time.perf_counter()
+    chosen = select_by_spacing(frames, FRAME_SPACING_DEG)
+    per_camera: dict[str, int] = {}
+    for f in chosen:
+        per_camera[f.camera_id] = per_camera.get(f.camera_id, 0) + 1
+    if len(chosen) < MIN_FRAMES:
+        raise TooFewFrames(len(chosen), MIN_FRAMES, per_camera)
+    vbg = integrate(chosen, rig)
+    t1 = time.perf_counter()
+    tmesh = vbg.extract_triangle_mesh(weight_threshold=rig.tsdf.weight_threshold)
+    vertices = tmesh.vertex.positions.numpy().astype(np.float64)
+    triangles = tmesh.triangle.indices.numpy().astype(np.int64)
+    t2 = time.perf_counter()
+    if len(triangles) == 0:
+        raise NoSubject(f"the fused volume holds no surface ({len(chosen)} frames)")
+    subject = _subject(trimesh.Trimesh(vertices, triangles, process=False), rig)
+    if validate:
+        _validate(subject, rig)
+    t3 = time.perf_counter()
+    timings = {"integrate": t1 - t0, "extract": t2 - t1, "clean": t3 - t2, "total": t3 - t0}
+    log.info("tsdf.fused", frames=len(chosen), vertices=len(subject.vertices), **{f"{k}_s": round(v, 3) for k, v in timings.items()})
+    return TsdfResult(subject, len(chosen), per_camera, timings)
