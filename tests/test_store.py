@@ -1,0 +1,275 @@
+"""Scan store: atomic writes, manifest, recover(), background pulls, disk full (daemon/store.py)."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import subprocess
+import uuid
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.pulls import PullQueue
+from daemon.store import (
+    AtomicWriter,
+    ImageStatus,
+    ManifestError,
+    ScanEnd,
+    ScanStore,
+    StoreError,
+    StoreFull,
+)
+from planner.rig import load_rig
+
+NOW = datetime(2026, 11, 22, 9, 30, 0, tzinfo=UTC)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_rig()
+
+
+def _manifest(folder) -> dict:
+    return json.loads((folder.path / "manifest.json").read_text())
+
+
+def _planned(store: ScanStore, rig, scan_id="abc123"):
+    folder = store.create(rig, scan_id=scan_id, now=NOW)
+    folder.plan_images(rig.capture.angles_deg, np.full(rig.n_poses, 500.0))
+    return folder
+
+
+class CrashingWriter(AtomicWriter):
+    """Writes half of the file, then fails like a full disk or a crash mid-write."""
+
+    def __init__(self, errno_: int) -> None:
+        self.armed = False
+        self.errno_ = errno_
+
+    def _write_all(self, fd: int, data: bytes) -> None:
+        if self.armed:
+            os.write(fd, data[: len(data) // 2])
+            raise OSError(self.errno_, os.strerror(self.errno_))
+        super()._write_all(fd, data)
+
+
+def test_new_folder_is_incomplete_and_in_progress(tmp_path, rig):
+    folder = ScanStore(tmp_path).create(rig, scan_id="s1", now=NOW)
+    assert folder.path == tmp_path / "20261122-093000-s1"
+    m = _manifest(folder)
+    assert m["state"] == "incomplete" and m["in_progress"] is True
+    assert m["format_version"] == 1 and m["rig_digest"] == rig.digest
+    assert len(m["calibration_digest"]) == 64
+    assert m["cameras"] == [p.id for p in rig.phones]
+
+
+def test_scan_id_must_be_opaque_token(tmp_path, rig):
+    with pytest.raises(StoreError, match="scan id"):
+        ScanStore(tmp_path).create(rig, scan_id="Jane Doe/1985", now=NOW)
+
+
+def test_full_lifecycle_writes_every_file(tmp_path, rig):
+    folder = _planned(ScanStore(tmp_path), rig)
+    folder.write_plan({"focus_mm": [500.0] * rig.n_poses}, {"in_focus_fraction": 0.8})
+    folder.write_mesh(b"ply\nformat ascii 1.0\nend_header\n")
+    folder.write_trace(np.arange(5.0), np.arange(5.0) * 3)
+    folder.write_depth_sweep({"frames": 120})
+    folder.log_event("capture_start", angle_index=0)
+    folder.log_event("capture_end", value=float("nan"))
+    folder.record_capture(2, 7, sensor_timestamp_ns=123, host_time_s=4.5, actual_angle_deg=48.01,
+                          phone_path="/sdcard/x.jpg", size_bytes=10)
+    folder.finish(ScanEnd.COMPLETE)
+    m = _manifest(folder)
+    assert m["state"] == "complete" and m["in_progress"] is False
+    assert set(m["files"]) == {"plan", "mesh", "trace", "depth_sweep", "events"}
+    img = next(i for i in m["images"] if i["camera_index"] == 2 and i["angle_index"] == 7)
+    assert img["status"] == "captured" and img["actual_angle_deg"] == 48.01
+    assert img["focus_diopters"] == pytest.approx(2.0)
+    assert m["counts"]["missing"] == rig.n_poses - 1
+    lines = (folder.path / "events.jsonl").read_text().splitlines()
+    assert [json.loads(x)["event"] for x in lines] == ["capture_start", "capture_end"]
+    assert json.loads(lines[1])["value"] is None
+    assert m["plan_summary"] == {"in_focus_fraction": 0.8}
+    trace = np.load(folder.path / "trace.npz")
+    np.testing.assert_array_equal(trace["angle_deg"], np.arange(5.0) * 3)
+
+
+def test_crash_mid_write_keeps_the_previous_manifest(tmp_path, rig):
+    writer = CrashingWriter(errno.EIO)
+    folder = _planned(ScanStore(tmp_path, writer=writer), rig)
+    before = (folder.path / "manifest.json").read_bytes()
+    writer.armed = True
+    with pytest.raises(StoreError, match="errno 5") as info:
+        folder.record_capture(0, 0, sensor_timestamp_ns=1, host_time_s=1.0, actual_angle_deg=-40.0,
+                              phone_path="/p.jpg", size_bytes=1)
+    assert not isinstance(info.value, StoreFull)
+    assert (folder.path / "manifest.json").read_bytes() == before
+    assert not list(folder.path.glob(".*.tmp"))
+
+
+def test_enospc_is_a_typed_error_naming_path_and_bytes(tmp_path, rig):
+    writer = CrashingWriter(errno.ENOSPC)
+    folder = _planned(ScanStore(tmp_path, writer=writer), rig)
+    before = _manifest(folder)
+    writer.armed = True
+    with pytest.raises(StoreFull) as info:
+        folder.record_capture(0, 0, sensor_timestamp_ns=1, host_time_s=1.0, actual_angle_deg=-40.0,
+                              phone_path="/p.jpg", size_bytes=1)
+    assert info.value.path.endswith("manifest.json") and info.value.bytes_needed > 1000
+    assert "bytes needed" in str(info.value)
+    assert _manifest(folder) == before  # still valid JSON, nothing lost
+
+
+def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
+    store = ScanStore(tmp_path)
+    live = _planned(store, rig, "killed")
+    live.record_capture(1, 0, sensor_timestamp_ns=1, host_time_s=1.0, actual_angle_deg=-40.0,
+                        phone_path="/p.jpg", size_bytes=3)
+    # a verified-in-file-but-not-in-manifest pull, a leftover temp file
+    (live.path / "images" / "cam0-a00.jpg").write_bytes(b"abc")
+    live.update_image(0, 0, status="pulled", file="images/cam0-a00.jpg", size_bytes=3,
+                      sha256=hashlib.sha256(b"abc").hexdigest())
+    (live.path / ".manifest.json.tmp").write_bytes(b"{torn")
+    done = store.create(rig, scan_id="done", now=NOW)
+    done.finish(ScanEnd.ABORTED, "stop pressed")
+    (tmp_path / "20261122-093001-nomanifest").mkdir()
+
+    recovered = store.recover("killed by test")
+    assert sorted(f.scan_id for f in recovered) == ["killed", "nomanifest"]
+    m = _manifest(live)
+    assert m["state"] == "incomplete" and m["in_progress"] is False
+    assert m["reason"] == "killed by test"
+    statuses = {(i["camera_index"], i["angle_index"]): i for i in m["images"]}
+    assert statuses[(0, 0)]["status"] == "verified"
+    assert statuses[(1, 0)]["status"] == "captured" and "not pulled" in statuses[(1, 0)]["error"]
+    assert statuses[(2, 0)]["status"] == "missing"
+    assert not list(live.path.glob(".*.tmp"))
+    assert _manifest(done)["state"] == "aborted"
+    assert "no manifest" in _manifest(store.open(tmp_path / "20261122-093001-nomanifest"))["reason"]
+    assert store.recover() == []
+
+
+def test_unreadable_manifest_is_a_typed_error(tmp_path, rig):
+    folder = ScanStore(tmp_path).create(rig, scan_id="x", now=NOW)
+    (folder.path / "manifest.json").write_text('{"format_version": 99}')
+    with pytest.raises(ManifestError, match="format_version 99"):
+        ScanStore(tmp_path).open(folder.path)
+
+
+class FakePhone:
+    """pull(phone_path, dest) like PhoneCamera.pull, with injected failures."""
+
+    def __init__(self, fail_first: int = 0, corrupt: bool = False, error: OSError | None = None):
+        self.fail_first = fail_first
+        self.corrupt = corrupt
+        self.error = error
+        self.calls = 0
+
+    async def pull(self, phone_path: str, dest: Path) -> tuple[int, str]:
+        self.calls += 1
+        if self.error is not None:
+            raise self.error
+        if self.calls <= self.fail_first:
+            raise ConnectionError(f"adb stream closed pulling {phone_path}")
+        data = phone_path.encode() * 10
+        dest.write_bytes(data[:-1] + b"X" if self.corrupt else data)
+        return len(data), hashlib.sha256(data).hexdigest()
+
+
+async def test_background_pulls_verify_retry_and_record(tmp_path, rig):
+    folder = _planned(ScanStore(tmp_path), rig)
+    good, flaky, broken = FakePhone(), FakePhone(fail_first=1), FakePhone(corrupt=True)
+    PullQueue.RETRY_DELAY_S = 0.0
+    async with PullQueue(folder, workers=2) as q:
+        q.submit(0, 0, "/sdcard/a.jpg", good.pull, expected_size=130)
+        q.submit(1, 0, "/sdcard/b.jpg", flaky.pull)
+        q.submit(2, 0, "/sdcard/c.jpg", broken.pull)
+        await q.join()
+    m = _manifest(folder)
+    img = {(i["camera_index"], i["angle_index"]): i for i in m["images"]}
+    assert img[(0, 0)]["status"] == "verified" and img[(0, 0)]["file"] == "images/cam0-a00.jpg"
+    assert (folder.path / "images/cam0-a00.jpg").read_bytes() == b"/sdcard/a.jpg" * 10
+    assert img[(1, 0)]["status"] == "verified" and img[(1, 0)]["attempts"] == 2
+    assert img[(2, 0)]["status"] == "failed" and "sha256" in img[(2, 0)]["error"]
+    assert broken.calls == PullQueue.RETRIES + 1
+    assert not (folder.path / "images/cam2-a00.jpg").exists()
+    assert [f.camera_id for f in q.failures] == ["cam2"]
+
+
+async def test_pull_onto_a_full_disk_keeps_the_image_captured(tmp_path, rig):
+    folder = _planned(ScanStore(tmp_path), rig)
+    folder.record_capture(3, 4, sensor_timestamp_ns=1, host_time_s=1.0, actual_angle_deg=0.0,
+                          phone_path="/sdcard/d.jpg", size_bytes=100)
+    phone = FakePhone(error=OSError(errno.ENOSPC, "No space left on device"))
+    async with PullQueue(folder) as q:
+        q.submit(3, 4, "/sdcard/d.jpg", phone.pull, expected_size=100)
+        with pytest.raises(StoreFull):
+            await q.join()
+    image = _manifest(folder)["images"][rig.pose_index(4, 3)]
+    assert image["status"] == "captured" and "disk full" in image["error"]
+    assert phone.calls == 1  # a full disk is not retried
+
+
+async def test_not_enough_free_space_refused_before_pulling(tmp_path, rig):
+    folder = _planned(ScanStore(tmp_path), rig)
+    phone = FakePhone()
+    async with PullQueue(folder) as q:
+        q.submit(0, 1, "/sdcard/huge.dng", phone.pull, expected_size=1 << 60)
+        with pytest.raises(StoreFull) as info:
+            await q.join()
+    assert info.value.bytes_needed > 1 << 60 and phone.calls == 0
+
+
+@pytest.fixture
+def tiny_tmpfs(tmp_path):
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", f"tbp-{uuid.uuid4().hex[:6]}",
+                          str(mnt)], capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {res.stderr.strip()}")
+    yield mnt
+    subprocess.run(["umount", str(mnt)], check=True)
+
+
+def _fill(folder: Path) -> None:
+    """Fill a file system to its last block."""
+    with pytest.raises(OSError) as info:
+        with open(folder / "filler", "wb") as f:
+            while True:
+                f.write(b"x" * 4096)
+                f.flush()
+    assert info.value.errno == errno.ENOSPC
+
+
+def test_real_enospc_on_a_tiny_tmpfs(tiny_tmpfs, rig):
+    folder = _planned(ScanStore(tiny_tmpfs, reserve_bytes=300_000), rig)
+    folder.record_capture(0, 0, sensor_timestamp_ns=5, host_time_s=1.0, actual_angle_deg=-40.0,
+                          phone_path="/p.jpg", size_bytes=1)
+    with pytest.raises(StoreFull) as info:
+        folder.write_mesh(os.urandom(800_000))
+    assert info.value.path.endswith("mesh.ply") and info.value.bytes_needed == 800_000
+    assert not list(folder.path.glob(".*.tmp"))
+    # fill the disk to the last block, then the scan still ends with a valid manifest
+    _fill(tiny_tmpfs)
+    folder.record_capture(1, 0, sensor_timestamp_ns=6, host_time_s=1.1, actual_angle_deg=-40.0,
+                          phone_path="/q.jpg", size_bytes=1)
+    assert not folder.reserve_path.exists()
+    folder.finish(ScanEnd.FAULT, "disk full")
+    m = _manifest(folder)
+    assert m["state"] == "fault"
+    assert [i["status"] for i in m["images"][:2]] == ["captured", "captured"]
+
+
+def test_without_reserve_a_full_disk_leaves_the_previous_manifest(tiny_tmpfs, rig):
+    folder = _planned(ScanStore(tiny_tmpfs, reserve_bytes=0), rig)
+    before = (folder.path / "manifest.json").read_bytes()
+    _fill(tiny_tmpfs)
+    with pytest.raises(StoreFull):
+        folder.finish(ScanEnd.COMPLETE)
+    assert (folder.path / "manifest.json").read_bytes() == before
