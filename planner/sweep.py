@@ -160,3 +160,28 @@ def select_by_spacing(frames: Sequence[PosedDepth], spacing_deg: float) -> list[
             kept.append(f)
             last[f.camera_id] = f.beam_angle_deg
     return kept
+
+
+def observed(points: np.ndarray, frames: Sequence[PosedDepth], tolerance_mm: float = 10.0) -> np.ndarray:
+    """(N,) bool: which of (N, 3) world points some frame measured (valid depth within tolerance_mm).
+
+    The sweep's coverage of a known surface: a point counts as seen when it projects inside a
+    frame and that pixel's depth agrees with the point's depth (so occluded points do not count).
+    """
+    seen = np.zeros(len(points), dtype=bool)
+    for f in frames:
+        world_to_camera = np.linalg.inv(f.camera_to_world)
+        p = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+        z = p[:, 2]
+        front = z > 1e-6
+        k = f.intrinsics
+        u = np.full(len(points), -1, dtype=np.int64)
+        v = np.full(len(points), -1, dtype=np.int64)
+        u[front] = np.floor(k[0, 0] * p[front, 0] / z[front] + k[0, 2]).astype(np.int64)
+        v[front] = np.floor(k[1, 1] * p[front, 1] / z[front] + k[1, 2]).astype(np.int64)
+        h, w = f.depth.shape
+        inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        idx = np.flatnonzero(inside)
+        measured = f.depth[v[idx], u[idx]].astype(float) * f.depth_unit_mm
+        seen[idx[(measured > 0) & (np.abs(measured - z[idx]) <= tolerance_mm)]] = True
+    return seen

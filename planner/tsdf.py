@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import structlog
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from planner.rig import Rig
 from planner.shape_errors import ImplausibleSubject, NoSubject, SubjectTouchesBoundary, TooFewFrames
@@ -36,6 +38,9 @@ BOUNDARY_MARGIN_VOXELS = 1.5
 #: A person: height and horizontal extent ranges (mm).
 HEIGHT_RANGE_MM = (900.0, 2300.0)
 EXTENT_RANGE_MM = (150.0, 1200.0)
+#: Besides the largest component, keep components with at least this share of its triangles
+#: (a hand or an arm the TSDF separated from the body by a narrow gap).
+MIN_COMPONENT_SHARE = 0.02
 
 
 @dataclass(frozen=True)
@@ -61,6 +66,27 @@ def _decimate(depth: np.ndarray, intrinsics: np.ndarray, factor: int) -> tuple[n
     return d, k
 
 
+def _mask_outside_volume(depth: np.ndarray, k: np.ndarray, camera_to_world: np.ndarray, rig: Rig) -> np.ndarray:
+    """Zero the pixels whose points lie outside the scan cylinder or on the floor.
+
+    The floor and the room would otherwise allocate most voxel blocks and dominate fusion time.
+    """
+    cfg = rig.tsdf
+    h, w = depth.shape
+    z = depth.astype(np.float32)
+    x = (np.arange(w, dtype=np.float32) - np.float32(k[0, 2])) / np.float32(k[0, 0])
+    y = (np.arange(h, dtype=np.float32) - np.float32(k[1, 2])) / np.float32(k[1, 1])
+    r = camera_to_world[:3, :3].astype(np.float32)
+    t = camera_to_world[:3, 3].astype(np.float32)
+    wx = z * (r[0, 0] * x[None, :] + r[0, 1] * y[:, None] + r[0, 2]) + t[0]
+    wy = z * (r[1, 0] * x[None, :] + r[1, 1] * y[:, None] + r[1, 2]) + t[1]
+    wz = z * (r[2, 0] * x[None, :] + r[2, 1] * y[:, None] + r[2, 2]) + t[2]
+    margin = 2 * cfg.voxel_mm
+    keep = (wx * wx + wy * wy <= (cfg.volume_radius_mm + margin) ** 2) & (wz >= cfg.floor_clearance_mm)
+    keep &= wz <= cfg.volume_height_mm + margin
+    return np.where(keep, depth, 0).astype(depth.dtype)
+
+
 def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
     """Fuse posed frames into a VoxelBlockGrid (mm units). Returns the open3d VoxelBlockGrid."""
     import open3d as o3d
@@ -80,10 +106,11 @@ def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
     depth_max = rig.depth_camera_model.max_range_mm
     for f in frames:
         depth, k = _decimate(f.depth, f.intrinsics, DECIMATION)
+        depth = _mask_outside_volume(depth * np.float32(f.depth_unit_mm), k, f.camera_to_world, rig)
         image = o3d.t.geometry.Image(o3c.Tensor(depth))
         intrinsic = o3c.Tensor(k, dtype=o3c.float64)
         extrinsic = o3c.Tensor(np.linalg.inv(f.camera_to_world), dtype=o3c.float64)
-        scale = 1.0 / f.depth_unit_mm
+        scale = 1.0
         blocks = vbg.compute_unique_block_coordinates(
             image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels
         )
@@ -91,26 +118,27 @@ def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
     return vbg
 
 
-def _subject(mesh: trimesh.Trimesh, rig: Rig) -> trimesh.Trimesh:
-    """Crop to the scan cylinder above the floor and keep the largest connected component."""
-    import open3d as o3d
-
+def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
+    """Crop (V, 3) vertices / (T, 3) triangles to the scan cylinder above the floor; keep the largest component."""
     cfg = rig.tsdf
-    v = mesh.vertices
     r = np.hypot(v[:, 0], v[:, 1])
     inside = (r <= cfg.volume_radius_mm) & (v[:, 2] >= cfg.floor_clearance_mm) & (v[:, 2] <= cfg.volume_height_mm)
-    faces = mesh.faces[inside[mesh.faces].all(axis=1)]
+    faces = triangles[inside[triangles].all(axis=1)]
     if len(faces) == 0:
         raise NoSubject(
             f"no surface above {cfg.floor_clearance_mm:g} mm within radius {cfg.volume_radius_mm:g} mm "
             f"and height {cfg.volume_height_mm:g} mm"
         )
-    legacy = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(faces.astype(np.int32))
-    )
-    labels, counts, _ = legacy.cluster_connected_triangles()
-    labels = np.asarray(labels)
-    keep = faces[labels == int(np.argmax(np.asarray(counts)))]
+    used = np.unique(faces)
+    remap = np.full(len(v), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    local = remap[faces]
+    edges = np.concatenate([local[:, [0, 1]], local[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(len(used),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    face_labels = labels[local[:, 0]]
+    sizes = np.bincount(face_labels)
+    keep = faces[sizes[face_labels] >= MIN_COMPONENT_SHARE * sizes.max()]
     used = np.unique(keep)
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
@@ -163,7 +191,7 @@ def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True) -> Ts
     t2 = time.perf_counter()
     if len(triangles) == 0:
         raise NoSubject(f"the fused volume holds no surface ({len(chosen)} frames)")
-    subject = _subject(trimesh.Trimesh(vertices, triangles, process=False), rig)
+    subject = _subject(vertices, triangles, rig)
     if validate:
         _validate(subject, rig)
     t3 = time.perf_counter()
