@@ -96,6 +96,10 @@ class BeamTracker:
         """Beam angle (deg) at event-loop time(s), linear between encoder samples."""
         return np.interp(time_s, self._times, self._angles)
 
+    def speed_at(self, time_s: float | np.ndarray) -> float | np.ndarray:
+        """Beam speed (deg/s) at event-loop time(s), linear between encoder samples."""
+        return np.interp(time_s, self._times, self._speeds)
+
     # ------------------------------------------------------------------ live
 
     @property

@@ -1,0 +1,423 @@
+"""Capture execution: drive the dual-speed rotation and fire every phone at its angle.
+
+One worker per phone walks the capture angles in order. The focus for angle k+1 is sent as
+soon as the capture at angle k is complete, so the lens moves while the beam travels; the
+trigger fires at the crossing time predicted from the live encoder stream, early by the
+phone's measured trigger latency (a running estimate) and half the exposure, so the middle of
+the exposure lands on the angle. The rotation never waits for a phone: a pose that fails or
+cannot be taken in time is recorded and retaken in a short second pass over the missed
+angles after the main rotation, when its phone is back; otherwise it stays missing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import structlog
+
+from daemon.beam import BeamTracker
+from daemon.clocksync import ClockSync, EncoderTrace, exposure_angle
+from daemon.errors import BeamTimeout, CaptureMissed
+from daemon.timeline import CaptureSchedule, MotionProfile, move_duration
+from planner.rig import Rig
+
+log = structlog.get_logger("daemon.capture")
+
+
+@dataclass
+class CaptureRecord:
+    """What happened to one pose. Times are event-loop seconds; angles beam degrees."""
+
+    pose_index: int
+    angle_index: int
+    camera_index: int
+    camera_id: str
+    planned_angle_deg: float
+    focus_mm: float
+    status: str = "pending"  # captured | missing
+    capture_pass: str = ""  # main | retake
+    focus_sent_s: float | None = None
+    lens_stationary_s: float | None = None
+    lens_settle_s: float | None = None
+    lens_late: bool = False
+    lens_slow: bool = False
+    focus_mm_reported: float | None = None
+    focus_diopters: float | None = None
+    trigger_s: float | None = None
+    trigger_latency_s: float | None = None
+    exposure_mid_s: float | None = None
+    exposure_angle_deg: float | None = None
+    angle_error_deg: float | None = None
+    angle_uncertainty_deg: float | None = None
+    beam_speed_deg_s: float | None = None
+    sensor_timestamp_ns: int | None = None
+    phone_path: str | None = None
+    size_bytes: int | None = None
+    error: str | None = None
+    error_type: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class TriggerLatency:
+    """Running estimate of one phone's trigger latency (command sent -> exposure start), s."""
+
+    GAIN = 0.3
+
+    def __init__(self, initial_s: float = 0.0) -> None:
+        self.value_s = initial_s
+        self.samples = 0
+
+    def update(self, measured_s: float) -> None:
+        if self.samples == 0:
+            self.value_s = measured_s
+        else:
+            self.value_s += self.GAIN * (measured_s - self.value_s)
+        self.samples += 1
+
+
+def _disconnected(exc: BaseException) -> bool:
+    names = {cls.__name__ for cls in type(exc).__mro__}
+    return bool(names & {"PhoneDisconnected", "ConnectionLost", "ConnectionError", "EOFError"})
+
+
+@dataclass(frozen=True)
+class _Target:
+    angle_index: int
+    angle_deg: float
+    focus_mm: float
+
+
+class CaptureRunner:
+    """Executes a compiled :class:`CaptureSchedule` on the beam drive and the phones.
+
+    Args:
+        phones: one ``PhoneCamera`` per rig phone, connected.
+        clocks: one clock mapping (sensor ns -> loop s) per phone.
+        latency: one :class:`TriggerLatency` per phone (measured before the rotation).
+        on_capture: called with every captured record (the store pulls it in the background).
+        progress: called with (event, fields) for status events.
+    """
+
+    FOCUS_TIMEOUT_S = 2.0
+    CAPTURE_TIMEOUT_S = 2.0
+    REFINE_S = 0.03
+    """Re-predict the crossing this long before firing, from the freshest encoder sample."""
+    RECONNECT_TIMEOUT_S = 5.0
+    RETAKE_MARGIN_DEG = 1.0
+    STILL_TIMEOUT_S = 10.0
+    TRACE_WINDOW = 1000
+    """Encoder samples kept for an exposure-angle lookup (5 s at 200 Hz)."""
+
+    def __init__(
+        self,
+        rig: Rig,
+        schedule: CaptureSchedule,
+        drive: Any,
+        tracker: BeamTracker,
+        phones: Sequence[Any],
+        clocks: Sequence[ClockSync],
+        latency: Sequence[TriggerLatency],
+        *,
+        on_capture: Callable[[CaptureRecord], None] = lambda r: None,
+        progress: Callable[..., None] = lambda event, **kw: None,
+    ) -> None:
+        self.rig = rig
+        self.schedule = schedule
+        self.drive = drive
+        self.tracker = tracker
+        self.phones = list(phones)
+        self.clocks = list(clocks)
+        self.latency = list(latency)
+        self.on_capture = on_capture
+        self.progress = progress
+        self.gone = [False] * rig.n_cameras
+        self.records = [
+            CaptureRecord(
+                pose_index=rig.pose_index(k, c), angle_index=k, camera_index=c,
+                camera_id=rig.phones[c].id, planned_angle_deg=float(schedule.angles_deg[k]),
+                focus_mm=float(schedule.focus_mm[k, c]),
+            )
+            for k in range(rig.n_angles)
+            for c in range(rig.n_cameras)
+        ]
+        self.captured = 0
+        self.main_trace_mark = 0
+        self.main_started_s = 0.0
+        self.main_ended_s = 0.0
+
+    # ------------------------------------------------------------------ passes
+
+    async def run(self) -> list[CaptureRecord]:
+        """The main rotation, then the retake pass over whatever was missed."""
+        await self.main_pass()
+        await self.retake_pass()
+        for record in self.records:
+            if record.status != "captured":
+                record.status = "missing"
+        return self.records
+
+    async def main_pass(self) -> None:
+        profile = self.schedule.profile
+        accel = self.rig.capture.acceleration_deg_s2
+        targets = [
+            [_Target(k, float(self.schedule.angles_deg[k]), float(self.schedule.focus_mm[k, c]))
+             for k in range(self.rig.n_angles)]
+            for c in range(self.rig.n_cameras)
+        ]
+        await self._prefocus([t[0] for t in targets], "main")
+        loop = asyncio.get_running_loop()
+        self.main_trace_mark = self.tracker.mark()
+        self.main_started_s = loop.time()
+        self.progress("rotation_started", pass_name="main", start_deg=profile.start_deg)
+        workers = [
+            asyncio.create_task(self._phone_pass(c, targets[c], "main"), name=f"capture-{c}")
+            for c in range(self.rig.n_cameras)
+        ]
+        try:
+            await self._drive_profile(profile, accel)
+            await asyncio.gather(*workers)
+        finally:
+            for task in workers:
+                task.cancel()
+            await asyncio.gather(*workers, return_exceptions=True)
+        self.main_ended_s = loop.time()
+
+    async def retake_pass(self) -> None:
+        """Another partial rotation over the missed angles, for the phones that are back."""
+        missed = [r for r in self.records if r.status != "captured"]
+        if not missed:
+            return
+        for c in sorted({r.camera_index for r in missed}):
+            if self.gone[c]:
+                await self._reconnect(c)
+        todo = [r for r in missed if not self.gone[r.camera_index]]
+        if not todo:
+            return
+        for r in todo:
+            r.focus_sent_s = r.lens_stationary_s = r.lens_settle_s = None
+        angles = sorted({r.angle_index for r in todo})
+        speed = self._retake_speed(angles)
+        accel = self.rig.capture.acceleration_deg_s2
+        a_max = self.rig.motor.max_acceleration_deg_s2
+        first = float(self.schedule.angles_deg[angles[0]])
+        last = float(self.schedule.angles_deg[angles[-1]])
+        run_up = speed**2 / (2 * accel) + self.RETAKE_MARGIN_DEG
+        start = first - run_up
+        self.progress("retake_started", angles=angles, poses=len(todo), speed_deg_s=speed)
+        await self.drive.move_to(start, self.rig.motor.max_speed_deg_s, a_max)
+        per_camera: list[list[_Target]] = [[] for _ in range(self.rig.n_cameras)]
+        for r in sorted(todo, key=lambda r: r.angle_index):
+            per_camera[r.camera_index].append(_Target(r.angle_index, r.planned_angle_deg, r.focus_mm))
+        await self._prefocus([t[0] if t else None for t in per_camera], "retake")
+        workers = [
+            asyncio.create_task(self._phone_pass(c, per_camera[c], "retake"), name=f"retake-{c}")
+            for c in range(self.rig.n_cameras)
+            if per_camera[c]
+        ]
+        try:
+            await self.drive.rotate(speed, accel)
+            timeout = move_duration(last - start, speed, accel) + 5.0
+            await self.tracker.wait_angle(last + self.RETAKE_MARGIN_DEG, timeout)
+            await asyncio.gather(*workers)
+            await self.drive.stop(accel)
+        finally:
+            for task in workers:
+                task.cancel()
+            await asyncio.gather(*workers, return_exceptions=True)
+
+    def _retake_speed(self, angle_indices: list[int]) -> float:
+        """The fastest sector speed that still leaves every phone its cycle between retakes."""
+        fastest = float(np.max(self.schedule.profile.sector_speed_deg_s))
+        angles = self.schedule.angles_deg[angle_indices]
+        if len(angles) < 2:
+            return fastest
+        gap = float(np.min(np.diff(angles)))
+        need = self.rig.capture.capture_cycle_s + self.rig.capture.lens_settle_s + 0.2
+        return min(fastest, gap / need)
+
+    async def _reconnect(self, c: int) -> None:
+        phone = self.phones[c]
+        try:
+            async with asyncio.timeout(self.RECONNECT_TIMEOUT_S):
+                await phone.connect()
+        except Exception as exc:  # the phone stays gone; its poses stay missing with the cause
+            log.warning("phone_reconnect_failed", camera=self.rig.phones[c].id, error=repr(exc))
+            for r in self.records:
+                if r.camera_index == c and r.status != "captured":
+                    r.error = f"{r.error}; reconnect failed: {type(exc).__name__}: {exc}"
+            return
+        self.gone[c] = False
+        self.progress("phone_reconnected", camera=self.rig.phones[c].id)
+
+    # ------------------------------------------------------------------ the beam
+
+    async def _drive_profile(self, profile: MotionProfile, accel: float) -> None:
+        """Command the speed of every profile segment at the angle where its ramp starts."""
+        ends = profile.v0_deg_s + profile.acc_deg_s2 * profile.dur_s
+        first = True
+        for i in range(len(profile.t0_s)):
+            if profile.acc_deg_s2[i] == 0.0:
+                continue
+            target = float(ends[i])
+            if not first:
+                timeout = float(profile.t0_s[i]) + 10.0
+                await self.tracker.wait_angle(float(profile.theta0_deg[i]), timeout)
+            first = False
+            if target > 0.0:
+                await self.drive.rotate(target, accel)
+            else:
+                await self.drive.stop(accel)
+        await self._wait_still()
+
+    async def _wait_still(self) -> None:
+        async with asyncio.timeout(self.STILL_TIMEOUT_S):
+            while True:
+                sample = await self.tracker.next_sample()
+                if sample.speed_deg_s == 0.0 or abs(sample.speed_deg_s) < 1e-3:
+                    return
+
+    # ------------------------------------------------------------------ one phone
+
+    async def _prefocus(self, first: Sequence[_Target | None], pass_name: str) -> None:
+        """Set every phone's focus for its first angle before the beam moves."""
+        async def one(c: int, target: _Target | None) -> None:
+            if target is None or self.gone[c]:
+                return
+            record = self.records[self.rig.pose_index(target.angle_index, c)]
+            try:
+                await self._focus(c, record)
+            except Exception as exc:  # recorded on the pose; the phone's worker retries at its angle
+                self._fail(c, record, exc, pass_name)
+
+        await asyncio.gather(*(one(c, t) for c, t in enumerate(first)))
+
+    async def _focus(self, c: int, record: CaptureRecord) -> None:
+        loop = asyncio.get_running_loop()
+        record.focus_sent_s = loop.time()
+        async with asyncio.timeout(self.FOCUS_TIMEOUT_S):
+            done = await self.phones[c].set_focus_mm(record.focus_mm)
+        stationary = self.clocks[c].to_host(done.lens_stationary_at_ns)
+        record.focus_diopters = done.diopters
+        record.focus_mm_reported = done.focus_mm
+        record.lens_stationary_s = stationary
+        record.lens_settle_s = stationary - record.focus_sent_s
+
+    async def _phone_pass(self, c: int, targets: Sequence[_Target], pass_name: str) -> None:
+        focus: asyncio.Task[None] | None = None
+        for i, target in enumerate(targets):
+            record = self.records[self.rig.pose_index(target.angle_index, c)]
+            if self.gone[c]:
+                self._fail(c, record, CaptureMissed(record.camera_id, target.angle_index,
+                                                    target.angle_deg, "phone gone"), pass_name)
+                continue
+            try:
+                if focus is not None:
+                    await self._await_focus(focus, target)
+                elif record.lens_stationary_s is None:
+                    await self._await_focus(asyncio.create_task(self._focus(c, record)), target)
+                await self._shoot(c, record, target, pass_name)
+            except (Exception, asyncio.TimeoutError) as exc:
+                self._fail(c, record, exc, pass_name)
+            focus = None
+            if i + 1 < len(targets) and not self.gone[c]:
+                nxt = self.records[self.rig.pose_index(targets[i + 1].angle_index, c)]
+                focus = asyncio.create_task(self._focus(c, nxt), name=f"focus-{c}")
+        if focus is not None:
+            focus.cancel()
+
+    async def _await_focus(self, focus: asyncio.Task[None], target: _Target) -> None:
+        """Wait for the lens, but not past the moment the beam leaves the capture window."""
+        loop = asyncio.get_running_loop()
+        tol = self.rig.capture.angle_tolerance_deg
+        limit = self.tracker.predict_crossing(target.angle_deg + tol) - loop.time()
+        limit = self.FOCUS_TIMEOUT_S if not math.isfinite(limit) else max(limit, 0.0)
+        try:
+            async with asyncio.timeout(limit):
+                await asyncio.shield(focus)
+        except TimeoutError:
+            focus.cancel()
+            raise
+
+    async def _shoot(self, c: int, record: CaptureRecord, target: _Target, pass_name: str) -> None:
+        exposure = self.rig.optics.exposure_s
+        lead = self.latency[c].value_s + exposure / 2
+        fire = await self._wait_fire(record, target.angle_deg, lead)
+        record.trigger_s = fire
+        record.trigger_latency_s = self.latency[c].value_s
+        async with asyncio.timeout(self.CAPTURE_TIMEOUT_S):
+            done = await self.phones[c].capture()
+        start = self.clocks[c].to_host(done.sensor_timestamp_ns)
+        self.latency[c].update(start - fire)
+        while self.tracker.latest is not None and self.tracker.latest.time_s < start + done.exposure_s:
+            await self.tracker.next_sample()
+        recent = self.tracker.trace(max(self.tracker.mark() - self.TRACE_WINDOW, 0))
+        exposed = exposure_angle(done.sensor_timestamp_ns, self.clocks[c].fit,
+                                 EncoderTrace(recent[:, 0], recent[:, 1]), exposure_s=done.exposure_s)
+        mid = exposed.host_time_s
+        record.exposure_mid_s = mid
+        record.exposure_angle_deg = exposed.angle_deg
+        record.angle_uncertainty_deg = exposed.uncertainty_deg
+        record.angle_error_deg = record.exposure_angle_deg - target.angle_deg
+        record.beam_speed_deg_s = float(self.tracker.speed_at(mid))
+        record.sensor_timestamp_ns = done.sensor_timestamp_ns
+        record.focus_diopters = done.focus_diopters
+        record.phone_path = done.path
+        record.size_bytes = done.size_bytes
+        record.lens_late = record.lens_stationary_s is None or record.lens_stationary_s > start
+        record.lens_slow = (record.lens_settle_s or 0.0) > self.rig.capture.lens_settle_s
+        record.capture_pass = pass_name
+        record.error = record.error_type = None
+        record.status = "captured"
+        self.captured += 1
+        self.on_capture(record)
+        self.progress("captured", pose=record.pose_index, camera=record.camera_id,
+                      angle_deg=round(record.exposure_angle_deg, 4), captured=self.captured)
+
+    async def _wait_fire(self, record: CaptureRecord, angle_deg: float, lead_s: float) -> float:
+        """Sleep until the predicted crossing of ``angle_deg`` minus ``lead_s``; returns that time."""
+        loop = asyncio.get_running_loop()
+        tol = self.rig.capture.angle_tolerance_deg
+        while True:
+            latest = self.tracker.latest
+            if latest is not None and latest.angle_deg > angle_deg + tol:
+                raise CaptureMissed(record.camera_id, record.angle_index, angle_deg,
+                                    f"beam already at {latest.angle_deg:.3f} deg")
+            crossing = self.tracker.predict_crossing(angle_deg)
+            if not math.isfinite(crossing):
+                try:
+                    await asyncio.wait_for(self.tracker.next_sample(), 1.0)
+                except TimeoutError as exc:
+                    raise BeamTimeout("beam", angle_deg, self.tracker.angle_deg, 1.0) from exc
+                continue
+            fire = crossing - lead_s
+            remaining = fire - loop.time()
+            if remaining <= 0:
+                if crossing + tol / max(latest.speed_deg_s, 1e-6) < loop.time() + lead_s:
+                    raise CaptureMissed(record.camera_id, record.angle_index, angle_deg,
+                                        "too late to trigger")
+                return loop.time()
+            if remaining > 2 * self.REFINE_S:
+                await asyncio.sleep(remaining - self.REFINE_S)
+                continue
+            await asyncio.sleep(remaining)
+            return loop.time()
+
+    def _fail(self, c: int, record: CaptureRecord, exc: BaseException, pass_name: str) -> None:
+        if _disconnected(exc):
+            self.gone[c] = True
+        record.status = "missing"
+        record.capture_pass = pass_name
+        record.error_type = type(exc).__name__
+        record.error = str(exc) or type(exc).__name__
+        log.warning("capture_missed", camera=record.camera_id, pose=record.pose_index,
+                    angle_deg=record.planned_angle_deg, pass_name=pass_name,
+                    error_type=record.error_type, error=record.error)
+        self.progress("capture_missed", pose=record.pose_index, camera=record.camera_id,
+                      error_type=record.error_type, error=record.error)

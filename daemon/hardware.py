@@ -1,0 +1,53 @@
+"""The rig's devices as the daemon sees them: one drive, the phones, the depth cameras, the panel.
+
+Real and simulated rigs fill the same structure (daemon/sim_rig.py builds the simulated one), so
+the scan and the service never know which they drive.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import structlog
+
+log = structlog.get_logger("daemon.hardware")
+
+
+@dataclass
+class RigHardware:
+    """Connected-or-not device objects of one rig.
+
+    drive: ``BeamDrive``; phones: one ``PhoneCamera`` per rig phone in rig order; depth_cameras:
+    ``DepthCamera`` objects in rig order; panel: ``OperatorPanel`` or None (no panel fitted).
+    closers: extra shutdown steps (simulator tasks, sockets), run last.
+    """
+
+    drive: Any
+    phones: Sequence[Any]
+    depth_cameras: Sequence[Any]
+    panel: Any | None = None
+    closers: list[Callable[[], Awaitable[None]]] = field(default_factory=list)
+
+    CLOSE_TIMEOUT_S = 3.0
+
+    async def close(self) -> list[str]:
+        """Close every device (each even if another fails); returns the failures as text."""
+        failures: list[str] = []
+        steps: list[tuple[str, Callable[[], Awaitable[Any]]]] = [("drive", self.drive.close)]
+        steps += [(f"phone{i}", p.close) for i, p in enumerate(self.phones)]
+        steps += [(getattr(c, "id", f"depth{i}"), c.stop) for i, c in enumerate(self.depth_cameras)]
+        if self.panel is not None:
+            steps.append(("panel", self.panel.close))
+        steps += [(f"closer{i}", c) for i, c in enumerate(self.closers)]
+        for name, step in steps:
+            try:
+                async with asyncio.timeout(self.CLOSE_TIMEOUT_S):
+                    await step()
+            except Exception as exc:  # reported to the caller, which logs and exits non-zero
+                failures.append(f"{name}: {type(exc).__name__}: {exc}")
+        if failures:
+            log.warning("hardware_close_failures", failures=failures)
+        return failures

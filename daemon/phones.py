@@ -1,0 +1,89 @@
+"""Getting the phones ready for a capture rotation: clock mapping and trigger latency.
+
+Before the beam moves, every phone gets a few clock round trips (its sensor clock mapped to the
+host event-loop clock) and a few warm-up captures with the beam at rest, which measure the
+trigger latency (command sent -> exposure start) that the capture triggers compensate. A phone
+that fails here is marked not ready; its poses are retaken after the main rotation if it
+comes back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import structlog
+
+from daemon.capture import TriggerLatency
+from daemon.clocksync import ClockSync
+from planner.rig import Rig
+
+log = structlog.get_logger("daemon.phones")
+
+
+@dataclass
+class PhonePrep:
+    """Per phone, in rig order: clock mapping, latency estimate, nearest focus (mm), readiness."""
+
+    clocks: list[ClockSync]
+    latency: list[TriggerLatency]
+    min_focus_mm: list[float]
+    ready: list[bool]
+    errors: list[str | None]
+
+
+class PhonePreparer:
+    """Clock round trips and warm-up captures for every phone, concurrently."""
+
+    CLOCK_SAMPLES = 8
+    WARMUP_CAPTURES = 2
+    STEP_TIMEOUT_S = 2.0
+    DEFAULT_MIN_FOCUS_MM = 100.0
+
+    def __init__(self, phones: Sequence[Any], rig: Rig) -> None:
+        self.phones = list(phones)
+        self.rig = rig
+
+    async def run(self) -> PhonePrep:
+        n = len(self.phones)
+        prep = PhonePrep(
+            clocks=[ClockSync(self.rig.phones[c].id) for c in range(n)],
+            latency=[TriggerLatency() for _ in range(n)],
+            min_focus_mm=[self._min_focus_mm(p) for p in self.phones],
+            ready=[False] * n,
+            errors=[None] * n,
+        )
+        await asyncio.gather(*(self._one(c, prep) for c in range(n)))
+        return prep
+
+    def _min_focus_mm(self, phone: Any) -> float:
+        info = getattr(phone, "info", None)
+        diopters = getattr(info, "min_focus_diopters", None)
+        if diopters:
+            return 1000.0 / float(diopters)
+        return self.DEFAULT_MIN_FOCUS_MM
+
+    async def _one(self, c: int, prep: PhonePrep) -> None:
+        phone, loop = self.phones[c], asyncio.get_running_loop()
+        try:
+            for _ in range(self.CLOCK_SAMPLES):
+                async with asyncio.timeout(self.STEP_TIMEOUT_S):
+                    prep.clocks[c].add(await phone.clock_sample())
+            for _ in range(self.WARMUP_CAPTURES):
+                fired = loop.time()
+                async with asyncio.timeout(self.STEP_TIMEOUT_S):
+                    done = await phone.capture()
+                prep.latency[c].update(prep.clocks[c].to_host(done.sensor_timestamp_ns) - fired)
+        except Exception as exc:  # the phone's typed error is kept; its poses go to the retake pass
+            prep.errors[c] = f"{type(exc).__name__}: {exc}"
+            log.warning("phone_prepare_failed", camera=self.rig.phones[c].id, error=prep.errors[c])
+            return
+        prep.ready[c] = True
+        log.info("phone_prepared", camera=self.rig.phones[c].id,
+                 latency_s=round(prep.latency[c].value_s, 5))
+
+
+async def prepare_phones(phones: Sequence[Any], rig: Rig) -> PhonePrep:
+    return await PhonePreparer(phones, rig).run()
