@@ -1,0 +1,24 @@
+"""Depth camera errors: one tree, each naming the camera and the values involved."""
+
+from __future__ import annotations
+
+
+class DepthCameraError(Exception):
+    """Base of every depth camera failure; names the camera."""
+
+    def __init__(self, camera_id: str, problem: str) -> None:
+        self.camera_id = camera_id
+        self.problem = problem
+        super().__init__(f"depth camera {camera_id}: {problem}")
+
+
+class DepthStreamStalled(DepthCameraError):
+    """A streaming camera delivered no frame within the timeout, or its stream ended early."""
+
+    def __init__(self, camera_id: str, frames: int, waited_s: float | None) -> None:
+        self.frames, self.waited_s = frames, waited_s
+        if waited_s is None:
+            problem = f"stream ended after {frames} frames while the sweep was still running"
+        else:
+            problem = f"no frame for {waited_s:.2f} s after {frames} frames"
+        super().__init__(camera_id, problem)
