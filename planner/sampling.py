@@ -1,0 +1,67 @@
+"""Area-uniform surface samples of a mesh with inward normals (the planner's point set P).
+
+The focus cost integrates over the skin, so samples are drawn with probability proportional
+to triangle area. Normals point INTO the body, as in the seed's cost function.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """N surface samples.
+
+    Attributes:
+        points: (N, 3) float, mm.
+        normals: (N, 3) float unit inward normals.
+        face_index: (N,) int, the triangle each sample lies on (-1 when not from a mesh).
+        area_mm2: total surface area the samples represent (mm^2).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    face_index: np.ndarray
+    area_mm2: float
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @classmethod
+    def from_arrays(cls, points: np.ndarray, inward_normals: np.ndarray) -> "SurfaceSamples":
+        """Samples from given points (N, 3) and inward normals (N, 3) (normalised here)."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        normals = np.asarray(inward_normals, dtype=float).reshape(-1, 3)
+        if len(points) != len(normals):
+            raise ValueError(f"{len(points)} points but {len(normals)} normals")
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        if np.any(length == 0):
+            raise ValueError("a normal has zero length")
+        return cls(points, normals / length, np.full(len(points), -1), float("nan"))
+
+
+def sample_surface(mesh: trimesh.Trimesh, count: int, *, seed: int = 0) -> SurfaceSamples:
+    """``count`` area-uniform samples of ``mesh``'s surface, reproducible for a given seed."""
+    if count <= 0:
+        raise ValueError(f"sample count must be positive, got {count}")
+    triangles = np.asarray(mesh.triangles, dtype=float)
+    areas = np.asarray(mesh.area_faces, dtype=float)
+    total = float(areas.sum())
+    if len(triangles) == 0 or not total > 0:
+        raise ValueError(f"mesh has no surface area ({len(triangles)} faces, area {total:g} mm^2)")
+    rng = np.random.default_rng(seed)
+    cumulative = np.cumsum(areas)
+    faces = np.searchsorted(cumulative, rng.random(count) * cumulative[-1], side="right")
+    faces = np.minimum(faces, len(areas) - 1)
+    # Uniform barycentric coordinates: fold the unit square onto the triangle.
+    uv = rng.random((count, 2))
+    flip = uv.sum(axis=1) > 1.0
+    uv[flip] = 1.0 - uv[flip]
+    a, b, c = triangles[faces, 0], triangles[faces, 1], triangles[faces, 2]
+    points = a + uv[:, :1] * (b - a) + uv[:, 1:] * (c - a)
+    normals = -np.asarray(mesh.face_normals, dtype=float)[faces]
+    return SurfaceSamples(points, normals, faces, total)

@@ -1,0 +1,201 @@
+"""Which camera poses see which surface samples: frustum, facing and occlusion tests.
+
+A sample is visible from a pose when it lies inside the image frustum (portrait: the image
+width spans the horizontal field of view), its surface faces the camera, and the segment from
+the camera centre to it does not cross the mesh. Only visible (pose, point) pairs are kept, in
+a sparse table grouped by pose: 336 poses x 100,000 points would be 270 MB per dense float64
+array, while a pose typically sees a few percent of the body.
+
+Occlusion is ray casting against the mesh. Both Open3D's ``RaycastingScene`` and Embree via
+``embreex`` are wrapped; Open3D is the default because it measured faster on this work (see
+``tests/bench/planner.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from planner.poses import Poses
+from planner.rig import Optics
+from planner.sampling import SurfaceSamples
+
+#: Occlusion rays stop this far (mm) before the sample, so its own triangle never hides it.
+SURFACE_EPSILON_MM = 0.5
+#: Rays per occlusion batch: bounds the temporary arrays (about 40 bytes a ray).
+RAY_BATCH = 1 << 20
+BACKENDS = ("open3d", "embree")
+
+
+class RayScene:
+    """A triangle mesh prepared for ray queries (Open3D or Embree backend)."""
+
+    def __init__(self, mesh: trimesh.Trimesh, backend: str = "open3d") -> None:
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown ray backend {backend!r}; allowed: {', '.join(BACKENDS)}")
+        self.backend = backend
+        vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+        faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+        if backend == "open3d":
+            import open3d as o3d
+
+            self._scene = o3d.t.geometry.RaycastingScene()
+            self._scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces))
+        else:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(self._scene, np.ascontiguousarray(vertices[faces]))
+
+    def occluded(self, origins: np.ndarray, targets: np.ndarray, epsilon_mm: float) -> np.ndarray:
+        """(K,) bool: the mesh crosses the segment origin -> target, ignoring its last epsilon_mm.
+
+        origins, targets: (K, 3) float, mm.
+        """
+        out = np.empty(len(origins), dtype=bool)
+        for start in range(0, len(origins), RAY_BATCH):
+            stop = start + RAY_BATCH
+            o = origins[start:stop]
+            d = targets[start:stop] - o
+            length = np.linalg.norm(d, axis=1)
+            if self.backend == "open3d":
+                import open3d as o3d
+
+                # Scale the direction so t = 1 lands epsilon before the target.
+                scale = np.maximum(length - epsilon_mm, 0.0) / np.maximum(length, 1e-12)
+                rays = np.hstack([o, d * scale[:, None]]).astype(np.float32)
+                hit = self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
+                out[start:stop] = hit.numpy().astype(bool)
+            else:
+                unit = (d / np.maximum(length, 1e-12)[:, None]).astype(np.float32)
+                dists = np.maximum(length - epsilon_mm, 0.0).astype(np.float32)
+                hit = self._scene.run(o.astype(np.float32), unit, dists=dists, query="OCCLUDED")
+                out[start:stop] = np.asarray(hit) != -1
+        return out
+
+    def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(K,) float distance along each unit direction to the first surface hit (inf: miss)."""
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        if self.backend == "open3d":
+            import open3d as o3d
+
+            hits = self._scene.cast_rays(o3d.core.Tensor(np.hstack([o, d])))
+            return hits["t_hit"].numpy().astype(float)
+        t = np.asarray(self._scene.run(o, d, query="DISTANCE"), dtype=float)
+        return np.where(t >= 1e37, np.inf, t)
+
+
+@dataclass(frozen=True)
+class Visibility:
+    """Sparse visible (pose, point) pairs, sorted by pose.
+
+    Attributes:
+        n_poses, n_points: P and N of the problem.
+        pose: (M,) int32 pose index of each pair.
+        point: (M,) int32 sample index of each pair.
+        depth: (M,) float, mm along the pose's optical axis (the focus-relevant depth z).
+        off_axis: (M,) float, mm from the optical axis (distance perpendicular to n_c).
+        facing: (M,) float, <n_c, n_p> with the inward normal (1 = surface square to the axis).
+        pose_ptr: (P + 1,) int64, pairs of pose c are pose_ptr[c]:pose_ptr[c + 1].
+    """
+
+    n_poses: int
+    n_points: int
+    pose: np.ndarray
+    point: np.ndarray
+    depth: np.ndarray
+    off_axis: np.ndarray
+    facing: np.ndarray
+    pose_ptr: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+    @property
+    def visible_points(self) -> np.ndarray:
+        """(N,) bool: seen by at least one pose."""
+        seen = np.zeros(self.n_points, dtype=bool)
+        seen[self.point] = True
+        return seen
+
+    def pairs_of(self, pose: int) -> slice:
+        """The slice of the pair arrays that belongs to ``pose``."""
+        return slice(int(self.pose_ptr[pose]), int(self.pose_ptr[pose + 1]))
+
+
+def frustum_tangents(optics: Optics) -> tuple[float, float]:
+    """tan of the half fields of view: (across the image width, across its height)."""
+    tan_w = math.tan(math.radians(optics.hfov_deg) / 2.0)
+    return tan_w, tan_w * optics.image_height_px / optics.image_width_px
+
+
+#: Poses per block of the frustum test: bounds the (3 x block, N) float32 temporaries.
+POSE_BLOCK = 16
+
+
+def _candidates(
+    poses: Poses, samples: SurfaceSamples, optics: Optics
+) -> tuple[np.ndarray, ...]:
+    """In-frustum, front-facing pairs of every pose (sorted by pose), before the occlusion test.
+
+    Returns pose, point, depth, off_axis, facing arrays as in :class:`Visibility`.
+    """
+    tan_w, tan_h = frustum_tangents(optics)
+    pts_t = np.ascontiguousarray(samples.points.T, dtype=np.float32)  # (3, N)
+    nrm_t = np.ascontiguousarray(samples.normals.T, dtype=np.float32)  # (3, N)
+    point_dot_normal = np.einsum("ij,ij->j", pts_t, nrm_t)  # (N,) <p, n_p>
+    axes = np.stack([poses.right, poses.down, poses.forward], axis=1)  # (P, 3, 3) rows
+    offsets = np.einsum("pij,pj->pi", axes, poses.centres)  # (P, 3) camera centre in its frame
+    parts: list[tuple[np.ndarray, ...]] = []
+    for first in range(0, len(poses), POSE_BLOCK):
+        block = slice(first, min(first + POSE_BLOCK, len(poses)))
+        n_block = block.stop - block.start
+        cam = (axes[block].reshape(-1, 3).astype(np.float32) @ pts_t).reshape(n_block, 3, -1)
+        cam -= offsets[block].astype(np.float32)[:, :, None]
+        x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
+        inside = (np.abs(x) <= tan_w * z) & (np.abs(y) <= tan_h * z)
+        # Front-facing: <p - p_c, n_p> > 0 with the inward normal n_p.
+        inside &= point_dot_normal > poses.centres[block].astype(np.float32) @ nrm_t
+        which, point = np.nonzero(inside)
+        facing = np.einsum("ij,ij->i", samples.normals[point], poses.forward[block][which])
+        parts.append(
+            (
+                (which + first).astype(np.int32),
+                point.astype(np.int32),
+                z[which, point].astype(float),
+                np.hypot(x[which, point], y[which, point]).astype(float),
+                facing,
+            )
+        )
+    return tuple(np.concatenate(column) for column in zip(*parts))
+
+
+def visible_pairs(
+    scene: RayScene,
+    poses: Poses,
+    samples: SurfaceSamples,
+    optics: Optics,
+    *,
+    epsilon_mm: float = SURFACE_EPSILON_MM,
+) -> Visibility:
+    """All visible (pose, sample) pairs of ``samples`` on the mesh held by ``scene``."""
+    pose, point, depth, off_axis, facing = _candidates(poses, samples, optics)
+    clear = ~scene.occluded(poses.centres[pose], samples.points[point], epsilon_mm)
+    pose, point = pose[clear], point[clear]
+    ptr = np.zeros(len(poses) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pose, minlength=len(poses)), out=ptr[1:])
+    return Visibility(
+        n_poses=len(poses),
+        n_points=len(samples),
+        pose=pose,
+        point=point,
+        depth=depth[clear],
+        off_axis=off_axis[clear],
+        facing=facing[clear],
+        pose_ptr=ptr,
+    )
