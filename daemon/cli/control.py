@@ -1,0 +1,74 @@
+"""`tbp status [--follow]`, `tbp abort`, `tbp reset`: talk to the running daemon's control socket.
+
+Exit codes: 0 done, 1 the daemon refused or failed the command, 2 the daemon is unreachable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    for name, help_text in (
+        ("status", "show the rig daemon's state (--follow streams status events)"),
+        ("abort", "abort the running scan: the beam decelerates, captured images are kept"),
+        ("reset", "clear a latched FAULT (after the cause is fixed)"),
+    ):
+        parser = subparsers.add_parser(name, help=help_text, description=help_text)
+        parser.add_argument("--socket", metavar="PATH", default=None,
+                            help="control socket (default $TBP_CONTROL_SOCKET or "
+                                 "/run/tbp-rig/control.sock)")
+        parser.add_argument("--json", action="store_true", help="print raw JSON lines")
+        if name == "status":
+            parser.add_argument("--follow", "-f", action="store_true",
+                                help="keep printing status events until interrupted")
+        parser.set_defaults(func=run, control_cmd=name)
+
+
+def _format(message: dict[str, Any]) -> str:
+    """One readable line for a status reply or event."""
+    if "kind" in message:
+        head = f"{message.get('state')}"
+        if message.get("kind") == "transition":
+            head = f"{message.get('previous')} -> {head}"
+        data = " ".join(f"{k}={v}" for k, v in (message.get("data") or {}).items())
+        scan = f" scan={message['scan_id']}" if message.get("scan_id") else ""
+        return f"[{message.get('time_s', 0.0):10.3f}] {head}{scan}: {message.get('cause', '')} {data}".rstrip()
+    return " ".join(f"{k}={v}" for k, v in message.items())
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+    import json
+
+    from daemon.control import CommandFailed, ControlClient, ControlError, DaemonUnavailable
+
+    client = ControlClient(args.socket)
+
+    def show(message: Any) -> None:
+        if args.json or not isinstance(message, dict):
+            print(json.dumps(message), flush=True)
+        else:
+            print(_format(message), flush=True)
+
+    async def go() -> None:
+        if args.control_cmd == "status" and args.follow:
+            async for message in client.subscribe():
+                show(message)
+        else:
+            show(await client.request(args.control_cmd))
+
+    try:
+        asyncio.run(go())
+    except CommandFailed as exc:
+        print(f"tbp {args.control_cmd}: refused: {exc}", file=sys.stderr)
+        return 1
+    except DaemonUnavailable as exc:
+        print(f"tbp {args.control_cmd}: {exc}", file=sys.stderr)
+        return 2
+    except ControlError as exc:
+        print(f"tbp {args.control_cmd}: {exc}", file=sys.stderr)
+        return 2
+    return 0

@@ -1,0 +1,375 @@
+"""The daemon's local control API: JSON lines over a Unix socket.
+
+Requests, one JSON object a line: ``{"id": 1, "cmd": "status"|"scan"|"abort"|"reset"|
+"subscribe", "args": {...}}``. Replies: ``{"id": 1, "ok": true, "result": {...}}`` or
+``{"id": 1, "ok": false, "error": {"type": "ScanRefused", "message": "..."}}``.
+``subscribe`` replies with the current status and then streams ``{"event": {...}}`` lines
+(state changes, progress, faults) until the client hangs up; that connection carries
+nothing else. The socket is mode 0660 (optionally owned by a group) so only the daemon's
+user and the operators' group can drive the rig; a stale socket left by a killed daemon is
+removed, a live one is refused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import enum
+import grp
+import inspect
+import json
+import os
+import socket
+import stat
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any, Protocol
+
+import structlog
+
+DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
+SOCKET_ENV = "TBP_CONTROL_SOCKET"
+COMMANDS = ("status", "scan", "abort", "reset", "subscribe")
+
+log = structlog.get_logger(__name__)
+
+
+def default_socket() -> Path:
+    """$TBP_CONTROL_SOCKET, else /run/tbp-rig/control.sock (systemd RuntimeDirectory)."""
+    return Path(os.environ.get(SOCKET_ENV, str(DEFAULT_SOCKET)))
+
+
+class ControlError(RuntimeError):
+    """Base of the control API's errors."""
+
+
+class SocketInUse(ControlError):
+    """Another daemon is listening on the control socket."""
+
+
+class DaemonUnavailable(ControlError):
+    """The client cannot reach the daemon (no socket, refused, timed out, hung up)."""
+
+    def __init__(self, path: Path | str, reason: str) -> None:
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"rig daemon not reachable at {self.path}: {reason}")
+
+
+class CommandFailed(ControlError):
+    """The daemon refused or failed a command; carries the daemon's error type and message."""
+
+    def __init__(self, cmd: str, error_type: str, message: str) -> None:
+        self.cmd = cmd
+        self.error_type = error_type
+        self.message = message
+        super().__init__(f"{cmd}: {error_type}: {message}")
+
+
+class ProtocolError(ControlError):
+    """A line on the control socket is not a valid request or reply."""
+
+
+class ControlHandler(Protocol):
+    """What the daemon core provides; each method may be sync or async and returns a dict."""
+
+    def status(self) -> Any: ...
+
+    def scan(self, **args: Any) -> Any: ...
+
+    def abort(self) -> Any: ...
+
+    def reset(self) -> Any: ...
+
+    def subscribe(self) -> AsyncIterator[Any]: ...
+
+
+def to_jsonable(value: Any) -> Any:
+    """Status objects, dataclasses and enums as plain JSON values."""
+    if hasattr(value, "as_dict"):
+        return to_jsonable(value.as_dict())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return to_jsonable(dataclasses.asdict(value))
+    if isinstance(value, enum.Enum):
+        return value.value if isinstance(value.value, (str, int, float)) else value.name
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, float) and value != value:
+        return None
+    if hasattr(value, "item"):
+        return value.item()
+    return value
+
+
+def _line(obj: dict[str, Any]) -> bytes:
+    return (json.dumps(to_jsonable(obj), separators=(",", ":"), default=str) + "\n").encode()
+
+
+async def _resolve(value: Any) -> Any:
+    return await value if inspect.isawaitable(value) else value
+
+
+class ControlServer:
+    """Serves the control API on ``path`` for ``handler``; use ``async with``."""
+
+    MAX_LINE = 64 * 1024
+
+    def __init__(self, path: Path | str, handler: ControlHandler, *, group: str | None = None,
+                 mode: int = 0o660) -> None:
+        self.path = Path(path)
+        self.handler = handler
+        self.group = group
+        self.mode = mode
+        self._server: asyncio.Server | None = None
+        self._connections: set[asyncio.Task[None]] = set()
+
+    async def __aenter__(self) -> ControlServer:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def start(self) -> None:
+        self._remove_stale()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._server = await asyncio.start_unix_server(
+            self._serve, path=str(self.path), limit=self.MAX_LINE
+        )
+        os.chmod(self.path, self.mode)
+        if self.group is not None:
+            try:
+                gid = grp.getgrnam(self.group).gr_gid
+            except KeyError:
+                await self.close()
+                raise ControlError(f"control socket {self.path}: no group {self.group!r}") from None
+            os.chown(self.path, -1, gid)
+        log.info("control_listening", path=str(self.path), mode=oct(self.mode), group=self.group)
+
+    def _remove_stale(self) -> None:
+        try:
+            st = os.lstat(self.path)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISSOCK(st.st_mode):
+            raise ControlError(f"control socket path {self.path} exists and is not a socket")
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(self.path))
+        except (ConnectionRefusedError, FileNotFoundError):
+            self.path.unlink(missing_ok=True)
+            log.warning("control_stale_socket_removed", path=str(self.path))
+            return
+        finally:
+            probe.close()
+        raise SocketInUse(f"another daemon is listening on {self.path}")
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            for task in list(self._connections):
+                task.cancel()
+            await asyncio.gather(*self._connections, return_exceptions=True)
+            await self._server.wait_closed()
+            self._server = None
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._connections.add(task)
+        try:
+            while True:
+                try:
+                    raw = await reader.readline()
+                except ValueError:  # longer than MAX_LINE
+                    writer.write(_line({"id": None, "ok": False, "error": {
+                        "type": "ProtocolError", "message": f"line longer than {self.MAX_LINE} bytes"}}))
+                    await writer.drain()
+                    return
+                if not raw:
+                    return
+                request = self._parse(raw)
+                if "error" in request:
+                    writer.write(_line(request))
+                    await writer.drain()
+                    continue
+                if request["cmd"] == "subscribe":
+                    await self._stream(request, reader, writer)
+                    return
+                writer.write(_line(await self._call(request)))
+                await writer.drain()
+        except (ConnectionError, asyncio.IncompleteReadError):
+            return
+        finally:
+            if task is not None:
+                self._connections.discard(task)
+            writer.close()
+            with contextlib.suppress(ConnectionError, asyncio.CancelledError):
+                await writer.wait_closed()
+
+    def _parse(self, raw: bytes) -> dict[str, Any]:
+        try:
+            request = json.loads(raw)
+        except ValueError as exc:
+            return {"id": None, "ok": False,
+                    "error": {"type": "ProtocolError", "message": f"not JSON: {exc}"}}
+        if not isinstance(request, dict) or request.get("cmd") not in COMMANDS:
+            cmd = request.get("cmd") if isinstance(request, dict) else None
+            return {"id": request.get("id") if isinstance(request, dict) else None, "ok": False,
+                    "error": {"type": "ProtocolError",
+                              "message": f"unknown command {cmd!r}; commands: {', '.join(COMMANDS)}"}}
+        args = request.get("args", {})
+        if not isinstance(args, dict):
+            return {"id": request.get("id"), "ok": False,
+                    "error": {"type": "ProtocolError", "message": "args must be an object"}}
+        return {"id": request.get("id"), "cmd": request["cmd"], "args": args}
+
+    async def _call(self, request: dict[str, Any]) -> dict[str, Any]:
+        cmd, args = request["cmd"], request["args"]
+        try:
+            method = getattr(self.handler, cmd)
+            result = await _resolve(method(**args) if cmd == "scan" else method())
+        except Exception as exc:  # reported to the client with its type, and logged
+            log.warning("control_command_failed", cmd=cmd, error_type=type(exc).__name__,
+                        error=str(exc))
+            return {"id": request["id"], "ok": False,
+                    "error": {"type": type(exc).__name__, "message": str(exc)}}
+        (log.debug if cmd == "status" else log.info)("control_command", cmd=cmd)
+        return {"id": request["id"], "ok": True, "result": result}
+
+    async def _stream(self, request: dict[str, Any], reader: asyncio.StreamReader,
+                      writer: asyncio.StreamWriter) -> None:
+        events = self.handler.subscribe()  # subscribe before the snapshot: nothing is missed
+        try:
+            status = await _resolve(self.handler.status())
+            writer.write(_line({"id": request["id"], "ok": True, "result": status}))
+            await writer.drain()
+            hangup = asyncio.create_task(reader.read())  # EOF when the client goes
+            try:
+                async for event in _until(events, hangup):
+                    writer.write(_line({"event": event}))
+                    await writer.drain()
+            finally:
+                hangup.cancel()
+        finally:
+            closer = getattr(events, "aclose", None)
+            if closer is not None:
+                await closer()
+
+
+async def _until(events: AsyncIterator[Any], hangup: asyncio.Task[bytes]) -> AsyncIterator[Any]:
+    """Events from ``events`` until ``hangup`` finishes."""
+    iterator = aiter(events)
+    while True:
+        nxt = asyncio.ensure_future(anext(iterator))
+        done, _ = await asyncio.wait({nxt, hangup}, return_when=asyncio.FIRST_COMPLETED)
+        if nxt not in done:
+            nxt.cancel()
+            with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
+                await nxt
+            return
+        try:
+            yield nxt.result()
+        except StopAsyncIteration:
+            return
+
+
+class ControlClient:
+    """Talks to a running daemon; one connection per request, one per subscription."""
+
+    TIMEOUT_S = 10.0
+
+    def __init__(self, path: Path | str | None = None) -> None:
+        self.path = Path(path) if path is not None else default_socket()
+        self._next_id = 0
+
+    async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        try:
+            async with asyncio.timeout(self.TIMEOUT_S):
+                return await asyncio.open_unix_connection(str(self.path), limit=ControlServer.MAX_LINE)
+        except FileNotFoundError:
+            raise DaemonUnavailable(self.path, "no socket (is the daemon running?)") from None
+        except (ConnectionRefusedError, PermissionError) as exc:
+            raise DaemonUnavailable(self.path, exc.strerror or str(exc)) from None
+        except TimeoutError:
+            raise DaemonUnavailable(self.path, f"no connection within {self.TIMEOUT_S:g} s") from None
+
+    async def _exchange(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                        cmd: str, args: dict[str, Any]) -> Any:
+        self._next_id += 1
+        writer.write(_line({"id": self._next_id, "cmd": cmd, "args": args}))
+        try:
+            async with asyncio.timeout(self.TIMEOUT_S):
+                await writer.drain()
+                raw = await reader.readline()
+        except TimeoutError:
+            raise DaemonUnavailable(self.path, f"no reply to {cmd!r} within {self.TIMEOUT_S:g} s") from None
+        except ConnectionError as exc:
+            raise DaemonUnavailable(self.path, f"connection lost during {cmd!r}: {exc}") from None
+        if not raw:
+            raise DaemonUnavailable(self.path, f"the daemon hung up during {cmd!r}")
+        reply = _parse_reply(raw)
+        if not reply.get("ok"):
+            err = reply.get("error") or {}
+            raise CommandFailed(cmd, str(err.get("type", "Error")), str(err.get("message", "")))
+        return reply.get("result")
+
+    async def request(self, cmd: str, **args: Any) -> Any:
+        """Send one command and return its result; CommandFailed if the daemon refuses it."""
+        reader, writer = await self._open()
+        try:
+            return await self._exchange(reader, writer, cmd, args)
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
+
+    async def status(self) -> dict[str, Any]:
+        return await self.request("status")
+
+    async def scan(self, **args: Any) -> dict[str, Any]:
+        return await self.request("scan", **args)
+
+    async def abort(self) -> dict[str, Any]:
+        return await self.request("abort")
+
+    async def reset(self) -> dict[str, Any]:
+        return await self.request("reset")
+
+    async def subscribe(self) -> AsyncIterator[dict[str, Any]]:
+        """The current status first, then every status event as the daemon publishes it."""
+        reader, writer = await self._open()
+        try:
+            yield await self._exchange(reader, writer, "subscribe", {})
+            while True:
+                try:
+                    raw = await reader.readline()
+                except ConnectionError as exc:
+                    raise DaemonUnavailable(self.path, f"subscription lost: {exc}") from None
+                if not raw:
+                    raise DaemonUnavailable(self.path, "the daemon closed the subscription")
+                message = _parse_reply(raw)
+                if "event" not in message:
+                    raise ProtocolError(f"expected an event line, got {raw[:200]!r}")
+                yield message["event"]
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
+
+
+def _parse_reply(raw: bytes) -> dict[str, Any]:
+    try:
+        reply = json.loads(raw)
+    except ValueError as exc:
+        raise ProtocolError(f"daemon sent a line that is not JSON: {raw[:200]!r}") from exc
+    if not isinstance(reply, dict):
+        raise ProtocolError(f"daemon sent {raw[:200]!r}; expected an object")
+    return reply

@@ -1,0 +1,171 @@
+"""Control API over a real Unix socket (daemon/control.py, daemon/cli/control.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import stat
+from pathlib import Path
+
+import pytest
+
+from daemon.cli import main as tbp_main
+from daemon.control import (
+    CommandFailed,
+    ControlClient,
+    ControlServer,
+    DaemonUnavailable,
+    SocketInUse,
+)
+from daemon.states import ScanState, ScanStateMachine
+
+
+class Refused(RuntimeError):
+    pass
+
+
+class FakeDaemon:
+    """The handler the daemon core provides, backed by the real state machine."""
+
+    def __init__(self) -> None:
+        self.machine = ScanStateMachine()
+        self.scans: list[dict] = []
+
+    def status(self) -> dict:
+        return {"state": self.machine.state.value, "faults": list(self.machine.fault_causes)}
+
+    async def scan(self, **args) -> dict:
+        if self.machine.state is not ScanState.IDLE:
+            raise Refused(f"rig is {self.machine.state.value}; a scan needs IDLE")
+        self.scans.append(args)
+        self.machine.transition(ScanState.PREPARING, "scan requested over the control socket")
+        return {"scan_id": "abc123"}
+
+    def abort(self) -> dict:
+        self.machine.transition(ScanState.ABORTING, "abort requested")
+        return {"state": self.machine.state.value}
+
+    def reset(self) -> dict:
+        self.machine.reset("operator")
+        return {"state": self.machine.state.value}
+
+    def subscribe(self):
+        return self.machine.subscribe()
+
+
+@pytest.fixture
+def sock(tmp_path) -> Path:
+    return tmp_path / "run" / "control.sock"
+
+
+async def test_round_trips_and_socket_mode(sock):
+    daemon = FakeDaemon()
+    async with ControlServer(sock, daemon):
+        assert stat.S_IMODE(os.stat(sock).st_mode) == 0o660
+        client = ControlClient(sock)
+        assert await client.status() == {"state": "IDLE", "faults": []}
+        assert await client.scan(seed=3) == {"scan_id": "abc123"}
+        assert daemon.scans == [{"seed": 3}]
+        with pytest.raises(CommandFailed) as info:
+            await client.scan()
+        assert info.value.error_type == "Refused" and "PREPARING" in info.value.message
+        assert (await client.abort())["state"] == "ABORTING"
+        with pytest.raises(CommandFailed, match="IllegalTransition"):
+            await client.reset()
+    assert not sock.exists()
+
+
+async def test_subscription_streams_events_as_they_happen(sock):
+    daemon = FakeDaemon()
+    async with ControlServer(sock, daemon):
+        stream = ControlClient(sock).subscribe()
+        first = await anext(stream)
+        assert first["state"] == "IDLE"
+        daemon.machine.transition(ScanState.PREPARING, "start pressed")
+        daemon.machine.progress("captured", images=12)
+        daemon.machine.transition(ScanState.FAULT, "e-stop pressed")
+        events = [await asyncio.wait_for(anext(stream), 5.0) for _ in range(3)]
+        assert [e["state"] for e in events] == ["PREPARING", "PREPARING", "FAULT"]
+        assert events[1]["kind"] == "progress" and events[1]["data"] == {"images": 12}
+        assert events[2]["cause"] == "e-stop pressed"
+        await stream.aclose()
+        for _ in range(100):  # the server notices the hang-up and unsubscribes
+            if not daemon.machine._subscribers:
+                break
+            await asyncio.sleep(0.01)
+        assert not daemon.machine._subscribers
+
+
+async def test_bad_requests_get_typed_errors(sock):
+    async with ControlServer(sock, FakeDaemon()):
+        reader, writer = await asyncio.open_unix_connection(str(sock))
+        for raw in (b"not json\n", b'{"id": 7, "cmd": "launch"}\n', b'{"cmd": "scan", "args": 3}\n'):
+            writer.write(raw)
+            reply = json.loads(await reader.readline())
+            assert reply["ok"] is False and reply["error"]["type"] == "ProtocolError"
+        assert "launch" in reply["error"]["message"] or reply["id"] is None
+        writer.write(b'{"id": 8, "cmd": "status"}\n')
+        assert json.loads(await reader.readline()) == {"id": 8, "ok": True,
+                                                        "result": {"state": "IDLE", "faults": []}}
+        writer.close()
+        await writer.wait_closed()
+
+
+async def test_stale_socket_is_removed_and_live_one_refused(sock):
+    sock.parent.mkdir(parents=True)
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(sock))
+    stale.close()  # a killed daemon's socket file: nobody listens
+    async with ControlServer(sock, FakeDaemon()):
+        assert await ControlClient(sock).status()
+        with pytest.raises(SocketInUse):
+            await ControlServer(sock, FakeDaemon()).start()
+
+
+async def test_client_without_daemon(sock):
+    with pytest.raises(DaemonUnavailable, match="no socket"):
+        await ControlClient(sock).status()
+
+
+async def test_unknown_group_is_refused(sock):
+    from daemon.control import ControlError
+
+    with pytest.raises(ControlError, match="no group"):
+        await ControlServer(sock, FakeDaemon(), group="no-such-group-tbp").start()
+    assert not sock.exists()
+
+
+def test_cli_status_abort_reset(sock, capsys):
+    """`tbp status/abort/reset --socket` against a server in another thread's loop."""
+    import threading
+
+    daemon = FakeDaemon()
+    ready = threading.Event()
+    stop: list[asyncio.Event] = []
+
+    async def serve() -> None:
+        stop.append(asyncio.Event())
+        async with ControlServer(sock, daemon):
+            ready.set()
+            await stop[0].wait()
+
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_until_complete, args=(serve(),))
+    thread.start()
+    try:
+        assert ready.wait(10)
+        assert tbp_main(["status", "--socket", str(sock)]) == 0
+        assert "IDLE" in capsys.readouterr().out
+        assert tbp_main(["status", "--json", "--socket", str(sock)]) == 0
+        # the server's log lines share this process's stdout; the reply is the last line
+        assert json.loads(capsys.readouterr().out.splitlines()[-1])["state"] == "IDLE"
+        assert tbp_main(["reset", "--socket", str(sock)]) == 1
+        assert "IllegalTransition" in capsys.readouterr().err
+    finally:
+        loop.call_soon_threadsafe(stop[0].set)
+        thread.join(10)
+        loop.close()
+    assert tbp_main(["abort", "--socket", str(sock)]) == 2
+    assert "not reachable" in capsys.readouterr().err
