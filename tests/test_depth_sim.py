@@ -1,0 +1,169 @@
+"""The simulated depth camera: geometry, RealSense-like error model, timing and injected faults."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from drivers.depth.base import DepthCamera, DepthFrame
+from drivers.sim.clock import run_virtual
+from drivers.sim.depth import DepthFaults, DepthRenderer, DepthScene, SimulatedDepthCamera, simulate_sweep
+from planner.poses import depth_camera_pose
+from tests.depth_helpers import look_minus_x, small_rig, sphere, wall
+
+RIG = small_rig(scale=4)
+MODEL = RIG.depth_camera_model
+
+
+def _render(mesh: trimesh.Trimesh, pose: np.ndarray, seed: int | None = 0) -> np.ndarray:
+    renderer = DepthRenderer(DepthScene(mesh, floor=False), MODEL)
+    return renderer.render(pose, None if seed is None else np.random.default_rng(seed))
+
+
+def test_noise_free_wall_reads_its_z_depth_everywhere():
+    depth = _render(wall(800.0), look_minus_x(), seed=None)
+    assert depth.shape == (MODEL.height_px, MODEL.width_px)
+    assert depth.dtype == np.uint16
+    # z-depth, not ray length: the same value in the corners as in the centre
+    assert np.all(depth == 800)
+
+
+def test_noise_rms_grows_with_depth_squared():
+    for distance in (600.0, 1500.0):
+        depth = _render(wall(distance), look_minus_x(), seed=1).astype(float)
+        expected = distance**2 * MODEL.subpixel_px / (MODEL.fx_px * MODEL.baseline_mm)
+        # quantisation to 1 mm adds 1/12 mm^2 of variance
+        measured = math.sqrt(max(depth.var() - 1 / 12, 0.0))
+        assert measured == pytest.approx(expected, rel=0.1)
+        assert depth.mean() == pytest.approx(distance, abs=0.2)
+
+
+def test_same_seed_same_frame_other_seed_differs():
+    a = _render(wall(1000.0), look_minus_x(), seed=3)
+    b = _render(wall(1000.0), look_minus_x(), seed=3)
+    c = _render(wall(1000.0), look_minus_x(), seed=4)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_grazing_surfaces_are_holes():
+    # a camera turned 75 deg from the wall sees it at 43..107 deg incidence across the image
+    pose = look_minus_x(yaw_deg=75.0)
+    depth = _render(wall(800.0, size=20000.0), pose, seed=None)
+    u, v = np.meshgrid(np.arange(MODEL.width_px), np.arange(MODEL.height_px))
+    rays = np.stack([(u - MODEL.cx_px) / MODEL.fx_px, (v - MODEL.cy_px) / MODEL.fy_px, np.ones(u.shape)], -1)
+    world = rays @ pose[:3, :3].T
+    incidence = np.degrees(np.arccos(-world[..., 0] / np.linalg.norm(world, axis=-1)))
+    limit = MODEL.grazing_limit_deg
+    assert np.all(depth[incidence > limit + 0.5] == 0)
+    in_range = (incidence < limit - 0.5) & (depth > 0)
+    assert in_range.sum() > 0.9 * (incidence < limit - 0.5).sum() - 0.05 * depth.size
+
+
+def test_silhouette_edges_and_out_of_range_are_holes():
+    ball = sphere(100.0, centre=(-600.0, 0.0, 0.0))
+    scene = trimesh.util.concatenate([ball, wall(2000.0)])
+    depth = _render(scene, look_minus_x(), seed=None)
+    row = depth[MODEL.height_px // 2]
+    centre = MODEL.width_px // 2
+    assert 490 <= row[centre] <= 510
+    on_ball = np.flatnonzero((row > 0) & (row < 700))
+    # the ball's outline and the wall just beside it carry no depth
+    left, right = on_ball.min(), on_ball.max()
+    assert row[left - 1] == 0 and row[right + 1] == 0
+    assert row[0] == 2000
+    # nearer than the minimum range or beyond the maximum: no depth
+    assert np.count_nonzero(_render(wall(200.0), look_minus_x(), seed=None)) == 0
+    assert np.count_nonzero(_render(wall(3500.0), look_minus_x(), seed=None)) == 0
+
+
+def test_simulated_sweep_frames_are_posed_at_constant_speed():
+    sweep = simulate_sweep(sphere(), RIG, seed=0, noise=False, frame_spacing_deg=30.0)
+    per_camera = sweep.per_camera()
+    assert set(per_camera) == {c.id for c in RIG.depth_cameras}
+    s = RIG.depth_sweep
+    for f in sweep.frames:
+        assert f.beam_angle_deg == pytest.approx(s.start_deg + s.speed_deg_s * f.timestamp_s)
+        camera = next(c for c in RIG.depth_cameras if c.id == f.camera_id)
+        assert np.allclose(f.camera_to_world, depth_camera_pose(camera, math.radians(f.beam_angle_deg)))
+    last = max(f.beam_angle_deg for f in sweep.frames)
+    assert last == pytest.approx(s.end_deg)
+
+
+def _camera(faults: DepthFaults | None = None, angle=lambda t: 10.0 * t) -> SimulatedDepthCamera:
+    return SimulatedDepthCamera(RIG.depth_cameras[2], MODEL, sphere(), angle, seed=1, faults=faults)
+
+
+async def _take(camera: SimulatedDepthCamera, count: int) -> list[DepthFrame]:
+    await camera.start()
+    frames = []
+    async for frame in camera.frames():
+        frames.append(frame)
+        if len(frames) == count:
+            break
+    await camera.stop()
+    return frames
+
+
+def test_camera_streams_at_fps_on_the_loop_clock_with_the_beam_angle_of_each_frame():
+    times: list[float] = []
+
+    def angle(t: float) -> float:
+        times.append(t)
+        return 10.0 * t
+
+    camera = _camera(angle=angle)
+    assert isinstance(camera, DepthCamera)
+    frames = run_virtual(_take(camera, 5))
+    assert [f.frame_number for f in frames] == [0, 1, 2, 3, 4]
+    assert [f.timestamp_s for f in frames] == pytest.approx([k / MODEL.fps for k in range(5)])
+    assert times == pytest.approx([f.timestamp_s for f in frames])
+    assert all(np.count_nonzero(f.depth) > 0 for f in frames)
+    assert np.array_equal(frames[0].intrinsics, MODEL.intrinsic_matrix)
+
+
+def test_dropped_and_empty_frames_are_injected():
+    camera = _camera(DepthFaults(drop_frames={1, 2}, empty_frames={4}))
+    frames = run_virtual(_take(camera, 4))
+    assert [f.frame_number for f in frames] == [0, 3, 4, 5]
+    assert np.count_nonzero(frames[2].depth) == 0
+    assert np.count_nonzero(frames[3].depth) > 0
+
+
+def test_drop_next_skips_the_following_frames():
+    camera = _camera()
+
+    async def main() -> list[int]:
+        await camera.start()
+        numbers = []
+        async for frame in camera.frames():
+            numbers.append(frame.frame_number)
+            if len(numbers) == 1:
+                camera.drop_next(3)
+            if len(numbers) == 3:
+                break
+        return numbers
+
+    assert run_virtual(main()) == [0, 4, 5]
+
+
+def test_a_stopped_camera_delivers_nothing_more():
+    camera = _camera()
+
+    async def main() -> tuple[int, bool]:
+        await camera.start()
+        stream = camera.frames().__aiter__()
+        first = await stream.__anext__()
+        camera.stop_streaming()
+        try:
+            async with asyncio.timeout(5.0):
+                await stream.__anext__()
+        except TimeoutError:
+            return first.frame_number, True
+        return first.frame_number, False
+
+    assert run_virtual(main()) == (0, True)
