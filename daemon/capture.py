@@ -109,6 +109,8 @@ class CaptureRunner:
     CAPTURE_TIMEOUT_S = 2.0
     REFINE_S = 0.03
     """Re-predict the crossing this long before firing, from the freshest encoder sample."""
+    MAX_SLEEP_S = 0.25
+    """Longest wait between predictions (a beam still ramping up would be predicted late)."""
     RECONNECT_TIMEOUT_S = 5.0
     RETAKE_MARGIN_DEG = 1.0
     STILL_TIMEOUT_S = 10.0
@@ -404,7 +406,7 @@ class CaptureRunner:
                                         "too late to trigger")
                 return loop.time()
             if remaining > 2 * self.REFINE_S:
-                await asyncio.sleep(remaining - self.REFINE_S)
+                await asyncio.sleep(min(remaining - self.REFINE_S, self.MAX_SLEEP_S))
                 continue
             await asyncio.sleep(remaining)
             return loop.time()

@@ -1,0 +1,201 @@
+"""Mock-tier devices for the daemon's unit tests: instant to build, analytic, recording calls.
+
+They follow the agreed driver interfaces (BeamDrive, PhoneCamera) closely enough to exercise the
+capture executor alone; the end-to-end tests use the protocol-level simulators instead.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.sim.trapezoid import hold, position_move, velocity_ramp
+
+
+@dataclass(frozen=True)
+class Sample:
+    time_s: float
+    angle_deg: float
+    speed_deg_s: float
+    statusword: int = 0x27
+
+
+class MockDrive:
+    """A beam on an analytic trapezoidal trajectory, sampled at ``rate_hz`` on the loop clock."""
+
+    def __init__(self, *, rate_hz: float = 200.0, speed_error: float = 0.0, max_accel: float = 60.0) -> None:
+        self.name = "beam"
+        self.rate_hz = rate_hz
+        self.speed_error = speed_error
+        self.max_accel = max_accel
+        self.trajectory = hold(0.0, 0.0)
+        self.offset = 0.0
+        self.fault: Exception | None = None
+        self.latest: Sample | None = None
+        self.calls: list[tuple[str, tuple[float, ...]]] = []
+        self._queues: list[asyncio.Queue[Sample]] = []
+        self._task: asyncio.Task[None] | None = None
+
+    def _now(self) -> float:
+        return asyncio.get_running_loop().time()
+
+    def _state(self) -> tuple[float, float]:
+        p, v = self.trajectory.at(self._now())
+        return p + self.offset, v
+
+    async def connect(self) -> None:
+        self._task = asyncio.create_task(self._stream())
+
+    async def enable(self) -> None:
+        self.calls.append(("enable", ()))
+
+    async def set_zero(self, angle_deg: float = 0.0) -> None:
+        p, _ = self._state()
+        self.offset += angle_deg - p
+        self.calls.append(("set_zero", (angle_deg,)))
+
+    async def rotate(self, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+        self.calls.append(("rotate", (speed_deg_s, acceleration_deg_s2)))
+        t = self._now()
+        p, v = self.trajectory.at(t)
+        target = speed_deg_s * (1.0 + self.speed_error)
+        self.trajectory = velocity_ramp(t, p, v, target, acceleration_deg_s2, acceleration_deg_s2)
+
+    async def stop(self, deceleration_deg_s2: float) -> None:
+        self.calls.append(("stop", (deceleration_deg_s2,)))
+        t = self._now()
+        p, v = self.trajectory.at(t)
+        self.trajectory = velocity_ramp(t, p, v, 0.0, deceleration_deg_s2, deceleration_deg_s2)
+
+    async def quick_stop(self) -> None:
+        await self.stop(self.max_accel)
+
+    async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+        self.calls.append(("move_to", (angle_deg, speed_deg_s, acceleration_deg_s2)))
+        t = self._now()
+        p, v = self.trajectory.at(t)
+        self.trajectory = position_move(t, p, v, angle_deg - self.offset, speed_deg_s,
+                                        acceleration_deg_s2, acceleration_deg_s2)
+        await asyncio.sleep(max(self.trajectory.end_time - t, 0.0) + 1.0 / self.rate_hz)
+
+    async def reset_fault(self) -> None:
+        self.fault = None
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+
+    async def samples(self) -> AsyncIterator[Sample]:
+        queue: asyncio.Queue[Sample] = asyncio.Queue()
+        self._queues.append(queue)
+        while True:
+            yield await queue.get()
+
+    async def _stream(self) -> None:
+        period = 1.0 / self.rate_hz
+        while True:
+            await asyncio.sleep(period)
+            p, v = self._state()
+            self.latest = Sample(self._now(), p, v)
+            for q in self._queues:
+                q.put_nowait(self.latest)
+
+
+@dataclass(frozen=True)
+class FocusDone:
+    diopters: float
+    focus_mm: float
+    lens_stationary_at_ns: int
+
+
+@dataclass(frozen=True)
+class CaptureDone:
+    sensor_timestamp_ns: int
+    exposure_s: float
+    focus_diopters: float
+    path: str
+    size_bytes: int
+
+
+@dataclass(frozen=True)
+class ClockSample:
+    host_send_s: float
+    device_ns: int
+    host_recv_s: float
+
+
+class PhoneGone(ConnectionError):
+    """The mock phone's link dropped (a disconnect, as the real driver's PhoneDisconnected)."""
+
+
+class MockPhone:
+    """A phone with a lens that takes time to move and a seeded trigger latency with jitter."""
+
+    def __init__(self, serial: str, *, seed: int = 0, latency_s: float = 0.04, jitter_s: float = 0.002,
+                 clock_offset_s: float = 1234.5, lens_s: float = 0.03) -> None:
+        self.serial = serial
+        self.rng = np.random.default_rng(seed)
+        self.latency_s = latency_s
+        self.jitter_s = jitter_s
+        self.clock_offset_s = clock_offset_s
+        self.lens_s = lens_s
+        self.focus_mm = 0.0
+        self.captures: list[int] = []
+        self.fail_after: int | None = None
+        self.connected = True
+        self.reconnectable = True
+
+    def _device_ns(self, host_s: float) -> int:
+        return int(round((host_s + self.clock_offset_s) * 1e9))
+
+    def _check(self) -> None:
+        if self.fail_after is not None and len(self.captures) >= self.fail_after:
+            self.connected = False
+            self.fail_after = None
+        if not self.connected:
+            raise PhoneGone(f"{self.serial}: link lost")
+
+    async def connect(self) -> None:
+        if not self.reconnectable:
+            raise PhoneGone(f"{self.serial}: refused")
+        self.connected = True
+
+    async def set_focus_mm(self, focus_mm: float) -> FocusDone:
+        self._check()
+        await asyncio.sleep(self.lens_s)
+        self.focus_mm = focus_mm
+        now = asyncio.get_running_loop().time()
+        return FocusDone(1000.0 / focus_mm, focus_mm, self._device_ns(now))
+
+    async def capture(self) -> CaptureDone:
+        self._check()
+        latency = self.latency_s + self.jitter_s * float(self.rng.standard_normal())
+        await asyncio.sleep(latency)
+        start = asyncio.get_running_loop().time()
+        await asyncio.sleep(0.002 + 0.05)
+        self.captures.append(self._device_ns(start))
+        return CaptureDone(self._device_ns(start), 0.002, 1000.0 / max(self.focus_mm, 1.0),
+                           f"/sdcard/tbp/{len(self.captures)}.jpg", 1000)
+
+    async def clock_sample(self) -> ClockSample:
+        self._check()
+        loop = asyncio.get_running_loop()
+        send = loop.time()
+        await asyncio.sleep(0.001)
+        device = self._device_ns(loop.time())
+        await asyncio.sleep(0.001)
+        return ClockSample(send, device, loop.time())
+
+    async def pull(self, phone_path: str, dest: Path) -> tuple[int, str]:
+        import hashlib
+
+        data = b"x" * 1000
+        dest.write_bytes(data)
+        return len(data), hashlib.sha256(data).hexdigest()
+
+    async def close(self) -> None:
+        self.connected = False
