@@ -1,0 +1,52 @@
+"""The beam motor: a CiA 402 servo drive over CANopen on python-can, driven from asyncio.
+
+``BeamDrive`` is the device API; ``CanPort`` implementations carry its frames
+(``PythonCanPort`` for real buses, ``LoopbackCanBus`` in-process). The framing modules
+(``sdo``, ``pdo``, ``nmt``, ``emcy``) and the state tables (``cia402``) are pure and shared
+with the simulated drive in ``drivers.sim.drive``.
+"""
+
+from drivers.motor.cia402 import Cia402State
+from drivers.motor.drive import BeamDrive, BeamSample
+from drivers.motor.errors import (
+    CanBusError,
+    DriveError,
+    DriveFault,
+    DriveNotReady,
+    DriveRebooted,
+    FollowingError,
+    FrameError,
+    HeartbeatLost,
+    MotionLimitError,
+    NmtTimeout,
+    SdoAbort,
+    SdoError,
+    SdoProtocolError,
+    SdoTimeout,
+    StateTransitionTimeout,
+)
+from drivers.motor.port import CanPort, LoopbackCanBus, PythonCanPort
+
+__all__ = [
+    "BeamDrive",
+    "BeamSample",
+    "CanBusError",
+    "CanPort",
+    "Cia402State",
+    "DriveError",
+    "DriveFault",
+    "DriveNotReady",
+    "DriveRebooted",
+    "FollowingError",
+    "FrameError",
+    "HeartbeatLost",
+    "LoopbackCanBus",
+    "MotionLimitError",
+    "NmtTimeout",
+    "PythonCanPort",
+    "SdoAbort",
+    "SdoError",
+    "SdoProtocolError",
+    "SdoTimeout",
+    "StateTransitionTimeout",
+]

@@ -1,0 +1,572 @@
+"""The beam drive: a CiA 402 servo over CANopen, driven from asyncio.
+
+One reader task dispatches every frame from the drive (SDO replies, TPDOs, EMCY, heartbeat);
+every wait (state transitions, set-point acknowledge, target reached) waits on the statusword
+TPDO, never polls. Faults (EMCY, statusword FAULT, lost heartbeat, a dead bus) are latched in
+:attr:`BeamDrive.fault` until :meth:`BeamDrive.reset_fault` and raised by every waiting call.
+
+Bring-up configures the drive so that it streams, by event timer at ``position_rate_hz``:
+TPDO1 = position actual (0x6064, i32) + velocity actual (0x606C, i32) - one :class:`BeamSample`
+per frame - and TPDO2 = statusword (0x6041, u16). Heartbeats run both ways, so a drive whose
+host died stops by itself and a host whose drive went silent quick-stops and latches.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+
+import can
+import structlog
+
+from drivers.motor import cia402, emcy, nmt, pdo
+from drivers.motor.cia402 import Cia402State, Control, Mode, Status
+from drivers.motor.errors import (
+    CanBusError,
+    DriveError,
+    DriveFault,
+    DriveNotReady,
+    DriveRebooted,
+    FollowingError,
+    FrameError,
+    HeartbeatLost,
+    MotionLimitError,
+    NmtTimeout,
+    StateTransitionTimeout,
+)
+from drivers.motor.port import CanPort
+from drivers.motor.sdo import SdoClient
+from planner.rig import Motor
+
+log = structlog.get_logger(__name__)
+
+POSITION_TPDO = (
+    pdo.MappedObject(cia402.POSITION_ACTUAL, 0, "<i"),
+    pdo.MappedObject(cia402.VELOCITY_ACTUAL, 0, "<i"),
+)
+STATUS_TPDO = (pdo.MappedObject(cia402.STATUSWORD, 0, "<H"),)
+
+
+@dataclass(frozen=True)
+class BeamSample:
+    """One position report of the beam.
+
+    Attributes:
+        time_s: event-loop clock when the TPDO arrived, s.
+        angle_deg: beam angle, continuous (not wrapped), deg.
+        speed_deg_s: beam speed (latest velocity actual), deg/s.
+        statusword: the latest statusword (0x6041).
+    """
+
+    time_s: float
+    angle_deg: float
+    speed_deg_s: float
+    statusword: int
+
+
+_END = object()
+
+
+class SampleStream:
+    """One subscriber's queue of :class:`BeamSample`; drops the oldest sample when full."""
+
+    def __init__(self, drive: BeamDrive, maxsize: int) -> None:
+        self._drive = drive
+        self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize)
+        self.dropped = 0
+
+    def put(self, item: object) -> None:
+        if self._queue.full():
+            self._queue.get_nowait()
+            self.dropped += 1
+        self._queue.put_nowait(item)
+
+    def __aiter__(self) -> SampleStream:
+        return self
+
+    async def __anext__(self) -> BeamSample:
+        item = await self._queue.get()
+        if item is _END:
+            self._drive._streams.discard(self)
+            raise StopAsyncIteration
+        return item  # type: ignore[return-value]
+
+    async def aclose(self) -> None:
+        self._drive._streams.discard(self)
+
+
+class BeamDrive:
+    """The beam's CiA 402 drive on a CAN port.
+
+    Args:
+        port: the CAN port (the drive owns it and closes it in :meth:`close`).
+        config: the rig's motor section (node id, gear, encoder, limits, heartbeat times).
+        name: the device name used in errors and logs.
+        host_node_id: the node id of this host's heartbeat.
+    """
+
+    HOST_NODE_ID = 0x7F
+    SDO_TIMEOUT_S = 0.5
+    BOOT_TIMEOUT_S = 2.0
+    TRANSITION_TIMEOUT_S = 1.0
+    FIRST_SAMPLE_TIMEOUT_S = 1.0
+    MOTION_MARGIN_S = 2.0
+    SAMPLE_QUEUE_SIZE = 4096
+
+    def __init__(self, port: CanPort, config: Motor, *, name: str = "beam", host_node_id: int = HOST_NODE_ID) -> None:
+        if host_node_id == config.node_id or not 1 <= host_node_id <= 127:
+            raise ValueError(f"host node id {host_node_id} must be 1..127 and differ from the drive's {config.node_id}")
+        self.port = port
+        self.config = config
+        self.name = name
+        self.host_node_id = host_node_id
+        self.node_id = config.node_id
+        self.counts_per_degree = config.counts_per_degree
+        self.latest: BeamSample | None = None
+        self.state = Cia402State.NOT_READY_TO_SWITCH_ON
+        self.statusword = 0
+        self.nmt_state: nmt.NmtState | None = None
+        self.fault: DriveError | None = None
+        self.last_heartbeat_s: float | None = None
+        self.samples_received = 0
+        self.sdo = SdoClient(self._send, self.node_id, device=name, state=lambda: self.state.value)
+        self.sdo.RESPONSE_TIMEOUT_S = self.SDO_TIMEOUT_S
+        self._speed_counts = 0
+        self._controlword = 0
+        self._mode: Mode | None = None
+        self._last_emcy: emcy.Emcy | None = None
+        self._update = asyncio.Event()
+        self._boot = asyncio.Event()
+        self._streams: set[SampleStream] = set()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._connected = False
+        self._closed = False
+
+    # ------------------------------------------------------------------ public API
+
+    async def connect(self) -> None:
+        """NMT reset communication, heartbeat producer and consumer, PDO mapping, NMT start;
+        returns once the first position sample arrived."""
+        if self._connected or self._closed:
+            raise DriveNotReady(self.name, self.state.value, "connect() on a connected or closed drive")
+        self._tasks.append(asyncio.create_task(self._receive(), name=f"{self.name}-receive"))
+        self._boot.clear()
+        await self._nmt(nmt.NmtCommand.RESET_COMMUNICATION)
+        try:
+            async with asyncio.timeout(self.BOOT_TIMEOUT_S):
+                await self._boot.wait()
+        except TimeoutError:
+            raise NmtTimeout(self.name, self.state.value, f"no boot-up within {self.BOOT_TIMEOUT_S:g} s of NMT reset communication") from None
+        await self._configure()
+        self._tasks.append(asyncio.create_task(self._produce_heartbeat(), name=f"{self.name}-heartbeat"))
+        self._connected = True
+        await self._nmt(nmt.NmtCommand.START)
+        self.nmt_state = nmt.NmtState.OPERATIONAL
+        self._tasks.append(asyncio.create_task(self._watch_heartbeat(), name=f"{self.name}-watchdog"))
+        await self._until(lambda: self.latest is not None, self.FIRST_SAMPLE_TIMEOUT_S,
+                          lambda: NmtTimeout(self.name, self.state.value, f"no TPDO within {self.FIRST_SAMPLE_TIMEOUT_S:g} s of NMT start"))
+        log.info("drive_connected", drive=self.name, node=self.node_id, state=self.state.value,
+                 angle_deg=round(self.latest.angle_deg, 3) if self.latest else None)
+
+    async def enable(self) -> None:
+        """Walk the CiA 402 state machine to OPERATION ENABLED."""
+        self._check_ready()
+        if self.state is not Cia402State.OPERATION_ENABLED:
+            # A profile-velocity target left from before a quick stop must not restart the beam.
+            await self.sdo.write(cia402.TARGET_VELOCITY, 0, "<i", 0)
+        await self._goto(Cia402State.OPERATION_ENABLED)
+
+    async def disable(self) -> None:
+        """Disable voltage (SWITCH ON DISABLED); with a latched fault it only sends the command."""
+        await self._write_controlword(cia402.DISABLE_VOLTAGE)
+        if self.fault is None:
+            await self._until(lambda: self.state is Cia402State.SWITCH_ON_DISABLED, self.TRANSITION_TIMEOUT_S,
+                              self._transition_timeout(Cia402State.SWITCH_ON_DISABLED.value, cia402.DISABLE_VOLTAGE))
+
+    async def set_zero(self, angle_deg: float = 0.0) -> None:
+        """Make the current position read as ``angle_deg`` (homing method 37 with the home
+        offset); the beam must be enabled and standing still."""
+        self._check_enabled()
+        if self.latest is not None and abs(self.latest.speed_deg_s) > 0:
+            raise DriveNotReady(self.name, self.state.value, f"set_zero while moving at {self.latest.speed_deg_s:.3f} deg/s")
+        await self.sdo.write(cia402.HOME_OFFSET, 0, "<i", self._counts(angle_deg))
+        await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION)
+        await self._set_mode(Mode.HOMING)
+        await self._write_controlword(cia402.ENABLE_OPERATION)
+        start = cia402.ENABLE_OPERATION | Control.NEW_SET_POINT
+        await self._write_controlword(start)
+        attained = Status.SET_POINT_ACKNOWLEDGE | Status.TARGET_REACHED
+        await self._until(lambda: self.statusword & attained == attained, self.TRANSITION_TIMEOUT_S,
+                          self._transition_timeout("homing attained", start))
+        await self._write_controlword(cia402.ENABLE_OPERATION)
+        target = self._counts(angle_deg) / self.counts_per_degree
+        await self._until(lambda: self.latest is not None and abs(self.latest.angle_deg - target) < 1 / self.counts_per_degree,
+                          self.TRANSITION_TIMEOUT_S, self._transition_timeout(f"position {angle_deg:g} deg", start))
+        log.info("drive_zeroed", drive=self.name, angle_deg=angle_deg)
+
+    async def rotate(self, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+        """Profile velocity: ramp to ``speed_deg_s`` (signed) at ``acceleration_deg_s2``; returns
+        once the drive accepted the command (see :meth:`wait_speed`)."""
+        self._check_limits(speed_deg_s, acceleration_deg_s2)
+        self._check_enabled()
+        counts_s2 = self._counts(acceleration_deg_s2)
+        await self.sdo.write(cia402.PROFILE_ACCELERATION, 0, "<I", counts_s2)
+        await self.sdo.write(cia402.PROFILE_DECELERATION, 0, "<I", counts_s2)
+        await self.sdo.write(cia402.TARGET_VELOCITY, 0, "<i", self._counts(speed_deg_s))
+        await self._set_mode(Mode.PROFILE_VELOCITY)
+        if self._controlword != cia402.ENABLE_OPERATION:
+            await self._write_controlword(cia402.ENABLE_OPERATION)
+        log.info("drive_rotate", drive=self.name, speed_deg_s=speed_deg_s, acceleration_deg_s2=acceleration_deg_s2)
+
+    async def wait_speed(self, speed_deg_s: float, tolerance_deg_s: float = 0.05, timeout_s: float | None = None) -> None:
+        """Wait until the reported speed is within ``tolerance_deg_s`` of ``speed_deg_s``."""
+        if timeout_s is None:
+            current = self.latest.speed_deg_s if self.latest else 0.0
+            timeout_s = abs(speed_deg_s - current) / self.config.max_acceleration_deg_s2 * 4 + self.MOTION_MARGIN_S
+        await self._until(lambda: self.latest is not None and abs(self.latest.speed_deg_s - speed_deg_s) <= tolerance_deg_s,
+                          timeout_s, self._transition_timeout(f"speed {speed_deg_s:g} deg/s", self._controlword))
+
+    async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+        """Profile position: move to ``angle_deg`` (continuous) and return when the drive reports
+        target reached."""
+        self._check_limits(speed_deg_s, acceleration_deg_s2)
+        if speed_deg_s <= 0:
+            raise MotionLimitError(self.name, self.state.value, f"move speed {speed_deg_s:g} deg/s must be positive")
+        self._check_enabled()
+        counts_s2 = self._counts(acceleration_deg_s2)
+        await self.sdo.write(cia402.TARGET_POSITION, 0, "<i", self._counts(angle_deg))
+        await self.sdo.write(cia402.PROFILE_VELOCITY, 0, "<I", self._counts(speed_deg_s))
+        await self.sdo.write(cia402.PROFILE_ACCELERATION, 0, "<I", counts_s2)
+        await self.sdo.write(cia402.PROFILE_DECELERATION, 0, "<I", counts_s2)
+        await self._set_mode(Mode.PROFILE_POSITION)
+        await self._write_controlword(cia402.ENABLE_OPERATION)
+        start = cia402.ENABLE_OPERATION | Control.NEW_SET_POINT | Control.CHANGE_IMMEDIATELY
+        await self._write_controlword(start)
+        await self._until(lambda: bool(self.statusword & Status.SET_POINT_ACKNOWLEDGE), self.TRANSITION_TIMEOUT_S,
+                          self._transition_timeout("set-point acknowledge", start))
+        await self._write_controlword(cia402.ENABLE_OPERATION)
+        here = self.latest.angle_deg if self.latest else angle_deg
+        speed_now = abs(self.latest.speed_deg_s) if self.latest else 0.0
+        duration = abs(angle_deg - here) / speed_deg_s + (speed_deg_s + speed_now) / acceleration_deg_s2 * 2
+        await self._until(
+            lambda: bool(self.statusword & Status.TARGET_REACHED) and not self.statusword & Status.SET_POINT_ACKNOWLEDGE,
+            duration + self.MOTION_MARGIN_S, self._transition_timeout(f"target {angle_deg:g} deg", start))
+        log.info("drive_moved", drive=self.name, angle_deg=angle_deg)
+
+    async def stop(self, deceleration_deg_s2: float) -> None:
+        """Controlled stop to speed 0 at ``deceleration_deg_s2`` (abort a rotation or move)."""
+        self._check_limits(0.0, deceleration_deg_s2)
+        if self.fault is not None:
+            raise self.fault
+        if self.state is not Cia402State.OPERATION_ENABLED:
+            return
+        await self.sdo.write(cia402.PROFILE_DECELERATION, 0, "<I", self._counts(deceleration_deg_s2))
+        if self._mode is Mode.PROFILE_VELOCITY:
+            await self.sdo.write(cia402.TARGET_VELOCITY, 0, "<i", 0)
+            command = self._controlword
+        else:
+            command = cia402.ENABLE_OPERATION | Control.HALT
+            await self._write_controlword(command)
+        speed = abs(self.latest.speed_deg_s) if self.latest else 0.0
+        await self._until(self._standing, speed / deceleration_deg_s2 + self.MOTION_MARGIN_S,
+                          self._transition_timeout("standstill", command))
+        log.info("drive_stopped", drive=self.name, angle_deg=self.latest.angle_deg if self.latest else None)
+
+    async def quick_stop(self) -> None:
+        """CiA 402 quick stop: the drive brakes on its quick-stop ramp; returns at standstill.
+        With a latched fault the command is sent and the drive's own fault reaction brakes."""
+        await self._write_controlword(cia402.QUICK_STOP)
+        if self.fault is not None or self.state not in (Cia402State.OPERATION_ENABLED, Cia402State.QUICK_STOP_ACTIVE):
+            return
+        await self._until(lambda: self.state is not Cia402State.OPERATION_ENABLED, self.TRANSITION_TIMEOUT_S,
+                          self._transition_timeout(Cia402State.QUICK_STOP_ACTIVE.value, cia402.QUICK_STOP))
+        speed = abs(self.latest.speed_deg_s) if self.latest else 0.0
+        await self._until(self._standing, speed / self.config.max_acceleration_deg_s2 + self.MOTION_MARGIN_S,
+                          self._transition_timeout("standstill after quick stop", cia402.QUICK_STOP))
+        log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
+
+    async def reset_fault(self) -> None:
+        """Clear the drive's fault (rising edge of controlword bit 7) and the latched error.
+
+        Raises:
+            HeartbeatLost: the drive is still silent.
+            StateTransitionTimeout: the drive stays in FAULT (its cause persists, e.g. e-stop).
+        """
+        self._check_connected()
+        loop = asyncio.get_running_loop()
+        silent = loop.time() - (self.last_heartbeat_s or -math.inf)
+        timeout_s = self.config.heartbeat_timeout_ms / 1000
+        if silent > timeout_s:
+            raise HeartbeatLost(self.name, self.state.value, silent, timeout_s)
+        if self.nmt_state is not nmt.NmtState.OPERATIONAL:
+            await self._nmt(nmt.NmtCommand.START)
+        if self.state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE):
+            await self._write_controlword(cia402.DISABLE_VOLTAGE)
+            await self._write_controlword(cia402.FAULT_RESET)
+            try:
+                await self._until(lambda: self.state is Cia402State.SWITCH_ON_DISABLED, self.TRANSITION_TIMEOUT_S,
+                                  self._transition_timeout(Cia402State.SWITCH_ON_DISABLED.value, cia402.FAULT_RESET),
+                                  raise_fault=False)
+            finally:
+                await self._write_controlword(cia402.DISABLE_VOLTAGE)
+        log.info("drive_fault_reset", drive=self.name, cleared=str(self.fault) if self.fault else None)
+        self.fault = None
+        self._last_emcy = None
+        self._wake()
+
+    async def close(self) -> None:
+        """Stop the heartbeat and the reader, end every sample stream, close the port (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._connected = False
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        for stream in list(self._streams):
+            stream.put(_END)
+        self.port.close()
+        self._wake()
+        log.info("drive_closed", drive=self.name)
+
+    def samples(self) -> AsyncIterator[BeamSample]:
+        """A live stream of position samples from now on; each call its own queue."""
+        stream = SampleStream(self, self.SAMPLE_QUEUE_SIZE)
+        self._streams.add(stream)
+        return stream
+
+    def angle_to_counts(self, angle_deg: float) -> int:
+        """Encoder counts (motor side) for a beam angle."""
+        return self._counts(angle_deg)
+
+    # ------------------------------------------------------------------ bring-up
+
+    async def _configure(self) -> None:
+        n, cfg = self.node_id, self.config
+        write = self.sdo.write
+        await write(cia402.HEARTBEAT_PRODUCER, 0, "<H", cfg.heartbeat_producer_ms)
+        await write(cia402.HEARTBEAT_CONSUMER, 1, "<I", nmt.consumer_heartbeat_value(self.host_node_id, cfg.heartbeat_timeout_ms))
+        period_ms = max(1, round(1000 / cfg.position_rate_hz))
+        for k, mapping in enumerate((POSITION_TPDO, STATUS_TPDO)):
+            comm, mapping_index, cob_id = pdo.TPDO_COMMUNICATION + k, pdo.TPDO_MAPPING + k, nmt.tpdo_cob_id(k + 1, n)
+            await write(comm, 1, "<I", pdo.COB_ID_INVALID | cob_id)
+            await write(mapping_index, 0, "<B", 0)
+            for sub, obj in enumerate(mapping, start=1):
+                await write(mapping_index, sub, "<I", obj.entry)
+            await write(mapping_index, 0, "<B", len(mapping))
+            await write(comm, 2, "<B", pdo.TRANSMISSION_EVENT_DRIVEN)
+            await write(comm, 5, "<H", period_ms)
+            await write(comm, 1, "<I", cob_id)
+        await write(cia402.FOLLOWING_ERROR_WINDOW, 0, "<I", self._counts(cfg.following_error_deg))
+        await write(cia402.QUICK_STOP_DECELERATION, 0, "<I", self._counts(cfg.max_acceleration_deg_s2))
+        await write(cia402.QUICK_STOP_OPTION, 0, "<h", 6)  # brake on the quick-stop ramp, stay there
+        self._on_statusword(await self.sdo.read(cia402.STATUSWORD, 0, "<H"))
+        self._mode = None
+
+    # ------------------------------------------------------------------ helpers
+
+    def _counts(self, degrees: float) -> int:
+        return round(degrees * self.counts_per_degree)
+
+    def _check_connected(self) -> None:
+        if not self._connected:
+            raise DriveNotReady(self.name, self.state.value, "not connected (call connect())")
+
+    def _check_ready(self) -> None:
+        self._check_connected()
+        if self.fault is not None:
+            raise self.fault
+
+    def _check_enabled(self) -> None:
+        self._check_ready()
+        if self.state is not Cia402State.OPERATION_ENABLED:
+            raise DriveNotReady(self.name, self.state.value, "needs OPERATION ENABLED (call enable())")
+
+    def _check_limits(self, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+        cfg = self.config
+        if not math.isfinite(speed_deg_s) or abs(speed_deg_s) > cfg.max_speed_deg_s:
+            raise MotionLimitError(self.name, self.state.value, f"speed {speed_deg_s:g} deg/s outside +-{cfg.max_speed_deg_s:g}")
+        if not math.isfinite(acceleration_deg_s2) or not 0 < acceleration_deg_s2 <= cfg.max_acceleration_deg_s2:
+            raise MotionLimitError(
+                self.name, self.state.value,
+                f"acceleration {acceleration_deg_s2:g} deg/s^2 outside (0, {cfg.max_acceleration_deg_s2:g}]")
+
+    def _standing(self) -> bool:
+        return self.latest is not None and self.latest.speed_deg_s == 0 and bool(self.statusword & Status.TARGET_REACHED)
+
+    def _transition_timeout(self, goal: str, controlword: int) -> Callable[[], DriveError]:
+        def make() -> DriveError:
+            return StateTransitionTimeout(self.name, self.state.value, goal, controlword, self.statusword,
+                                          self.TRANSITION_TIMEOUT_S)
+        return make
+
+    async def _until(self, predicate: Callable[[], bool], timeout_s: float, on_timeout: Callable[[], DriveError],
+                     *, raise_fault: bool = True) -> None:
+        """Wait for ``predicate`` on statusword / sample updates; a latched fault raises."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                while True:
+                    if raise_fault and self.fault is not None:
+                        raise self.fault
+                    if predicate():
+                        return
+                    if self._closed:
+                        raise DriveNotReady(self.name, self.state.value, "closed while waiting")
+                    await self._update.wait()
+        except TimeoutError:
+            raise on_timeout() from None
+
+    async def _goto(self, goal: Cia402State) -> None:
+        if self.state is goal:
+            return
+        try:
+            steps = cia402.path(self.state, goal)
+        except ValueError as exc:
+            raise DriveNotReady(self.name, self.state.value, str(exc)) from None
+        for next_state, controlword in steps:
+            await self._write_controlword(controlword)
+            await self._until(lambda s=next_state: self.state is s, self.TRANSITION_TIMEOUT_S,  # type: ignore[misc]
+                              self._transition_timeout(next_state.value, controlword))
+
+    async def _write_controlword(self, word: int) -> None:
+        await self.sdo.write(cia402.CONTROLWORD, 0, "<H", word)
+        self._controlword = word
+
+    async def _set_mode(self, mode: Mode) -> None:
+        if self._mode is not mode:
+            await self.sdo.write(cia402.MODES_OF_OPERATION, 0, "<b", int(mode))
+            self._mode = mode
+
+    async def _send(self, cob_id: int, data: bytes) -> None:
+        await self.port.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+
+    async def _nmt(self, command: nmt.NmtCommand) -> None:
+        await self._send(nmt.NMT_COB_ID, nmt.nmt_frame(command, self.node_id))
+
+    def _wake(self) -> None:
+        event, self._update = self._update, asyncio.Event()
+        event.set()
+
+    def _latch(self, error: DriveError) -> None:
+        if self.fault is None or (
+            isinstance(self.fault, DriveFault) and self.fault.code is None and isinstance(error, DriveFault)
+        ):
+            self.fault = error
+            log.error("drive_fault_latched", drive=self.name, error=str(error), kind=type(error).__name__)
+        elif error is not self.fault:
+            self.fault.add_note(f"then: {error}")
+        self._wake()
+
+    # ------------------------------------------------------------------ frames from the drive
+
+    async def _receive(self) -> None:
+        while True:
+            try:
+                msg = await self.port.recv()
+            except CanBusError as exc:
+                if not self._closed:
+                    self._latch(exc)
+                return
+            self._dispatch(msg.arbitration_id, bytes(msg.data))
+
+    def _dispatch(self, cob_id: int, data: bytes) -> None:
+        n = self.node_id
+        try:
+            if cob_id == nmt.sdo_response_cob_id(n):
+                self.sdo.on_frame(data)
+            elif cob_id == nmt.tpdo_cob_id(1, n):
+                self._on_position(*pdo.decode_pdo(POSITION_TPDO, data))
+            elif cob_id == nmt.tpdo_cob_id(2, n):
+                self._on_statusword(pdo.decode_pdo(STATUS_TPDO, data)[0])
+            elif cob_id == nmt.emcy_cob_id(n):
+                self._on_emcy(emcy.parse_emcy(data))
+            elif cob_id == nmt.heartbeat_cob_id(n):
+                self._on_heartbeat(nmt.parse_heartbeat(data))
+        except (ValueError, emcy.EmcyFrameError, nmt.NmtFrameError) as exc:
+            self._latch(FrameError(self.name, self.state.value, f"frame 0x{cob_id:03X} {data.hex()}: {exc}"))
+
+    def _on_position(self, position: int, velocity: int) -> None:
+        self._speed_counts = velocity
+        sample = BeamSample(
+            time_s=asyncio.get_running_loop().time(),
+            angle_deg=position / self.counts_per_degree,
+            speed_deg_s=velocity / self.counts_per_degree,
+            statusword=self.statusword,
+        )
+        self.latest = sample
+        self.samples_received += 1
+        for stream in self._streams:
+            stream.put(sample)
+        self._wake()
+
+    def _on_statusword(self, word: int) -> None:
+        try:
+            state = cia402.state_from_statusword(word)
+        except ValueError as exc:
+            self._latch(FrameError(self.name, self.state.value, str(exc)))
+            return
+        self.statusword = word
+        if state is not self.state:
+            log.info("drive_state", drive=self.name, old=self.state.value, new=state.value, statusword=f"0x{word:04X}")
+            self.state = state
+        if state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE) and self.fault is None:
+            last = self._last_emcy
+            self._latch(self._fault_from(last.code if last else None, last.register if last else 0))
+        self._wake()
+
+    def _fault_from(self, code: int | None, register: int) -> DriveFault:
+        cls = FollowingError if code == emcy.FOLLOWING_ERROR else DriveFault
+        return cls(self.name, self.state.value, code, register)
+
+    def _on_emcy(self, message: emcy.Emcy) -> None:
+        if message.code == emcy.ERROR_RESET:
+            log.info("drive_emcy_reset", drive=self.name)
+            return
+        self._last_emcy = message
+        self._latch(self._fault_from(message.code, message.register))
+
+    def _on_heartbeat(self, state: nmt.NmtState) -> None:
+        self.last_heartbeat_s = asyncio.get_running_loop().time()
+        if state is nmt.NmtState.BOOT_UP:
+            if self._connected:
+                self._latch(DriveRebooted(self.name, self.state.value, "boot-up message while connected"))
+            self._boot.set()
+        else:
+            self.nmt_state = state
+        self._wake()
+
+    # ------------------------------------------------------------------ heartbeats
+
+    async def _produce_heartbeat(self) -> None:
+        period_s = self.config.host_heartbeat_ms / 1000
+        frame = nmt.heartbeat_frame(nmt.NmtState.OPERATIONAL)
+        while True:
+            try:
+                await self._send(nmt.heartbeat_cob_id(self.host_node_id), frame)
+            except CanBusError as exc:
+                self._latch(exc)
+                return
+            await asyncio.sleep(period_s)
+
+    async def _watch_heartbeat(self) -> None:
+        loop = asyncio.get_running_loop()
+        timeout_s = self.config.heartbeat_timeout_ms / 1000
+        if self.last_heartbeat_s is None:
+            self.last_heartbeat_s = loop.time()
+        while True:
+            silent = loop.time() - self.last_heartbeat_s
+            if silent <= timeout_s:
+                await asyncio.sleep(timeout_s - silent + 1e-6)
+                continue
+            lost = HeartbeatLost(self.name, self.state.value, silent, timeout_s)
+            self._latch(lost)
+            try:
+                await self._write_controlword(cia402.QUICK_STOP)
+            except DriveError as exc:
+                lost.add_note(f"quick stop after heartbeat loss failed: {exc}")
+            seen = self.last_heartbeat_s
+            while self.last_heartbeat_s == seen:
+                await self._update.wait()

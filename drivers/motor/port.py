@@ -1,0 +1,169 @@
+"""CAN frame ports for asyncio: the one narrow interface the CANopen layer talks through.
+
+* :class:`PythonCanPort` wraps any python-can bus (``socketcan`` on the rig, ``slcan`` for serial
+  adapters, ``virtual`` in tests, ``socketcand`` for a simulator in another process). python-can's
+  :class:`can.Notifier` delivers frames into the event loop (its reader thread is used only for
+  real buses).
+* :class:`LoopbackCanBus` is an in-process, thread-free bus: every frame sent on one of its ports
+  is queued on every other port in the same call, so nothing is ever "in flight" and a
+  virtual-time event loop can jump safely.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any, Protocol, runtime_checkable
+
+import can
+import structlog
+
+from drivers.motor.errors import CanBusError
+
+log = structlog.get_logger(__name__)
+
+
+@runtime_checkable
+class CanPort(Protocol):
+    """An asyncio CAN frame port."""
+
+    name: str
+
+    async def send(self, msg: can.Message) -> None:
+        """Put one frame on the bus."""
+
+    async def recv(self) -> can.Message:
+        """The next frame from the bus; raises :class:`CanBusError` once the port is closed."""
+
+    def close(self) -> None:
+        """Stop the port (idempotent); a pending ``recv`` raises :class:`CanBusError`."""
+
+
+_CLOSED = object()
+
+
+class LoopbackCanBus:
+    """An in-process CAN bus without threads: ports deliver frames to each other immediately.
+
+    Like a real bus, a sender does not receive its own frames. Frames are stamped with the
+    event loop's clock at sending.
+    """
+
+    def __init__(self, name: str = "loopback") -> None:
+        self.name = name
+        self._ports: list[LoopbackPort] = []
+
+    def port(self, name: str | None = None) -> LoopbackPort:
+        """A new port attached to this bus."""
+        port = LoopbackPort(self, name or f"{self.name}{len(self._ports)}")
+        self._ports.append(port)
+        return port
+
+    def _deliver(self, sender: LoopbackPort, msg: can.Message) -> None:
+        for port in self._ports:
+            if port is not sender and not port.closed:
+                port._queue.put_nowait(msg)
+
+    def _detach(self, port: LoopbackPort) -> None:
+        if port in self._ports:
+            self._ports.remove(port)
+
+
+class LoopbackPort:
+    """One node's attachment to a :class:`LoopbackCanBus`."""
+
+    def __init__(self, bus: LoopbackCanBus, name: str) -> None:
+        self.name = name
+        self.closed = False
+        self._bus = bus
+        self._queue: asyncio.Queue[Any] = asyncio.Queue()
+
+    async def send(self, msg: can.Message) -> None:
+        if self.closed:
+            raise CanBusError(self.name, "closed", f"cannot send 0x{msg.arbitration_id:03X}")
+        frame = can.Message(
+            timestamp=asyncio.get_running_loop().time(),
+            arbitration_id=msg.arbitration_id,
+            is_extended_id=msg.is_extended_id,
+            is_remote_frame=msg.is_remote_frame,
+            data=bytes(msg.data),
+            is_rx=True,
+            channel=self._bus.name,
+        )
+        self._bus._deliver(self, frame)
+
+    async def recv(self) -> can.Message:
+        if self.closed:
+            raise CanBusError(self.name, "closed", "port is closed")
+        item = await self._queue.get()
+        if item is _CLOSED:
+            raise CanBusError(self.name, "closed", "port closed while receiving")
+        return item
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self._bus._detach(self)
+        self._queue.put_nowait(_CLOSED)
+
+
+class _Reader(can.AsyncBufferedReader):
+    """python-can's asyncio reader, also waking ``recv`` on bus errors and on close."""
+
+    def on_error(self, exc: Exception) -> None:
+        self.buffer.put_nowait(exc)  # type: ignore[arg-type]
+
+    def wake_closed(self) -> None:
+        self.buffer.put_nowait(_CLOSED)  # type: ignore[arg-type]
+
+
+class PythonCanPort:
+    """A :class:`CanPort` over a python-can bus; the port owns the bus and shuts it down on close.
+
+    Must be created inside the running event loop (the notifier schedules frames into it).
+    """
+
+    def __init__(self, bus: can.BusABC, *, name: str | None = None) -> None:
+        self.name = name or str(getattr(bus, "channel_info", "can"))
+        self.bus = bus
+        self.closed = False
+        self._reader = _Reader()
+        self._notifier = can.Notifier(bus, [self._reader], loop=asyncio.get_running_loop())
+
+    @classmethod
+    def open(cls, interface: str, channel: str, *, name: str | None = None, **kwargs: Any) -> PythonCanPort:
+        """Open a python-can bus by interface name (``socketcan``, ``slcan``, ``virtual``,
+        ``socketcand``...) and wrap it; the interface's SDK is imported only when chosen."""
+        try:
+            bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        except (can.CanError, OSError, ValueError) as exc:
+            raise CanBusError(name or channel, "closed", f"cannot open {interface} {channel}: {exc}") from exc
+        return cls(bus, name=name or f"{interface}:{channel}")
+
+    async def send(self, msg: can.Message) -> None:
+        if self.closed:
+            raise CanBusError(self.name, "closed", f"cannot send 0x{msg.arbitration_id:03X}")
+        try:
+            self.bus.send(msg)
+        except (can.CanError, OSError) as exc:
+            raise CanBusError(self.name, "open", f"send 0x{msg.arbitration_id:03X} failed: {exc}") from exc
+
+    async def recv(self) -> can.Message:
+        if self.closed:
+            raise CanBusError(self.name, "closed", "port is closed")
+        item: Any = await self._reader.get_message()
+        if item is _CLOSED:
+            raise CanBusError(self.name, "closed", "port closed while receiving")
+        if isinstance(item, Exception):
+            raise CanBusError(self.name, "failed", f"bus receive failed: {item}") from item
+        return item
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self._notifier.stop()
+        finally:
+            self._reader.wake_closed()
+            self.bus.shutdown()

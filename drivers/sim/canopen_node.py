@@ -1,0 +1,389 @@
+"""A simulated CANopen device (CiA 301 slave) on a :class:`~drivers.motor.port.CanPort`.
+
+The server half of what :mod:`drivers.motor` is the client of: an object dictionary, an
+expedited SDO server with the standard abort codes, NMT, boot-up and heartbeat producer, a
+heartbeat consumer, and TPDOs sent by event timer in OPERATIONAL. Everything is timed with the
+event loop (one cycle task), so it runs unchanged in real and virtual time. A device profile
+(the CiA 402 drive) subclasses it and overrides the hooks.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from dataclasses import dataclass
+
+import can
+import structlog
+
+from drivers.motor import nmt, pdo, sdo
+from drivers.motor.errors import CanBusError
+from drivers.motor.port import CanPort
+
+log = structlog.get_logger(__name__)
+
+
+@dataclass
+class ObjectEntry:
+    """One object dictionary entry: struct format, value and access."""
+
+    fmt: str
+    value: int = 0
+    writable: bool = True
+    readable: bool = True
+    mappable: bool = False
+
+    @property
+    def size(self) -> int:
+        return struct.calcsize(self.fmt)
+
+
+class SdoAbortRequest(Exception):
+    """Raised by a write hook to abort the SDO transfer with ``code``."""
+
+    def __init__(self, code: int) -> None:
+        self.code = code
+        super().__init__(f"SDO abort 0x{code:08X}")
+
+
+class SimulatedNode:
+    """A CANopen slave.
+
+    Fault injection: ``sdo_delay_s`` (answer SDO requests late), ``drop_sdo_replies(n)``,
+    ``drop_tpdos(n)``, ``stop_heartbeat()`` / ``resume_heartbeat()``, ``disconnect()`` /
+    ``reconnect()`` (the node falls silent and deaf, like a pulled cable).
+    """
+
+    TICK_S = 0.005
+    TPDO_COUNT = 4
+    DEVICE_TYPE = 0
+
+    def __init__(self, port: CanPort, node_id: int, *, name: str = "node") -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id {node_id} outside 1..127")
+        self.port = port
+        self.node_id = node_id
+        self.name = name
+        self.nmt_state = nmt.NmtState.BOOT_UP
+        self.od: dict[tuple[int, int], ObjectEntry] = {}
+        self.sdo_delay_s = 0.0
+        self.heartbeat_enabled = True
+        self.silent = False
+        self.frames_sent = 0
+        self._drop_sdo = 0
+        self._drop_tpdo = 0
+        self._consumer_seen: dict[int, float] = {}
+        self._tpdo_due: dict[int, tuple[float, float]] = {}
+        self._heartbeat_due: float | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self.reset_communication_objects()
+
+    # ------------------------------------------------------------------ object dictionary
+
+    def reset_communication_objects(self) -> None:
+        """Communication objects (0x1000-0x1FFF) to their power-on values."""
+        n = self.node_id
+        self.od.update({
+            (0x1000, 0): ObjectEntry("<I", self.DEVICE_TYPE, writable=False),
+            (0x1001, 0): ObjectEntry("<B", 0, writable=False, mappable=True),
+            (0x1016, 0): ObjectEntry("<B", 1, writable=False),
+            (0x1016, 1): ObjectEntry("<I", 0),
+            (0x1017, 0): ObjectEntry("<H", 0),
+        })
+        for k in range(self.TPDO_COUNT):
+            invalid = 0 if k == 0 else pdo.COB_ID_INVALID
+            comm, mapping = pdo.TPDO_COMMUNICATION + k, pdo.TPDO_MAPPING + k
+            self.od.update({
+                (comm, 0): ObjectEntry("<B", 5, writable=False),
+                (comm, 1): ObjectEntry("<I", invalid | nmt.tpdo_cob_id(k + 1, n)),
+                (comm, 2): ObjectEntry("<B", pdo.TRANSMISSION_EVENT_DRIVEN),
+                (comm, 3): ObjectEntry("<H", 0),
+                (comm, 5): ObjectEntry("<H", 0),
+                (mapping, 0): ObjectEntry("<B", 0),
+            })
+            for sub in range(1, 9):
+                self.od[(mapping, sub)] = ObjectEntry("<I", 0)
+        self._tpdo_due.clear()
+        self._consumer_seen.clear()
+
+    def value(self, index: int, subindex: int = 0) -> int:
+        """An object's current value (live objects come from :meth:`read_object`)."""
+        return self.read_object(index, subindex)
+
+    def read_object(self, index: int, subindex: int) -> int:
+        """Hook: the value of an object; live values (statusword, position) override this."""
+        return self.od[(index, subindex)].value
+
+    def write_object(self, index: int, subindex: int, value: int) -> None:
+        """Hook: store a written value, enforcing the PDO mapping rules of CiA 301.
+
+        Raises:
+            SdoAbortRequest: the write is refused (code says why).
+        """
+        if index in range(pdo.TPDO_MAPPING, pdo.TPDO_MAPPING + self.TPDO_COUNT):
+            self._check_mapping_write(index, subindex, value)
+        self.od[(index, subindex)].value = value
+
+    def _check_mapping_write(self, index: int, subindex: int, value: int) -> None:
+        comm = self.od[(index - pdo.TPDO_MAPPING + pdo.TPDO_COMMUNICATION, 1)].value
+        if not comm & pdo.COB_ID_INVALID:
+            raise SdoAbortRequest(sdo.ABORT_DEVICE_STATE)
+        if subindex == 0:
+            if value > 8:
+                raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            bits = sum(pdo.parse_map_entry(self.od[(index, s)].value)[2] for s in range(1, value + 1))
+            if bits > 64:
+                raise SdoAbortRequest(sdo.ABORT_PDO_LENGTH)
+            return
+        if self.od[(index, 0)].value != 0:
+            raise SdoAbortRequest(sdo.ABORT_UNSUPPORTED_ACCESS)
+        obj_index, obj_sub, bits = pdo.parse_map_entry(value)
+        entry = self.od.get((obj_index, obj_sub))
+        if entry is None or not entry.mappable or entry.size * 8 != bits:
+            raise SdoAbortRequest(sdo.ABORT_NOT_MAPPABLE)
+
+    def tpdo_mapping(self, k: int) -> tuple[pdo.MappedObject, ...]:
+        """The current mapping of TPDO k+1."""
+        index = pdo.TPDO_MAPPING + k
+        out = []
+        for sub in range(1, self.od[(index, 0)].value + 1):
+            obj_index, obj_sub, _ = pdo.parse_map_entry(self.od[(index, sub)].value)
+            out.append(pdo.MappedObject(obj_index, obj_sub, self.od[(obj_index, obj_sub)].fmt))
+        return tuple(out)
+
+    # ------------------------------------------------------------------ fault injection
+
+    def drop_sdo_replies(self, count: int) -> None:
+        """Do not answer the next ``count`` SDO requests."""
+        self._drop_sdo += count
+
+    def drop_tpdos(self, count: int) -> None:
+        """Swallow the next ``count`` TPDO frames."""
+        self._drop_tpdo += count
+
+    def stop_heartbeat(self) -> None:
+        self.heartbeat_enabled = False
+
+    def resume_heartbeat(self) -> None:
+        self.heartbeat_enabled = True
+
+    def disconnect(self) -> None:
+        """Fall silent and ignore the bus (the node's cable is pulled)."""
+        self.silent = True
+
+    def reconnect(self) -> None:
+        self.silent = False
+
+    # ------------------------------------------------------------------ running
+
+    async def run(self) -> None:
+        """Boot up and serve the bus until cancelled or the port closes."""
+        await self.boot()
+        cycle = asyncio.create_task(self._cycle(), name=f"{self.name}-cycle")
+        try:
+            while True:
+                try:
+                    msg = await self.port.recv()
+                except CanBusError:
+                    return
+                if not self.silent:
+                    await self._dispatch(msg)
+        finally:
+            cycle.cancel()
+            for task in (cycle, *self._tasks):
+                task.cancel()
+            await asyncio.gather(cycle, *self._tasks, return_exceptions=True)
+
+    async def boot(self) -> None:
+        """Send the boot-up message and enter PRE-OPERATIONAL."""
+        self.nmt_state = nmt.NmtState.BOOT_UP
+        await self.send(nmt.heartbeat_cob_id(self.node_id), nmt.heartbeat_frame(nmt.NmtState.BOOT_UP))
+        self.nmt_state = nmt.NmtState.PRE_OPERATIONAL
+        self._heartbeat_due = None
+
+    async def send(self, cob_id: int, data: bytes) -> None:
+        if self.silent:
+            return
+        self.frames_sent += 1
+        await self.port.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+
+    async def _dispatch(self, msg: can.Message) -> None:
+        cob_id, data = msg.arbitration_id, bytes(msg.data)
+        if cob_id == nmt.NMT_COB_ID:
+            await self._on_nmt(data)
+        elif cob_id == nmt.sdo_request_cob_id(self.node_id):
+            if self.nmt_state is not nmt.NmtState.STOPPED:
+                await self._on_sdo(data)
+        elif 0x701 <= cob_id <= 0x77F:
+            self._on_heartbeat(cob_id - 0x700, data)
+        else:
+            await self.on_message(cob_id, data)
+
+    async def on_message(self, cob_id: int, data: bytes) -> None:
+        """Hook: any other frame (RPDO, SYNC...)."""
+
+    async def _on_nmt(self, data: bytes) -> None:
+        try:
+            command, node = nmt.parse_nmt(data)
+        except nmt.NmtFrameError as exc:
+            log.warning("nmt_frame_ignored", node=self.name, problem=str(exc))
+            return
+        if node not in (0, self.node_id):
+            return
+        if command is nmt.NmtCommand.START:
+            self.nmt_state = nmt.NmtState.OPERATIONAL
+        elif command is nmt.NmtCommand.STOP:
+            self.nmt_state = nmt.NmtState.STOPPED
+        elif command is nmt.NmtCommand.ENTER_PRE_OPERATIONAL:
+            self.nmt_state = nmt.NmtState.PRE_OPERATIONAL
+        elif command is nmt.NmtCommand.RESET_COMMUNICATION:
+            self.reset_communication_objects()
+            await self.boot()
+        elif command is nmt.NmtCommand.RESET_NODE:
+            self.reset_application()
+            self.reset_communication_objects()
+            await self.boot()
+        if command in (nmt.NmtCommand.START, nmt.NmtCommand.STOP, nmt.NmtCommand.ENTER_PRE_OPERATIONAL):
+            self._tpdo_due.clear()
+
+    def reset_application(self) -> None:
+        """Hook: application objects back to power-on values (NMT reset node)."""
+
+    def _on_heartbeat(self, node: int, data: bytes) -> None:
+        for sub in range(1, self.od[(0x1016, 0)].value + 1):
+            producer, time_ms = nmt.parse_consumer_heartbeat(self.od[(0x1016, sub)].value)
+            if producer == node and time_ms > 0:
+                self._consumer_seen[node] = asyncio.get_running_loop().time()
+
+    # ------------------------------------------------------------------ SDO server
+
+    async def _on_sdo(self, data: bytes) -> None:
+        if self._drop_sdo > 0:
+            self._drop_sdo -= 1
+            return
+        reply = self.sdo_reply(data)
+        if self.sdo_delay_s > 0:
+            task = asyncio.create_task(self._late_reply(reply))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+        else:
+            await self.send(nmt.sdo_response_cob_id(self.node_id), reply)
+
+    async def _late_reply(self, reply: bytes) -> None:
+        await asyncio.sleep(self.sdo_delay_s)
+        await self.send(nmt.sdo_response_cob_id(self.node_id), reply)
+
+    def sdo_reply(self, data: bytes) -> bytes:
+        """The server's answer to one SDO request frame (expedited transfers only)."""
+        try:
+            request = sdo.parse_sdo(data, from_client=True)
+        except ValueError:
+            index, subindex = (struct.unpack_from("<HB", data, 1) if len(data) >= 4 else (0, 0))
+            return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
+        index, subindex = request.index, request.subindex
+        if request.kind is sdo.SdoKind.ABORT:
+            return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
+        if not any(key[0] == index for key in self.od):
+            return sdo.abort_frame(index, subindex, sdo.ABORT_NO_OBJECT)
+        entry = self.od.get((index, subindex))
+        if entry is None:
+            return sdo.abort_frame(index, subindex, sdo.ABORT_NO_SUBINDEX)
+        if request.kind is sdo.SdoKind.UPLOAD:
+            if not entry.readable:
+                return sdo.abort_frame(index, subindex, sdo.ABORT_WRITE_ONLY)
+            raw = struct.pack(entry.fmt, self.read_object(index, subindex))
+            return sdo.upload_reply(index, subindex, raw)
+        if not request.expedited:
+            return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
+        if not entry.writable:
+            return sdo.abort_frame(index, subindex, sdo.ABORT_READ_ONLY)
+        payload = request.data if request.size_indicated else request.raw[: entry.size]
+        if len(payload) != entry.size:
+            return sdo.abort_frame(index, subindex, sdo.ABORT_LENGTH)
+        try:
+            self.write_object(index, subindex, struct.unpack(entry.fmt, payload)[0])
+        except SdoAbortRequest as exc:
+            return sdo.abort_frame(index, subindex, exc.code)
+        return sdo.download_reply(index, subindex)
+
+    # ------------------------------------------------------------------ cyclic work
+
+    async def on_tick(self, now: float) -> None:
+        """Hook: called every TICK_S (motion, monitoring)."""
+
+    async def on_heartbeat_lost(self, node: int, silent_s: float) -> None:
+        """Hook: a consumed heartbeat stayed away longer than its consumer time."""
+
+    async def transmit_tpdo(self, k: int) -> None:
+        """Send TPDO k+1 now if it is valid, mapped and the node is OPERATIONAL."""
+        cob_id = self.od[(pdo.TPDO_COMMUNICATION + k, 1)].value
+        mapping = self.tpdo_mapping(k)
+        if self.nmt_state is not nmt.NmtState.OPERATIONAL or cob_id & pdo.COB_ID_INVALID or not mapping:
+            return
+        if self._drop_tpdo > 0:
+            self._drop_tpdo -= 1
+            return
+        values = tuple(self.read_object(m.index, m.subindex) for m in mapping)
+        await self.send(cob_id & 0x7FF, pdo.encode_pdo(mapping, values))
+
+    async def transmit_tpdos_with(self, index: int) -> None:
+        """Event-driven transmission: every TPDO that maps object ``index`` (its value changed)."""
+        for k in range(self.TPDO_COUNT):
+            if any(m.index == index for m in self.tpdo_mapping(k)):
+                await self.transmit_tpdo(k)
+
+    async def _cycle(self) -> None:
+        loop = asyncio.get_running_loop()
+        next_tick = loop.time()
+        while True:
+            now = loop.time()
+            if now >= next_tick:
+                await self.on_tick(now)
+                await self._check_consumers(now)
+                next_tick = max(next_tick + self.TICK_S, now)
+            dues = [next_tick]
+            dues += await self._heartbeat_producer(now)
+            dues += await self._tpdo_timers(now)
+            await asyncio.sleep(max(0.0, min(dues) - loop.time()))
+
+    async def _heartbeat_producer(self, now: float) -> list[float]:
+        period_s = self.od[(0x1017, 0)].value / 1000
+        if period_s <= 0:
+            self._heartbeat_due = None
+            return []
+        if self._heartbeat_due is None or self._heartbeat_due > now + period_s:
+            self._heartbeat_due = now + period_s
+        if now >= self._heartbeat_due:
+            if self.heartbeat_enabled:
+                await self.send(nmt.heartbeat_cob_id(self.node_id), nmt.heartbeat_frame(self.nmt_state))
+            self._heartbeat_due = max(self._heartbeat_due + period_s, now)
+        return [self._heartbeat_due]
+
+    async def _tpdo_timers(self, now: float) -> list[float]:
+        dues = []
+        for k in range(self.TPDO_COUNT):
+            period_s = self.od[(pdo.TPDO_COMMUNICATION + k, 5)].value / 1000
+            cob_id = self.od[(pdo.TPDO_COMMUNICATION + k, 1)].value
+            if period_s <= 0 or cob_id & pdo.COB_ID_INVALID or self.nmt_state is not nmt.NmtState.OPERATIONAL:
+                self._tpdo_due.pop(k, None)
+                continue
+            due, period = self._tpdo_due.get(k, (now + period_s, period_s))
+            if period != period_s:
+                due = now + period_s
+            if now >= due:
+                await self.transmit_tpdo(k)
+                due = max(due + period_s, now)
+            self._tpdo_due[k] = (due, period_s)
+            dues.append(due)
+        return dues
+
+    async def _check_consumers(self, now: float) -> None:
+        for sub in range(1, self.od[(0x1016, 0)].value + 1):
+            producer, time_ms = nmt.parse_consumer_heartbeat(self.od[(0x1016, sub)].value)
+            seen = self._consumer_seen.get(producer)
+            if time_ms == 0 or seen is None:
+                continue
+            if now - seen > time_ms / 1000:
+                # Unmonitored again until the producer's next heartbeat (CiA 301).
+                del self._consumer_seen[producer]
+                await self.on_heartbeat_lost(producer, now - seen)

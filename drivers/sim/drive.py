@@ -1,0 +1,425 @@
+"""A simulated CiA 402 servo drive turning the beam, impersonated at the CANopen level.
+
+The drive is a :class:`SimulatedNode` with the CiA 402 objects, the device state machine of
+:mod:`drivers.motor.cia402`, profile velocity, profile position and homing (method 37, "current
+position") modes, and trapezoidal motion evaluated analytically on the event-loop clock.
+Positions are encoder counts of the motor (``encoder_counts_per_rev`` per motor turn,
+``gear_ratio`` motor turns per beam turn); velocities counts/s; accelerations counts/s^2.
+
+Faults: an e-stop input (quick-stop ramp, then FAULT with EMCY 0x5441), any EMCY fault code,
+a jammed beam (following error, EMCY 0x8611), loss of the host heartbeat (EMCY 0x8130), plus
+the node-level faults of :class:`SimulatedNode` (dropped TPDOs, silent heartbeat, late or
+missing SDO answers, a pulled cable).
+
+``tbp sim motor --port P`` serves the drive on a socketcand bridge at 127.0.0.1:P.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+from collections.abc import Coroutine
+from typing import Any
+
+import structlog
+
+from drivers.motor import cia402, emcy, nmt, sdo
+from drivers.motor.cia402 import Cia402State, Mode, Status
+from drivers.motor.port import CanPort, LoopbackCanBus
+from drivers.sim.canopen_node import ObjectEntry, SdoAbortRequest, SimulatedNode
+from drivers.sim.trapezoid import hold, position_move, velocity_ramp
+from planner.rig import Motor
+
+log = structlog.get_logger(__name__)
+
+S = Cia402State
+_POWERED = {S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE}
+_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # EMCY class -> 0x1001 bit
+_QUICK_STOP_OPTIONS = {1, 2, 5, 6}
+
+
+class SimulatedDrive(SimulatedNode):
+    """A CiA 402 drive on ``port`` with the rig's motor parameters.
+
+    Args:
+        port: the drive's CAN port.
+        config: the rig's motor section (node id, gear ratio, counts, limits).
+        initial_angle_deg: the beam's physical angle at power-on; the encoder then reads 0.
+        name: used in logs.
+    """
+
+    DEVICE_TYPE = 0x0002_0192  # CiA 402 servo drive
+    SUPPORTED_MODES = 0x25  # profile position, profile velocity, homing
+
+    def __init__(self, port: CanPort, config: Motor, *, initial_angle_deg: float = 0.0, name: str = "sim-drive") -> None:
+        self.config = config
+        self.counts_per_degree = config.counts_per_degree
+        self.initial_angle_deg = initial_angle_deg
+        self.state = S.SWITCH_ON_DISABLED
+        self.estop_pressed = False
+        self.jammed_at: float | None = None
+        self.error_code = 0
+        self.emcy_sent: list[emcy.Emcy] = []
+        self._controlword = 0
+        self._clock_s = 0.0
+        self._offset = 0.0  # reported counts = raw counts + offset (homing)
+        self._trajectory = hold(0.0, 0.0)
+        self._set_point_ack = False
+        self._homing_attained = False
+        self._last_statusword: int | None = None
+        super().__init__(port, config.node_id, name=name)
+        self.reset_application()
+
+    # ------------------------------------------------------------------ object dictionary
+
+    def reset_application(self) -> None:
+        cpd = self.counts_per_degree
+        rw, ro = True, False
+        table = {
+            cia402.ERROR_CODE: ("<H", 0, ro, True),
+            cia402.CONTROLWORD: ("<H", 0, rw, True),
+            cia402.STATUSWORD: ("<H", 0, ro, True),
+            cia402.QUICK_STOP_OPTION: ("<h", 6, rw, False),
+            cia402.MODES_OF_OPERATION: ("<b", 0, rw, True),
+            cia402.MODES_DISPLAY: ("<b", 0, ro, True),
+            cia402.POSITION_ACTUAL: ("<i", 0, ro, True),
+            cia402.FOLLOWING_ERROR_WINDOW: ("<I", round(self.config.following_error_deg * cpd), rw, False),
+            cia402.VELOCITY_ACTUAL: ("<i", 0, ro, True),
+            cia402.TARGET_POSITION: ("<i", 0, rw, True),
+            cia402.HOME_OFFSET: ("<i", 0, rw, False),
+            cia402.PROFILE_VELOCITY: ("<I", round(self.config.max_speed_deg_s * cpd / 4), rw, True),
+            cia402.PROFILE_ACCELERATION: ("<I", round(self.config.max_acceleration_deg_s2 * cpd / 4), rw, False),
+            cia402.PROFILE_DECELERATION: ("<I", round(self.config.max_acceleration_deg_s2 * cpd / 4), rw, False),
+            cia402.QUICK_STOP_DECELERATION: ("<I", round(self.config.max_acceleration_deg_s2 * cpd), rw, False),
+            cia402.HOMING_METHOD: ("<b", cia402.HOMING_ON_CURRENT_POSITION, rw, False),
+            cia402.TARGET_VELOCITY: ("<i", 0, rw, True),
+            cia402.SUPPORTED_MODES: ("<I", self.SUPPORTED_MODES, ro, False),
+        }
+        for index, (fmt, value, writable, mappable) in table.items():
+            self.od[(index, 0)] = ObjectEntry(fmt, value, writable=writable, mappable=mappable)
+        # Power-on of the application: stopped, homing lost, faults cleared unless their cause stays.
+        self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        self._offset = 0.0
+        self._controlword = 0
+        self.error_code = emcy.EMERGENCY_STOP if self.estop_pressed else 0
+        self.state = S.FAULT if self.estop_pressed else S.SWITCH_ON_DISABLED
+
+    def read_object(self, index: int, subindex: int) -> int:
+        if subindex == 0:
+            if index == cia402.STATUSWORD:
+                return self.statusword
+            if index == cia402.POSITION_ACTUAL:
+                return round(self._reported(self._position_velocity(self._now())[0]))
+            if index == cia402.VELOCITY_ACTUAL:
+                return round(self._position_velocity(self._now())[1])
+            if index == cia402.MODES_DISPLAY:
+                return self.od[(cia402.MODES_OF_OPERATION, 0)].value
+            if index == cia402.ERROR_CODE:
+                return self.error_code
+            if index == 0x1001:
+                return self._error_register()
+        return super().read_object(index, subindex)
+
+    def write_object(self, index: int, subindex: int, value: int) -> None:
+        if index == cia402.QUICK_STOP_OPTION and value not in _QUICK_STOP_OPTIONS:
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        if index == cia402.MODES_OF_OPERATION and value not in (0, *(m for m in Mode if self.SUPPORTED_MODES >> (m - 1) & 1)):
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        if index in (cia402.PROFILE_ACCELERATION, cia402.PROFILE_DECELERATION, cia402.QUICK_STOP_DECELERATION) and value == 0:
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        super().write_object(index, subindex, value)
+        if index == cia402.CONTROLWORD:
+            self._on_controlword(value)
+        elif index in (cia402.TARGET_VELOCITY, cia402.MODES_OF_OPERATION) and self._mode() is Mode.PROFILE_VELOCITY:
+            self._apply_velocity()
+
+    # ------------------------------------------------------------------ observed values
+
+    @property
+    def true_angle_deg(self) -> float:
+        """The beam's physical angle now (degrees, continuous) - ground truth for tests."""
+        raw, _ = self._position_velocity(self._now())
+        return self.initial_angle_deg + raw / self.counts_per_degree
+
+    @property
+    def true_speed_deg_s(self) -> float:
+        return self._position_velocity(self._now())[1] / self.counts_per_degree
+
+    @property
+    def statusword(self) -> int:
+        word = cia402.statusword_for(self.state) | Status.REMOTE
+        if self.state in _POWERED:
+            word |= Status.VOLTAGE_ENABLED
+        if self.state in (S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED):
+            word |= Status.QUICK_STOP
+        if self._target_reached():
+            word |= Status.TARGET_REACHED
+        mode = self._mode()
+        if mode is Mode.PROFILE_POSITION and self._set_point_ack:
+            word |= Status.SET_POINT_ACKNOWLEDGE
+        if mode is Mode.HOMING and self._homing_attained:
+            word |= Status.SET_POINT_ACKNOWLEDGE
+        return int(word)
+
+    def _now(self) -> float:
+        """The loop clock; outside a running loop (inspection after a test) the last reading."""
+        try:
+            self._clock_s = asyncio.get_running_loop().time()
+        except RuntimeError:
+            pass
+        return self._clock_s
+
+    def _mode(self) -> Mode | None:
+        try:
+            return Mode(self.od[(cia402.MODES_OF_OPERATION, 0)].value)
+        except ValueError:
+            return None
+
+    def _position_velocity(self, t: float) -> tuple[float, float]:
+        """Actual raw position (counts) and velocity (counts/s) at time t."""
+        if self.jammed_at is not None:
+            return self.jammed_at, 0.0
+        return self._trajectory.at(t)
+
+    def _reported(self, raw: float) -> float:
+        return raw + self._offset
+
+    def _target_reached(self) -> bool:
+        now = self._now()
+        done = now >= self._trajectory.end_time
+        if self.state is S.QUICK_STOP_ACTIVE:
+            return done
+        if self.state is not S.OPERATION_ENABLED:
+            return False
+        if self._mode() is Mode.PROFILE_VELOCITY:
+            return done and not self._halted()
+        if self._mode() is Mode.HOMING:
+            return self._homing_attained
+        return done
+
+    def _halted(self) -> bool:
+        return bool(self._controlword & cia402.Control.HALT)
+
+    def _error_register(self) -> int:
+        if self.error_code == 0:
+            return 0
+        return 0x01 | _REGISTER_BITS.get(self.error_code >> 12, 0)
+
+    # ------------------------------------------------------------------ fault injection
+
+    def press_estop(self) -> None:
+        """The e-stop input opens: quick-stop ramp, then FAULT, EMCY 0x5441."""
+        self.estop_pressed = True
+        self._raise_fault(emcy.EMERGENCY_STOP)
+
+    def release_estop(self) -> None:
+        """The e-stop input closes again; a fault reset is still needed."""
+        self.estop_pressed = False
+
+    def inject_fault(self, code: int, vendor: bytes = bytes(5)) -> None:
+        """The drive detects a fault with EMCY ``code`` (e.g. 0x2310 over-current)."""
+        self._raise_fault(code, vendor)
+
+    def jam(self) -> None:
+        """The beam is blocked where it is: the demand runs on, the following error grows."""
+        self.jammed_at = self._position_velocity(self._now())[0]
+
+    def unjam(self) -> None:
+        if self.jammed_at is not None:
+            self._trajectory = hold(self._now(), self.jammed_at)
+        self.jammed_at = None
+
+    # ------------------------------------------------------------------ state machine
+
+    def _raise_fault(self, code: int, vendor: bytes = bytes(5)) -> None:
+        if self.state in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+            return
+        self.error_code = code
+        message = emcy.Emcy(code, self._error_register(), vendor)
+        self.emcy_sent.append(message)
+        self._spawn(self.send(nmt.emcy_cob_id(self.node_id), emcy.emcy_frame(message)))
+        log.info("sim_drive_fault", drive=self.name, code=f"0x{code:04X}", meaning=message.meaning)
+        if self.state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE) and self.jammed_at is None:
+            self.state = S.FAULT_REACTION_ACTIVE
+            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        else:
+            self.state = S.FAULT
+            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        self._statusword_changed()
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _brake(self, deceleration: float) -> None:
+        now = self._now()
+        p, v = self._position_velocity(now)
+        self._trajectory = velocity_ramp(now, p, v, 0.0, deceleration, deceleration)
+
+    def _on_controlword(self, word: int) -> None:
+        previous, self._controlword = self._controlword, word
+        state = self.state
+        rising = word & ~previous
+        if state is S.FAULT:
+            if rising & cia402.Control.FAULT_RESET and not self.estop_pressed and self.jammed_at is None:
+                self.state = S.SWITCH_ON_DISABLED
+                self.error_code = 0
+                self._spawn(self.send(nmt.emcy_cob_id(self.node_id), emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0))))
+            self._statusword_changed()
+            return
+        if state is S.FAULT_REACTION_ACTIVE:
+            return
+        command = word & 0x8F
+        new = state
+        if not word & cia402.Control.ENABLE_VOLTAGE:
+            if state in (S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
+                new = S.SWITCH_ON_DISABLED
+        elif word & 0x06 == 0x02:  # quick stop
+            if state is S.OPERATION_ENABLED:
+                new = S.QUICK_STOP_ACTIVE
+            elif state in (S.READY_TO_SWITCH_ON, S.SWITCHED_ON):
+                new = S.SWITCH_ON_DISABLED
+        elif command & 0x87 == 0x06:  # shutdown
+            if state in (S.SWITCH_ON_DISABLED, S.SWITCHED_ON, S.OPERATION_ENABLED):
+                new = S.READY_TO_SWITCH_ON
+        elif command == 0x07:  # switch on / disable operation
+            if state in (S.READY_TO_SWITCH_ON, S.OPERATION_ENABLED):
+                new = S.SWITCHED_ON
+        elif command == 0x0F:  # enable operation
+            if state in (S.SWITCHED_ON, S.QUICK_STOP_ACTIVE):
+                new = S.OPERATION_ENABLED
+        self._enter(new)
+        if self.state is S.OPERATION_ENABLED:
+            self._operation(word, rising)
+        self._statusword_changed()
+
+    def _enter(self, new: Cia402State) -> None:
+        old, self.state = self.state, new
+        if new is old:
+            return
+        if new is S.QUICK_STOP_ACTIVE:
+            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        elif old is S.OPERATION_ENABLED or old is S.QUICK_STOP_ACTIVE:
+            # Power stage off: the brake holds the beam after a quick-stop ramp.
+            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        if new is S.OPERATION_ENABLED:
+            now = self._now()
+            p, v = self._position_velocity(now)
+            self._trajectory = velocity_ramp(now, p, v, 0.0, *self._ramps()) if v else hold(now, p)
+            self._set_point_ack = False
+            self._homing_attained = False
+            if self._mode() is Mode.PROFILE_VELOCITY:
+                self._apply_velocity()
+
+    def _ramps(self) -> tuple[float, float]:
+        return (
+            float(self.od[(cia402.PROFILE_ACCELERATION, 0)].value),
+            float(self.od[(cia402.PROFILE_DECELERATION, 0)].value),
+        )
+
+    def _operation(self, word: int, rising: int) -> None:
+        mode = self._mode()
+        if mode is Mode.PROFILE_VELOCITY:
+            self._apply_velocity()
+        elif mode is Mode.PROFILE_POSITION:
+            if rising & cia402.Control.NEW_SET_POINT:
+                self._start_move(relative=bool(word & cia402.Control.RELATIVE))
+                self._set_point_ack = True
+            elif not word & cia402.Control.NEW_SET_POINT:
+                self._set_point_ack = False
+            if rising & cia402.Control.HALT:
+                self._brake(self._ramps()[1])
+        elif mode is Mode.HOMING and rising & cia402.Control.NEW_SET_POINT:
+            self._home()
+
+    def _apply_velocity(self) -> None:
+        if self.state is not S.OPERATION_ENABLED:
+            return
+        now = self._now()
+        p, v = self._position_velocity(now)
+        target = 0.0 if self._halted() else float(self.od[(cia402.TARGET_VELOCITY, 0)].value)
+        self._trajectory = velocity_ramp(now, p, v, target, *self._ramps())
+
+    def _start_move(self, relative: bool) -> None:
+        now = self._now()
+        p, v = self._position_velocity(now)
+        target = float(self.od[(cia402.TARGET_POSITION, 0)].value)
+        target_raw = p + target if relative else target - self._offset
+        speed = float(self.od[(cia402.PROFILE_VELOCITY, 0)].value)
+        if speed <= 0:
+            return
+        self._trajectory = position_move(now, p, v, target_raw, speed, *self._ramps())
+
+    def _home(self) -> None:
+        method = self.od[(cia402.HOMING_METHOD, 0)].value
+        if method not in (35, cia402.HOMING_ON_CURRENT_POSITION):
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        now = self._now()
+        p, v = self._position_velocity(now)
+        if v != 0:
+            raise SdoAbortRequest(sdo.ABORT_DEVICE_STATE)
+        self._offset = self.od[(cia402.HOME_OFFSET, 0)].value - p
+        self._homing_attained = True
+
+    def _statusword_changed(self) -> None:
+        word = self.statusword
+        if word != self._last_statusword:
+            self._last_statusword = word
+            self._spawn(self.transmit_tpdos_with(cia402.STATUSWORD))
+
+    # ------------------------------------------------------------------ cyclic work
+
+    async def on_tick(self, now: float) -> None:
+        if self.jammed_at is not None and self.state is S.OPERATION_ENABLED:
+            demand, _ = self._trajectory.at(now)
+            if abs(demand - self.jammed_at) > self.od[(cia402.FOLLOWING_ERROR_WINDOW, 0)].value:
+                self._raise_fault(emcy.FOLLOWING_ERROR)
+        if now >= self._trajectory.end_time:
+            if self.state is S.FAULT_REACTION_ACTIVE:
+                self.state = S.FAULT
+            elif self.state is S.QUICK_STOP_ACTIVE and self.od[(cia402.QUICK_STOP_OPTION, 0)].value in (1, 2):
+                self.state = S.SWITCH_ON_DISABLED
+        self._statusword_changed()
+
+    async def on_heartbeat_lost(self, node: int, silent_s: float) -> None:
+        log.info("sim_drive_host_heartbeat_lost", drive=self.name, node=node, silent_s=round(silent_s, 3))
+        self._raise_fault(emcy.HEARTBEAT_ERROR)
+
+
+# ---------------------------------------------------------------------- `tbp sim motor`
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``tbp sim motor``."""
+    parser.add_argument("--port", type=int, default=29536, help="TCP port of the socketcand bridge on 127.0.0.1")
+    parser.add_argument("--channel", default="can0", help="CAN channel name the bridge serves")
+    parser.add_argument("--config", default=None, help="rig file (default: calibration_data/rig.yaml)")
+    parser.add_argument("--initial-angle", type=float, default=0.0, help="beam angle at power-on, deg")
+
+
+async def serve(args: argparse.Namespace) -> None:
+    """Serve the simulated drive on a socketcand bridge at 127.0.0.1:args.port until SIGINT/SIGTERM."""
+    from drivers.sim.socketcand import SocketcandServer
+    from planner.rig import DEFAULT_RIG_PATH, load_rig
+
+    rig = load_rig(args.config or DEFAULT_RIG_PATH)
+    bus = LoopbackCanBus("sim")
+    drive = SimulatedDrive(bus.port("drive"), rig.motor, initial_angle_deg=args.initial_angle)
+    server = SocketcandServer(bus, channel=args.channel, host="127.0.0.1", port=args.port)
+    await server.start()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    runner = asyncio.create_task(drive.run(), name="sim-drive")
+    print(f"simulated drive node {rig.motor.node_id} on socketcand 127.0.0.1:{server.port} channel {args.channel}", flush=True)
+    try:
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        runner.cancel()
+        await asyncio.gather(runner, return_exceptions=True)
+        await server.close()
