@@ -304,6 +304,7 @@ class ScanFolder:
             self.writer.write(self.path / MANIFEST, data)
 
     def _write_file(self, key: str, name: str, data: bytes) -> Path:
+        """Write a whole file of the scan, list it in the manifest as key, save the manifest."""
         path = self.path / name
         self.writer.write(path, data)
         self.manifest.files[key] = name
@@ -332,6 +333,15 @@ class ScanFolder:
 
     def write_depth_sweep(self, metadata: dict[str, Any]) -> Path:
         return self._write_file("depth_sweep", "depth_sweep.json", _json_bytes(metadata))
+
+    def write_json(self, key: str, name: str, value: Any, *, save: bool = True) -> Path:
+        """Any other JSON file of the scan (captures, QA report), listed in the manifest as key."""
+        path = self.path / name
+        self.writer.write(path, _json_bytes(value))
+        self.manifest.files[key] = name
+        if save:
+            self.save()
+        return path
 
     def log_event(self, event: str, **fields: Any) -> None:
         """Append one line to events.jsonl (fsync'd): what happened, with wall-clock UTC."""

@@ -79,6 +79,7 @@ def test_full_lifecycle_writes_every_file(tmp_path, rig):
     folder.write_mesh(b"ply\nformat ascii 1.0\nend_header\n")
     folder.write_trace(np.arange(5.0), np.arange(5.0) * 3)
     folder.write_depth_sweep({"frames": 120})
+    folder.write_json("qa", "qa.json", {"captured": 1, "angle_error_deg": [0.01, float("inf")]})
     folder.log_event("capture_start", angle_index=0)
     folder.log_event("capture_end", value=float("nan"))
     folder.record_capture(2, 7, sensor_timestamp_ns=123, host_time_s=4.5, actual_angle_deg=48.01,
@@ -86,7 +87,7 @@ def test_full_lifecycle_writes_every_file(tmp_path, rig):
     folder.finish(ScanEnd.COMPLETE)
     m = _manifest(folder)
     assert m["state"] == "complete" and m["in_progress"] is False
-    assert set(m["files"]) == {"plan", "mesh", "trace", "depth_sweep", "events"}
+    assert set(m["files"]) == {"plan", "mesh", "trace", "depth_sweep", "events", "qa"}
     img = next(i for i in m["images"] if i["camera_index"] == 2 and i["angle_index"] == 7)
     assert img["status"] == "captured" and img["actual_angle_deg"] == 48.01
     assert img["focus_diopters"] == pytest.approx(2.0)
@@ -95,6 +96,8 @@ def test_full_lifecycle_writes_every_file(tmp_path, rig):
     assert [json.loads(x)["event"] for x in lines] == ["capture_start", "capture_end"]
     assert json.loads(lines[1])["value"] is None
     assert m["plan_summary"] == {"in_focus_fraction": 0.8}
+    qa = json.loads((folder.path / "qa.json").read_text())
+    assert qa == {"captured": 1, "angle_error_deg": [0.01, None]}
     trace = np.load(folder.path / "trace.npz")
     np.testing.assert_array_equal(trace["angle_deg"], np.arange(5.0) * 3)
 
