@@ -128,17 +128,26 @@ class CostTable:
 
         The best pair is a point's lowest-cost pair (the first one on ties).
         """
-        best = np.full(self.n_points, -1, dtype=np.int64)
         if not len(self.order):
-            return best, float(self.n_points * INVISIBLE_COST)
+            return np.full(self.n_points, -1, dtype=np.int64), float(self.n_points * INVISIBLE_COST)
+        best, mins = self._argmin_by_point(self.pair_cost_by_point(focus_mm))
+        unseen = self.n_points - len(mins)
+        return best, float(np.minimum(mins, INVISIBLE_COST).sum()) + INVISIBLE_COST * unseen
+
+    def best_pairs_by(self, pair_values: np.ndarray) -> np.ndarray:
+        """(N,) int64: each point's pair with the lowest value of ``pair_values`` (M,), pose order."""
+        if not len(self.order):
+            return np.full(self.n_points, -1, dtype=np.int64)
+        return self._argmin_by_point(pair_values[self.order])[0]
+
+    def _argmin_by_point(self, ordered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         seen, starts, segment = self._segments
-        costs = self.pair_cost_by_point(focus_mm)
-        mins = np.minimum.reduceat(costs, starts)
-        hits = np.flatnonzero(costs == mins[segment])
+        mins = np.minimum.reduceat(ordered, starts)
+        hits = np.flatnonzero(ordered == mins[segment])
         first = hits[np.r_[True, segment[hits[1:]] != segment[hits[:-1]]]]
+        best = np.full(self.n_points, -1, dtype=np.int64)
         best[seen] = self.order[first]
-        total = float(np.minimum(mins, INVISIBLE_COST).sum()) + INVISIBLE_COST * (len(seen) - len(starts))
-        return best, total
+        return best, mins
 
 
 def cost_table(vis: Visibility, cost: Cost, optics: Optics) -> CostTable:

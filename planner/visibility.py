@@ -37,19 +37,36 @@ class RayScene:
         if backend not in BACKENDS:
             raise ValueError(f"unknown ray backend {backend!r}; allowed: {', '.join(BACKENDS)}")
         self.backend = backend
+        self.face_normals = np.asarray(mesh.face_normals, dtype=float)
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
         faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+        self._triangles = (vertices, faces)
+        self._open3d: object | None = None
         if backend == "open3d":
-            import open3d as o3d
-
-            self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces))
+            self._scene = self._open3d_scene()
         else:
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
 
             self._scene = rtcore_scene.EmbreeScene()
             TriangleMesh(self._scene, np.ascontiguousarray(vertices[faces]))
+
+    def _open3d_scene(self) -> object:
+        if self._open3d is None:
+            import open3d as o3d
+
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(*(o3d.core.Tensor(a) for a in self._triangles))
+            self._open3d = scene
+        return self._open3d
+
+    def closest_faces(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For (Q, 3) points: the closest surface points (Q, 3) and their triangle indices (Q,)."""
+        import open3d as o3d
+
+        query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3))
+        found = self._open3d_scene().compute_closest_points(query)
+        return found["points"].numpy().astype(float), found["primitive_ids"].numpy().astype(np.int64)
 
     def occluded(self, origins: np.ndarray, targets: np.ndarray, epsilon_mm: float) -> np.ndarray:
         """(K,) bool: the mesh crosses the segment origin -> target, ignoring its last epsilon_mm.

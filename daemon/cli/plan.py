@@ -1,0 +1,88 @@
+"""``tbp plan``: plan the focus of every pose for a subject mesh and compare the methods."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "plan",
+        help="plan per-pose focus distances for a mesh and compare focus methods",
+        description="Sample the mesh surface, find what every camera pose sees, and plan one focus "
+        "distance per pose (closest, average, fixed, autofocus, EM, shape-aware). Prints a table "
+        "and optionally writes the plan as JSON (pose order: angle-major).",
+    )
+    parser.add_argument("--mesh", required=True, type=Path, help="subject mesh in mm (PLY, OBJ, STL...)")
+    parser.add_argument("--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)")
+    parser.add_argument("--points", type=int, default=None, help="surface samples (default: the rig's)")
+    parser.add_argument("--seed", type=int, default=0, help="sampling seed")
+    parser.add_argument("--json", dest="json_out", type=Path, default=None, help="write the plan here")
+    parser.add_argument(
+        "--fresh", type=int, default=0, metavar="N",
+        help="also score the shape-aware plan on N fresh, independent surface samples",
+    )
+    parser.set_defaults(func=run)
+
+
+def _table(result: dict) -> str:
+    lines = [f"{'method':<12} {'total cost':>11} {'in focus %':>10} {'seconds':>8}"]
+    for name, m in result["methods"].items():
+        lines.append(
+            f"{name:<12} {m['total_cost']:>11.1f} {100 * m['in_focus_fraction']:>10.1f} {m['seconds']:>8.3f}"
+        )
+    res = result["resolution_mm_per_px"]
+    lines.append(
+        f"visible {100 * result['visible_fraction']:.1f} % of {result['points']} samples from "
+        f"{result['poses']} poses; resolution {res['mean']:.4f} +- {res['std']:.4f} mm/px, "
+        f"{100 * res['share_at_most_0.075']:.1f} % of the surface at <= 0.075 mm/px"
+    )
+    t = result["timing_s"]
+    lines.append(
+        f"time: visibility {t['visibility']:.3f} s, plan (visibility + EM + refinement) "
+        f"{t['plan']:.3f} s, total {t['total']:.3f} s"
+    )
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from planner.focus_errors import FocusPlanError
+    from planner.plan import evaluate, load_subject_mesh, plan_focus
+    from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
+
+    if args.points is not None and args.points <= 0:
+        print(f"tbp plan: --points must be positive, got {args.points}", file=sys.stderr)
+        return 2
+    try:
+        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+        mesh = load_subject_mesh(args.mesh)
+        result = plan_focus(mesh, rig, points=args.points, seed=args.seed, mesh_name=str(args.mesh))
+    except (RigConfigError, FocusPlanError) as exc:
+        print(f"tbp plan: {exc}", file=sys.stderr)
+        return 1
+    out = result.to_json()
+    if args.fresh > 0:
+        fresh = evaluate(result.focus_mm, mesh, rig, points=args.fresh, seed=args.seed + 1_000_003)
+        out["fresh_sample"] = {
+            "points": fresh.n_points,
+            "total_cost": round(fresh.total_cost, 4),
+            "in_focus_fraction": round(fresh.in_focus_fraction, 6),
+            "visible_fraction": round(fresh.visible_fraction, 6),
+        }
+    print(_table(out))
+    if args.fresh > 0:
+        f = out["fresh_sample"]
+        print(
+            f"fresh sample ({f['points']} points): shape-aware in focus "
+            f"{100 * f['in_focus_fraction']:.1f} %, visible {100 * f['visible_fraction']:.1f} %"
+        )
+    if args.json_out is not None:
+        args.json_out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json_out.with_name(args.json_out.name + ".tmp")
+        tmp.write_text(json.dumps(out, indent=1) + "\n")
+        tmp.replace(args.json_out)
+        print(f"plan written to {args.json_out}")
+    return 0
