@@ -30,6 +30,7 @@ import structlog
 
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
 SOCKET_ENV = "TBP_CONTROL_SOCKET"
+GROUP_ENV = "TBP_CONTROL_GROUP"
 COMMANDS = ("status", "scan", "abort", "reset", "subscribe")
 
 log = structlog.get_logger(__name__)
@@ -38,6 +39,11 @@ log = structlog.get_logger(__name__)
 def default_socket() -> Path:
     """$TBP_CONTROL_SOCKET, else /run/tbp-rig/control.sock (systemd RuntimeDirectory)."""
     return Path(os.environ.get(SOCKET_ENV, str(DEFAULT_SOCKET)))
+
+
+def default_group() -> str | None:
+    """$TBP_CONTROL_GROUP (the operators' group the socket is given to), else None."""
+    return os.environ.get(GROUP_ENV) or None
 
 
 class ControlError(RuntimeError):
