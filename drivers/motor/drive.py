@@ -32,6 +32,7 @@ from drivers.motor.errors import (
     FollowingError,
     FrameError,
     HeartbeatLost,
+    MotionInterrupted,
     MotionLimitError,
     NmtTimeout,
     StateTransitionTimeout,
@@ -253,6 +254,9 @@ class BeamDrive:
         await self._until(
             lambda: bool(self.statusword & Status.TARGET_REACHED) and not self.statusword & Status.SET_POINT_ACKNOWLEDGE,
             duration + self.MOTION_MARGIN_S, self._transition_timeout(f"target {angle_deg:g} deg", start))
+        if self.state is not Cia402State.OPERATION_ENABLED or self._controlword & Control.HALT:
+            where = f"{self.latest.angle_deg:.3f}" if self.latest else "unknown"
+            raise MotionInterrupted(self.name, self.state.value, f"move to {angle_deg:g} deg stopped at {where} deg")
         log.info("drive_moved", drive=self.name, angle_deg=angle_deg)
 
     async def stop(self, deceleration_deg_s2: float) -> None:
@@ -296,7 +300,7 @@ class BeamDrive:
         """
         self._check_connected()
         loop = asyncio.get_running_loop()
-        silent = loop.time() - (self.last_heartbeat_s or -math.inf)
+        silent = math.inf if self.last_heartbeat_s is None else loop.time() - self.last_heartbeat_s
         timeout_s = self.config.heartbeat_timeout_ms / 1000
         if silent > timeout_s:
             raise HeartbeatLost(self.name, self.state.value, silent, timeout_s)

@@ -128,6 +128,10 @@ class FrameError(DriveError):
     """A frame from the drive does not fit the configured protocol (PDO length, statusword)."""
 
 
+class MotionInterrupted(DriveError):
+    """A move ended short of its target: halted by stop() or by a quick stop."""
+
+
 class DriveNotReady(DriveError):
     """A command needs another state (enabled, connected, stationary) than the drive is in."""
 

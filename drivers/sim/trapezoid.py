@@ -112,7 +112,9 @@ def position_move(
     b = _Builder(t0, p0, v0)
     distance = p_target - b.p
     if b.v != 0 and (
-        math.copysign(1, b.v) != math.copysign(1, distance) or b.v**2 / (2 * deceleration) > abs(distance)
+        distance == 0
+        or math.copysign(1, b.v) != math.copysign(1, distance)
+        or b.v**2 / (2 * deceleration) > abs(distance)
     ):
         b.ramp(0.0, deceleration)
         distance = p_target - b.p

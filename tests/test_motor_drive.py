@@ -1,0 +1,405 @@
+"""BeamDrive against the simulated drive over the in-process loopback bus, in virtual time.
+
+Every scenario runs on drivers.sim.clock's virtual-time loop, so heartbeats, ramps and timeouts
+take simulated seconds and the outcome never depends on machine load.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from drivers.motor import (
+    BeamDrive,
+    Cia402State,
+    DriveFault,
+    DriveNotReady,
+    DriveRebooted,
+    FollowingError,
+    HeartbeatLost,
+    LoopbackCanBus,
+    MotionInterrupted,
+    MotionLimitError,
+    NmtTimeout,
+    SdoAbort,
+    SdoTimeout,
+    StateTransitionTimeout,
+)
+from drivers.motor import emcy
+from drivers.sim.clock import run_virtual
+from drivers.sim.drive import SimulatedDrive
+from planner.rig import Motor, load_rig
+
+MOTOR = load_rig().motor
+S = Cia402State
+
+Scenario = Callable[[BeamDrive, SimulatedDrive], Awaitable[Any]]
+
+
+def run(scenario: Scenario, *, motor: Motor = MOTOR, connect: bool = True, enable: bool = True) -> Any:
+    """Run ``scenario(drive, sim)`` with a connected (and enabled) drive in virtual time."""
+
+    async def main() -> Any:
+        bus = LoopbackCanBus()
+        sim = SimulatedDrive(bus.port("sim"), motor)
+        sim_task = asyncio.create_task(sim.run())
+        drive = BeamDrive(bus.port("host"), motor)
+        try:
+            if connect:
+                await drive.connect()
+                if enable:
+                    await drive.enable()
+            return await scenario(drive, sim)
+        finally:
+            await drive.close()
+            sim_task.cancel()
+            await asyncio.gather(sim_task, return_exceptions=True)
+
+    return run_virtual(main())
+
+
+def now() -> float:
+    return asyncio.get_running_loop().time()
+
+
+# ---------------------------------------------------------------------- bring-up and motion
+
+
+def test_connect_configures_heartbeats_and_pdos() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        assert drive.state is S.SWITCH_ON_DISABLED
+        assert sim.nmt_state.name == "OPERATIONAL"
+        assert sim.value(0x1017) == MOTOR.heartbeat_producer_ms
+        assert sim.value(0x1016, 1) == (0x7F << 16) | MOTOR.heartbeat_timeout_ms
+        assert sim.value(0x1800, 5) == round(1000 / MOTOR.position_rate_hz)
+        assert [(m.index, m.subindex) for m in sim.tpdo_mapping(0)] == [(0x6064, 0), (0x606C, 0)]
+        assert [(m.index, m.subindex) for m in sim.tpdo_mapping(1)] == [(0x6041, 0)]
+        assert drive.latest is not None and drive.latest.angle_deg == 0.0
+
+    run(scenario, enable=False)
+
+
+def test_enable_walks_to_operation_enabled_and_disable_back() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        assert drive.state is S.OPERATION_ENABLED and sim.state is S.OPERATION_ENABLED
+        await drive.disable()
+        assert drive.state is S.SWITCH_ON_DISABLED and sim.state is S.SWITCH_ON_DISABLED
+        await drive.enable()
+        assert sim.state is S.OPERATION_ENABLED
+
+    run(scenario)
+
+
+def test_rotate_streams_samples_at_position_rate() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> list[Any]:
+        stream = drive.samples()
+        await drive.rotate(20.0, 30.0)
+        await drive.wait_speed(20.0)
+        start = now()
+        await asyncio.sleep(2.0)
+        assert drive.latest is not None
+        assert abs(drive.latest.angle_deg - sim.true_angle_deg) < 20.0 * 0.006  # at most one period old
+        samples = []
+        while len(samples) < 10_000:
+            sample = await anext(stream)
+            samples.append(sample)
+            if sample.time_s >= start + 2.0:
+                break
+        return [s for s in samples if start <= s.time_s < start + 2.0]
+
+    samples = run(scenario)
+    rate = len(samples) / 2.0
+    assert rate >= 100.0, f"{rate} samples per simulated second"
+    assert rate == pytest.approx(MOTOR.position_rate_hz, rel=0.02)
+    times = [s.time_s for s in samples]
+    assert all(b > a for a, b in zip(times, times[1:]))
+    speeds = {round(s.speed_deg_s, 1) for s in samples}
+    assert speeds == {20.0}
+    steps = [b.angle_deg - a.angle_deg for a, b in zip(samples, samples[1:])]
+    assert min(steps) == pytest.approx(20.0 / MOTOR.position_rate_hz, abs=0.01)
+
+
+def test_move_to_returns_at_target() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> tuple[float, float]:
+        start = now()
+        await drive.move_to(90.0, 30.0, 30.0)
+        return now() - start, sim.true_angle_deg
+
+    elapsed, angle = run(scenario)
+    assert angle == pytest.approx(90.0, abs=1 / MOTOR.counts_per_degree)
+    assert elapsed == pytest.approx(90.0 / 30.0 + 30.0 / 30.0, abs=0.02)  # trapezoid: d/v + v/a
+
+
+def test_stop_from_rotation_and_from_move() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(-30.0, 60.0)
+        await drive.wait_speed(-30.0)
+        angle = sim.true_angle_deg
+        await drive.stop(30.0)
+        assert sim.true_speed_deg_s == 0.0
+        assert sim.true_angle_deg == pytest.approx(angle - 30.0**2 / (2 * 30.0), abs=0.2)
+        move = asyncio.create_task(drive.move_to(sim.true_angle_deg + 180.0, 40.0, 60.0))
+        await asyncio.sleep(1.5)
+        await drive.stop(60.0)
+        assert sim.true_speed_deg_s == 0.0 and drive.latest is not None and drive.latest.speed_deg_s == 0.0
+        with pytest.raises(MotionInterrupted, match=r"move to 157.5\d* deg stopped at 37.5\d* deg"):
+            await move
+
+    run(scenario)
+
+
+def test_set_zero_makes_the_current_position_read_as_the_angle() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.move_to(12.5, 20.0, 40.0)
+        await drive.set_zero(-45.0)
+        assert drive.latest is not None
+        assert drive.latest.angle_deg == pytest.approx(-45.0, abs=1 / MOTOR.counts_per_degree)
+        assert sim.true_angle_deg == pytest.approx(12.5, abs=0.01)  # the beam did not move
+        await drive.move_to(-40.0, 20.0, 40.0)
+        assert sim.true_angle_deg == pytest.approx(17.5, abs=0.01)
+
+    run(scenario)
+
+
+def test_gear_ratio_and_encoder_counts_come_from_config() -> None:
+    geared = dataclasses.replace(MOTOR, gear_ratio=10.0, encoder_counts_per_rev=1000)
+
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.move_to(36.0, 20.0, 40.0)
+        assert sim.value(0x6064) == 1000  # 36 deg of beam = 1 motor turn at 1:10
+        assert drive.angle_to_counts(36.0) == 1000
+        assert sim.true_angle_deg == pytest.approx(36.0)
+
+    run(scenario, motor=geared)
+
+
+def test_limits_and_states_are_checked_before_moving() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        with pytest.raises(MotionLimitError, match="speed 41 deg/s"):
+            await drive.rotate(41.0, 10.0)
+        with pytest.raises(MotionLimitError, match="acceleration 0 deg/s"):
+            await drive.move_to(1.0, 10.0, 0.0)
+        with pytest.raises(MotionLimitError, match="must be positive"):
+            await drive.move_to(1.0, -10.0, 10.0)
+        await drive.disable()
+        with pytest.raises(DriveNotReady, match="needs OPERATION ENABLED"):
+            await drive.rotate(10.0, 10.0)
+        assert sim.true_speed_deg_s == 0.0
+
+    run(scenario)
+
+
+def test_commands_before_connect_are_refused() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        with pytest.raises(DriveNotReady, match="not connected"):
+            await drive.enable()
+
+    run(scenario, connect=False)
+
+
+def test_each_subscriber_gets_its_own_stream_and_close_ends_them() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> tuple[int, int]:
+        first, second = drive.samples(), drive.samples()
+        await asyncio.sleep(0.1)
+        await drive.close()
+        return len([s async for s in first]), len([s async for s in second])
+
+    counts = run(scenario)
+    assert counts[0] == counts[1] and counts[0] >= 19
+
+
+# ---------------------------------------------------------------------- faults
+
+
+def test_estop_latches_fault_until_reset() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(30.0, 60.0)
+        await drive.wait_speed(30.0)
+        waiting = asyncio.create_task(drive.wait_speed(40.0, timeout_s=10.0))
+        sim.press_estop()
+        with pytest.raises(DriveFault) as info:
+            await waiting
+        assert info.value.code == emcy.EMERGENCY_STOP and "emergency stop" in str(info.value)
+        await asyncio.sleep(1.0)
+        assert drive.state is S.FAULT and sim.true_speed_deg_s == 0.0
+        assert drive.fault is info.value
+        with pytest.raises(DriveFault):
+            await drive.enable()
+        drive.TRANSITION_TIMEOUT_S = 0.2
+        with pytest.raises(StateTransitionTimeout, match="switch on disabled"):
+            await drive.reset_fault()  # e-stop still pressed: the drive stays in FAULT
+        assert drive.fault is info.value
+        sim.release_estop()
+        await drive.reset_fault()
+        assert drive.fault is None and drive.state is S.SWITCH_ON_DISABLED
+        await drive.enable()
+        await drive.move_to(0.0, 20.0, 40.0)
+
+    run(scenario)
+
+
+def test_injected_emcy_fault_names_code_and_meaning() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        sim.inject_fault(0x2310)
+        await asyncio.sleep(0.05)
+        assert isinstance(drive.fault, DriveFault) and drive.fault.code == 0x2310
+        assert "0x2310 (continuous over-current)" in str(drive.fault) and str(drive.fault).startswith("beam [")
+        assert drive.fault.register == 0x03
+        with pytest.raises(DriveFault):
+            await drive.move_to(10.0, 10.0, 10.0)
+        await drive.reset_fault()
+        await drive.enable()
+
+    run(scenario)
+
+
+def test_jammed_beam_raises_following_error() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        move = asyncio.create_task(drive.move_to(90.0, 30.0, 60.0))
+        await asyncio.sleep(0.5)
+        sim.jam()
+        with pytest.raises(FollowingError, match="following error"):
+            await move
+        assert drive.state is S.FAULT
+        sim.unjam()
+        await drive.reset_fault()
+        await drive.enable()
+
+    run(scenario)
+
+
+def test_lost_drive_heartbeat_latches_and_quick_stops() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(20.0, 60.0)
+        sim.stop_heartbeat()
+        await asyncio.sleep(MOTOR.heartbeat_timeout_ms / 1000 + 0.2)
+        assert isinstance(drive.fault, HeartbeatLost)
+        assert drive.fault.timeout_s == MOTOR.heartbeat_timeout_ms / 1000
+        await asyncio.sleep(1.5)
+        assert drive.state is S.QUICK_STOP_ACTIVE and sim.true_speed_deg_s == 0.0
+        with pytest.raises(HeartbeatLost):
+            await drive.reset_fault()  # still silent
+        sim.resume_heartbeat()
+        await asyncio.sleep(0.2)
+        await drive.reset_fault()
+        await drive.enable()
+        assert drive.fault is None
+
+    run(scenario)
+
+
+def test_drive_stops_by_itself_when_host_heartbeat_stops() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(30.0, 60.0)
+        await drive.wait_speed(30.0)
+        for task in drive._tasks:  # the host process hangs: its heartbeat task dies
+            if task.get_name().endswith("heartbeat"):
+                task.cancel()
+        await asyncio.sleep(MOTOR.heartbeat_timeout_ms / 1000 + 0.1)
+        assert sim.state in (S.FAULT_REACTION_ACTIVE, S.FAULT)
+        assert sim.emcy_sent[-1].code == emcy.HEARTBEAT_ERROR
+        await asyncio.sleep(1.0)
+        assert sim.state is S.FAULT and sim.true_speed_deg_s == 0.0
+        assert isinstance(drive.fault, DriveFault) and drive.fault.code == emcy.HEARTBEAT_ERROR
+
+    run(scenario)
+
+
+def test_pulled_cable_gives_heartbeat_loss_and_sdo_timeout() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        drive.sdo.RESPONSE_TIMEOUT_S = 0.05
+        sim.disconnect()
+        with pytest.raises(HeartbeatLost) as info:
+            await drive.wait_speed(10.0, timeout_s=5.0)
+        await asyncio.sleep(0.2)
+        assert any("quick stop after heartbeat loss failed" in note for note in info.value.__notes__)
+        with pytest.raises(SdoTimeout, match="0x6040:0 within 0.05 s"):
+            await drive.quick_stop()
+
+    run(scenario)
+
+
+def test_delayed_sdo_answer_times_out_then_recovers() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        sim.sdo_delay_s = 0.8
+        with pytest.raises(SdoTimeout) as info:
+            await drive.rotate(10.0, 10.0)
+        assert info.value.index == 0x6083 and info.value.timeout_s == drive.SDO_TIMEOUT_S
+        await asyncio.sleep(0.5)  # the late answer arrives and is ignored
+        sim.sdo_delay_s = 0.1
+        await drive.rotate(10.0, 10.0)
+        await drive.wait_speed(10.0)
+        sim.drop_sdo_replies(1)
+        with pytest.raises(SdoTimeout):
+            await drive.stop(10.0)
+        await drive.stop(10.0)
+
+    run(scenario)
+
+
+def test_dropped_tpdos_leave_a_gap_but_streaming_goes_on() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        before = drive.samples_received
+        sim.drop_tpdos(40)
+        await asyncio.sleep(1.0)
+        received = drive.samples_received - before
+        # 200 Hz x 1 s of TPDO1 + TPDO2, 40 frames dropped (20 of them position frames)
+        assert 175 <= received <= 185
+        assert drive.fault is None
+
+    run(scenario)
+
+
+def test_sdo_abort_from_the_drive_is_typed() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        with pytest.raises(SdoAbort) as info:
+            await drive.sdo.read(0x2000, 0, "<I")
+        assert (info.value.index, info.value.code) == (0x2000, 0x06020000)
+        assert "object does not exist" in str(info.value)
+        with pytest.raises(SdoAbort, match="read-only"):
+            await drive.sdo.write(0x6041, 0, "<H", 0)
+
+    run(scenario)
+
+
+def test_drive_reboot_while_connected_is_latched() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await sim.boot()
+        await asyncio.sleep(0.01)
+        assert isinstance(drive.fault, DriveRebooted)
+        with pytest.raises(DriveRebooted):
+            await drive.enable()
+
+    run(scenario)
+
+
+def test_silent_drive_fails_connect() -> None:
+    async def main() -> None:
+        bus = LoopbackCanBus()
+        bus.port("nobody")
+        drive = BeamDrive(bus.port("host"), MOTOR)
+        with pytest.raises(NmtTimeout, match="no boot-up"):
+            await drive.connect()
+        await drive.close()
+        await drive.close()
+
+    run_virtual(main())
+
+
+def test_quick_stop_then_resume() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(30.0, 60.0)
+        await drive.wait_speed(30.0)
+        await drive.quick_stop()
+        assert drive.state is S.QUICK_STOP_ACTIVE and sim.true_speed_deg_s == 0.0
+        await drive.enable()
+        await asyncio.sleep(0.5)
+        assert sim.true_speed_deg_s == 0.0  # the old velocity target does not come back
+        await drive.rotate(10.0, 60.0)
+        await drive.wait_speed(10.0)
+
+    run(scenario)
