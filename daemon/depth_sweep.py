@@ -1,8 +1,10 @@
 """The depth sweep: rotate the beam over ``rig.depth_sweep`` while every depth camera streams.
 
-Frames are thinned on the fly to one per ``SPACING_DEG`` of beam rotation per camera (30 fps
-frames a fraction of a degree apart add little to the fusion but cost memory), then tagged
-with the beam angle from the encoder trace recorded during the move.
+Frames are thinned on the fly to one per ``SPACING_DEG`` of beam rotation per camera (the TSDF's
+own frame spacing: 30 fps frames a fraction of a degree apart add little to the fusion but a
+whole sweep of them would hold about 1 GB), then tagged with the beam angle from the encoder
+trace recorded during the move. A camera that stops delivering ends the sweep with
+``DepthStreamStalled``.
 """
 
 from __future__ import annotations
@@ -18,8 +20,10 @@ import structlog
 from daemon.beam import BeamTracker
 from daemon.errors import SweepFailed
 from drivers.depth.base import DepthCamera, DepthFrame
+from drivers.depth.errors import DepthStreamStalled
 from planner.rig import Rig
 from planner.sweep import BeamTrace, Sweep, tag_frames
+from planner.tsdf import FRAME_SPACING_DEG
 
 log = structlog.get_logger("daemon.depth_sweep")
 
@@ -38,9 +42,11 @@ class SweepRecord:
 class DepthSweeper:
     """Runs one depth sweep on a drive already at ``rig.depth_sweep.start_deg`` and at rest."""
 
-    SPACING_DEG = 5.0
+    SPACING_DEG = FRAME_SPACING_DEG
     MIN_FRAMES_PER_CAMERA = 8
     STOP_TIMEOUT_S = 2.0
+    FRAME_TIMEOUT_S = 1.0
+    """A camera silent this long during the sweep has stalled."""
 
     def __init__(self, rig: Rig, drive: Any, tracker: BeamTracker, cameras: Sequence[DepthCamera]) -> None:
         self.rig = rig
@@ -60,11 +66,17 @@ class DepthSweeper:
         collectors = [
             asyncio.create_task(self._collect(c, kept, seen), name=f"sweep-{c.id}") for c in self.cameras
         ]
+        motion = asyncio.create_task(self.drive.move_to(
+            sweep.end_deg, sweep.speed_deg_s, self.rig.motor.max_acceleration_deg_s2))
         try:
-            await self.drive.move_to(
-                sweep.end_deg, sweep.speed_deg_s, self.rig.motor.max_acceleration_deg_s2
-            )
+            while not motion.done():
+                done, _ = await asyncio.wait({motion, *collectors}, return_when=asyncio.FIRST_COMPLETED)
+                for task in done:
+                    task.result()  # a stalled camera or a drive error ends the sweep here
         finally:
+            if not motion.done():
+                motion.cancel()
+                await asyncio.gather(motion, return_exceptions=True)
             for task in collectors:
                 task.cancel()
             await asyncio.gather(*collectors, return_exceptions=True)
@@ -84,7 +96,15 @@ class DepthSweeper:
 
     async def _collect(self, camera: DepthCamera, kept: list[DepthFrame], seen: dict[str, int]) -> None:
         last_angle: float | None = None
-        async for frame in camera.frames():
+        stream = camera.frames().__aiter__()
+        while True:
+            try:
+                async with asyncio.timeout(self.FRAME_TIMEOUT_S):
+                    frame = await stream.__anext__()
+            except TimeoutError:
+                raise DepthStreamStalled(camera.id, seen[camera.id], self.FRAME_TIMEOUT_S) from None
+            except StopAsyncIteration:
+                raise DepthStreamStalled(camera.id, seen[camera.id], None) from None
             seen[camera.id] += 1
             angle = self.tracker.angle_deg
             if angle is None or not np.any(frame.depth):

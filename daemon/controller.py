@@ -1,0 +1,198 @@
+"""The rig controller: hardware bring-up, one scan at a time, abort, latched fault and reset.
+
+Shared by the long-running service (daemon/service.py) and the one-shot ``tbp scan --sim``, so
+both run exactly the same scan code against whatever hardware they were given.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from concurrent.futures import Executor
+from typing import Any
+
+import structlog
+
+from daemon.beam import BeamTracker
+from daemon.errors import ScanBusy
+from daemon.hardware import RigHardware
+from daemon.safety import SafetyMonitor
+from daemon.scan import Scan, ScanReport
+from daemon.states import ScanState, ScanStateMachine
+from daemon.store import ScanStore
+from planner.rig import Rig
+
+log = structlog.get_logger("daemon.controller")
+
+
+def _led(name: str) -> Any:
+    from drivers.panel import StatusLed
+
+    return StatusLed[name]
+
+
+class RigController:
+    """Owns the state machine, the safety latch, the beam tracker and the current scan."""
+
+    CONNECT_TIMEOUT_S = 10.0
+    STOP_DECELERATION_DEG_S2 = 30.0
+
+    def __init__(
+        self,
+        rig: Rig,
+        hardware: RigHardware,
+        store: ScanStore,
+        *,
+        executor: Executor | None = None,
+        seed: int = 0,
+        plan_points: int | None = None,
+        machine: ScanStateMachine | None = None,
+    ) -> None:
+        self.rig = rig
+        self.hw = hardware
+        self.store = store
+        self.executor = executor
+        self.seed = seed
+        self.plan_points = plan_points
+        self.machine = machine or ScanStateMachine()
+        self.safety = SafetyMonitor(self.machine, hardware.drive)
+        self.tracker = BeamTracker(hardware.drive)
+        self.phone_errors: list[str | None] = [None] * len(hardware.phones)
+        self.scan_task: asyncio.Task[ScanReport] | None = None
+        self.current: Scan | None = None
+        self.last_report: ScanReport | None = None
+        self.safety.add_handler("beam quick stop", hardware.drive.quick_stop)
+        if hardware.panel is not None:
+            self.safety.add_handler("panel fault light", self._panel_fault)
+        self.safety.on_trip(self._cancel_scan)
+
+    # ------------------------------------------------------------------ bring-up
+
+    async def start(self) -> None:
+        """Connect every device, enable the drive, follow the encoder, make sure the beam is still."""
+        drive = self.hw.drive
+        async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
+            await drive.connect()
+            await self.tracker.start()
+            await drive.enable()
+            await drive.stop(self.STOP_DECELERATION_DEG_S2)
+        results = await asyncio.gather(
+            *(self._connect_phone(i, p) for i, p in enumerate(self.hw.phones)), return_exceptions=True
+        )
+        for i, result in enumerate(results):
+            if isinstance(result, BaseException):
+                self.phone_errors[i] = f"{type(result).__name__}: {result}"
+        if self.hw.panel is not None:
+            async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
+                await self.hw.panel.connect()
+            await self.hw.panel.set_status(_led("IDLE"))
+        self.safety.start()
+        log.info("rig_started", phones_failed=[e for e in self.phone_errors if e])
+
+    async def _connect_phone(self, index: int, phone: Any) -> None:
+        async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
+            await phone.connect()
+
+    async def close(self) -> list[str]:
+        """Stop the beam, stop watching, close every device; returns close failures."""
+        if self.scan_task is not None and not self.scan_task.done():
+            self.abort("daemon stopping")
+            await asyncio.gather(self.scan_task, return_exceptions=True)
+        await self.safety.stop()
+        failures: list[str] = []
+        try:
+            await self.hw.drive.stop(self.STOP_DECELERATION_DEG_S2)
+        except Exception as exc:  # reported; the drive is closed next anyway
+            failures.append(f"beam stop: {type(exc).__name__}: {exc}")
+        await self.tracker.stop()
+        return failures + await self.hw.close()
+
+    # ------------------------------------------------------------------ scans
+
+    @property
+    def busy(self) -> bool:
+        return self.scan_task is not None and not self.scan_task.done()
+
+    def start_scan(self, scan_id: str | None = None) -> asyncio.Task[ScanReport]:
+        """Start a scan in the background; refuses while busy or while a fault is latched."""
+        if self.busy:
+            raise ScanBusy(self.machine.state.value, "a scan is already running")
+        if self.safety.latched or self.machine.state is not ScanState.IDLE:
+            raise ScanBusy(self.machine.state.value,
+                           "fault latched: reset first (" + "; ".join(self.safety.causes) + ")")
+        self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, self.store,
+                            scan_id=scan_id, executor=self.executor, seed=self.seed,
+                            plan_points=self.plan_points)
+        self.scan_task = asyncio.create_task(self._run_scan(self.current), name="scan")
+        return self.scan_task
+
+    async def scan(self, scan_id: str | None = None) -> ScanReport:
+        """Run one scan to its end (completed, aborted or faulted) and return its report."""
+        return await self.start_scan(scan_id)
+
+    async def _run_scan(self, scan: Scan) -> ScanReport:
+        await self._panel("SCANNING")
+        try:
+            report = await scan.run()
+        finally:
+            if not self.safety.latched:
+                await self._panel("IDLE")
+        self.last_report = report
+        return report
+
+    def abort(self, cause: str) -> bool:
+        """Abort the running scan (stop button, control API); False when none runs."""
+        if not self.busy or self.current is None:
+            return False
+        self.current.abort(cause)
+        return True
+
+    async def trip(self, source: str, detail: str) -> None:
+        """A safety trip (e-stop, panel lost): quick stop, latched FAULT."""
+        await self.safety.trip(source, detail)
+
+    async def reset(self, cause: str = "operator reset") -> None:
+        """Clear a latched fault: drive fault reset and re-enable; refused while the e-stop is held."""
+        panel = self.hw.panel
+        if panel is not None and getattr(panel, "estop_active", False):
+            raise ScanBusy(self.machine.state.value, "e-stop still pressed: release it before reset")
+        if self.busy:
+            raise ScanBusy(self.machine.state.value, "the faulted scan is still closing its folder")
+
+        async def recover() -> None:
+            drive = self.hw.drive
+            if getattr(drive, "fault", None) is not None:
+                await drive.reset_fault()
+            await drive.enable()
+            await self._panel("IDLE")
+
+        await self.safety.reset(cause, recover)
+
+    def _cancel_scan(self, cause: str) -> None:
+        if self.current is not None and self.busy:
+            self.current.cancel_for_fault(cause)
+
+    async def _panel_fault(self) -> None:
+        await self.hw.panel.set_status(_led("FAULT"))
+
+    async def _panel(self, led: str) -> None:
+        if self.hw.panel is None:
+            return
+        try:
+            await self.hw.panel.set_status(_led(led))
+        except Exception as exc:  # a panel that cannot show status is a lost panel: fault
+            await self.safety.trip("panel", f"set_status({led}) failed: {type(exc).__name__}: {exc}")
+
+    # ------------------------------------------------------------------ status
+
+    def status(self) -> dict[str, Any]:
+        """The rig's state for the control API."""
+        latest = self.tracker.latest
+        return {
+            "state": self.machine.state.value,
+            "scan_id": self.machine.scan_id,
+            "fault_causes": list(self.safety.causes),
+            "beam_angle_deg": None if latest is None else latest.angle_deg,
+            "beam_speed_deg_s": None if latest is None else latest.speed_deg_s,
+            "phones_failed": [e for e in self.phone_errors if e],
+            "last_scan": None if self.last_report is None else self.last_report.as_dict(),
+        }

@@ -1,0 +1,441 @@
+"""One scan, start to end: PREPARING -> DEPTH_SWEEP -> RECONSTRUCTING -> PLANNING -> CAPTURING
+(-> RETAKING) -> STORING -> IDLE.
+
+The sequence runs as an inner task so an abort (stop button, control API) or a safety trip can
+cancel it at any await; the outer coroutine then stops the beam and closes the scan folder with
+whatever was captured. Ray casting, TSDF fusion and planning run in an executor so the event
+loop keeps serving heartbeats, the watchdog and the e-stop while they compute.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from daemon.beam import BeamTracker
+from daemon.capture import CaptureRecord, CaptureRunner, TriggerLatency
+from daemon.depth_sweep import DepthSweeper, SweepRecord
+from daemon.hardware import RigHardware
+from daemon.phones import PhonePrep, prepare_phones
+from daemon.safety import SafetyMonitor
+from daemon.states import ScanOutcome, ScanState, ScanStateMachine
+from daemon.pulls import PullQueue
+from daemon.store import ImageStatus, ScanEnd, ScanFolder, ScanStore, StoreError
+from daemon.timeline import CaptureSchedule, compile_plan, phone_timings, rig_profile
+from planner.rig import Rig
+
+log = structlog.get_logger("daemon.scan")
+
+PLAN_METHOD = "shape-aware"
+"""The planner's method whose focus the capture uses (EM + refinement)."""
+PLAN_METHODS = ("average", PLAN_METHOD)
+"""Planned per scan: the capture's method and the seed's usual baseline for the QA report."""
+
+
+@dataclass
+class ScanReport:
+    """How a scan went. Times are rig (event-loop) seconds unless named ``compute``."""
+
+    scan_id: str
+    folder: Path
+    outcome: ScanOutcome
+    reason: str | None = None
+    captured: int = 0
+    missing: int = 0
+    retaken: int = 0
+    lens_late: int = 0
+    max_abs_angle_error_deg: float | None = None
+    min_speed_ratio: float | None = None
+    phase_s: dict[str, float] = field(default_factory=dict)
+    compute_s: dict[str, float] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def sweep_to_capture_s(self) -> float:
+        """End of the depth sweep to the start of the capture rotation: rig time + compute time."""
+        return self.phase_s.get("sweep_to_capture", 0.0) + sum(self.compute_s.values())
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "scan_id": self.scan_id, "folder": str(self.folder), "outcome": self.outcome.value,
+            "reason": self.reason, "captured": self.captured, "missing": self.missing,
+            "retaken": self.retaken, "lens_late": self.lens_late,
+            "max_abs_angle_error_deg": self.max_abs_angle_error_deg,
+            "min_speed_ratio": self.min_speed_ratio, "phase_s": dict(self.phase_s),
+            "compute_s": dict(self.compute_s), "sweep_to_capture_s": self.sweep_to_capture_s,
+            "errors": list(self.errors),
+        }
+
+
+def _timed(func: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """Run ``func`` in a worker thread and measure its real duration (compute time, not rig time)."""
+    start = time.perf_counter()
+    result = func(*args)
+    return result, time.perf_counter() - start
+
+
+def _reconstruct(sweep: SweepRecord, rig: Rig) -> Any:
+    from planner.tsdf import fuse
+
+    return fuse(list(sweep.sweep.frames), rig)
+
+
+def _plan(mesh: Any, rig: Rig, seed: int, points: int | None) -> Any:
+    from planner.plan import plan_focus
+
+    return plan_focus(mesh, rig, seed=seed, points=points, methods=PLAN_METHODS)
+
+
+class Scan:
+    """One scan on connected hardware.
+
+    Args:
+        folder_store: where the scan folder goes.
+        executor: for the compute steps (None = the loop's default thread pool).
+        seed: seeds the planner's surface sampling (deterministic scans).
+        plan_points: surface samples for planning (None: rig.planner.points).
+    """
+
+    ABORT_DECELERATION_FACTOR = 1.0
+    PULL_TIMEOUT_S = 120.0
+
+    def __init__(
+        self,
+        rig: Rig,
+        hardware: RigHardware,
+        machine: ScanStateMachine,
+        safety: SafetyMonitor,
+        tracker: BeamTracker,
+        store: ScanStore,
+        *,
+        scan_id: str | None = None,
+        executor: Executor | None = None,
+        seed: int = 0,
+        plan_points: int | None = None,
+    ) -> None:
+        self.rig = rig
+        self.hw = hardware
+        self.machine = machine
+        self.safety = safety
+        self.tracker = tracker
+        self.store = store
+        self.scan_id = scan_id
+        self.executor = executor
+        self.seed = seed
+        self.plan_points = plan_points
+        self.folder: ScanFolder | None = None
+        self.report: ScanReport | None = None
+        self.runner: CaptureRunner | None = None
+        self.schedule: CaptureSchedule | None = None
+        self.prep: PhonePrep | None = None
+        self._abort_cause: str | None = None
+        self._body: asyncio.Task[None] | None = None
+        self._marks: dict[str, float] = {}
+        self.pulls: PullQueue | None = None
+        self.store_error: StoreError | None = None
+        self._trace_mark = 0
+
+    # ------------------------------------------------------------------ control
+
+    def abort(self, cause: str) -> None:
+        """Stop the scan: the beam decelerates, the folder keeps what was captured."""
+        if self._abort_cause is None:
+            self._abort_cause = cause
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+
+    def cancel_for_fault(self, cause: str) -> None:
+        """Called by the safety monitor on a trip: stop the sequence (the latch stops the beam)."""
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+
+    # ------------------------------------------------------------------ run
+
+    async def run(self) -> ScanReport:
+        """Run the whole scan; returns its report (also for aborted and faulted scans)."""
+        self.safety.check()
+        folder = self.store.create(self.rig, scan_id=self.scan_id)
+        self.folder = folder
+        self.machine.scan_id = folder.scan_id
+        self.report = ScanReport(folder.scan_id, folder.path, ScanOutcome.COMPLETED)
+        self.machine.transition(ScanState.PREPARING, "scan requested", folder=str(folder.path))
+        folder.log_event("scan_started", rig_digest=self.rig.digest)
+        self._body = asyncio.create_task(self._sequence(), name=f"scan-{folder.scan_id}")
+        error: BaseException | None = None
+        try:
+            await asyncio.shield(self._body)
+        except asyncio.CancelledError:
+            if self._body.done() or self._abort_cause is not None or self.safety.latched:
+                error = None
+            else:
+                self._body.cancel()
+                raise
+        except Exception as exc:  # every scan error reaches the report and the manifest
+            error = exc
+        await self._finish(error)
+        return self.report
+
+    async def _finish(self, error: BaseException | None) -> None:
+        assert self.folder is not None and self.report is not None
+        report = self.report
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+            await asyncio.gather(self._body, return_exceptions=True)
+        if error is not None and _is_drive_error(error) and not self.safety.latched:
+            await self.safety.trip(getattr(self.hw.drive, "name", "beam"),
+                                   f"{type(error).__name__}: {error}")
+        if self.safety.latched:
+            report.outcome = ScanOutcome.FAULTED
+            report.reason = "; ".join(self.safety.causes)
+        elif self._abort_cause is not None or error is not None:
+            report.outcome = ScanOutcome.ABORTED
+            report.reason = self._abort_cause or f"{type(error).__name__}: {error}"
+            if error is not None:
+                report.errors.append(f"{type(error).__name__}: {error}")
+            if self.machine.allowed(ScanState.ABORTING):
+                self.machine.transition(ScanState.ABORTING, report.reason)
+            await self._stop_beam()
+        if self.machine.allowed(ScanState.STORING):
+            self.machine.transition(ScanState.STORING, "storing the scan")
+        await self._store(report)
+        if self.machine.allowed(ScanState.IDLE):
+            self.machine.transition(ScanState.IDLE, f"scan {report.outcome.value.lower()}",
+                                    captured=report.captured, missing=report.missing)
+        self.machine.scan_id = None
+
+    async def _stop_beam(self) -> None:
+        decel = self.rig.capture.acceleration_deg_s2 * self.ABORT_DECELERATION_FACTOR
+        try:
+            await self.hw.drive.stop(decel)
+        except Exception as exc:  # a drive that cannot stop is a rig fault
+            await self.safety.trip(getattr(self.hw.drive, "name", "beam"),
+                                   f"controlled stop failed: {type(exc).__name__}: {exc}")
+
+    def _mark(self, name: str) -> None:
+        self._marks[name] = asyncio.get_running_loop().time()
+
+    # ------------------------------------------------------------------ the sequence
+
+    async def _sequence(self) -> None:
+        assert self.folder is not None and self.report is not None
+        rig, drive, report = self.rig, self.hw.drive, self.report
+        loop = asyncio.get_running_loop()
+        a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
+        profile = rig_profile(rig)
+
+        # PREPARING: beam to the sweep start, phones' clocks and trigger latency measured.
+        self._mark("start")
+        self._trace_mark = self.tracker.mark()
+        await self._rebase_angle(rig.depth_sweep.start_deg)
+        move = asyncio.create_task(drive.move_to(rig.depth_sweep.start_deg, v_max, a_max))
+        try:
+            self.prep = await prepare_phones(self.hw.phones, rig)
+        finally:
+            await move
+        self.folder.log_event("prepared", latency_s=[p.value_s for p in self.prep.latency],
+                              phones_ready=self.prep.ready)
+        self._mark("prepared")
+
+        # DEPTH_SWEEP
+        self.safety.expect_samples = True
+        self.machine.transition(ScanState.DEPTH_SWEEP, "beam at the sweep start")
+        sweep = await DepthSweeper(rig, drive, self.tracker, self.hw.depth_cameras).run()
+        self._mark("sweep_end")
+        self.folder.write_depth_sweep({
+            "frames_used": len(sweep.sweep.frames), "frames_seen": sweep.frames_seen,
+            "start_deg": rig.depth_sweep.start_deg, "end_deg": rig.depth_sweep.end_deg,
+            "duration_s": sweep.ended_s - sweep.started_s,
+        })
+
+        # RECONSTRUCTING, while the beam repositions to the capture run-up.
+        self.machine.transition(ScanState.RECONSTRUCTING, "depth sweep done",
+                                frames=len(sweep.sweep.frames))
+        reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
+        try:
+            fused, report.compute_s["tsdf"] = await loop.run_in_executor(
+                self.executor, _timed, _reconstruct, sweep, rig)
+            self.folder.write_mesh(fused.mesh)
+
+            # PLANNING
+            self.machine.transition(ScanState.PLANNING, "subject mesh ready",
+                                    vertices=len(fused.mesh.vertices))
+            plan, report.compute_s["planning"] = await loop.run_in_executor(
+                self.executor, _timed, _plan, fused.mesh, rig, self.seed, self.plan_points)
+            plan_json = plan.to_json()
+            focus = np.asarray(plan.methods[PLAN_METHOD].focus_mm, dtype=float)
+            timings = phone_timings(rig, trigger_latency_s=[p.value_s for p in self.prep.latency],
+                                    min_focus_mm=self.prep.min_focus_mm)
+            self.schedule = compile_plan(focus, rig, timings, profile=profile)
+            self.folder.write_plan(plan_json, _plan_summary(plan_json))
+            self.folder.plan_images(rig.capture.angles_deg, focus)
+            self.pulls = PullQueue(self.folder)
+            self.pulls.start()
+        finally:
+            await reposition
+        self._mark("capture_start")
+
+        # CAPTURING
+        self.machine.transition(ScanState.CAPTURING, "plan feasible, beam at the run-up",
+                                poses=rig.n_poses)
+        self.runner = CaptureRunner(
+            rig, self.schedule, drive, self.tracker, self.hw.phones, self.prep.clocks,
+            self.prep.latency, on_capture=self._captured, progress=self._progress,
+        )
+        await self.runner.main_pass()
+        self._mark("capture_end")
+        if any(r.status != "captured" for r in self.runner.records):
+            self.machine.transition(ScanState.RETAKING, "missed captures to retake",
+                                    missed=sum(r.status != "captured" for r in self.runner.records))
+            await self.runner.retake_pass()
+        self._mark("retake_end")
+        for record in self.runner.records:
+            if record.status != "captured":
+                record.status = "missing"
+        self.safety.expect_samples = False
+
+    async def _rebase_angle(self, near_deg: float) -> None:
+        """Renumber the resting beam's angle by whole turns to within half a turn of ``near_deg``."""
+        angle = self.tracker.angle_deg
+        if angle is None:
+            angle = (await self.tracker.next_sample()).angle_deg
+        turns = round((angle - near_deg) / 360.0)
+        if turns:
+            await self.hw.drive.set_zero(angle - 360.0 * turns)
+
+    # ------------------------------------------------------------------ capture callbacks
+
+    def _progress(self, event: str, **fields: Any) -> None:
+        self.machine.progress(event, **fields)
+
+    def _captured(self, record: CaptureRecord) -> None:
+        assert self.folder is not None and self.pulls is not None
+        try:
+            self.folder.record_capture(
+                record.camera_index, record.angle_index,
+                sensor_timestamp_ns=record.sensor_timestamp_ns or 0,
+                host_time_s=record.exposure_mid_s or 0.0,
+                actual_angle_deg=record.exposure_angle_deg,
+                phone_path=record.phone_path or "", size_bytes=record.size_bytes or 0,
+                focus_diopters=record.focus_diopters,
+            )
+            self.pulls.submit(record.camera_index, record.angle_index, record.phone_path or "",
+                              self.hw.phones[record.camera_index].pull,
+                              expected_size=record.size_bytes)
+        except StoreError as exc:  # the disk cannot take the scan: stop the rotation, keep the rest
+            self.store_error = exc
+            self.abort(f"store: {type(exc).__name__}: {exc}")
+
+    # ------------------------------------------------------------------ storing
+
+    async def _store(self, report: ScanReport) -> None:
+        """Wait for the pulls, then write the trace, capture records, QA and the final manifest.
+
+        Every step runs even if an earlier one failed (a full disk); failures go to the report
+        and a manifest that cannot be rewritten stays at its last valid version.
+        """
+        assert self.folder is not None
+        folder = self.folder
+        if self.pulls is not None:
+            try:
+                async with asyncio.timeout(self.PULL_TIMEOUT_S):
+                    await self.pulls.join()
+            except (StoreError, TimeoutError) as exc:
+                report.errors.append(f"pulls: {type(exc).__name__}: {exc}")
+            finally:
+                await self.pulls.close()
+            report.errors.extend(str(f) for f in self.pulls.failures)
+        if self.store_error is not None:
+            report.errors.append(f"store: {type(self.store_error).__name__}: {self.store_error}")
+        records = self.runner.records if self.runner is not None else []
+        self._summarise(report, records)
+        trace = self.tracker.trace(self._trace_mark)
+        steps: list[tuple[str, Callable[[], Any]]] = [
+            ("missing", lambda: self._record_missing(records)),
+            ("trace", lambda: folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2])),
+            ("captures", lambda: _write_json(folder, "captures", "captures.json",
+                                             [r.as_dict() for r in records])),
+            ("qa", lambda: _write_json(folder, "qa", "qa.json", report.as_dict())),
+            ("events", lambda: folder.log_event("scan_ended", outcome=report.outcome.value,
+                                                reason=report.reason)),
+            ("manifest", lambda: folder.finish(_END[report.outcome], report.reason)),
+        ]
+        for name, step in steps:
+            try:
+                step()
+            except StoreError as exc:
+                report.errors.append(f"{name}: {type(exc).__name__}: {exc}")
+                log.error("store_step_failed", step=name, error=str(exc))
+
+    def _record_missing(self, records: Sequence[CaptureRecord]) -> None:
+        assert self.folder is not None
+        for record in records:
+            if record.status != "captured":
+                self.folder.update_image(record.camera_index, record.angle_index, save=False,
+                                         status=ImageStatus.MISSING,
+                                         error=f"{record.error_type}: {record.error}")
+
+    def _summarise(self, report: ScanReport, records: Sequence[CaptureRecord]) -> None:
+        m = self._marks
+        captured = [r for r in records if r.status == "captured"]
+        report.captured = len(captured)
+        report.missing = self.rig.n_poses - len(captured)
+        report.retaken = sum(r.capture_pass == "retake" for r in captured)
+        report.lens_late = sum(r.lens_late for r in captured)
+        main = [r for r in captured if r.capture_pass == "main"]
+        if captured:
+            report.max_abs_angle_error_deg = max(abs(r.angle_error_deg or 0.0) for r in captured)
+        if main and self.schedule is not None:
+            nominal = self.schedule.profile.nominal_speed(np.array([r.planned_angle_deg for r in main]))
+            speed = np.array([r.beam_speed_deg_s or 0.0 for r in main])
+            report.min_speed_ratio = float(np.min(speed / nominal))
+        spans = {
+            "preparing": ("start", "prepared"),
+            "sweep_to_capture": ("sweep_end", "capture_start"),
+            "capture": ("capture_start", "capture_end"),
+            "retake": ("capture_end", "retake_end"),
+            "total": ("start", "retake_end"),
+        }
+        for name, (a, b) in spans.items():
+            if a in m and b in m:
+                report.phase_s[name] = m[b] - m[a]
+        if "prepared" in m and "sweep_end" in m:
+            report.phase_s["depth_sweep"] = m["sweep_end"] - m["prepared"]
+
+
+def _is_drive_error(error: BaseException) -> bool:
+    from drivers.motor.errors import DriveError
+
+    return isinstance(error, DriveError)
+
+
+_END = {ScanOutcome.COMPLETED: ScanEnd.COMPLETE, ScanOutcome.ABORTED: ScanEnd.ABORTED,
+        ScanOutcome.FAULTED: ScanEnd.FAULT}
+
+
+def _write_json(folder: ScanFolder, key: str, name: str, value: Any) -> None:
+    from daemon.store import _json_bytes
+
+    folder.writer.write(folder.path / name, _json_bytes(value))
+    folder.manifest.files[key] = name
+
+
+def _plan_summary(plan_json: dict[str, Any]) -> dict[str, Any]:
+    """The manifest's plan summary: per method, total cost and in-focus fraction."""
+    return {
+        "points": plan_json.get("points"),
+        "poses": plan_json.get("poses"),
+        "visible_fraction": plan_json.get("visible_fraction"),
+        "method": PLAN_METHOD,
+        "methods": {
+            name: {k: m.get(k) for k in ("total_cost", "in_focus_fraction", "seconds")}
+            for name, m in plan_json.get("methods", {}).items()
+        },
+    }

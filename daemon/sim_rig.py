@@ -1,0 +1,165 @@
+"""Simulated-hardware mode: every simulator wired to the same daemon code.
+
+The beam drive talks CANopen over an in-process loopback bus, the seven phones are adbds on
+socketpair links, the three depth cameras ray-cast the simulated subject at the drive's
+physical angle, and the panel speaks its line protocol over a stream pair. Every link delivers
+immediately, so the whole rig runs on the virtual-time loop (drivers/sim/clock.py) and a seed
+fixes the scan.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import socket
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from daemon.hardware import RigHardware
+from planner.poses import rgb_poses
+from planner.rig import DepthCameraModel, Rig
+
+log = structlog.get_logger("daemon.sim_rig")
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Knobs of the simulated rig.
+
+    depth_decimation: the simulated depth cameras render at 1/N of the rig's resolution (ray
+        casting 1280 x 720 takes ~0.5 s of CPU a frame; the TSDF fuses at half resolution anyway).
+    depth_fps: simulated frame rate (the sweep keeps one frame per 3 deg: 10 fps at 30 deg/s).
+    """
+
+    seed: int = 0
+    depth_decimation: int = 2
+    depth_fps: float = 10.0
+    panel: bool = True
+    state_dir: Path | None = None
+
+
+@dataclass
+class SimWorld:
+    """Handles on every simulator: fault injection and ground truth for tests."""
+
+    subject: Any
+    bus: Any
+    drive: Any
+    phones: list[Any] = field(default_factory=list)
+    depth_cameras: list[Any] = field(default_factory=list)
+    panel: Any | None = None
+    tasks: list[asyncio.Task[Any]] = field(default_factory=list)
+
+    async def close(self) -> None:
+        for task in self.tasks:
+            task.cancel()
+        await asyncio.gather(*self.tasks, return_exceptions=True)
+        self.tasks.clear()
+
+
+def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> DepthCameraModel:
+    """The rig's depth camera model at 1/decimation resolution (intrinsics scaled alike)."""
+    d = max(int(decimation), 1)
+    return dataclasses.replace(
+        model, width_px=model.width_px // d, height_px=model.height_px // d,
+        fx_px=model.fx_px / d, fy_px=model.fy_px / d, cx_px=model.cx_px / d, cy_px=model.cy_px / d,
+        fps=fps,
+    )
+
+
+def default_subject(seed: int) -> Any:
+    """The simulated subject for a seed: an adult body from drivers/sim/body.py."""
+    from drivers.sim.body import make_body
+
+    return make_body(seed=seed)
+
+
+def phone_pose_source(rig: Rig, camera_index: int, beam_angle_deg: Callable[[], float]) -> Callable[[float], np.ndarray]:
+    """time -> (4, 4) camera-to-world pose of one phone at the beam's physical angle."""
+
+    def pose(_time_s: float) -> np.ndarray:
+        poses = rgb_poses(rig, np.array([beam_angle_deg()]))
+        return poses.camera_to_world(camera_index)
+
+    return pose
+
+
+async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *,
+                        subject: Any | None = None) -> tuple[RigHardware, SimWorld]:
+    """Start every simulator and return the daemon-side device objects wired to them."""
+    from drivers.motor.drive import BeamDrive
+    from drivers.motor.port import LoopbackCanBus
+    from drivers.sim.depth import DepthScene, SimulatedDepthCamera
+    from drivers.sim.drive import SimulatedDrive
+
+    if subject is None:
+        loop = asyncio.get_running_loop()
+        subject = await loop.run_in_executor(None, default_subject, options.seed)
+    bus = LoopbackCanBus("sim")
+    sim_drive = SimulatedDrive(bus.port("drive"), rig.motor)
+    world = SimWorld(subject=subject, bus=bus, drive=sim_drive)
+    world.tasks.append(asyncio.create_task(sim_drive.run(), name="sim-drive"))
+    drive = BeamDrive(bus.port("host"), rig.motor)
+
+    angle = lambda _t=0.0: sim_drive.true_angle_deg  # noqa: E731
+    scene = DepthScene(subject)
+    model = sim_depth_model(rig.depth_camera_model, options.depth_decimation, options.depth_fps)
+    world.depth_cameras = [
+        SimulatedDepthCamera(cam, model, scene, angle, seed=options.seed * 100 + i)
+        for i, cam in enumerate(rig.depth_cameras)
+    ]
+    phones = await _sim_phones(rig, options, world, angle)
+    panel = await _sim_panel(world) if options.panel else None
+    hardware = RigHardware(drive=drive, phones=phones, depth_cameras=world.depth_cameras, panel=panel)
+    hardware.closers.append(world.close)
+    log.info("sim_rig_built", seed=options.seed, phones=len(phones), depth=len(world.depth_cameras),
+             panel=panel is not None)
+    return hardware, world
+
+
+async def _stream_pair() -> tuple[tuple[asyncio.StreamReader, asyncio.StreamWriter],
+                                  tuple[asyncio.StreamReader, asyncio.StreamWriter]]:
+    a, b = socket.socketpair()
+    return await asyncio.open_connection(sock=a), await asyncio.open_connection(sock=b)
+
+
+async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
+                      angle: Callable[..., float]) -> list[Any]:
+    from drivers.adb.auth import AdbKey
+    from drivers.phone.camera import PhoneCamera
+    from drivers.phone.focus import load_focus_calibration
+    from drivers.sim.phone import SimulatedPhone
+
+    key = AdbKey.generate() if options.state_dir is None else AdbKey.load_or_create(options.state_dir)
+    phones = []
+    for i, phone in enumerate(rig.phones):
+        sim = SimulatedPhone(
+            phone.serial, subject=world.subject, pose=phone_pose_source(rig, i, angle),
+            seed=options.seed * 100 + i, optics=rig.optics, known_keys=[key.public_blob()],
+        )
+        world.phones.append(sim)
+
+        async def transport(sim: Any = sim) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+            (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+            world.tasks.append(asyncio.create_task(sim.accept(dev_r, dev_w), name=f"sim-{sim.serial}"))
+            return host_r, host_w
+
+        focus = load_focus_calibration(rig.resolve(phone.focus_calibration))
+        phones.append(PhoneCamera(transport, phone, focus, key=key))
+    return phones
+
+
+async def _sim_panel(world: SimWorld) -> Any:
+    from drivers.panel import OperatorPanel
+    from drivers.sim.panel import SimulatedPanel
+
+    (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+    sim = SimulatedPanel(dev_r, dev_w)
+    world.panel = sim
+    world.tasks.append(asyncio.create_task(sim.run(), name="sim-panel"))
+    return OperatorPanel(host_r, host_w)
