@@ -254,12 +254,12 @@ def motion_profile(capture: Capture, *, max_speed_deg_s: float | None = None,
         acc.append((vb - va) / d)
         dur.append(d)
         t += d
-    arr = lambda x: np.array(x, dtype=float)  # noqa: E731
     return MotionProfile(
-        t0_s=arr(t0), theta0_deg=arr(th0), v0_deg_s=arr(v0), acc_deg_s2=arr(acc), dur_s=arr(dur),
-        sector_start_deg=arr([s.start_deg for s in sectors]),
-        sector_end_deg=arr([s.end_deg for s in sectors]),
-        sector_speed_deg_s=arr(speeds),
+        t0_s=np.array(t0), theta0_deg=np.array(th0), v0_deg_s=np.array(v0),
+        acc_deg_s2=np.array(acc), dur_s=np.array(dur),
+        sector_start_deg=np.array([s.start_deg for s in sectors], dtype=float),
+        sector_end_deg=np.array([s.end_deg for s in sectors], dtype=float),
+        sector_speed_deg_s=np.array(speeds, dtype=float),
     )
 
 
@@ -488,7 +488,8 @@ def scan_rig_time(rig: Rig, profile: MotionProfile | None = None) -> RigTime:
     """Rig time of a scan: the sweep at its speed, the move to the run-up start, the capture.
 
     The sweep and the reposition are rest-to-rest moves at the drive's maximum acceleration;
-    the reposition also at its maximum speed. Compute time (TSDF, planning) is not rig time.
+    the reposition also at its maximum speed, the short way round (the beam's angle is
+    renumbered by whole turns at rest). Compute time (TSDF, planning) is not rig time.
     """
     profile = profile if profile is not None else rig_profile(rig)
     sweep = rig.depth_sweep
@@ -496,7 +497,12 @@ def scan_rig_time(rig: Rig, profile: MotionProfile | None = None) -> RigTime:
     return RigTime(
         sweep_s=move_duration(sweep.end_deg - sweep.start_deg, sweep.speed_deg_s, a_max),
         reposition_s=move_duration(
-            profile.start_deg - sweep.end_deg, rig.motor.max_speed_deg_s, a_max
+            wrap_deg(profile.start_deg - sweep.end_deg), rig.motor.max_speed_deg_s, a_max
         ),
         capture_s=profile.duration_s,
     )
+
+
+def wrap_deg(angle_deg: float) -> float:
+    """An angle difference folded into [-180, 180) deg."""
+    return (angle_deg + 180.0) % 360.0 - 180.0

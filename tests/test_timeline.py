@@ -22,6 +22,7 @@ from daemon.timeline import (
     phone_timings,
     rig_profile,
     scan_rig_time,
+    wrap_deg,
 )
 from planner.rig import Capture, Sector, load_rig
 
@@ -197,8 +198,18 @@ def test_move_duration_bounds(d, v, a):
     assert t <= d / v + 2 * v / a + 2 * math.sqrt(d / a) + 1e-9
 
 
+@given(a=st.floats(-1000.0, 1000.0))
+def test_wrap_deg(a):
+    w = wrap_deg(a)
+    assert -180.0 <= w < 180.0 and math.isclose(math.remainder(w - a, 360.0), 0.0, abs_tol=1e-9)
+
+
 def test_scan_rig_time_under_the_paper_figure(rig):
     t = scan_rig_time(rig)
     assert t.capture_s == pytest.approx(rig_profile(rig).duration_s)
+    gap = abs(wrap_deg(rig_profile(rig).start_deg - rig.depth_sweep.end_deg))
+    assert gap <= 180.0
+    assert t.reposition_s == pytest.approx(
+        move_duration(gap, rig.motor.max_speed_deg_s, rig.motor.max_acceleration_deg_s2))
     assert t.total_s == pytest.approx(t.sweep_s + t.reposition_s + t.capture_s)
     assert t.total_s < 100.0
