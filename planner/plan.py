@@ -138,7 +138,7 @@ def check_focus(focus_mm: np.ndarray, n_poses: int) -> np.ndarray:
         raise BadFocusPlan(f"has shape {focus.shape}", n_poses)
     bad = np.flatnonzero(~(np.isfinite(focus) & (focus > 0)))
     if len(bad):
-        raise BadFocusPlan(f"pose {bad[0]} has focus {focus[bad[0]]!r} mm", n_poses)
+        raise BadFocusPlan(f"pose {bad[0]} has focus {float(focus[bad[0]])!r} mm", n_poses)
     return focus
 
 

@@ -1,0 +1,130 @@
+"""plan_focus / evaluate / the JSON plan / `tbp plan`, and their typed errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from daemon.cli import main as tbp
+from planner.focus_errors import BadFocusPlan, EmptyMesh, MeshLoadError, NothingVisible
+from planner.plan import METHODS, evaluate, load_subject_mesh, plan_focus
+from planner.poses import rgb_poses
+from planner.rig import load_rig
+from tests.planner_standin import standin_body
+
+RIG = load_rig()
+METHOD_KEYS = {"total_cost", "in_focus_fraction", "focus_mm", "seconds"}
+
+
+@pytest.fixture(scope="module")
+def body() -> trimesh.Trimesh:
+    return standin_body()
+
+
+@pytest.fixture(scope="module")
+def result(body):
+    return plan_focus(body, RIG, points=2000, seed=4)
+
+
+def test_json_has_the_agreed_keys(result) -> None:
+    out = json.loads(json.dumps(result.to_json()))
+    assert {"points", "poses", "angles_deg", "camera_heights_mm", "visible_fraction",
+            "resolution_mm_per_px", "methods", "timing_s"} <= set(out)
+    assert out["points"] == 2000 and out["poses"] == 336
+    assert out["angles_deg"] == RIG.capture.angles_deg.tolist()
+    assert out["camera_heights_mm"] == [p.height_mm for p in RIG.phones]
+    assert set(out["methods"]) == {"closest", "average", "em", "shape-aware", "fixed", "autofocus"}
+    for m in out["methods"].values():
+        assert set(m) >= METHOD_KEYS
+        assert len(m["focus_mm"]) == 336
+    assert {"mean", "std", "share_at_most_0.075"} <= set(out["resolution_mm_per_px"])
+    assert {"visibility", "total"} <= set(out["timing_s"])
+
+
+def test_methods_rank_as_expected(result) -> None:
+    m = result.methods
+    assert m["shape-aware"].total_cost <= m["em"].total_cost < m["average"].total_cost
+    assert m["shape-aware"].in_focus_fraction >= m["em"].in_focus_fraction
+    assert m["average"].in_focus_fraction > m["closest"].in_focus_fraction
+    assert np.all(np.diff(m["fixed"].focus_mm) == 0)
+    assert m["shape-aware"].in_focus_fraction <= result.visible_fraction
+    np.testing.assert_array_equal(result.focus_mm, m["shape-aware"].focus_mm)
+
+
+def test_evaluate_reproduces_the_plan_on_its_own_samples(body, result) -> None:
+    same = evaluate(result.focus_mm, body, RIG, points=result.samples)
+    assert same.total_cost == pytest.approx(result.methods["shape-aware"].total_cost)
+    fresh = evaluate(result.focus_mm, body, RIG, points=2000, seed=99)
+    assert abs(fresh.in_focus_fraction - result.methods["shape-aware"].in_focus_fraction) < 0.05
+
+
+def test_evaluate_on_other_poses(body, result) -> None:
+    shifted = rgb_poses(RIG, RIG.capture.angles_deg + 20.0)
+    moved = evaluate(result.focus_mm, body, RIG, points=result.samples, poses=shifted)
+    assert moved.total_cost != pytest.approx(result.methods["shape-aware"].total_cost)
+
+
+def test_plan_on_given_methods_only(body) -> None:
+    only = plan_focus(body, RIG, points=500, methods=("closest",))
+    assert set(only.methods) == {"closest"}
+    with pytest.raises(ValueError, match="unknown focus method 'magic'"):
+        plan_focus(body, RIG, points=500, methods=("magic",))
+
+
+def test_empty_mesh_is_refused() -> None:
+    with pytest.raises(EmptyMesh, match="empty.ply is empty: 0 faces"):
+        plan_focus(trimesh.Trimesh(), RIG, mesh_name="empty.ply")
+
+
+def test_subject_out_of_view_is_refused(body) -> None:
+    lifted = body.copy()
+    lifted.apply_translation([0.0, 0.0, 5000.0])
+    with pytest.raises(NothingVisible, match="lifted.ply: none of 300 surface samples") as info:
+        plan_focus(lifted, RIG, points=300, mesh_name="lifted.ply")
+    assert info.value.poses == 336
+
+
+@pytest.mark.parametrize(
+    "focus, problem",
+    [(np.ones(3), "has shape"), (np.full(336, np.nan), "pose 0 has focus nan"), (-np.ones(336), "pose 0")],
+)
+def test_bad_focus_plan_is_refused(body, focus, problem) -> None:
+    with pytest.raises(BadFocusPlan, match=problem):
+        evaluate(focus, body, RIG, points=100)
+
+
+def test_mesh_file_errors(tmp_path: Path) -> None:
+    with pytest.raises(MeshLoadError, match="no such file"):
+        load_subject_mesh(tmp_path / "missing.ply")
+    bad = tmp_path / "bad.ply"
+    bad.write_text("not a mesh")
+    with pytest.raises(MeshLoadError, match="bad.ply: cannot be read"):
+        load_subject_mesh(bad)
+
+
+def test_cli_plan_writes_json(tmp_path: Path, body, capsys) -> None:
+    mesh = tmp_path / "body.ply"
+    body.export(mesh)
+    out = tmp_path / "plan.json"
+    assert tbp(["plan", "--mesh", str(mesh), "--points", "800", "--json", str(out), "--fresh", "500"]) == 0
+    text = capsys.readouterr().out
+    for name in METHODS:
+        assert name in text
+    assert "visible" in text and "fresh sample" in text
+    plan = json.loads(out.read_text())
+    assert plan["points"] == 800 and plan["fresh_sample"]["points"] == 500
+
+
+def test_cli_plan_errors_name_the_file(tmp_path: Path, capsys) -> None:
+    missing = tmp_path / "nope.ply"
+    assert tbp(["plan", "--mesh", str(missing)]) == 1
+    assert "nope.ply: no such file" in capsys.readouterr().err
+    empty = tmp_path / "empty.ply"
+    trimesh.Trimesh(vertices=np.zeros((3, 3)), faces=[[0, 1, 2]]).export(empty)
+    assert tbp(["plan", "--mesh", str(empty)]) == 1
+    assert "empty" in capsys.readouterr().err
+    assert tbp(["plan", "--mesh", str(missing), "--points", "0"]) == 2
