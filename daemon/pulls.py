@@ -6,7 +6,8 @@ daemon's coroutine ``pull(phone_path, dest) -> (size_bytes, sha256)`` (PhoneCame
 the store then checks the file on disk against that size, the size the phone reported at
 capture, and its own SHA-256. A failed pull is retried RETRIES times, then recorded in the
 manifest as failed with the error. A full disk is not retried: it is recorded, the image
-stays 'captured' (still on the phone) and :meth:`PullQueue.join` raises the StoreFull.
+stays 'captured' (still on the phone) and :meth:`PullQueue.join` raises the StoreFull
+(likewise any StoreError that kept the manifest from being rewritten).
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ class PullQueue:
         self.folder = folder
         self.n_workers = workers
         self.failures: list[PullFailed] = []
-        self.fatal: StoreFull | None = None
+        self.fatal: StoreError | None = None
         self._queue: asyncio.Queue[PullJob] = asyncio.Queue()
         self._tasks: list[asyncio.Task[None]] = []
 
@@ -111,7 +112,8 @@ class PullQueue:
         return self._queue.qsize()
 
     async def join(self) -> None:
-        """Wait until every queued pull is done; raises the StoreFull if the disk filled up."""
+        """Wait until every queued pull is done; raises the StoreError (disk full, manifest
+        unwritable) that stopped the pulls, if any."""
         await self._queue.join()
         if self.fatal is not None:
             raise self.fatal
@@ -128,6 +130,10 @@ class PullQueue:
             job = await self._queue.get()
             try:
                 await self._serve(job)
+            except StoreError as exc:  # the manifest could not be rewritten: join() raises it
+                self.fatal = self.fatal or exc
+                log.error("pull_store_failed", angle_index=job.angle_index,
+                          camera_index=job.camera_index, error=str(exc))
             finally:
                 self._queue.task_done()
 

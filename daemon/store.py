@@ -504,7 +504,9 @@ class ScanStore:
         """
         recovered = []
         for path in self.folders():
-            for tmp in list(path.glob(".*.tmp")) + list(path.glob("images/.*")):
+            leftovers = [*path.glob(".*.tmp"), *path.glob("images/.*"), *path.glob("images/*.tmp"),
+                         *path.glob("images/*.part")]
+            for tmp in leftovers:
                 tmp.unlink(missing_ok=True)
             (path / RESERVE).unlink(missing_ok=True)
             try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import hashlib
 import json
@@ -216,6 +217,17 @@ async def test_pull_onto_a_full_disk_keeps_the_image_captured(tmp_path, rig):
     image = _manifest(folder)["images"][rig.pose_index(4, 3)]
     assert image["status"] == "captured" and "disk full" in image["error"]
     assert phone.calls == 1  # a full disk is not retried
+
+
+async def test_unwritable_manifest_during_pulls_is_raised_not_hung(tmp_path, rig):
+    writer = CrashingWriter(errno.EIO)
+    folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
+    writer.armed = True
+    async with PullQueue(folder, workers=1) as q:
+        q.submit(0, 0, "/sdcard/a.jpg", FakePhone().pull)
+        q.submit(1, 0, "/sdcard/b.jpg", FakePhone().pull)
+        with pytest.raises(StoreError, match="errno 5"):
+            await asyncio.wait_for(q.join(), 30.0)
 
 
 async def test_not_enough_free_space_refused_before_pulling(tmp_path, rig):
