@@ -123,12 +123,16 @@ class PythonCanPort:
     Must be created inside the running event loop (the notifier schedules frames into it).
     """
 
+    RECEIVE_CYCLE_S = 0.05  # the notifier thread's receive timeout: bounds how long close() blocks
+
     def __init__(self, bus: can.BusABC, *, name: str | None = None) -> None:
         self.name = name or str(getattr(bus, "channel_info", "can"))
         self.bus = bus
         self.closed = False
         self._reader = _Reader()
-        self._notifier = can.Notifier(bus, [self._reader], loop=asyncio.get_running_loop())
+        self._notifier = can.Notifier(
+            bus, [self._reader], timeout=self.RECEIVE_CYCLE_S, loop=asyncio.get_running_loop()
+        )
 
     @classmethod
     def open(cls, interface: str, channel: str, *, name: str | None = None, **kwargs: Any) -> PythonCanPort:
@@ -163,7 +167,7 @@ class PythonCanPort:
             return
         self.closed = True
         try:
-            self._notifier.stop()
+            self._notifier.stop(timeout=4 * self.RECEIVE_CYCLE_S)
         finally:
             self._reader.wake_closed()
             self.bus.shutdown()

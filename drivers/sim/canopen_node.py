@@ -57,6 +57,7 @@ class SimulatedNode:
     TICK_S = 0.005
     TPDO_COUNT = 4
     DEVICE_TYPE = 0
+    DEFAULT_TPDO_MAPPING: dict[int, tuple[int, ...]] = {}  # TPDO k+1 -> power-on mapping entries
 
     def __init__(self, port: CanPort, node_id: int, *, name: str = "node") -> None:
         if not 1 <= node_id <= 127:
@@ -101,8 +102,10 @@ class SimulatedNode:
                 (comm, 5): ObjectEntry("<H", 0),
                 (mapping, 0): ObjectEntry("<B", 0),
             })
+            entries = self.DEFAULT_TPDO_MAPPING.get(k, ())
+            self.od[(mapping, 0)].value = len(entries)
             for sub in range(1, 9):
-                self.od[(mapping, sub)] = ObjectEntry("<I", 0)
+                self.od[(mapping, sub)] = ObjectEntry("<I", entries[sub - 1] if sub <= len(entries) else 0)
         self._tpdo_due.clear()
         self._consumer_seen.clear()
 

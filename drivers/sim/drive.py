@@ -51,6 +51,7 @@ class SimulatedDrive(SimulatedNode):
 
     DEVICE_TYPE = 0x0002_0192  # CiA 402 servo drive
     SUPPORTED_MODES = 0x25  # profile position, profile velocity, homing
+    DEFAULT_TPDO_MAPPING = {0: (0x6041_0010,)}  # TPDO1: statusword, as most drives ship
 
     def __init__(self, port: CanPort, config: Motor, *, initial_angle_deg: float = 0.0, name: str = "sim-drive") -> None:
         self.config = config

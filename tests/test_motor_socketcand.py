@@ -1,0 +1,113 @@
+"""The socketcand bridge: python-can's own ``socketcand`` interface reaches the simulated drive.
+
+The server runs in the test's event loop on 127.0.0.1; the python-can client connects from a
+worker thread (its handshake blocks). Real time; nothing asserts on durations.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+import can
+import pytest
+
+from drivers.motor import BeamDrive, Cia402State, LoopbackCanBus, PythonCanPort
+from drivers.sim.drive import SimulatedDrive
+from drivers.sim.socketcand import SocketcandProtocolError, SocketcandServer, format_frame, parse_send
+from planner.rig import load_rig
+
+MOTOR = load_rig().motor
+
+
+def test_frame_text_transcripts() -> None:
+    msg = can.Message(arbitration_id=0x185, data=bytes.fromhex("39160000E8030000"), is_extended_id=False, timestamp=12.5)
+    assert format_frame(msg) == "< frame 185 12.500000 39160000E8030000 >"
+    empty = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False, timestamp=1.0)
+    assert format_frame(empty) == "< frame 080 1.000000  >"
+    ext = can.Message(arbitration_id=0x18FF0005, data=b"\x01", is_extended_id=True, timestamp=0.0)
+    assert format_frame(ext) == "< frame 18FF0005 0.000000 01 >"
+    sent = parse_send("< send 605 8 40 41 60 0 0 0 0 0 >")
+    assert (sent.arbitration_id, bytes(sent.data), sent.is_extended_id) == (0x605, bytes.fromhex("4041600000000000"), False)
+    assert parse_send("< send 0000007F 1 5 >").is_extended_id
+
+
+@pytest.mark.parametrize(
+    ("command", "problem"),
+    [
+        ("< sned 605 1 0 >", "not a send command"),
+        ("< send 605 2 0 >", "dlc 2 but 1 data bytes"),
+        ("< send 6G5 1 0 >", "bad number"),
+        ("< send 805 1 0 >", "out of range"),
+        ("< send 605 9 0 0 0 0 0 0 0 0 0 >", "dlc 9"),
+    ],
+)
+def test_bad_send_commands_are_refused(command: str, problem: str) -> None:
+    with pytest.raises(SocketcandProtocolError, match=problem):
+        parse_send(command)
+
+
+def test_server_refuses_non_loopback_addresses() -> None:
+    with pytest.raises(ValueError, match="loopback"):
+        SocketcandServer(LoopbackCanBus(), host="0.0.0.0")
+
+
+@pytest.fixture
+async def bridge() -> AsyncIterator[tuple[SocketcandServer, SimulatedDrive]]:
+    bus = LoopbackCanBus("sim")
+    sim = SimulatedDrive(bus.port("drive"), MOTOR)
+    server = SocketcandServer(bus, channel="can0", port=0)
+    await server.start()
+    task = asyncio.create_task(sim.run())
+    try:
+        yield server, sim
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        await server.close()
+
+
+async def _client_port(server: SocketcandServer, channel: str = "can0") -> PythonCanPort:
+    bus = await asyncio.to_thread(can.Bus, interface="socketcand", host="127.0.0.1", port=server.port, channel=channel)
+    return PythonCanPort(bus, name="socketcand")
+
+
+async def test_handshake_refuses_unknown_channel(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
+    server, _ = bridge
+    with pytest.raises(can.CanError, match="could not open bus"):
+        await _client_port(server, channel="vcan9")
+
+
+async def test_beam_drive_over_socketcand_bridge(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
+    server, sim = bridge
+    drive = BeamDrive(await _client_port(server), MOTOR)
+    try:
+        await drive.connect()
+        await drive.enable()
+        assert sim.state is Cia402State.OPERATION_ENABLED
+        stream = drive.samples()
+        await drive.move_to(3.0, 30.0, 60.0)
+        assert sim.true_angle_deg == pytest.approx(3.0, abs=1 / MOTOR.counts_per_degree)
+        samples = [await anext(stream)]
+        while abs(samples[-1].angle_deg - 3.0) > 0.01 and len(samples) < 5000:
+            samples.append(await anext(stream))
+        times = [s.time_s for s in samples]
+        assert all(b > a for a, b in zip(times, times[1:]))
+        angles = [s.angle_deg for s in samples]
+        assert angles == sorted(angles) and angles[-1] == pytest.approx(3.0, abs=0.01)
+        assert len(samples) > 10  # the move was streamed, not just its end
+        await drive.disable()
+    finally:
+        await drive.close()
+
+
+async def test_client_going_away_leaves_the_bridge_serving(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
+    server, sim = bridge
+    first = await _client_port(server)
+    first.close()
+    drive = BeamDrive(await _client_port(server), MOTOR)
+    try:
+        await drive.connect()
+        assert drive.latest is not None
+    finally:
+        await drive.close()
