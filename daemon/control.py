@@ -252,39 +252,35 @@ class ControlServer:
 
     async def _stream(self, request: dict[str, Any], reader: asyncio.StreamReader,
                       writer: asyncio.StreamWriter) -> None:
-        events = self.handler.subscribe()  # subscribe before the snapshot: nothing is missed
+        iterator = aiter(self.handler.subscribe())
+        # Start waiting for the first event before taking the snapshot, so an async generator
+        # handler has subscribed by then and nothing between the two is missed.
+        nxt: asyncio.Future[Any] = asyncio.ensure_future(anext(iterator))
+        await asyncio.sleep(0)
+        hangup = asyncio.create_task(reader.read())  # EOF when the client goes
         try:
             status = await _resolve(self.handler.status())
             writer.write(_line({"id": request["id"], "ok": True, "result": status}))
             await writer.drain()
-            hangup = asyncio.create_task(reader.read())  # EOF when the client goes
-            try:
-                async for event in _until(events, hangup):
-                    writer.write(_line({"event": event}))
-                    await writer.drain()
-            finally:
-                hangup.cancel()
+            while True:
+                done, _ = await asyncio.wait({nxt, hangup}, return_when=asyncio.FIRST_COMPLETED)
+                if nxt not in done:
+                    return
+                try:
+                    event = nxt.result()
+                except StopAsyncIteration:
+                    return
+                writer.write(_line({"event": event}))
+                await writer.drain()
+                nxt = asyncio.ensure_future(anext(iterator))
         finally:
-            closer = getattr(events, "aclose", None)
-            if closer is not None:
-                await closer()
-
-
-async def _until(events: AsyncIterator[Any], hangup: asyncio.Task[bytes]) -> AsyncIterator[Any]:
-    """Events from ``events`` until ``hangup`` finishes."""
-    iterator = aiter(events)
-    while True:
-        nxt = asyncio.ensure_future(anext(iterator))
-        done, _ = await asyncio.wait({nxt, hangup}, return_when=asyncio.FIRST_COMPLETED)
-        if nxt not in done:
+            hangup.cancel()
             nxt.cancel()
             with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
                 await nxt
-            return
-        try:
-            yield nxt.result()
-        except StopAsyncIteration:
-            return
+            closer = getattr(iterator, "aclose", None)
+            if closer is not None:
+                await closer()
 
 
 class ControlClient:

@@ -24,10 +24,15 @@ def _address(raw: str) -> str:
 
 
 class SystemdNotifier:
-    """Sends sd_notify datagrams; ``enabled`` is False (and sends nothing) outside systemd."""
+    """Sends sd_notify datagrams; ``enabled`` is False (and sends nothing) outside systemd.
+
+    socket_path: the notify socket; None reads $NOTIFY_SOCKET; "" disables notifications.
+    """
 
     def __init__(self, socket_path: str | None = None) -> None:
-        self.socket_path = socket_path
+        if socket_path is None:
+            socket_path = os.environ.get("NOTIFY_SOCKET", "")
+        self.socket_path = socket_path or None
         self._sock: socket.socket | None = None
         if socket_path:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
@@ -36,7 +41,7 @@ class SystemdNotifier:
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> SystemdNotifier:
         env = os.environ if env is None else env
-        return cls(env.get("NOTIFY_SOCKET") or None)
+        return cls(env.get("NOTIFY_SOCKET", ""))
 
     @property
     def enabled(self) -> bool:

@@ -98,6 +98,35 @@ async def test_subscription_streams_events_as_they_happen(sock):
         assert not daemon.machine._subscribers
 
 
+class GeneratorDaemon(FakeDaemon):
+    """A handler whose subscribe() is an async generator (subscribes on first iteration)."""
+
+    async def subscribe(self):
+        async for event in self.machine.subscribe():
+            yield event.as_dict()
+
+
+async def test_async_generator_subscription_misses_nothing(sock):
+    daemon = GeneratorDaemon()
+    async with ControlServer(sock, daemon):
+        reader, writer = await asyncio.open_unix_connection(str(sock))
+        writer.write(b'{"id": 1, "cmd": "subscribe"}\n')
+        await writer.drain()
+        # the snapshot is taken after the handler has subscribed: an event published right
+        # after the reply is on the wire still arrives
+        assert json.loads(await reader.readline())["result"]["state"] == "IDLE"
+        daemon.machine.transition(ScanState.PREPARING, "start pressed")
+        event = json.loads(await asyncio.wait_for(reader.readline(), 5.0))["event"]
+        assert event["state"] == "PREPARING" and event["previous"] == "IDLE"
+        writer.close()
+        await writer.wait_closed()
+        for _ in range(100):
+            if not daemon.machine._subscribers:
+                break
+            await asyncio.sleep(0.01)
+        assert not daemon.machine._subscribers
+
+
 async def test_bad_requests_get_typed_errors(sock):
     async with ControlServer(sock, FakeDaemon()):
         reader, writer = await asyncio.open_unix_connection(str(sock))

@@ -54,10 +54,20 @@ def test_datagrams_reach_the_notify_socket(listener):
     n.close()
 
 
-def test_no_op_outside_systemd():
+def test_no_op_outside_systemd(monkeypatch):
     n = SystemdNotifier.from_env({})
     assert not n.enabled and n.ready() is False and n.watchdog() is False
     assert asyncio.run(run_watchdog(n, lambda: True, period_s=0.1)) is None
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    assert not SystemdNotifier().enabled
+
+
+def test_default_reads_the_environment(listener, monkeypatch):
+    address, sock = listener
+    monkeypatch.setenv("NOTIFY_SOCKET", address)
+    assert SystemdNotifier().ready()
+    assert _drain(sock) == ["READY=1"]
+    assert not SystemdNotifier("").enabled
 
 
 def test_unreachable_notify_socket_reports_failure(tmp_path):
