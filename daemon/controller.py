@@ -73,8 +73,13 @@ class RigController:
         async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
             await drive.connect()
             await self.tracker.start()
-            await drive.enable()
-            await drive.stop(self.STOP_DECELERATION_DEG_S2)
+        try:
+            async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
+                await drive.enable()
+                await drive.stop(self.STOP_DECELERATION_DEG_S2)
+        except Exception as exc:  # a drive left faulted (e.g. by a killed daemon) latches FAULT
+            await self.safety.trip(getattr(drive, "name", "beam"),
+                                   f"at start-up: {type(exc).__name__}: {exc}")
         results = await asyncio.gather(
             *(self._connect_phone(i, p) for i, p in enumerate(self.hw.phones)), return_exceptions=True
         )

@@ -318,13 +318,13 @@ class Scan:
     def _captured(self, record: CaptureRecord) -> None:
         assert self.folder is not None and self.pulls is not None
         try:
-            self.folder.record_capture(
-                record.camera_index, record.angle_index,
-                sensor_timestamp_ns=record.sensor_timestamp_ns or 0,
-                host_time_s=record.exposure_mid_s or 0.0,
-                actual_angle_deg=record.exposure_angle_deg,
-                phone_path=record.phone_path or "", size_bytes=record.size_bytes or 0,
-                focus_diopters=record.focus_diopters,
+            # The pull's verification rewrites the manifest; one rewrite per image, not two.
+            self.folder.update_image(
+                record.camera_index, record.angle_index, save=False,
+                status=ImageStatus.CAPTURED, sensor_timestamp_ns=record.sensor_timestamp_ns,
+                host_time_s=record.exposure_mid_s, actual_angle_deg=record.exposure_angle_deg,
+                phone_path=record.phone_path, size_bytes=record.size_bytes,
+                focus_diopters=record.focus_diopters, error=None,
             )
             self.pulls.submit(record.camera_index, record.angle_index, record.phone_path or "",
                               self.hw.phones[record.camera_index].pull,

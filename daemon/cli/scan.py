@@ -1,0 +1,88 @@
+"""``tbp scan``: one complete scan.
+
+``tbp scan --sim`` runs the whole daemon in-process on simulated hardware, on the virtual-time
+loop (as fast as possible, or ``--time-scale X`` times real time); progress lines go to stdout
+and the scan folder's path is the LAST line. Without ``--sim`` it asks the running daemon over
+the control socket to start a scan and follows its status until the scan ends.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+from typing import Any
+
+DEFAULT_STORE = Path("scans")
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser("scan", help="run one complete scan (simulated with --sim)",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sim", action="store_true", help="simulated hardware, in this process")
+    parser.add_argument("--time-scale", type=float, default=None, metavar="X",
+                        help="with --sim: run at X times real time (default: as fast as possible)")
+    parser.add_argument("--store", type=Path, default=DEFAULT_STORE, help="scan store folder (--sim)")
+    parser.add_argument("--seed", type=int, default=0, help="simulated subject and noise seed (--sim)")
+    parser.add_argument("--config", type=Path, default=None, help="rig file (default calibration_data/rig.yaml)")
+    parser.add_argument("--plan-points", type=int, default=None, metavar="N",
+                        help="surface samples for planning (default: the rig file's planner.points)")
+    parser.add_argument("--depth-decimation", type=int, default=2, metavar="N",
+                        help="simulated depth cameras render at 1/N resolution (--sim)")
+    parser.add_argument("--socket", type=Path, default=None, help="control socket of the running daemon")
+    parser.add_argument("--verbose", action="store_true", help="log at info level to stderr")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.logs import configure_logging
+
+    configure_logging(level="info" if args.verbose else "warning", stream=sys.stderr)
+    if args.sim:
+        from daemon.simulation import run_sim_scan
+
+        report = run_sim_scan(
+            config=args.config, store=args.store, seed=args.seed, time_scale=args.time_scale,
+            plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
+        )
+        print(report.folder, flush=True)
+        return 0 if report.outcome.value == "COMPLETED" else 1
+    return asyncio.run(_remote(args.socket))
+
+
+async def _remote(socket: Path | None) -> int:
+    """Ask the running daemon for a scan and follow its events until it ends."""
+    from daemon.control import ControlClient
+
+    client = ControlClient(socket)
+    events = client.subscribe()
+    first = await anext(events)
+    del first
+    started = await client.scan()
+    scan_id = started["scan_id"]
+    print(f"scan {scan_id} requested", flush=True)
+    async for event in events:
+        print(_describe(event), flush=True)
+        if event.get("kind") == "transition" and event.get("state") in ("IDLE", "FAULT"):
+            last = await _report_of(client, scan_id)
+            if last.get("folder"):
+                print(last["folder"], flush=True)
+            return 0 if last.get("outcome") == "COMPLETED" else 1
+    return 1
+
+
+async def _report_of(client: Any, scan_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
+    """The daemon's report of ``scan_id`` once the scan has closed its folder."""
+    async with asyncio.timeout(timeout_s):
+        while True:
+            last = (await client.status()).get("last_scan") or {}
+            if last.get("scan_id") == scan_id:
+                return last
+            await asyncio.sleep(0.2)
+
+
+def _describe(event: dict[str, Any]) -> str:
+    data = event.get("data") or {}
+    extra = " ".join(f"{k}={v}" for k, v in data.items())
+    return f"[{event.get('time_s', 0.0):9.2f} s] {event.get('state')}: {event.get('cause')} {extra}".rstrip()

@@ -1,0 +1,170 @@
+"""The long-running rig daemon: drivers up, READY, panel and control API, one scan at a time.
+
+Start-up closes any scan folder a killed daemon left in progress (marked incomplete, reported
+in the status), connects the drivers and makes sure the beam stands still before telling
+systemd READY. The watchdog is pinged only while the event loop runs on time and the drive
+answers; panel buttons and control requests go through the same controller as ``tbp scan``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from daemon.controller import RigController
+from daemon.errors import ScanBusy
+from daemon.notify import SystemdNotifier, run_watchdog
+from daemon.store import new_scan_id
+
+log = structlog.get_logger("daemon.service")
+
+
+class RigService:
+    """The daemon around a :class:`RigController`; also the control API's handler.
+
+    Args:
+        controller: the rig controller (hardware not yet started).
+        socket_path: the control socket; None serves no control API.
+        group: the control socket's group (operators).
+        notifier: sd_notify sender (a disabled one outside systemd).
+    """
+
+    LAG_PERIOD_S = 0.1
+    MAX_LAG_S = 0.5
+    """The loop is unhealthy when a 0.1 s sleep wakes this much late."""
+
+    def __init__(self, controller: RigController, *, socket_path: Path | None = None,
+                 group: str | None = None, notifier: SystemdNotifier | None = None) -> None:
+        self.controller = controller
+        self.socket_path = socket_path
+        self.group = group
+        self.notifier = notifier or SystemdNotifier()
+        self.recovered: list[dict[str, Any]] = []
+        self.loop_lag_s = 0.0
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._server: Any = None
+
+    # ------------------------------------------------------------------ life cycle
+
+    async def start(self) -> None:
+        """Recover interrupted scans, bring the rig up, open the control socket, notify READY."""
+        ctl = self.controller
+        for folder in ctl.store.recover():
+            counts = folder.manifest.counts()
+            self.recovered.append({"scan_id": folder.scan_id, "path": str(folder.path),
+                                   "reason": folder.manifest.reason, "counts": counts})
+            log.warning("interrupted_scan_recovered", scan_id=folder.scan_id, path=str(folder.path),
+                        **counts)
+        await ctl.start()
+        if self.socket_path is not None:
+            from daemon.control import ControlServer
+
+            self._server = ControlServer(self.socket_path, self, group=self.group)
+            await self._server.start()
+        self._tasks += [
+            asyncio.create_task(self._measure_lag(), name="loop-lag"),
+            asyncio.create_task(run_watchdog(self.notifier, self.healthy), name="watchdog"),
+            asyncio.create_task(self._mirror_status(), name="notify-status"),
+        ]
+        if ctl.hw.panel is not None:
+            self._tasks.append(asyncio.create_task(self._panel_events(), name="panel-events"))
+        state = ctl.machine.state.value
+        self.notifier.ready(f"{state}; {len(self.recovered)} interrupted scan(s) recovered")
+        log.info("daemon_ready", state=state, recovered=len(self.recovered),
+                 socket=str(self.socket_path) if self.socket_path else None)
+
+    async def stop(self) -> list[str]:
+        """Abort a running scan, stop the beam, close devices and the socket."""
+        self.notifier.stopping("stopping")
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        if self._server is not None:
+            await self._server.close()
+        failures = await self.controller.close()
+        self.notifier.close()
+        log.info("daemon_stopped", failures=failures)
+        return failures
+
+    async def run(self, stop: asyncio.Event) -> int:
+        """Serve until ``stop`` is set; exit code 0, or 1 when closing a device failed."""
+        await self.start()
+        try:
+            await stop.wait()
+        finally:
+            failures = await self.stop()
+        return 1 if failures else 0
+
+    # ------------------------------------------------------------------ health
+
+    def healthy(self) -> bool:
+        """The loop runs on time and the drive still talks (a latched fault is not ill health)."""
+        drive = self.controller.hw.drive
+        if self.loop_lag_s > self.MAX_LAG_S:
+            return False
+        heartbeat = getattr(drive, "last_heartbeat_s", None)
+        if heartbeat is None:
+            return True
+        limit = drive.config.heartbeat_timeout_ms / 1000.0
+        return asyncio.get_running_loop().time() - heartbeat <= limit
+
+    async def _measure_lag(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            before = loop.time()
+            await asyncio.sleep(self.LAG_PERIOD_S)
+            self.loop_lag_s = max(loop.time() - before - self.LAG_PERIOD_S, 0.0)
+
+    async def _mirror_status(self) -> None:
+        async for event in self.controller.machine.subscribe():
+            if event.kind == "transition":
+                self.notifier.status(f"{event.state.value}: {event.cause}")
+
+    async def _panel_events(self) -> None:
+        """Start, stop and e-stop from the operator panel."""
+        from drivers.panel import PanelEvent
+
+        ctl = self.controller
+        async for event in ctl.hw.panel.events():
+            log.info("panel_event", panel_event=event.name)
+            if event is PanelEvent.START_PRESSED:
+                try:
+                    ctl.start_scan(new_scan_id())
+                except ScanBusy as exc:
+                    log.warning("panel_start_refused", reason=str(exc))
+            elif event is PanelEvent.STOP_PRESSED:
+                ctl.abort("stop button")
+            elif event is PanelEvent.ESTOP_PRESSED:
+                await ctl.trip("panel", "e-stop pressed")
+            elif event is PanelEvent.HEARTBEAT_LOST:
+                await ctl.trip("panel", "panel heartbeat lost (e-stop state unknown)")
+
+    # ------------------------------------------------------------------ control API handler
+
+    def status(self) -> dict[str, Any]:
+        status = self.controller.status()
+        status["recovered_scans"] = list(self.recovered)
+        status["healthy"] = self.healthy()
+        return status
+
+    def scan(self, **args: Any) -> dict[str, Any]:
+        scan_id = args.get("scan_id") or new_scan_id()
+        self.controller.start_scan(scan_id)
+        return {"scan_id": scan_id, "state": self.controller.machine.state.value}
+
+    def abort(self) -> dict[str, Any]:
+        return {"aborted": self.controller.abort("control API abort"),
+                "state": self.controller.machine.state.value}
+
+    async def reset(self) -> dict[str, Any]:
+        await self.controller.reset("control API reset")
+        return {"state": self.controller.machine.state.value}
+
+    async def subscribe(self) -> AsyncIterator[dict[str, Any]]:
+        async for event in self.controller.machine.subscribe():
+            yield event.as_dict()
