@@ -186,7 +186,8 @@ def test_cli_status_abort_reset(sock, capsys):
     try:
         assert ready.wait(10)
         assert tbp_main(["status", "--socket", str(sock)]) == 0
-        assert "IDLE" in capsys.readouterr().out
+        out = capsys.readouterr().out.splitlines()
+        assert out[-2:] == ["state: IDLE", "faults: []"]
         assert tbp_main(["status", "--json", "--socket", str(sock)]) == 0
         # the server's log lines share this process's stdout; the reply is the last line
         assert json.loads(capsys.readouterr().out.splitlines()[-1])["state"] == "IDLE"
@@ -198,3 +199,15 @@ def test_cli_status_abort_reset(sock, capsys):
         loop.close()
     assert tbp_main(["abort", "--socket", str(sock)]) == 2
     assert "not reachable" in capsys.readouterr().err
+
+
+def test_cli_formats_status_events_on_one_line():
+    from daemon.cli.control import _format
+
+    line = _format({"kind": "transition", "state": "FAULT", "previous": "CAPTURING",
+                    "cause": "e-stop pressed", "time_s": 41.25, "scan_id": "abc123",
+                    "data": {"angle_index": 17}})
+    assert line == "[    41.250] CAPTURING -> FAULT scan=abc123: e-stop pressed angle_index=17"
+    progress = _format({"kind": "progress", "state": "CAPTURING", "previous": "CAPTURING",
+                        "cause": "captured", "time_s": 3.0, "scan_id": None, "data": {}})
+    assert progress == "[     3.000] CAPTURING: captured"

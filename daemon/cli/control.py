@@ -6,6 +6,7 @@ Exit codes: 0 done, 1 the daemon refused or failed the command, 2 the daemon is 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Any
 
@@ -28,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _format(message: dict[str, Any]) -> str:
-    """One readable line for a status reply or event."""
+    """A status event as one readable line; a status reply as one "key: value" line per key."""
     if "kind" in message:
         head = f"{message.get('state')}"
         if message.get("kind") == "transition":
@@ -36,12 +37,15 @@ def _format(message: dict[str, Any]) -> str:
         data = " ".join(f"{k}={v}" for k, v in (message.get("data") or {}).items())
         scan = f" scan={message['scan_id']}" if message.get("scan_id") else ""
         return f"[{message.get('time_s', 0.0):10.3f}] {head}{scan}: {message.get('cause', '')} {data}".rstrip()
-    return " ".join(f"{k}={v}" for k, v in message.items())
+    lines = []
+    for key, value in message.items():
+        text = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
+        lines.append(f"{key}: {text}")
+    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import json
 
     from daemon.control import CommandFailed, ControlClient, ControlError, DaemonUnavailable
 
