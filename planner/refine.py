@@ -46,23 +46,27 @@ class _PointBest:
         self.best_pair = np.full(n, -1, dtype=np.int64)
         self.recompute(np.flatnonzero(table.seen))
 
-    def recompute(self, points: np.ndarray) -> np.ndarray:
-        """Refresh ``points`` (each with >= 1 pair) from pair_cost.
-
-        Returns the pairs of the points whose best or second-best cost changed: only the poses
-        of those pairs see a different subproblem.
-        """
+    def pairs_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All pairs of ``points`` grouped by point: (pairs, segment of each, segment starts)."""
         t = self.table
-        if len(points) == 0:
-            return np.zeros(0, dtype=np.int64)
         starts = t.point_ptr[points]
         counts = t.point_ptr[points + 1] - starts
         seg_starts = np.zeros(len(points), dtype=np.int64)
         np.cumsum(counts[:-1], out=seg_starts[1:])
         within = np.arange(int(counts.sum())) - np.repeat(seg_starts, counts)
         pairs = t.order[np.repeat(starts, counts) + within]
+        return pairs, np.repeat(np.arange(len(points)), counts), seg_starts
+
+    def recompute(self, points: np.ndarray) -> np.ndarray:
+        """Refresh ``points`` (each with >= 1 pair) from pair_cost.
+
+        Returns the pairs of the points whose best or second-best cost changed: only the poses
+        of those pairs see a different subproblem.
+        """
+        if len(points) == 0:
+            return np.zeros(0, dtype=np.int64)
+        pairs, segment, seg_starts = self.pairs_of(points)
         costs = self.pair_cost[pairs]
-        segment = np.repeat(np.arange(len(points)), counts)
         mins = np.minimum.reduceat(costs, seg_starts)
         hits = np.flatnonzero(costs == mins[segment])
         first = hits[np.r_[True, segment[hits[1:]] != segment[hits[:-1]]]]
@@ -81,6 +85,40 @@ class _PointBest:
         self.second[points] = second
         self.best_pair[points] = best_pair
         return pairs[changed[segment]]
+
+    def update(self, index: np.ndarray, points: np.ndarray, old: np.ndarray) -> np.ndarray:
+        """Pairs ``index`` (of distinct ``points``) changed cost from ``old`` to pair_cost[index].
+
+        Updates best/second in O(1) per pair where that is exact (a cost fell, or a pair that
+        was neither best nor second rose); recomputes the rest. Returns the pairs of every
+        point whose best or second changed.
+        """
+        new = np.minimum(self.pair_cost[index], INVISIBLE_COST)
+        old = np.minimum(old, INVISIBLE_COST)
+        best, second, best_pair = self.best[points], self.second[points], self.best_pair[points]
+        is_best = best_pair == index
+        fell = new < old
+        rose = new > old
+        nb, ns, nbp = best.copy(), second.copy(), best_pair.copy()
+        # A best pair that fell or rose no higher than the second stays best at its new cost.
+        keep_best = is_best & (fell | (rose & (new <= second)))
+        nb[keep_best] = new[keep_best]
+        takes_over = fell & ~is_best & (new < best)
+        ns[takes_over] = best[takes_over]
+        nb[takes_over] = new[takes_over]
+        nbp[takes_over] = index[takes_over]
+        below_second = fell & ~is_best & ~takes_over
+        ns[below_second] = np.minimum(second[below_second], new[below_second])
+        redo = rose & ((is_best & (new > second)) | (~is_best & (old <= second)))
+        changed = (nb != best) | (ns != second) | (nbp != best_pair)
+        direct = points[changed & ~redo]
+        self.best[direct] = nb[changed & ~redo]
+        self.second[direct] = ns[changed & ~redo]
+        self.best_pair[direct] = nbp[changed & ~redo]
+        touched = self.recompute(points[redo])
+        if len(direct):
+            touched = np.concatenate([touched, self.pairs_of(direct)[0]])
+        return touched
 
 
 def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20) -> RefineResult:
@@ -116,9 +154,10 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
             updates += 1
             changed_any = True
             new_cost = base + w3 * ~((table.lo[sl] <= s) & (s <= table.hi[sl]))
-            moved = new_cost != pair_cost[sl]
+            moved = np.flatnonzero(new_cost != pair_cost[sl])
+            old_cost = pair_cost[sl][moved]
             pair_cost[sl] = new_cost
-            touched = state.recompute(points[moved])
+            touched = state.update(moved + sl.start, points[moved], old_cost)
             dirty[vis.pose[touched]] = True
             dirty[c] = False
         if not changed_any:

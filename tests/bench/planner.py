@@ -1,0 +1,148 @@
+"""Focus planner benchmark: speed, memory and plan quality against the goals.
+
+Speed: the whole plan (visibility + EM + refinement) for 336 poses x 10,000 and x 100,000
+points, median of several runs, each size in its own subprocess so peak memory (max RSS) is
+separate. Occlusion backends (Open3D vs Embree) on the same rays. Quality: every method on
+several simulated adult bodies, with the shape-aware plan also judged on a fresh sample.
+
+    python -m tests.bench planner              # everything
+    python -m tests.bench.planner --size 10000 # one size (used internally)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import structlog
+
+GOALS_S = {10_000: 0.5, 100_000: 5.0}
+PEAK_GOAL_MIB = 2048
+RUNS = {10_000: 5, 100_000: 3}
+BODIES = 5
+PAPER_RATIOS = {"average": 84.9 / 68.5, "closest": 84.9 / 31.6}
+
+
+def _body(seed: int):
+    """A simulated adult (drivers/sim/body.py) or, before it exists, the planner's stand-in."""
+    try:
+        from drivers.sim.body import make_body
+    except ImportError:
+        from tests.planner_standin import standin_body
+
+        return standin_body(scale=1.0 + 0.03 * (seed - 2)), "stand-in"
+    return make_body(seed=seed), "make_body"
+
+
+def _quiet() -> None:
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+
+
+def _measure_size(points: int, runs: int) -> dict:
+    from planner.plan import plan_focus
+    from planner.poses import rgb_poses
+    from planner.rig import load_rig
+    from planner.sampling import sample_surface
+    from planner.visibility import RayScene, _candidates
+
+    rig = load_rig()
+    body, source = _body(0)
+    plan_focus(body, rig, points=1000, methods=("shape-aware",))  # warm imports and caches
+    parts: dict[str, list[float]] = {"visibility": [], "em": [], "refine": [], "plan": []}
+    for run in range(runs):
+        result = plan_focus(body, rig, points=points, seed=run, methods=("shape-aware",))
+        for key in parts:
+            parts[key].append(result.timing_s[key])
+    poses = rgb_poses(rig)
+    samples = sample_surface(body, points, seed=0)
+    pose, point, *_ = _candidates(poses, samples, rig.optics)
+    origins, targets = poses.centres[pose], samples.points[point]
+    rays: dict[str, float] = {}
+    for backend in ("open3d", "embree"):
+        scene = RayScene(body, backend)
+        times = []
+        for _ in range(3):
+            started = time.perf_counter()
+            scene.occluded(origins, targets, 0.5)
+            times.append(time.perf_counter() - started)
+        rays[backend] = statistics.median(times)
+    return {
+        "points": points,
+        "body": source,
+        "median_s": {k: statistics.median(v) for k, v in parts.items()},
+        "pairs": len(result.table.vis),
+        "rays": len(origins),
+        "occlusion_s": rays,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def _speed() -> None:
+    for points, goal in GOALS_S.items():
+        out = subprocess.run(
+            [sys.executable, "-m", "tests.bench.planner", "--size", str(points), "--runs", str(RUNS[points])],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        m = json.loads(out.stdout.strip().splitlines()[-1])
+        t = m["median_s"]
+        print(
+            f"336 poses x {points} points ({m['body']}, median of {RUNS[points]}): plan {t['plan']:.3f} s "
+            f"(goal <= {goal} s) = visibility {t['visibility']:.3f} + EM {t['em']:.3f} + "
+            f"refinement {t['refine']:.3f}; {m['pairs']} visible pairs"
+        )
+        o = m["occlusion_s"]
+        print(
+            f"  occlusion of {m['rays']} rays: open3d {o['open3d']:.3f} s, embree {o['embree']:.3f} s "
+            f"(kept: open3d)"
+        )
+        print(f"  peak memory (max RSS of the process) {m['peak_rss_mib']:.0f} MiB (goal <= {PEAK_GOAL_MIB} MiB)")
+
+
+def _quality() -> None:
+    from planner.plan import evaluate, plan_focus
+    from planner.rig import load_rig
+
+    rig = load_rig()
+    print(f"quality on {BODIES} bodies, 10,000 points (in-focus % of all samples)")
+    print(f"{'body':<14} {'visible':>7} {'closest':>7} {'average':>7} {'fixed':>6} {'autof':>6} {'EM':>6} "
+          f"{'shape':>6} {'s/vis':>6} {'fresh':>6} {'/avg':>5} {'/clo':>5}")
+    for seed in range(BODIES):
+        body, source = _body(seed)
+        result = plan_focus(body, rig, points=10_000, seed=seed)
+        m = {k: 100 * v.in_focus_fraction for k, v in result.methods.items()}
+        visible = 100 * result.visible_fraction
+        fresh = evaluate(result.focus_mm, body, rig, points=10_000, seed=seed + 1000)
+        print(
+            f"{source}#{seed:<5} {visible:>7.1f} {m['closest']:>7.1f} {m['average']:>7.1f} {m['fixed']:>6.1f} "
+            f"{m['autofocus']:>6.1f} {m['em']:>6.1f} {m['shape-aware']:>6.1f} "
+            f"{100 * m['shape-aware'] / visible:>5.1f}% {100 * fresh.in_focus_fraction:>6.1f} "
+            f"{m['shape-aware'] / m['average']:>5.2f} {m['shape-aware'] / m['closest']:>5.2f}"
+        )
+    print(
+        "goals: shape-aware >= 99 % of visible and >= EM + 2 points; paper ratios "
+        f"shape/average {PAPER_RATIOS['average']:.2f}, shape/closest {PAPER_RATIOS['closest']:.2f}; "
+        "sanity (SPEC 4): visible ~84, closest ~31, average ~69, EM ~80"
+    )
+
+
+def run() -> None:
+    _quiet()
+    _speed()
+    _quality()
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--size", type=int, required=True)
+    parser.add_argument("--runs", type=int, default=3)
+    args = parser.parse_args()
+    _quiet()
+    print(json.dumps(_measure_size(args.size, args.runs)))
