@@ -185,10 +185,10 @@ class FakePhone:
         return len(data), hashlib.sha256(data).hexdigest()
 
 
-async def test_background_pulls_verify_retry_and_record(tmp_path, rig):
+async def test_background_pulls_verify_retry_and_record(tmp_path, rig, monkeypatch):
     folder = _planned(ScanStore(tmp_path), rig)
     good, flaky, broken = FakePhone(), FakePhone(fail_first=1), FakePhone(corrupt=True)
-    PullQueue.RETRY_DELAY_S = 0.0
+    monkeypatch.setattr(PullQueue, "RETRY_DELAY_S", 0.0)
     async with PullQueue(folder, workers=2) as q:
         q.submit(0, 0, "/sdcard/a.jpg", good.pull, expected_size=130)
         q.submit(1, 0, "/sdcard/b.jpg", flaky.pull)
