@@ -329,7 +329,8 @@ def test_delayed_sdo_answer_times_out_then_recovers() -> None:
         with pytest.raises(SdoTimeout) as info:
             await drive.rotate(10.0, 10.0)
         assert info.value.index == 0x6083 and info.value.timeout_s == drive.SDO_TIMEOUT_S
-        await asyncio.sleep(0.5)  # the late answer arrives and is ignored
+        await asyncio.sleep(0.5)  # the late answer arrives and is dropped
+        assert drive.sdo.stale_replies == 1
         sim.sdo_delay_s = 0.1
         await drive.rotate(10.0, 10.0)
         await drive.wait_speed(10.0)
@@ -354,6 +355,19 @@ def test_dropped_tpdos_leave_a_gap_but_streaming_goes_on() -> None:
     run(scenario)
 
 
+def test_late_sdo_answer_is_not_taken_for_the_next_request() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        sim.sdo_delay_s = 0.6
+        with pytest.raises(SdoTimeout):
+            await drive.sdo.read(0x6064, 0, "<i")
+        sim.sdo_delay_s = 0.2
+        # The 0x6064 answer lands while this 0x1000 request waits: it must not be taken for it.
+        assert await drive.sdo.read(0x1000, 0, "<I") == 0x00020192
+        assert drive.sdo.stale_replies == 1
+
+    run(scenario)
+
+
 def test_sdo_abort_from_the_drive_is_typed() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         with pytest.raises(SdoAbort) as info:
@@ -368,11 +382,18 @@ def test_sdo_abort_from_the_drive_is_typed() -> None:
 
 def test_drive_reboot_while_connected_is_latched() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
-        await sim.boot()
+        await drive.move_to(10.0, 10.0, 20.0)
+        await sim.reboot()
         await asyncio.sleep(0.01)
         assert isinstance(drive.fault, DriveRebooted)
         with pytest.raises(DriveRebooted):
             await drive.enable()
+        await drive.reset_fault()  # configures the drive again
+        await asyncio.sleep(0.01)
+        assert sim.value(0x1017) == MOTOR.heartbeat_producer_ms and sim.nmt_state.name == "OPERATIONAL"
+        await drive.enable()
+        await drive.move_to(5.0, 10.0, 20.0)  # the encoder restarted from 0 at the reboot
+        assert sim.true_angle_deg == pytest.approx(15.0, abs=0.01)
 
     run(scenario)
 

@@ -111,3 +111,46 @@ async def test_client_going_away_leaves_the_bridge_serving(bridge: tuple[Socketc
         assert drive.latest is not None
     finally:
         await drive.close()
+
+
+def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
+    """``tbp sim motor``'s entry point in its own process: serves, answers SDO, exits on SIGTERM."""
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import argparse, asyncio\n"
+        "from drivers.sim.drive import add_arguments, serve\n"
+        "p = argparse.ArgumentParser(); add_arguments(p)\n"
+        "asyncio.run(serve(p.parse_args(['--port', '0'])))\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        match = None
+        for _ in range(20):  # structlog lines may come first
+            line = proc.stdout.readline() if proc.stdout else ""
+            match = re.search(r"socketcand 127\.0\.0\.1:(\d+) channel can0", line)
+            if match or not line:
+                break
+        assert match, line
+        bus = can.Bus(interface="socketcand", host="127.0.0.1", port=int(match.group(1)), channel="can0")
+        try:
+            bus.send(can.Message(arbitration_id=0x600 + MOTOR.node_id, data=bytes.fromhex("4041600000000000"),
+                                 is_extended_id=False))
+            reply = None
+            for _ in range(100):
+                msg = bus.recv(timeout=0.1)
+                if msg is not None and msg.arbitration_id == 0x580 + MOTOR.node_id:
+                    reply = bytes(msg.data)
+                    break
+            assert reply is not None and reply[:4] == bytes.fromhex("4B416000")
+        finally:
+            bus.shutdown()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

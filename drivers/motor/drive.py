@@ -292,7 +292,8 @@ class BeamDrive:
         log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
 
     async def reset_fault(self) -> None:
-        """Clear the drive's fault (rising edge of controlword bit 7) and the latched error.
+        """Clear the drive's fault (rising edge of controlword bit 7) and the latched error; after
+        a drive reboot, configure it again (its zero is then lost: call :meth:`set_zero`).
 
         Raises:
             HeartbeatLost: the drive is still silent.
@@ -304,7 +305,12 @@ class BeamDrive:
         timeout_s = self.config.heartbeat_timeout_ms / 1000
         if silent > timeout_s:
             raise HeartbeatLost(self.name, self.state.value, silent, timeout_s)
-        if self.nmt_state is not nmt.NmtState.OPERATIONAL:
+        if isinstance(self.fault, DriveRebooted):
+            # The reboot wiped the communication set-up (and any zero set by homing).
+            await self._configure()
+            await self._nmt(nmt.NmtCommand.START)
+            self.nmt_state = nmt.NmtState.OPERATIONAL
+        elif self.nmt_state is not nmt.NmtState.OPERATIONAL:
             await self._nmt(nmt.NmtCommand.START)
         if self.state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE):
             await self._write_controlword(cia402.DISABLE_VOLTAGE)

@@ -168,15 +168,24 @@ class SdoClient:
         self._state = state
         self._lock = asyncio.Lock()
         self._reply: asyncio.Future[bytes] | None = None
+        self._expected = (0, 0)
+        self.stale_replies = 0
 
     def on_frame(self, data: bytes) -> None:
-        """Hand a frame received on 0x580 + node to the waiting transfer (others are dropped)."""
-        if self._reply is not None and not self._reply.done():
-            self._reply.set_result(bytes(data))
+        """Hand a frame received on 0x580 + node to the waiting transfer. A frame for another
+        object (the late answer to a request that already timed out) is counted and dropped."""
+        if self._reply is None or self._reply.done():
+            self.stale_replies += 1
+            return
+        if len(data) == 8 and struct.unpack_from("<HB", data, 1) != self._expected:
+            self.stale_replies += 1
+            return
+        self._reply.set_result(bytes(data))
 
     async def _transfer(self, request: bytes, index: int, subindex: int) -> SdoMessage:
         async with self._lock:
             self._reply = asyncio.get_running_loop().create_future()
+            self._expected = (index, subindex)
             try:
                 await self._send(0x600 + self.node_id, request)
                 try:

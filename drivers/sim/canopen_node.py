@@ -51,7 +51,7 @@ class SimulatedNode:
 
     Fault injection: ``sdo_delay_s`` (answer SDO requests late), ``drop_sdo_replies(n)``,
     ``drop_tpdos(n)``, ``stop_heartbeat()`` / ``resume_heartbeat()``, ``disconnect()`` /
-    ``reconnect()`` (the node falls silent and deaf, like a pulled cable).
+    ``reconnect()`` (the node falls silent and deaf, like a pulled cable), ``reboot()``.
     """
 
     TICK_S = 0.005
@@ -169,6 +169,12 @@ class SimulatedNode:
 
     def resume_heartbeat(self) -> None:
         self.heartbeat_enabled = True
+
+    async def reboot(self) -> None:
+        """Power-cycle: every object back to its power-on value, then boot-up."""
+        self.reset_application()
+        self.reset_communication_objects()
+        await self.boot()
 
     def disconnect(self) -> None:
         """Fall silent and ignore the bus (the node's cable is pulled)."""

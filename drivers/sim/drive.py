@@ -99,9 +99,10 @@ class SimulatedDrive(SimulatedNode):
         }
         for index, (fmt, value, writable, mappable) in table.items():
             self.od[(index, 0)] = ObjectEntry(fmt, value, writable=writable, mappable=mappable)
-        # Power-on of the application: stopped, homing lost, faults cleared unless their cause stays.
+        # Power-on of the application: stopped, the incremental encoder reads 0 again (homing
+        # lost), faults cleared unless their cause stays.
         self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
-        self._offset = 0.0
+        self._offset = -self._position_velocity(self._now())[0]
         self._controlword = 0
         self.error_code = emcy.EMERGENCY_STOP if self.estop_pressed else 0
         self.state = S.FAULT if self.estop_pressed else S.SWITCH_ON_DISABLED

@@ -118,8 +118,10 @@ def _serve_in_subprocess(tcp_port: int) -> subprocess.Popen:
         f"asyncio.run(serve(p.parse_args(['--port', '{tcp_port}'])))\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=os.environ.copy())
-    if proc.stdout is not None:
-        proc.stdout.readline()  # the "serving" line: the bridge is listening
+    while proc.stdout is not None:
+        line = proc.stdout.readline()
+        if not line or "simulated drive" in line:  # the bridge is listening
+            break
     return proc
 
 
