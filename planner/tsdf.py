@@ -29,6 +29,8 @@ log = structlog.get_logger(__name__)
 FRAME_SPACING_DEG = 3.0
 #: Fewer usable frames than this cannot cover a person from all sides.
 MIN_FRAMES = 12
+#: A frame with fewer measured pixels inside the scan volume adds nothing (stray floor noise).
+MIN_FRAME_PIXELS = 100
 #: Depth images are decimated by this factor before fusion (a pixel stays well under a voxel).
 DECIMATION = 2
 #: Voxel blocks are block_resolution^3 voxels.
@@ -82,13 +84,16 @@ def _mask_outside_volume(depth: np.ndarray, k: np.ndarray, camera_to_world: np.n
     wy = z * (r[1, 0] * x[None, :] + r[1, 1] * y[:, None] + r[1, 2]) + t[1]
     wz = z * (r[2, 0] * x[None, :] + r[2, 1] * y[:, None] + r[2, 2]) + t[2]
     margin = 2 * cfg.voxel_mm
-    keep = (wx * wx + wy * wy <= (cfg.volume_radius_mm + margin) ** 2) & (wz >= cfg.floor_clearance_mm)
-    keep &= wz <= cfg.volume_height_mm + margin
+    keep = (wx * wx + wy * wy <= (cfg.volume_radius_mm + margin) ** 2) & (wz <= cfg.volume_height_mm + margin)
+    # floor points scatter upwards with the depth noise: clear them by 3 sigma at their depth
+    m = rig.depth_camera_model
+    sigma = z * z * np.float32(m.subpixel_px / (m.fx_px * m.baseline_mm))
+    keep &= wz >= cfg.floor_clearance_mm + 3.0 * sigma
     return np.where(keep, depth, 0).astype(depth.dtype)
 
 
 def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
-    """Fuse posed frames into a VoxelBlockGrid (mm units). Returns the open3d VoxelBlockGrid."""
+    """Fuse posed frames into a VoxelBlockGrid (mm units); only depth inside the scan volume is used."""
     import open3d as o3d
     import open3d.core as o3c
 
@@ -104,9 +109,13 @@ def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
         device=device,
     )
     depth_max = rig.depth_camera_model.max_range_mm
+    integrated = 0
     for f in frames:
         depth, k = _decimate(f.depth, f.intrinsics, DECIMATION)
         depth = _mask_outside_volume(depth * np.float32(f.depth_unit_mm), k, f.camera_to_world, rig)
+        if np.count_nonzero(depth) < MIN_FRAME_PIXELS:
+            continue
+        integrated += 1
         image = o3d.t.geometry.Image(o3c.Tensor(depth))
         intrinsic = o3c.Tensor(k, dtype=o3c.float64)
         extrinsic = o3c.Tensor(np.linalg.inv(f.camera_to_world), dtype=o3c.float64)
@@ -115,6 +124,11 @@ def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
             image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels
         )
         vbg.integrate(blocks, image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels)
+    if integrated == 0:
+        raise NoSubject(
+            f"none of {len(frames)} frames measured anything within radius {cfg.volume_radius_mm:g} mm "
+            f"and height {cfg.volume_height_mm:g} mm above the floor"
+        )
     return vbg
 
 

@@ -1,0 +1,100 @@
+"""TSDF fusion of simulated sweeps: analytic shapes within tolerance and each refusal."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+
+from drivers.sim.depth import simulate_sweep
+from planner.mesh_metrics import sample_surface, shape_metrics, surface_distance
+from planner.shape_errors import ImplausibleSubject, NoSubject, SubjectTouchesBoundary, TooFewFrames
+from planner.tsdf import MIN_FRAMES, fuse
+from tests.depth_helpers import cylinder, small_rig, sphere
+
+RIG = small_rig(scale=2)
+#: Refusals do not need the resolution accuracy does.
+COARSE = small_rig(scale=4)
+
+
+def _fuse(mesh: trimesh.Trimesh, *, rig=COARSE, validate: bool = True, spacing: float = 9.0, noise: bool = True):
+    sweep = simulate_sweep(mesh, rig, seed=0, noise=noise, frame_spacing_deg=spacing)
+    return fuse(sweep.frames, rig, validate=validate)
+
+
+def test_sphere_is_recovered_within_a_millimetre():
+    result = _fuse(sphere(200.0), rig=RIG, spacing=6.0, validate=False)
+    radius = np.linalg.norm(result.mesh.vertices - [0, 0, 1000.0], axis=1)
+    assert abs(radius.mean() - 200.0) < 1.0
+    assert np.percentile(np.abs(radius - 200.0), 95) < 3.0
+    assert result.frames_used >= MIN_FRAMES
+    assert set(result.per_camera) == {c.id for c in RIG.depth_cameras}
+
+
+def test_standing_cylinder_is_recovered_and_passes_validation():
+    truth = cylinder(150.0, 1700.0)
+    result = _fuse(truth, rig=RIG, spacing=6.0)
+    v = result.mesh.vertices
+    side = v[(v[:, 2] > 100) & (v[:, 2] < 1600)]
+    assert abs(np.hypot(side[:, 0], side[:, 1]).mean() - 150.0) < 1.0
+    assert v[:, 2].max() == pytest.approx(1700.0, abs=4.0)
+    # nothing of the floor survives
+    assert v[:, 2].min() >= RIG.tsdf.floor_clearance_mm
+    metrics = shape_metrics(truth, result.mesh, samples=20_000)
+    assert metrics.estimate_to_true_mean_mm < 1.0
+    # the base stands on the floor and cannot be seen; the rest is covered
+    points = sample_surface(truth, 20_000, seed=0)
+    visible = points[points[:, 2] > 1.0]
+    assert np.mean(surface_distance(visible, result.mesh) <= 10.0) > 0.97
+    assert result.timings_s["total"] > 0
+
+
+def test_too_few_frames_are_refused():
+    sweep = simulate_sweep(cylinder(), COARSE, seed=0, frame_spacing_deg=90.0)
+    with pytest.raises(TooFewFrames) as err:
+        fuse(sweep.frames, COARSE)
+    assert err.value.usable == len(sweep.frames) < MIN_FRAMES
+    assert "depth0" in str(err.value)
+
+
+def test_empty_frames_do_not_count_as_usable():
+    sweep = simulate_sweep(cylinder(), COARSE, seed=0, frame_spacing_deg=9.0)
+    empty = [dataclasses.replace(f, depth=np.zeros_like(f.depth)) for f in sweep.frames]
+    with pytest.raises(TooFewFrames, match=r"0 usable depth frames"):
+        fuse(empty, COARSE)
+
+
+def test_an_empty_volume_is_no_subject():
+    far_away = sphere(100.0, centre=(2000.0, 0.0, 1000.0))
+    with pytest.raises(NoSubject, match="none of"):
+        _fuse(far_away)
+
+
+def test_a_small_object_is_no_subject():
+    with pytest.raises(NoSubject, match="not a person"):
+        _fuse(sphere(50.0, centre=(0.0, 0.0, 300.0)))
+
+
+def test_subject_reaching_the_side_is_refused_with_where():
+    arm = trimesh.creation.box(extents=[600.0, 80.0, 80.0]).apply_translation([0.0, 300.0, 1300.0])
+    arm.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 0, 1]))
+    with pytest.raises(SubjectTouchesBoundary) as err:
+        _fuse(trimesh.util.concatenate([cylinder(), arm]))
+    assert err.value.where == "side"
+    assert err.value.height_mm == pytest.approx(1300.0, abs=60.0)
+    assert "side" in str(err.value) and "azimuth" in str(err.value)
+
+
+def test_subject_reaching_the_top_is_refused():
+    with pytest.raises(SubjectTouchesBoundary) as err:
+        _fuse(cylinder(150.0, 2400.0))
+    assert err.value.where == "top"
+
+
+def test_a_subject_too_short_for_a_person_is_refused():
+    with pytest.raises(ImplausibleSubject) as err:
+        _fuse(cylinder(200.0, 700.0))
+    assert err.value.quantity == "height"
+    assert err.value.value_mm == pytest.approx(700.0, abs=5.0)
