@@ -10,8 +10,9 @@ Layout of ``<root>/<YYYYmmdd-HHMMSS>-<scan id>/``::
     events.jsonl      the scan's event log (one JSON object a line, fsync'd per line)
     images/           <camera id>-a<angle index><suffix>, pulled from the phones
 
-Every file is written atomically (temp file in the same folder, fsync, rename, fsync of the
-folder), so a reader sees the previous or the new version, never a torn one. The manifest
+Every file is written atomically (daemon/atomic.py: temp file in the same folder, fsync,
+rename, fsync of the folder), so a reader sees the previous or the new version, never a
+torn one. The manifest
 says ``incomplete`` and ``in_progress: true`` from the moment the folder exists until the scan
 ends; :meth:`ScanStore.recover` closes folders a killed daemon left in progress. The subject
 is identified only by an opaque scan id: no patient data is written here.
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import errno
 import hashlib
 import io
 import json
@@ -29,7 +29,6 @@ import math
 import os
 import re
 import secrets
-import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -39,6 +38,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for
 from planner.rig import Rig
 
 FORMAT_VERSION = 1
@@ -48,28 +48,6 @@ _SCAN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 _FOLDER = re.compile(r"^\d{8}-\d{6}-(?P<scan_id>[A-Za-z0-9][A-Za-z0-9_-]{0,63})$")
 
 log = structlog.get_logger(__name__)
-
-
-class StoreError(OSError):
-    """Base of the store's errors; names the path involved."""
-
-    def __init__(self, path: Path | str, message: str) -> None:
-        self.path = str(path)
-        super().__init__(f"scan store: {self.path}: {message}")
-
-
-class StoreFull(StoreError):
-    """No space left on the store's disk (ENOSPC); nothing already stored was lost."""
-
-    def __init__(self, path: Path | str, bytes_needed: int, bytes_free: int | None = None) -> None:
-        self.bytes_needed = bytes_needed
-        self.bytes_free = bytes_free
-        free = "" if bytes_free is None else f", {bytes_free} bytes free"
-        super().__init__(path, f"disk full: {bytes_needed} bytes needed{free}")
-
-
-class StoreWriteError(StoreError):
-    """A write failed for another reason than a full disk (permissions, I/O error)."""
 
 
 class ManifestError(StoreError):
@@ -97,60 +75,6 @@ class ImageStatus(str, enum.Enum):
 def new_scan_id() -> str:
     """An opaque scan id (12 hex digits): the only identity of a subject in the store."""
     return secrets.token_hex(6)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _raise_for(path: Path, exc: OSError, needed: int) -> None:
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        free = None
-        try:
-            free = shutil.disk_usage(path.parent).free
-        except OSError:
-            pass
-        raise StoreFull(path, needed, free) from exc
-    raise StoreWriteError(path, f"{exc.strerror or exc} (errno {exc.errno})") from exc
-
-
-class AtomicWriter:
-    """Writes whole files atomically and appends fsync'd lines; ENOSPC becomes StoreFull."""
-
-    def write(self, path: Path, data: bytes) -> None:
-        tmp = path.with_name(f".{path.name}.tmp")
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
-            try:
-                self._write_all(fd, data)
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            os.replace(tmp, path)
-            _fsync_dir(path.parent)
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            _raise_for(path, exc, len(data))
-
-    def append_line(self, path: Path, line: bytes) -> None:
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o640)
-            try:
-                self._write_all(fd, line)
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        except OSError as exc:
-            _raise_for(path, exc, len(line))
-
-    def _write_all(self, fd: int, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view):]
 
 
 def _clean(value: Any) -> Any:
@@ -464,11 +388,11 @@ class ScanStore:
             self.root.mkdir(parents=True, exist_ok=True)
             path.mkdir()
             (path / "images").mkdir()
-            _fsync_dir(self.root)
+            fsync_dir(self.root)
         except FileExistsError:
             raise StoreError(path, "scan folder already exists") from None
         except OSError as exc:
-            _raise_for(path, exc, 0)
+            raise_for(path, exc, 0)
         manifest = Manifest(
             scan_id=scan_id, created_utc=now.isoformat(), rig_digest=rig.digest,
             calibration_digest=calibration_digest(rig), cameras=[p.id for p in rig.phones],
@@ -491,7 +415,7 @@ class ScanStore:
                 os.close(fd)
         except OSError as exc:
             path.unlink(missing_ok=True)
-            _raise_for(path, exc, self.reserve_bytes)
+            raise_for(path, exc, self.reserve_bytes)
 
     def folders(self) -> list[Path]:
         """Scan folders under the root, oldest first."""
