@@ -161,7 +161,7 @@ class ExposureAngle:
 
 
 class EncoderTrace:
-    """The beam's encoder trace: (N,) host loop times s (increasing) and angles deg."""
+    """The beam's encoder trace: (N,) host loop times s (non-decreasing) and angles deg."""
 
     MAX_GAP_S = 0.1
 
@@ -172,12 +172,16 @@ class EncoderTrace:
             raise ClockSyncError(
                 f"encoder trace needs two equal (N,) arrays with N >= 2, got {t.shape} and {a.shape}"
             )
-        if np.any(np.diff(t) <= 0):
-            i = int(np.argmax(np.diff(t) <= 0))
-            raise ClockSyncError(f"encoder trace times not increasing at sample {i}: "
+        if np.any(np.diff(t) < 0):
+            i = int(np.argmax(np.diff(t) < 0))
+            raise ClockSyncError(f"encoder trace times go backwards at sample {i}: "
                                  f"{t[i]:.6f} then {t[i + 1]:.6f} s")
-        self.time_s = t
-        self.angle_deg = a
+        # Samples delivered in one burst share a loop time: keep the last of each.
+        last = np.r_[np.diff(t) > 0, True]
+        if np.count_nonzero(last) < 2:
+            raise ClockSyncError(f"encoder trace spans no time: all samples at {t[0]:.6f} s")
+        self.time_s = t[last]
+        self.angle_deg = a[last]
 
     def angle_at(self, time_s: float) -> float:
         """Interpolated beam angle (deg); OutsideTrace outside the trace or inside a gap."""

@@ -115,7 +115,11 @@ def test_exposure_outside_or_in_a_gap_of_the_trace_is_refused():
 
 
 def test_trace_must_be_increasing_and_matched():
-    with pytest.raises(ClockSyncError, match="not increasing at sample 1"):
-        EncoderTrace(np.array([0.0, 1.0, 1.0]), np.zeros(3))
+    with pytest.raises(ClockSyncError, match="backwards at sample 1"):
+        EncoderTrace(np.array([0.0, 1.0, 0.5]), np.zeros(3))
+    with pytest.raises(ClockSyncError, match="spans no time"):
+        EncoderTrace(np.array([2.0, 2.0]), np.zeros(2))
+    burst = EncoderTrace(np.array([0.0, 1.0, 1.0, 2.0]), np.array([0.0, 9.0, 10.0, 20.0]))
+    assert burst.angle_at(1.0) == 10.0 and burst.angle_at(1.5) == 15.0
     with pytest.raises(ClockSyncError, match="equal"):
         EncoderTrace(np.zeros(3), np.zeros(4))
