@@ -76,21 +76,22 @@ class RayScene:
         out = np.empty(len(origins), dtype=bool)
         for start in range(0, len(origins), RAY_BATCH):
             stop = start + RAY_BATCH
-            o = origins[start:stop]
-            d = targets[start:stop] - o
-            length = np.linalg.norm(d, axis=1)
+            o = np.asarray(origins[start:stop], dtype=np.float32)
+            d = np.asarray(targets[start:stop], dtype=np.float32) - o
+            length = np.sqrt(np.einsum("ij,ij->i", d, d))
+            reach = np.maximum(length - np.float32(epsilon_mm), np.float32(0.0))
             if self.backend == "open3d":
                 import open3d as o3d
 
                 # Scale the direction so t = 1 lands epsilon before the target.
-                scale = np.maximum(length - epsilon_mm, 0.0) / np.maximum(length, 1e-12)
-                rays = np.hstack([o, d * scale[:, None]]).astype(np.float32)
+                rays = np.empty((len(o), 6), dtype=np.float32)
+                rays[:, :3] = o
+                np.multiply(d, (reach / np.maximum(length, np.float32(1e-12)))[:, None], out=rays[:, 3:])
                 hit = self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0)
                 out[start:stop] = hit.numpy().astype(bool)
             else:
-                unit = (d / np.maximum(length, 1e-12)[:, None]).astype(np.float32)
-                dists = np.maximum(length - epsilon_mm, 0.0).astype(np.float32)
-                hit = self._scene.run(o.astype(np.float32), unit, dists=dists, query="OCCLUDED")
+                unit = d / np.maximum(length, np.float32(1e-12))[:, None]
+                hit = self._scene.run(o, unit, dists=reach, query="OCCLUDED")
                 out[start:stop] = np.asarray(hit) != -1
         return out
 
@@ -163,29 +164,34 @@ def _candidates(
     Returns pose, point, depth, off_axis, facing arrays as in :class:`Visibility`.
     """
     tan_w, tan_h = frustum_tangents(optics)
+    n = len(samples)
     pts_t = np.ascontiguousarray(samples.points.T, dtype=np.float32)  # (3, N)
     nrm_t = np.ascontiguousarray(samples.normals.T, dtype=np.float32)  # (3, N)
     point_dot_normal = np.einsum("ij,ij->j", pts_t, nrm_t)  # (N,) <p, n_p>
-    axes = np.stack([poses.right, poses.down, poses.forward], axis=1)  # (P, 3, 3) rows
-    offsets = np.einsum("pij,pj->pi", axes, poses.centres)  # (P, 3) camera centre in its frame
     parts: list[tuple[np.ndarray, ...]] = []
     for first in range(0, len(poses), POSE_BLOCK):
         block = slice(first, min(first + POSE_BLOCK, len(poses)))
-        n_block = block.stop - block.start
-        cam = (axes[block].reshape(-1, 3).astype(np.float32) @ pts_t).reshape(n_block, 3, -1)
-        cam -= offsets[block].astype(np.float32)[:, :, None]
-        x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
-        inside = (np.abs(x) <= tan_w * z) & (np.abs(y) <= tan_h * z)
+        k = block.stop - block.start
+        # Rows: right, down and forward axes of every pose in the block, then their normal test.
+        rows = np.concatenate(
+            [poses.right[block], poses.down[block], poses.forward[block]]
+        ).astype(np.float32)
+        cam = (rows @ pts_t).reshape(3, k, n)
+        cam -= np.einsum("akj,kj->ak", rows.reshape(3, k, 3), poses.centres[block]).astype(np.float32)[:, :, None]
+        x, y, z = cam
+        inside = np.abs(x) <= tan_w * z
+        inside &= np.abs(y) <= tan_h * z
         # Front-facing: <p - p_c, n_p> > 0 with the inward normal n_p.
         inside &= point_dot_normal > poses.centres[block].astype(np.float32) @ nrm_t
-        which, point = np.nonzero(inside)
-        facing = np.einsum("ij,ij->i", samples.normals[point], poses.forward[block][which])
+        flat = np.flatnonzero(inside)
+        which, point = np.divmod(flat, n)
+        facing = (poses.forward[block].astype(np.float32) @ nrm_t).ravel()[flat]
         parts.append(
             (
                 (which + first).astype(np.int32),
                 point.astype(np.int32),
-                z[which, point].astype(float),
-                np.hypot(x[which, point], y[which, point]).astype(float),
+                z.ravel()[flat],
+                np.hypot(x.ravel()[flat], y.ravel()[flat]),
                 facing,
             )
         )
@@ -202,7 +208,12 @@ def visible_pairs(
 ) -> Visibility:
     """All visible (pose, sample) pairs of ``samples`` on the mesh held by ``scene``."""
     pose, point, depth, off_axis, facing = _candidates(poses, samples, optics)
-    clear = ~scene.occluded(poses.centres[pose], samples.points[point], epsilon_mm)
+    centres = poses.centres.astype(np.float32)
+    points = samples.points.astype(np.float32)
+    clear = np.empty(len(pose), dtype=bool)
+    for start in range(0, len(pose), RAY_BATCH):
+        batch = slice(start, start + RAY_BATCH)
+        clear[batch] = ~scene.occluded(centres[pose[batch]], points[point[batch]], epsilon_mm)
     pose, point = pose[clear], point[clear]
     ptr = np.zeros(len(poses) + 1, dtype=np.int64)
     np.cumsum(np.bincount(pose, minlength=len(poses)), out=ptr[1:])
@@ -211,8 +222,8 @@ def visible_pairs(
         n_points=len(samples),
         pose=pose,
         point=point,
-        depth=depth[clear],
-        off_axis=off_axis[clear],
-        facing=facing[clear],
+        depth=depth[clear].astype(float),
+        off_axis=off_axis[clear].astype(float),
+        facing=facing[clear].astype(float),
         pose_ptr=ptr,
     )
