@@ -119,7 +119,7 @@ def test_trace_must_be_increasing_and_matched():
         EncoderTrace(np.array([0.0, 1.0, 0.5]), np.zeros(3))
     with pytest.raises(ClockSyncError, match="spans no time"):
         EncoderTrace(np.array([2.0, 2.0]), np.zeros(2))
-    burst = EncoderTrace(np.array([0.0, 1.0, 1.0, 2.0]), np.array([0.0, 9.0, 10.0, 20.0]))
-    assert burst.angle_at(1.0) == 10.0 and burst.angle_at(1.5) == 15.0
+    burst = EncoderTrace(np.array([0.0, 0.01, 0.01, 0.02]), np.array([0.0, 0.09, 0.1, 0.2]))
+    assert burst.angle_at(0.01) == 0.1 and burst.angle_at(0.015) == pytest.approx(0.15)
     with pytest.raises(ClockSyncError, match="equal"):
         EncoderTrace(np.zeros(3), np.zeros(4))
