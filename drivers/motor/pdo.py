@@ -6,6 +6,7 @@ the objects packed little-endian back to back, at most 8 bytes.
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 
@@ -43,6 +44,7 @@ def parse_map_entry(value: int) -> tuple[int, int, int]:
     return (value >> 16) & 0xFFFF, (value >> 8) & 0xFF, value & 0xFF
 
 
+@functools.lru_cache(maxsize=64)
 def _layout(mapping: tuple[MappedObject, ...]) -> str:
     return "<" + "".join(m.fmt.lstrip("<") for m in mapping)
 

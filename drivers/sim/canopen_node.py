@@ -76,6 +76,7 @@ class SimulatedNode:
         self._consumer_seen: dict[int, float] = {}
         self._tpdo_due: dict[int, tuple[float, float]] = {}
         self._heartbeat_due: float | None = None
+        self._mapping_cache: dict[int, tuple[pdo.MappedObject, ...]] = {}
         self._tasks: set[asyncio.Task[None]] = set()
         self.reset_communication_objects()
 
@@ -108,6 +109,7 @@ class SimulatedNode:
                 self.od[(mapping, sub)] = ObjectEntry("<I", entries[sub - 1] if sub <= len(entries) else 0)
         self._tpdo_due.clear()
         self._consumer_seen.clear()
+        self._mapping_cache.clear()
 
     def value(self, index: int, subindex: int = 0) -> int:
         """An object's current value (live objects come from :meth:`read_object`)."""
@@ -125,6 +127,7 @@ class SimulatedNode:
         """
         if index in range(pdo.TPDO_MAPPING, pdo.TPDO_MAPPING + self.TPDO_COUNT):
             self._check_mapping_write(index, subindex, value)
+            self._mapping_cache.pop(index - pdo.TPDO_MAPPING, None)
         self.od[(index, subindex)].value = value
 
     def _check_mapping_write(self, index: int, subindex: int, value: int) -> None:
@@ -147,12 +150,16 @@ class SimulatedNode:
 
     def tpdo_mapping(self, k: int) -> tuple[pdo.MappedObject, ...]:
         """The current mapping of TPDO k+1."""
+        cached = self._mapping_cache.get(k)
+        if cached is not None:
+            return cached
         index = pdo.TPDO_MAPPING + k
         out = []
         for sub in range(1, self.od[(index, 0)].value + 1):
             obj_index, obj_sub, _ = pdo.parse_map_entry(self.od[(index, sub)].value)
             out.append(pdo.MappedObject(obj_index, obj_sub, self.od[(obj_index, obj_sub)].fmt))
-        return tuple(out)
+        self._mapping_cache[k] = tuple(out)
+        return self._mapping_cache[k]
 
     # ------------------------------------------------------------------ fault injection
 

@@ -35,8 +35,12 @@ log = structlog.get_logger(__name__)
 
 S = Cia402State
 _POWERED = {S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE}
+_QUICK_STOP_BIT_SET = {S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED}
+_REMOTE, _VOLTAGE_ENABLED, _QUICK_STOP = int(Status.REMOTE), int(Status.VOLTAGE_ENABLED), int(Status.QUICK_STOP)
+_TARGET_REACHED, _SET_POINT_ACKNOWLEDGE = int(Status.TARGET_REACHED), int(Status.SET_POINT_ACKNOWLEDGE)
 _REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # EMCY class -> 0x1001 bit
 _QUICK_STOP_OPTIONS = {1, 2, 5, 6}
+_MODES = {int(m): m for m in Mode}
 
 
 class SimulatedDrive(SimulatedNode):
@@ -150,19 +154,17 @@ class SimulatedDrive(SimulatedNode):
 
     @property
     def statusword(self) -> int:
-        word = cia402.statusword_for(self.state) | Status.REMOTE
+        word = cia402.statusword_for(self.state) | _REMOTE
         if self.state in _POWERED:
-            word |= Status.VOLTAGE_ENABLED
-        if self.state in (S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED):
-            word |= Status.QUICK_STOP
+            word |= _VOLTAGE_ENABLED
+        if self.state in _QUICK_STOP_BIT_SET:
+            word |= _QUICK_STOP
         if self._target_reached():
-            word |= Status.TARGET_REACHED
+            word |= _TARGET_REACHED
         mode = self._mode()
-        if mode is Mode.PROFILE_POSITION and self._set_point_ack:
-            word |= Status.SET_POINT_ACKNOWLEDGE
-        if mode is Mode.HOMING and self._homing_attained:
-            word |= Status.SET_POINT_ACKNOWLEDGE
-        return int(word)
+        if (mode is Mode.PROFILE_POSITION and self._set_point_ack) or (mode is Mode.HOMING and self._homing_attained):
+            word |= _SET_POINT_ACKNOWLEDGE
+        return word
 
     def _now(self) -> float:
         """The loop clock; outside a running loop (inspection after a test) the last reading."""
@@ -173,10 +175,7 @@ class SimulatedDrive(SimulatedNode):
         return self._clock_s
 
     def _mode(self) -> Mode | None:
-        try:
-            return Mode(self.od[(cia402.MODES_OF_OPERATION, 0)].value)
-        except ValueError:
-            return None
+        return _MODES.get(self.od[(cia402.MODES_OF_OPERATION, 0)].value)
 
     def _position_velocity(self, t: float) -> tuple[float, float]:
         """Actual raw position (counts) and velocity (counts/s) at time t."""
