@@ -211,3 +211,49 @@ def test_cli_formats_status_events_on_one_line():
     progress = _format({"kind": "progress", "state": "CAPTURING", "previous": "CAPTURING",
                         "cause": "captured", "time_s": 3.0, "scan_id": None, "data": {}})
     assert progress == "[     3.000] CAPTURING: captured"
+
+
+def test_cli_status_follow_streams_until_the_daemon_goes(sock, capsys):
+    import threading
+    import time
+
+    daemon = FakeDaemon()
+    loop = asyncio.new_event_loop()
+    ready = threading.Event()
+    stop = asyncio.Event()
+
+    async def serve() -> None:
+        async with ControlServer(sock, daemon):
+            ready.set()
+            await stop.wait()
+
+    server = threading.Thread(target=loop.run_until_complete, args=(serve(),))
+    server.start()
+    assert ready.wait(10)
+    result: list[int] = []
+    follower = threading.Thread(target=lambda: result.append(
+        tbp_main(["status", "--follow", "--json", "--socket", str(sock)])))
+    follower.start()
+    try:
+        for _ in range(1000):  # wait (polling, no timing assertion) until it has subscribed
+            if daemon.machine._subscribers:
+                break
+            time.sleep(0.01)
+        loop.call_soon_threadsafe(daemon.machine.transition, ScanState.PREPARING, "start pressed")
+        loop.call_soon_threadsafe(daemon.machine.transition, ScanState.FAULT, "drive fault 0x2310")
+        out = ""
+        for _ in range(1000):
+            out += capsys.readouterr().out
+            if '"state": "FAULT"' in out:
+                break
+            time.sleep(0.01)
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        server.join(10)
+        follower.join(10)
+        loop.close()
+    events = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert [e["state"] for e in events] == ["IDLE", "PREPARING", "FAULT"]
+    assert events[2]["cause"] == "drive fault 0x2310"
+    assert result == [2]  # then the daemon went away: unreachable
+    assert "closed the subscription" in capsys.readouterr().err
