@@ -103,7 +103,9 @@ class CostTable:
         """(M,) float: ``pair_cost`` in point order (``order``)."""
         pose, base, lo, hi = self.by_point
         s = np.asarray(focus_mm, dtype=float)[pose]
-        return base + self.w_focus * ~((lo <= s) & (s <= hi))
+        sharp = lo <= s
+        sharp &= s <= hi
+        return np.where(sharp, base, base + self.w_focus)
 
     def point_costs(self, focus_mm: np.ndarray) -> np.ndarray:
         """(N,) float point costs min(1, min over visible pairs)."""

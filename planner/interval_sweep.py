@@ -41,9 +41,9 @@ def sweep(lo: np.ndarray, hi: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     """:func:`best_focus` without input checks, for inner loops that guarantee valid input."""
     n = len(lo)
     coords = np.concatenate([lo, hi])
-    # Starts sort before ends at the same coordinate: closed intervals touching at a point overlap.
-    kind = np.concatenate([np.zeros(n, dtype=np.int8), np.ones(n, dtype=np.int8)])
-    order = np.lexsort((kind, coords))
+    # A stable sort keeps starts (first half) before ends at the same coordinate: closed
+    # intervals touching at a point overlap there.
+    order = np.argsort(coords, kind="stable")
     running = np.cumsum(np.concatenate([w, -w])[order])
     k = int(np.argmax(running))
     left = coords[order[k]]
@@ -79,10 +79,13 @@ def best_focus_per_group(
     if n == 0:
         return s, score
     coords = np.concatenate([lo, hi])
-    kind = np.concatenate([np.zeros(n, dtype=np.int8), np.ones(n, dtype=np.int8)])
     groups = np.concatenate([group, group])
-    order = np.lexsort((kind, coords, groups))
-    steps = np.where(kind[order] == 0, 1, -1)
+    # 16-bit keys let NumPy use a radix sort for the group pass.
+    key = groups.astype(np.int16) if n_groups <= np.iinfo(np.int16).max else groups
+    # Stable sorts: by coordinate (starts, the first half, before ends on ties), then by group.
+    order = np.argsort(coords, kind="stable")
+    order = order[np.argsort(key[order], kind="stable")]
+    steps = np.where(order < n, 1, -1)
     # Each group's +1/-1 steps sum to zero, so a global running sum restarts at 0 per group.
     running = np.cumsum(steps)
     g_sorted = groups[order]
