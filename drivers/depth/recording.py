@@ -1,0 +1,106 @@
+"""A recorded depth sweep on disk: one compressed ``.npz`` per frame plus ``sweep.json``.
+
+``sweep.json`` holds the format tag, the beam trace (time_s, angle_deg) and per frame its file,
+camera id, frame number, timestamp, beam angle, depth unit, intrinsics (3x3) and camera-to-world
+pose (4x4, mm). Each ``.npz`` holds ``depth``: (H, W) uint16 in depth units. Files are written
+to a temporary name and renamed, so a folder never holds a half-written frame.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from planner.shape_errors import ShapeEstimateError
+from planner.sweep import BeamTrace, PosedDepth, Sweep
+
+FORMAT = "tbp-depth-sweep/1"
+INDEX = "sweep.json"
+
+
+class RecordingError(ShapeEstimateError):
+    """A recorded sweep folder is missing, of another format, or inconsistent."""
+
+    def __init__(self, path: Path | str, problem: str) -> None:
+        self.path, self.problem = str(path), problem
+        super().__init__(f"{path}: {problem}")
+
+
+def _atomic_write(path: Path, write) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        write(fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def save_sweep(sweep: Sweep, folder: Path | str) -> Path:
+    """Write the sweep into folder (created); returns the index file's path."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for i, f in enumerate(sweep.frames):
+        name = f"{i:05d}_{f.camera_id}_{f.frame_number:06d}.npz"
+        _atomic_write(folder / name, lambda fh, d=f.depth: np.savez_compressed(fh, depth=d))
+        entries.append(
+            {
+                "file": name,
+                "camera_id": f.camera_id,
+                "frame_number": f.frame_number,
+                "timestamp_s": f.timestamp_s,
+                "beam_angle_deg": f.beam_angle_deg,
+                "depth_unit_mm": f.depth_unit_mm,
+                "intrinsics": np.asarray(f.intrinsics).tolist(),
+                "camera_to_world": np.asarray(f.camera_to_world).tolist(),
+            }
+        )
+    index = {
+        "format": FORMAT,
+        "trace": {"time_s": sweep.trace.time_s.tolist(), "angle_deg": sweep.trace.angle_deg.tolist()},
+        "frames": entries,
+    }
+    path = folder / INDEX
+    _atomic_write(path, lambda fh: fh.write(json.dumps(index, indent=1).encode()))
+    return path
+
+
+def load_sweep(folder: Path | str) -> Sweep:
+    """Read a folder written by :func:`save_sweep`; raises RecordingError naming what is wrong."""
+    folder = Path(folder)
+    path = folder / INDEX
+    try:
+        index = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecordingError(folder, f"no {INDEX}: not a recorded depth sweep") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise RecordingError(path, f"unreadable: {exc}") from exc
+    if not isinstance(index, dict) or index.get("format") != FORMAT:
+        found = index.get("format") if isinstance(index, dict) else type(index).__name__
+        raise RecordingError(path, f"format {found!r}, expected {FORMAT!r}")
+    try:
+        trace = BeamTrace(np.array(index["trace"]["time_s"]), np.array(index["trace"]["angle_deg"]))
+        frames = []
+        for e in index["frames"]:
+            with np.load(folder / e["file"]) as data:
+                depth = data["depth"]
+            if depth.dtype != np.uint16 or depth.ndim != 2:
+                raise RecordingError(folder / e["file"], f"depth is {depth.dtype} {depth.shape}, expected (H, W) uint16")
+            frames.append(
+                PosedDepth(
+                    camera_id=str(e["camera_id"]),
+                    frame_number=int(e["frame_number"]),
+                    timestamp_s=float(e["timestamp_s"]),
+                    beam_angle_deg=float(e["beam_angle_deg"]),
+                    depth=depth,
+                    depth_unit_mm=float(e["depth_unit_mm"]),
+                    intrinsics=np.array(e["intrinsics"], dtype=float).reshape(3, 3),
+                    camera_to_world=np.array(e["camera_to_world"], dtype=float).reshape(4, 4),
+                )
+            )
+    except (KeyError, TypeError, ValueError, OSError) as exc:
+        raise RecordingError(path, f"inconsistent entry: {exc!r}") from exc
+    return Sweep(tuple(frames), trace)
