@@ -46,7 +46,9 @@ async def master() -> AsyncIterator[tuple[canopen.RemoteNode, SimulatedDrive, ca
         port.close()
 
 
-async def test_canopen_master_reads_and_writes_objects(master: tuple[canopen.RemoteNode, SimulatedDrive, canopen.Network]) -> None:
+async def test_canopen_master_reads_and_writes_objects(
+    master: tuple[canopen.RemoteNode, SimulatedDrive, canopen.Network],
+) -> None:
     node, sim, _ = master
     raw = await asyncio.to_thread(node.sdo.upload, 0x6041, 0)
     assert struct.unpack("<H", raw)[0] & 0x4F == 0x40  # switch on disabled
@@ -58,7 +60,9 @@ async def test_canopen_master_reads_and_writes_objects(master: tuple[canopen.Rem
     assert sim.state.value == "operation enabled"
 
 
-async def test_canopen_master_sees_standard_abort_codes(master: tuple[canopen.RemoteNode, SimulatedDrive, canopen.Network]) -> None:
+async def test_canopen_master_sees_standard_abort_codes(
+    master: tuple[canopen.RemoteNode, SimulatedDrive, canopen.Network],
+) -> None:
     node, _, _ = master
     cases = [
         (lambda: node.sdo.upload(0x2000, 0), 0x06020000),
@@ -72,7 +76,9 @@ async def test_canopen_master_sees_standard_abort_codes(master: tuple[canopen.Re
         assert info.value.code == code
 
 
-async def test_canopen_master_nmt_heartbeat_and_pdo(master: tuple[canopen.RemoteNode, SimulatedDrive, canopen.Network]) -> None:
+async def test_canopen_master_nmt_heartbeat_and_pdo(
+    master: tuple[canopen.RemoteNode, SimulatedDrive, canopen.Network],
+) -> None:
     node, sim, network = master
     frames: list[bytes] = []
     got = threading.Event()
@@ -90,6 +96,8 @@ async def test_canopen_master_nmt_heartbeat_and_pdo(master: tuple[canopen.Remote
     assert await asyncio.to_thread(got.wait, 2.0)
     assert await asyncio.to_thread(node.nmt.wait_for_heartbeat, 2.0) == "OPERATIONAL"
     assert struct.unpack("<H", frames[0])[0] & 0x4F == 0x40  # default TPDO1 mapping: statusword
+    booted = threading.Event()  # registered before the command: the boot-up may beat a waiter
+    node.nmt.add_heartbeat_callback(lambda state: booted.set() if state == 0 else None)
     node.nmt.state = "RESET COMMUNICATION"
-    await asyncio.to_thread(node.nmt.wait_for_bootup, 2.0)
+    assert await asyncio.to_thread(booted.wait, 2.0)
     assert sim.value(0x1017) == 0 and sim.nmt_state.name == "PRE_OPERATIONAL"

@@ -28,8 +28,8 @@ from drivers.motor import (
     SdoAbort,
     SdoTimeout,
     StateTransitionTimeout,
+    emcy,
 )
-from drivers.motor import emcy
 from drivers.sim.clock import run_virtual
 from drivers.sim.drive import SimulatedDrive
 from planner.rig import Motor, load_rig
@@ -247,7 +247,9 @@ def test_injected_emcy_fault_names_code_and_meaning() -> None:
         sim.inject_fault(0x2310)
         await asyncio.sleep(0.05)
         assert isinstance(drive.fault, DriveFault) and drive.fault.code == 0x2310
-        assert "0x2310 (continuous over-current)" in str(drive.fault) and str(drive.fault).startswith("beam [")
+        assert "0x2310 (continuous over-current)" in str(drive.fault) and str(drive.fault).startswith(
+            "beam ["
+        )
         assert drive.fault.register == 0x03
         with pytest.raises(DriveFault):
             await drive.move_to(10.0, 10.0, 10.0)

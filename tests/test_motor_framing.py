@@ -33,7 +33,12 @@ def test_sdo_expedited_upload_transcript() -> None:
     assert sdo.upload_reply(0x6041, 0, struct.pack("<H", 0x0237)) == bytes.fromhex("4B41600037020000")
     assert sdo.upload_reply(0x6064, 0, struct.pack("<i", 123456)) == bytes.fromhex("4364600040E20100")
     reply = sdo.parse_sdo(bytes.fromhex("4B41600037020000"), from_client=False)
-    assert (reply.kind, reply.index, reply.subindex, reply.data) == (sdo.SdoKind.UPLOAD_REPLY, 0x6041, 0, b"\x37\x02")
+    assert (reply.kind, reply.index, reply.subindex, reply.data) == (
+        sdo.SdoKind.UPLOAD_REPLY,
+        0x6041,
+        0,
+        b"\x37\x02",
+    )
 
 
 def test_sdo_abort_transcript() -> None:
@@ -62,7 +67,12 @@ def test_sdo_download_without_size_keeps_four_raw_bytes() -> None:
 @given(index_st, sub_st, st.binary(min_size=1, max_size=4))
 def test_sdo_download_round_trip(index: int, subindex: int, data: bytes) -> None:
     message = sdo.parse_sdo(sdo.download_request(index, subindex, data), from_client=True)
-    assert (message.kind, message.index, message.subindex, message.data) == (sdo.SdoKind.DOWNLOAD, index, subindex, data)
+    assert (message.kind, message.index, message.subindex, message.data) == (
+        sdo.SdoKind.DOWNLOAD,
+        index,
+        subindex,
+        data,
+    )
 
 
 @given(index_st, sub_st, st.binary(min_size=1, max_size=4))
@@ -74,7 +84,12 @@ def test_sdo_upload_reply_round_trip(index: int, subindex: int, data: bytes) -> 
 @given(index_st, sub_st, st.integers(0, 0xFFFFFFFF))
 def test_sdo_abort_round_trip(index: int, subindex: int, code: int) -> None:
     message = sdo.parse_sdo(sdo.abort_frame(index, subindex, code), from_client=True)
-    assert (message.kind, message.index, message.subindex, message.code) == (sdo.SdoKind.ABORT, index, subindex, code)
+    assert (message.kind, message.index, message.subindex, message.code) == (
+        sdo.SdoKind.ABORT,
+        index,
+        subindex,
+        code,
+    )
 
 
 # ---------------------------------------------------------------------- PDO
@@ -128,8 +143,12 @@ def test_nmt_transcript() -> None:
 def test_cob_ids() -> None:
     assert [nmt.tpdo_cob_id(k, 5) for k in (1, 2, 3, 4)] == [0x185, 0x285, 0x385, 0x485]
     assert [nmt.rpdo_cob_id(k, 5) for k in (1, 2, 3, 4)] == [0x205, 0x305, 0x405, 0x505]
-    assert (nmt.emcy_cob_id(5), nmt.sdo_response_cob_id(5), nmt.sdo_request_cob_id(5), nmt.heartbeat_cob_id(5)) == (
-        0x85, 0x585, 0x605, 0x705)
+    assert (
+        nmt.emcy_cob_id(5),
+        nmt.sdo_response_cob_id(5),
+        nmt.sdo_request_cob_id(5),
+        nmt.heartbeat_cob_id(5),
+    ) == (0x85, 0x585, 0x605, 0x705)
 
 
 def test_heartbeat_transcript() -> None:
@@ -162,7 +181,9 @@ def test_emcy_transcript() -> None:
 
 @given(st.integers(0, 0xFFFF), st.integers(0, 0xFF), st.binary(min_size=5, max_size=5))
 def test_emcy_round_trip(code: int, register: int, vendor: bytes) -> None:
-    assert emcy.parse_emcy(emcy.emcy_frame(emcy.Emcy(code, register, vendor))) == emcy.Emcy(code, register, vendor)
+    assert emcy.parse_emcy(emcy.emcy_frame(emcy.Emcy(code, register, vendor))) == emcy.Emcy(
+        code, register, vendor
+    )
 
 
 # ---------------------------------------------------------------------- CiA 402 tables
@@ -199,7 +220,10 @@ def test_statusword_patterns_are_exclusive(statusword: int) -> None:
 
 def test_paths_through_the_state_machine() -> None:
     assert cia402.path(S.SWITCH_ON_DISABLED, S.OPERATION_ENABLED) == [
-        (S.READY_TO_SWITCH_ON, 0x06), (S.SWITCHED_ON, 0x07), (S.OPERATION_ENABLED, 0x0F)]
+        (S.READY_TO_SWITCH_ON, 0x06),
+        (S.SWITCHED_ON, 0x07),
+        (S.OPERATION_ENABLED, 0x0F),
+    ]
     assert cia402.path(S.FAULT, S.OPERATION_ENABLED)[0] == (S.SWITCH_ON_DISABLED, 0x80)
     assert cia402.path(S.QUICK_STOP_ACTIVE, S.OPERATION_ENABLED) == [(S.OPERATION_ENABLED, 0x0F)]
     assert cia402.path(S.OPERATION_ENABLED, S.OPERATION_ENABLED) == []
@@ -207,7 +231,9 @@ def test_paths_through_the_state_machine() -> None:
         cia402.path(S.SWITCH_ON_DISABLED, S.FAULT)
 
 
-@pytest.mark.parametrize("goal", [s for s in S if s not in (S.FAULT, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON)])
+@pytest.mark.parametrize(
+    "goal", [s for s in S if s not in (S.FAULT, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON)]
+)
 @pytest.mark.parametrize("start", list(S))
 def test_every_commandable_state_is_reachable(start: S, goal: S) -> None:
     if start in (S.NOT_READY_TO_SWITCH_ON, S.FAULT_REACTION_ACTIVE):

@@ -124,7 +124,18 @@ def test_pdo_mapping_rules() -> None:
         return answers
 
     assert run(scenario) == [
-        "08000022", "ok", "06010000", "ok", "06040041", "06040041", "ok", "ok", "ok", "06040042", "ok"]
+        "08000022",
+        "ok",
+        "06010000",
+        "ok",
+        "06040041",
+        "06040041",
+        "ok",
+        "ok",
+        "ok",
+        "06040042",
+        "ok",
+    ]
 
 
 def test_heartbeat_and_event_timer_rates() -> None:
@@ -136,7 +147,11 @@ def test_heartbeat_and_event_timer_rates() -> None:
         await master.send(0x000, bytes([0x01, N]))  # NMT start
         start = asyncio.get_running_loop().time() + 0.1  # one steady second
         await asyncio.sleep(1.2)
-        return master.count(0x700 + N, start, start + 1), master.count(0x180 + N, start, start + 1), before_start
+        return (
+            master.count(0x700 + N, start, start + 1),
+            master.count(0x180 + N, start, start + 1),
+            before_start,
+        )
 
     heartbeats, tpdos, before_start = run(scenario)
     assert heartbeats == 20  # 50 ms

@@ -21,14 +21,20 @@ MOTOR = load_rig().motor
 
 
 def test_frame_text_transcripts() -> None:
-    msg = can.Message(arbitration_id=0x185, data=bytes.fromhex("39160000E8030000"), is_extended_id=False, timestamp=12.5)
+    msg = can.Message(
+        arbitration_id=0x185, data=bytes.fromhex("39160000E8030000"), is_extended_id=False, timestamp=12.5
+    )
     assert format_frame(msg) == "< frame 185 12.500000 39160000E8030000 >"
     empty = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False, timestamp=1.0)
     assert format_frame(empty) == "< frame 080 1.000000  >"
     ext = can.Message(arbitration_id=0x18FF0005, data=b"\x01", is_extended_id=True, timestamp=0.0)
     assert format_frame(ext) == "< frame 18FF0005 0.000000 01 >"
     sent = parse_send("< send 605 8 40 41 60 0 0 0 0 0 >")
-    assert (sent.arbitration_id, bytes(sent.data), sent.is_extended_id) == (0x605, bytes.fromhex("4041600000000000"), False)
+    assert (sent.arbitration_id, bytes(sent.data), sent.is_extended_id) == (
+        0x605,
+        bytes.fromhex("4041600000000000"),
+        False,
+    )
     assert parse_send("< send 0000007F 1 5 >").is_extended_id
 
 
@@ -68,7 +74,9 @@ async def bridge() -> AsyncIterator[tuple[SocketcandServer, SimulatedDrive]]:
 
 
 async def _client_port(server: SocketcandServer, channel: str = "can0") -> PythonCanPort:
-    bus = await asyncio.to_thread(can.Bus, interface="socketcand", host="127.0.0.1", port=server.port, channel=channel)
+    bus = await asyncio.to_thread(
+        can.Bus, interface="socketcand", host="127.0.0.1", port=server.port, channel=channel
+    )
     return PythonCanPort(bus, name="socketcand")
 
 
@@ -101,7 +109,9 @@ async def test_beam_drive_over_socketcand_bridge(bridge: tuple[SocketcandServer,
         await drive.close()
 
 
-async def test_client_going_away_leaves_the_bridge_serving(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
+async def test_client_going_away_leaves_the_bridge_serving(
+    bridge: tuple[SocketcandServer, SimulatedDrive],
+) -> None:
     server, sim = bridge
     first = await _client_port(server)
     first.close()
@@ -126,7 +136,9 @@ def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
         "p = argparse.ArgumentParser(); add_arguments(p)\n"
         "asyncio.run(serve(p.parse_args(['--port', '0'])))\n"
     )
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         match = None
         for _ in range(20):  # structlog lines may come first
@@ -137,8 +149,13 @@ def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
         assert match, line
         bus = can.Bus(interface="socketcand", host="127.0.0.1", port=int(match.group(1)), channel="can0")
         try:
-            bus.send(can.Message(arbitration_id=0x600 + MOTOR.node_id, data=bytes.fromhex("4041600000000000"),
-                                 is_extended_id=False))
+            bus.send(
+                can.Message(
+                    arbitration_id=0x600 + MOTOR.node_id,
+                    data=bytes.fromhex("4041600000000000"),
+                    is_extended_id=False,
+                )
+            )
             reply = None
             for _ in range(100):
                 msg = bus.recv(timeout=0.1)

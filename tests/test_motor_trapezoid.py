@@ -20,13 +20,21 @@ def _check_continuous(traj: Trajectory) -> None:
         assert after.t0 >= before.t0
         p, v = before.at(after.t0)
         # Rounding of the segment start times (t up to ~1e6 s) scales with t * |v| and t * |a|.
-        slack = 1e-14 * abs(after.t0) * (abs(before.v0) + abs(before.a) * abs(after.t0 - before.t0) + abs(before.a))
+        slack = (
+            1e-14
+            * abs(after.t0)
+            * (abs(before.v0) + abs(before.a) * abs(after.t0 - before.t0) + abs(before.a))
+        )
         assert p == pytest.approx(after.p0, abs=1e-6 * max(1.0, abs(p)) + slack * abs(after.t0))
-        assert v == pytest.approx(after.v0, abs=1e-6 * max(1.0, abs(v)) + 1e-14 * abs(after.t0) * abs(before.a))
+        assert v == pytest.approx(
+            after.v0, abs=1e-6 * max(1.0, abs(v)) + 1e-14 * abs(after.t0) * abs(before.a)
+        )
 
 
 @given(pos, vel, pos, st.floats(1.0, 5e4), rate, rate)
-def test_position_move_ends_at_rest_on_target(p0: float, v0: float, target: float, speed: float, acc: float, dec: float) -> None:
+def test_position_move_ends_at_rest_on_target(
+    p0: float, v0: float, target: float, speed: float, acc: float, dec: float
+) -> None:
     traj = position_move(2.0, p0, v0, target, speed, acc, dec)
     _check_continuous(traj)
     assert traj.at(traj.end_time) == (target, 0.0)

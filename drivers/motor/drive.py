@@ -116,9 +116,13 @@ class BeamDrive:
     MOTION_MARGIN_S = 2.0
     SAMPLE_QUEUE_SIZE = 4096
 
-    def __init__(self, port: CanPort, config: Motor, *, name: str = "beam", host_node_id: int = HOST_NODE_ID) -> None:
+    def __init__(
+        self, port: CanPort, config: Motor, *, name: str = "beam", host_node_id: int = HOST_NODE_ID
+    ) -> None:
         if host_node_id == config.node_id or not 1 <= host_node_id <= 127:
-            raise ValueError(f"host node id {host_node_id} must be 1..127 and differ from the drive's {config.node_id}")
+            raise ValueError(
+                f"host node id {host_node_id} must be 1..127 and differ from the drive's {config.node_id}"
+            )
         self.port = port
         self.config = config
         self.name = name
@@ -159,17 +163,31 @@ class BeamDrive:
             async with asyncio.timeout(self.BOOT_TIMEOUT_S):
                 await self._boot.wait()
         except TimeoutError:
-            raise NmtTimeout(self.name, self.state.value, f"no boot-up within {self.BOOT_TIMEOUT_S:g} s of NMT reset communication") from None
+            raise NmtTimeout(
+                self.name,
+                self.state.value,
+                f"no boot-up within {self.BOOT_TIMEOUT_S:g} s of NMT reset communication",
+            ) from None
         await self._configure()
         self._tasks.append(asyncio.create_task(self._produce_heartbeat(), name=f"{self.name}-heartbeat"))
         self._connected = True
         await self._nmt(nmt.NmtCommand.START)
         self.nmt_state = nmt.NmtState.OPERATIONAL
         self._tasks.append(asyncio.create_task(self._watch_heartbeat(), name=f"{self.name}-watchdog"))
-        await self._until(lambda: self.latest is not None, self.FIRST_SAMPLE_TIMEOUT_S,
-                          lambda: NmtTimeout(self.name, self.state.value, f"no TPDO within {self.FIRST_SAMPLE_TIMEOUT_S:g} s of NMT start"))
-        log.info("drive_connected", drive=self.name, node=self.node_id, state=self.state.value,
-                 angle_deg=round(self.latest.angle_deg, 3) if self.latest else None)
+        await self._until(
+            lambda: self.latest is not None,
+            self.FIRST_SAMPLE_TIMEOUT_S,
+            lambda: NmtTimeout(
+                self.name, self.state.value, f"no TPDO within {self.FIRST_SAMPLE_TIMEOUT_S:g} s of NMT start"
+            ),
+        )
+        log.info(
+            "drive_connected",
+            drive=self.name,
+            node=self.node_id,
+            state=self.state.value,
+            angle_deg=round(self.latest.angle_deg, 3) if self.latest else None,
+        )
 
     async def enable(self) -> None:
         """Walk the CiA 402 state machine to OPERATION ENABLED."""
@@ -183,15 +201,20 @@ class BeamDrive:
         """Disable voltage (SWITCH ON DISABLED); with a latched fault it only sends the command."""
         await self._write_controlword(cia402.DISABLE_VOLTAGE)
         if self.fault is None:
-            await self._until(lambda: self.state is Cia402State.SWITCH_ON_DISABLED, self.TRANSITION_TIMEOUT_S,
-                              self._transition_timeout(Cia402State.SWITCH_ON_DISABLED.value, cia402.DISABLE_VOLTAGE))
+            await self._until(
+                lambda: self.state is Cia402State.SWITCH_ON_DISABLED,
+                self.TRANSITION_TIMEOUT_S,
+                self._transition_timeout(Cia402State.SWITCH_ON_DISABLED.value, cia402.DISABLE_VOLTAGE),
+            )
 
     async def set_zero(self, angle_deg: float = 0.0) -> None:
         """Make the current position read as ``angle_deg`` (homing method 37 with the home
         offset); the beam must be enabled and standing still."""
         self._check_enabled()
         if self.latest is not None and abs(self.latest.speed_deg_s) > 0:
-            raise DriveNotReady(self.name, self.state.value, f"set_zero while moving at {self.latest.speed_deg_s:.3f} deg/s")
+            raise DriveNotReady(
+                self.name, self.state.value, f"set_zero while moving at {self.latest.speed_deg_s:.3f} deg/s"
+            )
         await self.sdo.write(cia402.HOME_OFFSET, 0, "<i", self._counts(angle_deg))
         await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION)
         await self._set_mode(Mode.HOMING)
@@ -199,12 +222,20 @@ class BeamDrive:
         start = cia402.ENABLE_OPERATION | Control.NEW_SET_POINT
         await self._write_controlword(start)
         attained = Status.SET_POINT_ACKNOWLEDGE | Status.TARGET_REACHED
-        await self._until(lambda: self.statusword & attained == attained, self.TRANSITION_TIMEOUT_S,
-                          self._transition_timeout("homing attained", start))
+        await self._until(
+            lambda: self.statusword & attained == attained,
+            self.TRANSITION_TIMEOUT_S,
+            self._transition_timeout("homing attained", start),
+        )
         await self._write_controlword(cia402.ENABLE_OPERATION)
         target = self._counts(angle_deg) / self.counts_per_degree
-        await self._until(lambda: self.latest is not None and abs(self.latest.angle_deg - target) < 1 / self.counts_per_degree,
-                          self.TRANSITION_TIMEOUT_S, self._transition_timeout(f"position {angle_deg:g} deg", start))
+        await self._until(
+            lambda: (
+                self.latest is not None and abs(self.latest.angle_deg - target) < 1 / self.counts_per_degree
+            ),
+            self.TRANSITION_TIMEOUT_S,
+            self._transition_timeout(f"position {angle_deg:g} deg", start),
+        )
         log.info("drive_zeroed", drive=self.name, angle_deg=angle_deg)
 
     async def rotate(self, speed_deg_s: float, acceleration_deg_s2: float) -> None:
@@ -219,22 +250,33 @@ class BeamDrive:
         await self._set_mode(Mode.PROFILE_VELOCITY)
         if self._controlword != cia402.ENABLE_OPERATION:
             await self._write_controlword(cia402.ENABLE_OPERATION)
-        log.info("drive_rotate", drive=self.name, speed_deg_s=speed_deg_s, acceleration_deg_s2=acceleration_deg_s2)
+        log.info(
+            "drive_rotate", drive=self.name, speed_deg_s=speed_deg_s, acceleration_deg_s2=acceleration_deg_s2
+        )
 
-    async def wait_speed(self, speed_deg_s: float, tolerance_deg_s: float = 0.05, timeout_s: float | None = None) -> None:
+    async def wait_speed(
+        self, speed_deg_s: float, tolerance_deg_s: float = 0.05, timeout_s: float | None = None
+    ) -> None:
         """Wait until the reported speed is within ``tolerance_deg_s`` of ``speed_deg_s``."""
         if timeout_s is None:
             current = self.latest.speed_deg_s if self.latest else 0.0
-            timeout_s = abs(speed_deg_s - current) / self.config.max_acceleration_deg_s2 * 4 + self.MOTION_MARGIN_S
-        await self._until(lambda: self.latest is not None and abs(self.latest.speed_deg_s - speed_deg_s) <= tolerance_deg_s,
-                          timeout_s, self._transition_timeout(f"speed {speed_deg_s:g} deg/s", self._controlword))
+            timeout_s = (
+                abs(speed_deg_s - current) / self.config.max_acceleration_deg_s2 * 4 + self.MOTION_MARGIN_S
+            )
+        await self._until(
+            lambda: self.latest is not None and abs(self.latest.speed_deg_s - speed_deg_s) <= tolerance_deg_s,
+            timeout_s,
+            self._transition_timeout(f"speed {speed_deg_s:g} deg/s", self._controlword),
+        )
 
     async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
         """Profile position: move to ``angle_deg`` (continuous) and return when the drive reports
         target reached."""
         self._check_limits(speed_deg_s, acceleration_deg_s2)
         if speed_deg_s <= 0:
-            raise MotionLimitError(self.name, self.state.value, f"move speed {speed_deg_s:g} deg/s must be positive")
+            raise MotionLimitError(
+                self.name, self.state.value, f"move speed {speed_deg_s:g} deg/s must be positive"
+            )
         self._check_enabled()
         counts_s2 = self._counts(acceleration_deg_s2)
         await self.sdo.write(cia402.TARGET_POSITION, 0, "<i", self._counts(angle_deg))
@@ -245,18 +287,28 @@ class BeamDrive:
         await self._write_controlword(cia402.ENABLE_OPERATION)
         start = cia402.ENABLE_OPERATION | Control.NEW_SET_POINT | Control.CHANGE_IMMEDIATELY
         await self._write_controlword(start)
-        await self._until(lambda: bool(self.statusword & Status.SET_POINT_ACKNOWLEDGE), self.TRANSITION_TIMEOUT_S,
-                          self._transition_timeout("set-point acknowledge", start))
+        await self._until(
+            lambda: bool(self.statusword & Status.SET_POINT_ACKNOWLEDGE),
+            self.TRANSITION_TIMEOUT_S,
+            self._transition_timeout("set-point acknowledge", start),
+        )
         await self._write_controlword(cia402.ENABLE_OPERATION)
         here = self.latest.angle_deg if self.latest else angle_deg
         speed_now = abs(self.latest.speed_deg_s) if self.latest else 0.0
         duration = abs(angle_deg - here) / speed_deg_s + (speed_deg_s + speed_now) / acceleration_deg_s2 * 2
         await self._until(
-            lambda: bool(self.statusword & Status.TARGET_REACHED) and not self.statusword & Status.SET_POINT_ACKNOWLEDGE,
-            duration + self.MOTION_MARGIN_S, self._transition_timeout(f"target {angle_deg:g} deg", start))
+            lambda: (
+                bool(self.statusword & Status.TARGET_REACHED)
+                and not self.statusword & Status.SET_POINT_ACKNOWLEDGE
+            ),
+            duration + self.MOTION_MARGIN_S,
+            self._transition_timeout(f"target {angle_deg:g} deg", start),
+        )
         if self.state is not Cia402State.OPERATION_ENABLED or self._controlword & Control.HALT:
             where = f"{self.latest.angle_deg:.3f}" if self.latest else "unknown"
-            raise MotionInterrupted(self.name, self.state.value, f"move to {angle_deg:g} deg stopped at {where} deg")
+            raise MotionInterrupted(
+                self.name, self.state.value, f"move to {angle_deg:g} deg stopped at {where} deg"
+            )
         log.info("drive_moved", drive=self.name, angle_deg=angle_deg)
 
     async def stop(self, deceleration_deg_s2: float) -> None:
@@ -274,21 +326,33 @@ class BeamDrive:
             command = cia402.ENABLE_OPERATION | Control.HALT
             await self._write_controlword(command)
         speed = abs(self.latest.speed_deg_s) if self.latest else 0.0
-        await self._until(self._standing, speed / deceleration_deg_s2 + self.MOTION_MARGIN_S,
-                          self._transition_timeout("standstill", command))
+        await self._until(
+            self._standing,
+            speed / deceleration_deg_s2 + self.MOTION_MARGIN_S,
+            self._transition_timeout("standstill", command),
+        )
         log.info("drive_stopped", drive=self.name, angle_deg=self.latest.angle_deg if self.latest else None)
 
     async def quick_stop(self) -> None:
         """CiA 402 quick stop: the drive brakes on its quick-stop ramp; returns at standstill.
         With a latched fault the command is sent and the drive's own fault reaction brakes."""
         await self._write_controlword(cia402.QUICK_STOP)
-        if self.fault is not None or self.state not in (Cia402State.OPERATION_ENABLED, Cia402State.QUICK_STOP_ACTIVE):
+        if self.fault is not None or self.state not in (
+            Cia402State.OPERATION_ENABLED,
+            Cia402State.QUICK_STOP_ACTIVE,
+        ):
             return
-        await self._until(lambda: self.state is not Cia402State.OPERATION_ENABLED, self.TRANSITION_TIMEOUT_S,
-                          self._transition_timeout(Cia402State.QUICK_STOP_ACTIVE.value, cia402.QUICK_STOP))
+        await self._until(
+            lambda: self.state is not Cia402State.OPERATION_ENABLED,
+            self.TRANSITION_TIMEOUT_S,
+            self._transition_timeout(Cia402State.QUICK_STOP_ACTIVE.value, cia402.QUICK_STOP),
+        )
         speed = abs(self.latest.speed_deg_s) if self.latest else 0.0
-        await self._until(self._standing, speed / self.config.max_acceleration_deg_s2 + self.MOTION_MARGIN_S,
-                          self._transition_timeout("standstill after quick stop", cia402.QUICK_STOP))
+        await self._until(
+            self._standing,
+            speed / self.config.max_acceleration_deg_s2 + self.MOTION_MARGIN_S,
+            self._transition_timeout("standstill after quick stop", cia402.QUICK_STOP),
+        )
         log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
 
     async def reset_fault(self) -> None:
@@ -316,9 +380,12 @@ class BeamDrive:
             await self._write_controlword(cia402.DISABLE_VOLTAGE)
             await self._write_controlword(cia402.FAULT_RESET)
             try:
-                await self._until(lambda: self.state is Cia402State.SWITCH_ON_DISABLED, self.TRANSITION_TIMEOUT_S,
-                                  self._transition_timeout(Cia402State.SWITCH_ON_DISABLED.value, cia402.FAULT_RESET),
-                                  raise_fault=False)
+                await self._until(
+                    lambda: self.state is Cia402State.SWITCH_ON_DISABLED,
+                    self.TRANSITION_TIMEOUT_S,
+                    self._transition_timeout(Cia402State.SWITCH_ON_DISABLED.value, cia402.FAULT_RESET),
+                    raise_fault=False,
+                )
             finally:
                 await self._write_controlword(cia402.DISABLE_VOLTAGE)
         log.info("drive_fault_reset", drive=self.name, cleared=str(self.fault) if self.fault else None)
@@ -358,10 +425,19 @@ class BeamDrive:
         n, cfg = self.node_id, self.config
         write = self.sdo.write
         await write(cia402.HEARTBEAT_PRODUCER, 0, "<H", cfg.heartbeat_producer_ms)
-        await write(cia402.HEARTBEAT_CONSUMER, 1, "<I", nmt.consumer_heartbeat_value(self.host_node_id, cfg.heartbeat_timeout_ms))
+        await write(
+            cia402.HEARTBEAT_CONSUMER,
+            1,
+            "<I",
+            nmt.consumer_heartbeat_value(self.host_node_id, cfg.heartbeat_timeout_ms),
+        )
         period_ms = max(1, round(1000 / cfg.position_rate_hz))
         for k, mapping in enumerate((POSITION_TPDO, STATUS_TPDO)):
-            comm, mapping_index, cob_id = pdo.TPDO_COMMUNICATION + k, pdo.TPDO_MAPPING + k, nmt.tpdo_cob_id(k + 1, n)
+            comm, mapping_index, cob_id = (
+                pdo.TPDO_COMMUNICATION + k,
+                pdo.TPDO_MAPPING + k,
+                nmt.tpdo_cob_id(k + 1, n),
+            )
             await write(comm, 1, "<I", pdo.COB_ID_INVALID | cob_id)
             await write(mapping_index, 0, "<B", 0)
             for sub, obj in enumerate(mapping, start=1):
@@ -398,23 +474,42 @@ class BeamDrive:
     def _check_limits(self, speed_deg_s: float, acceleration_deg_s2: float) -> None:
         cfg = self.config
         if not math.isfinite(speed_deg_s) or abs(speed_deg_s) > cfg.max_speed_deg_s:
-            raise MotionLimitError(self.name, self.state.value, f"speed {speed_deg_s:g} deg/s outside +-{cfg.max_speed_deg_s:g}")
-        if not math.isfinite(acceleration_deg_s2) or not 0 < acceleration_deg_s2 <= cfg.max_acceleration_deg_s2:
             raise MotionLimitError(
-                self.name, self.state.value,
-                f"acceleration {acceleration_deg_s2:g} deg/s^2 outside (0, {cfg.max_acceleration_deg_s2:g}]")
+                self.name, self.state.value, f"speed {speed_deg_s:g} deg/s outside +-{cfg.max_speed_deg_s:g}"
+            )
+        if (
+            not math.isfinite(acceleration_deg_s2)
+            or not 0 < acceleration_deg_s2 <= cfg.max_acceleration_deg_s2
+        ):
+            raise MotionLimitError(
+                self.name,
+                self.state.value,
+                f"acceleration {acceleration_deg_s2:g} deg/s^2 outside (0, {cfg.max_acceleration_deg_s2:g}]",
+            )
 
     def _standing(self) -> bool:
-        return self.latest is not None and self.latest.speed_deg_s == 0 and bool(self.statusword & Status.TARGET_REACHED)
+        return (
+            self.latest is not None
+            and self.latest.speed_deg_s == 0
+            and bool(self.statusword & Status.TARGET_REACHED)
+        )
 
     def _transition_timeout(self, goal: str, controlword: int) -> Callable[[], DriveError]:
         def make() -> DriveError:
-            return StateTransitionTimeout(self.name, self.state.value, goal, controlword, self.statusword,
-                                          self.TRANSITION_TIMEOUT_S)
+            return StateTransitionTimeout(
+                self.name, self.state.value, goal, controlword, self.statusword, self.TRANSITION_TIMEOUT_S
+            )
+
         return make
 
-    async def _until(self, predicate: Callable[[], bool], timeout_s: float, on_timeout: Callable[[], DriveError],
-                     *, raise_fault: bool = True) -> None:
+    async def _until(
+        self,
+        predicate: Callable[[], bool],
+        timeout_s: float,
+        on_timeout: Callable[[], DriveError],
+        *,
+        raise_fault: bool = True,
+    ) -> None:
         """Wait for ``predicate`` on statusword / sample updates; a latched fault raises."""
         try:
             async with asyncio.timeout(timeout_s):
@@ -438,8 +533,11 @@ class BeamDrive:
             raise DriveNotReady(self.name, self.state.value, str(exc)) from None
         for next_state, controlword in steps:
             await self._write_controlword(controlword)
-            await self._until(lambda s=next_state: self.state is s, self.TRANSITION_TIMEOUT_S,  # type: ignore[misc]
-                              self._transition_timeout(next_state.value, controlword))
+            await self._until(
+                lambda s=next_state: self.state is s,
+                self.TRANSITION_TIMEOUT_S,  # type: ignore[misc]
+                self._transition_timeout(next_state.value, controlword),
+            )
 
     async def _write_controlword(self, word: int) -> None:
         await self.sdo.write(cia402.CONTROLWORD, 0, "<H", word)
@@ -520,7 +618,13 @@ class BeamDrive:
             return
         self.statusword = word
         if state is not self.state:
-            log.info("drive_state", drive=self.name, old=self.state.value, new=state.value, statusword=f"0x{word:04X}")
+            log.info(
+                "drive_state",
+                drive=self.name,
+                old=self.state.value,
+                new=state.value,
+                statusword=f"0x{word:04X}",
+            )
             self.state = state
         if state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE) and self.fault is None:
             last = self._last_emcy

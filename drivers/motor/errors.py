@@ -93,9 +93,7 @@ class HeartbeatLost(DriveError):
     def __init__(self, device: str, state: str, silent_s: float, timeout_s: float) -> None:
         self.silent_s = silent_s
         self.timeout_s = timeout_s
-        super().__init__(
-            device, state, f"no heartbeat for {silent_s:.3f} s (consumer time {timeout_s:g} s)"
-        )
+        super().__init__(device, state, f"no heartbeat for {silent_s:.3f} s (consumer time {timeout_s:g} s)")
 
 
 class DriveRebooted(DriveError):

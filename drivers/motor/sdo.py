@@ -131,8 +131,13 @@ def parse_sdo(data: bytes, *, from_client: bool) -> SdoMessage:
     length = 4 - ((command >> 2) & 0x03) if size_indicated else 4
     if from_client and specifier == 1:
         return SdoMessage(
-            SdoKind.DOWNLOAD, index, subindex, raw[:length] if expedited else b"",
-            size_indicated=size_indicated, expedited=expedited, raw=raw,
+            SdoKind.DOWNLOAD,
+            index,
+            subindex,
+            raw[:length] if expedited else b"",
+            size_indicated=size_indicated,
+            expedited=expedited,
+            raw=raw,
         )
     if from_client and specifier == 2:
         return SdoMessage(SdoKind.UPLOAD, index, subindex, raw=raw)
@@ -140,8 +145,13 @@ def parse_sdo(data: bytes, *, from_client: bool) -> SdoMessage:
         return SdoMessage(SdoKind.DOWNLOAD_REPLY, index, subindex, raw=raw)
     if not from_client and specifier == 2:
         return SdoMessage(
-            SdoKind.UPLOAD_REPLY, index, subindex, raw[:length] if expedited else b"",
-            size_indicated=size_indicated, expedited=expedited, raw=raw,
+            SdoKind.UPLOAD_REPLY,
+            index,
+            subindex,
+            raw[:length] if expedited else b"",
+            size_indicated=size_indicated,
+            expedited=expedited,
+            raw=raw,
         )
     raise ValueError(f"unsupported SDO command byte 0x{command:02X}")
 
@@ -205,7 +215,8 @@ class SdoClient:
             raise SdoAbort(self.device, self._state(), reply.index, reply.subindex, reply.code)
         if (reply.index, reply.subindex) != (index, subindex):
             raise SdoProtocolError(
-                self.device, self._state(),
+                self.device,
+                self._state(),
                 f"reply for 0x{reply.index:04X}:{reply.subindex} to a request for 0x{index:04X}:{subindex}",
             )
         return reply
@@ -215,7 +226,8 @@ class SdoClient:
         reply = await self._transfer(upload_request(index, subindex), index, subindex)
         if reply.kind is not SdoKind.UPLOAD_REPLY or not reply.expedited:
             raise SdoProtocolError(
-                self.device, self._state(),
+                self.device,
+                self._state(),
                 f"0x{index:04X}:{subindex}: expected an expedited upload reply, got {reply.kind.value}",
             )
         return reply.data
@@ -225,7 +237,8 @@ class SdoClient:
         reply = await self._transfer(download_request(index, subindex, data), index, subindex)
         if reply.kind is not SdoKind.DOWNLOAD_REPLY:
             raise SdoProtocolError(
-                self.device, self._state(),
+                self.device,
+                self._state(),
                 f"0x{index:04X}:{subindex}: expected a download reply, got {reply.kind.value}",
             )
 
@@ -234,7 +247,8 @@ class SdoClient:
         data = await self.upload(index, subindex)
         if len(data) != struct.calcsize(fmt):
             raise SdoProtocolError(
-                self.device, self._state(),
+                self.device,
+                self._state(),
                 f"0x{index:04X}:{subindex}: {len(data)} bytes, expected {struct.calcsize(fmt)}",
             )
         return int(struct.unpack(fmt, data)[0])

@@ -85,24 +85,28 @@ class SimulatedNode:
     def reset_communication_objects(self) -> None:
         """Communication objects (0x1000-0x1FFF) to their power-on values."""
         n = self.node_id
-        self.od.update({
-            (0x1000, 0): ObjectEntry("<I", self.DEVICE_TYPE, writable=False),
-            (0x1001, 0): ObjectEntry("<B", 0, writable=False, mappable=True),
-            (0x1016, 0): ObjectEntry("<B", 1, writable=False),
-            (0x1016, 1): ObjectEntry("<I", 0),
-            (0x1017, 0): ObjectEntry("<H", 0),
-        })
+        self.od.update(
+            {
+                (0x1000, 0): ObjectEntry("<I", self.DEVICE_TYPE, writable=False),
+                (0x1001, 0): ObjectEntry("<B", 0, writable=False, mappable=True),
+                (0x1016, 0): ObjectEntry("<B", 1, writable=False),
+                (0x1016, 1): ObjectEntry("<I", 0),
+                (0x1017, 0): ObjectEntry("<H", 0),
+            }
+        )
         for k in range(self.TPDO_COUNT):
             invalid = 0 if k == 0 else pdo.COB_ID_INVALID
             comm, mapping = pdo.TPDO_COMMUNICATION + k, pdo.TPDO_MAPPING + k
-            self.od.update({
-                (comm, 0): ObjectEntry("<B", 5, writable=False),
-                (comm, 1): ObjectEntry("<I", invalid | nmt.tpdo_cob_id(k + 1, n)),
-                (comm, 2): ObjectEntry("<B", pdo.TRANSMISSION_EVENT_DRIVEN),
-                (comm, 3): ObjectEntry("<H", 0),
-                (comm, 5): ObjectEntry("<H", 0),
-                (mapping, 0): ObjectEntry("<B", 0),
-            })
+            self.od.update(
+                {
+                    (comm, 0): ObjectEntry("<B", 5, writable=False),
+                    (comm, 1): ObjectEntry("<I", invalid | nmt.tpdo_cob_id(k + 1, n)),
+                    (comm, 2): ObjectEntry("<B", pdo.TRANSMISSION_EVENT_DRIVEN),
+                    (comm, 3): ObjectEntry("<H", 0),
+                    (comm, 5): ObjectEntry("<H", 0),
+                    (mapping, 0): ObjectEntry("<B", 0),
+                }
+            )
             entries = self.DEFAULT_TPDO_MAPPING.get(k, ())
             self.od[(mapping, 0)].value = len(entries)
             for sub in range(1, 9):
@@ -294,7 +298,7 @@ class SimulatedNode:
         try:
             request = sdo.parse_sdo(data, from_client=True)
         except ValueError:
-            index, subindex = (struct.unpack_from("<HB", data, 1) if len(data) >= 4 else (0, 0))
+            index, subindex = struct.unpack_from("<HB", data, 1) if len(data) >= 4 else (0, 0)
             return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
         index, subindex = request.index, request.subindex
         if request.kind is sdo.SdoKind.ABORT:

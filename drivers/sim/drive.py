@@ -34,9 +34,19 @@ from planner.rig import Motor
 log = structlog.get_logger(__name__)
 
 S = Cia402State
-_POWERED = {S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE}
+_POWERED = {
+    S.READY_TO_SWITCH_ON,
+    S.SWITCHED_ON,
+    S.OPERATION_ENABLED,
+    S.QUICK_STOP_ACTIVE,
+    S.FAULT_REACTION_ACTIVE,
+}
 _QUICK_STOP_BIT_SET = {S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED}
-_REMOTE, _VOLTAGE_ENABLED, _QUICK_STOP = int(Status.REMOTE), int(Status.VOLTAGE_ENABLED), int(Status.QUICK_STOP)
+_REMOTE, _VOLTAGE_ENABLED, _QUICK_STOP = (
+    int(Status.REMOTE),
+    int(Status.VOLTAGE_ENABLED),
+    int(Status.QUICK_STOP),
+)
 _TARGET_REACHED, _SET_POINT_ACKNOWLEDGE = int(Status.TARGET_REACHED), int(Status.SET_POINT_ACKNOWLEDGE)
 _REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # EMCY class -> 0x1001 bit
 _QUICK_STOP_OPTIONS = {1, 2, 5, 6}
@@ -57,7 +67,9 @@ class SimulatedDrive(SimulatedNode):
     SUPPORTED_MODES = 0x25  # profile position, profile velocity, homing
     DEFAULT_TPDO_MAPPING = {0: (0x6041_0010,)}  # TPDO1: statusword, as most drives ship
 
-    def __init__(self, port: CanPort, config: Motor, *, initial_angle_deg: float = 0.0, name: str = "sim-drive") -> None:
+    def __init__(
+        self, port: CanPort, config: Motor, *, initial_angle_deg: float = 0.0, name: str = "sim-drive"
+    ) -> None:
         self.config = config
         self.counts_per_degree = config.counts_per_degree
         self.initial_angle_deg = initial_angle_deg
@@ -94,9 +106,24 @@ class SimulatedDrive(SimulatedNode):
             cia402.TARGET_POSITION: ("<i", 0, rw, True),
             cia402.HOME_OFFSET: ("<i", 0, rw, False),
             cia402.PROFILE_VELOCITY: ("<I", round(self.config.max_speed_deg_s * cpd / 4), rw, True),
-            cia402.PROFILE_ACCELERATION: ("<I", round(self.config.max_acceleration_deg_s2 * cpd / 4), rw, False),
-            cia402.PROFILE_DECELERATION: ("<I", round(self.config.max_acceleration_deg_s2 * cpd / 4), rw, False),
-            cia402.QUICK_STOP_DECELERATION: ("<I", round(self.config.max_acceleration_deg_s2 * cpd), rw, False),
+            cia402.PROFILE_ACCELERATION: (
+                "<I",
+                round(self.config.max_acceleration_deg_s2 * cpd / 4),
+                rw,
+                False,
+            ),
+            cia402.PROFILE_DECELERATION: (
+                "<I",
+                round(self.config.max_acceleration_deg_s2 * cpd / 4),
+                rw,
+                False,
+            ),
+            cia402.QUICK_STOP_DECELERATION: (
+                "<I",
+                round(self.config.max_acceleration_deg_s2 * cpd),
+                rw,
+                False,
+            ),
             cia402.HOMING_METHOD: ("<b", cia402.HOMING_ON_CURRENT_POSITION, rw, False),
             cia402.TARGET_VELOCITY: ("<i", 0, rw, True),
             cia402.SUPPORTED_MODES: ("<I", self.SUPPORTED_MODES, ro, False),
@@ -130,14 +157,24 @@ class SimulatedDrive(SimulatedNode):
     def write_object(self, index: int, subindex: int, value: int) -> None:
         if index == cia402.QUICK_STOP_OPTION and value not in _QUICK_STOP_OPTIONS:
             raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
-        if index == cia402.MODES_OF_OPERATION and value not in (0, *(m for m in Mode if self.SUPPORTED_MODES >> (m - 1) & 1)):
+        if index == cia402.MODES_OF_OPERATION and value not in (
+            0,
+            *(m for m in Mode if self.SUPPORTED_MODES >> (m - 1) & 1),
+        ):
             raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
-        if index in (cia402.PROFILE_ACCELERATION, cia402.PROFILE_DECELERATION, cia402.QUICK_STOP_DECELERATION) and value == 0:
+        if (
+            index
+            in (cia402.PROFILE_ACCELERATION, cia402.PROFILE_DECELERATION, cia402.QUICK_STOP_DECELERATION)
+            and value == 0
+        ):
             raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
         super().write_object(index, subindex, value)
         if index == cia402.CONTROLWORD:
             self._on_controlword(value)
-        elif index in (cia402.TARGET_VELOCITY, cia402.MODES_OF_OPERATION) and self._mode() is Mode.PROFILE_VELOCITY:
+        elif (
+            index in (cia402.TARGET_VELOCITY, cia402.MODES_OF_OPERATION)
+            and self._mode() is Mode.PROFILE_VELOCITY
+        ):
             self._apply_velocity()
 
     # ------------------------------------------------------------------ observed values
@@ -162,7 +199,9 @@ class SimulatedDrive(SimulatedNode):
         if self._target_reached():
             word |= _TARGET_REACHED
         mode = self._mode()
-        if (mode is Mode.PROFILE_POSITION and self._set_point_ack) or (mode is Mode.HOMING and self._homing_attained):
+        if (mode is Mode.PROFILE_POSITION and self._set_point_ack) or (
+            mode is Mode.HOMING and self._homing_attained
+        ):
             word |= _SET_POINT_ACKNOWLEDGE
         return word
 
@@ -267,7 +306,9 @@ class SimulatedDrive(SimulatedNode):
             if rising & cia402.Control.FAULT_RESET and not self.estop_pressed and self.jammed_at is None:
                 self.state = S.SWITCH_ON_DISABLED
                 self.error_code = 0
-                self._spawn(self.send(nmt.emcy_cob_id(self.node_id), emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0))))
+                self._spawn(
+                    self.send(nmt.emcy_cob_id(self.node_id), emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0)))
+                )
             self._statusword_changed()
             return
         if state is S.FAULT_REACTION_ACTIVE:
@@ -394,7 +435,9 @@ class SimulatedDrive(SimulatedNode):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``tbp sim motor``."""
-    parser.add_argument("--port", type=int, default=29536, help="TCP port of the socketcand bridge on 127.0.0.1")
+    parser.add_argument(
+        "--port", type=int, default=29536, help="TCP port of the socketcand bridge on 127.0.0.1"
+    )
     parser.add_argument("--channel", default="can0", help="CAN channel name the bridge serves")
     parser.add_argument("--config", default=None, help="rig file (default: calibration_data/rig.yaml)")
     parser.add_argument("--initial-angle", type=float, default=0.0, help="beam angle at power-on, deg")
@@ -415,7 +458,11 @@ async def serve(args: argparse.Namespace) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     runner = asyncio.create_task(drive.run(), name="sim-drive")
-    print(f"simulated drive node {rig.motor.node_id} on socketcand 127.0.0.1:{server.port} channel {args.channel}", flush=True)
+    print(
+        f"simulated drive node {rig.motor.node_id} on socketcand "
+        f"127.0.0.1:{server.port} channel {args.channel}",
+        flush=True,
+    )
     try:
         await stop.wait()
     finally:

@@ -63,7 +63,9 @@ class SocketcandServer:
         port: TCP port, 0 to pick a free one (see :attr:`port` after :meth:`start`).
     """
 
-    def __init__(self, bus: LoopbackCanBus, *, channel: str = "can0", host: str = "127.0.0.1", port: int = 0) -> None:
+    def __init__(
+        self, bus: LoopbackCanBus, *, channel: str = "can0", host: str = "127.0.0.1", port: int = 0
+    ) -> None:
         if not ipaddress.ip_address(host).is_loopback:
             raise ValueError(f"socketcand bridge must listen on a loopback address, got {host}")
         self.bus = bus

@@ -98,8 +98,9 @@ async def _socketcand(tcp_port: int) -> tuple[float, list[float], float]:
     from planner.rig import load_rig
 
     motor = load_rig().motor
-    bus = await asyncio.to_thread(can.Bus, interface="socketcand", host="127.0.0.1", port=tcp_port, channel="can0",
-                                  tcp_tune=True)
+    bus = await asyncio.to_thread(
+        can.Bus, interface="socketcand", host="127.0.0.1", port=tcp_port, channel="can0", tcp_tune=True
+    )
     return await _measure(PythonCanPort(bus, name="socketcand"), motor)
 
 
@@ -117,7 +118,9 @@ def _serve_in_subprocess(tcp_port: int) -> subprocess.Popen:
         "p = argparse.ArgumentParser(); add_arguments(p)\n"
         f"asyncio.run(serve(p.parse_args(['--port', '{tcp_port}'])))\n"
     )
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=os.environ.copy())
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=os.environ.copy()
+    )
     while proc.stdout is not None:
         line = proc.stdout.readline()
         if not line or "simulated drive" in line:  # the bridge is listening
@@ -133,9 +136,13 @@ def _report(label: str, results: list[tuple[float, list[float], float]]) -> None
     verdict = "OK" if rate >= GOAL_HZ else "BELOW GOAL"
     p50 = latencies[len(latencies) // 2] * 1e3
     p99 = latencies[int(len(latencies) * 0.99)] * 1e3
-    print(f"{label:<11} rate {rate:7.1f} Hz (goal >= {GOAL_HZ:.0f} Hz, runs {', '.join(f'{r:.1f}' for r in rates)}) "
-          f"{verdict}; latency p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {latencies[-1] * 1e3:.3f} ms; "
-          f"this process's CPU {cpu * 100:.1f} % of a core", flush=True)
+    print(
+        f"{label:<11} rate {rate:7.1f} Hz (goal >= {GOAL_HZ:.0f} Hz, "
+        f"runs {', '.join(f'{r:.1f}' for r in rates)}) "
+        f"{verdict}; latency p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {latencies[-1] * 1e3:.3f} ms; "
+        f"this process's CPU {cpu * 100:.1f} % of a core",
+        flush=True,
+    )
 
 
 def run() -> None:
