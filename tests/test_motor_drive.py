@@ -413,6 +413,17 @@ def test_silent_drive_fails_connect() -> None:
     run_virtual(main())
 
 
+def test_motion_timeout_names_goal_and_the_real_timeout() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(10.0, 20.0)
+        with pytest.raises(StateTransitionTimeout) as info:
+            await drive.wait_speed(30.0, timeout_s=3.0)  # never commanded: never reached
+        assert info.value.timeout_s == 3.0 and info.value.goal == "speed 30 deg/s"
+        assert "beam [operation enabled]: did not reach speed 30 deg/s within 3 s" in str(info.value)
+
+    run(scenario)
+
+
 def test_quick_stop_then_resume() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         await drive.rotate(30.0, 60.0)

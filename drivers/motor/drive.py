@@ -177,8 +177,8 @@ class BeamDrive:
         await self._until(
             lambda: self.latest is not None,
             self.FIRST_SAMPLE_TIMEOUT_S,
-            lambda: NmtTimeout(
-                self.name, self.state.value, f"no TPDO within {self.FIRST_SAMPLE_TIMEOUT_S:g} s of NMT start"
+            lambda timeout_s: NmtTimeout(
+                self.name, self.state.value, f"no TPDO within {timeout_s:g} s of NMT start"
             ),
         )
         log.info(
@@ -494,10 +494,10 @@ class BeamDrive:
             and bool(self.statusword & Status.TARGET_REACHED)
         )
 
-    def _transition_timeout(self, goal: str, controlword: int) -> Callable[[], DriveError]:
-        def make() -> DriveError:
+    def _transition_timeout(self, goal: str, controlword: int) -> Callable[[float], DriveError]:
+        def make(timeout_s: float) -> DriveError:
             return StateTransitionTimeout(
-                self.name, self.state.value, goal, controlword, self.statusword, self.TRANSITION_TIMEOUT_S
+                self.name, self.state.value, goal, controlword, self.statusword, timeout_s
             )
 
         return make
@@ -506,7 +506,7 @@ class BeamDrive:
         self,
         predicate: Callable[[], bool],
         timeout_s: float,
-        on_timeout: Callable[[], DriveError],
+        on_timeout: Callable[[float], DriveError],
         *,
         raise_fault: bool = True,
     ) -> None:
@@ -522,7 +522,7 @@ class BeamDrive:
                         raise DriveNotReady(self.name, self.state.value, "closed while waiting")
                     await self._update.wait()
         except TimeoutError:
-            raise on_timeout() from None
+            raise on_timeout(timeout_s) from None
 
     async def _goto(self, goal: Cia402State) -> None:
         if self.state is goal:
