@@ -264,8 +264,9 @@ def test_jammed_beam_raises_following_error() -> None:
         move = asyncio.create_task(drive.move_to(90.0, 30.0, 60.0))
         await asyncio.sleep(0.5)
         sim.jam()
-        with pytest.raises(FollowingError, match="following error"):
+        with pytest.raises(FollowingError, match="following error") as info:
             await move
+        assert info.value.code == 0x8611 and info.value.register == 0x21
         assert drive.state is S.FAULT
         sim.unjam()
         await drive.reset_fault()

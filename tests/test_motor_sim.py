@@ -195,7 +195,7 @@ def test_estop_ramp_then_fault_with_emcy() -> None:
         sim.press_estop()
         await asyncio.sleep(0.001)
         emcy = [d for _, c, d in master.frames if c == 0x080 + N]
-        assert emcy == [bytes.fromhex("4154010000000000")]
+        assert emcy == [bytes.fromhex("4154210000000000")]  # generic + device profile specific
         assert sim.state.value == "fault reaction active"
         await asyncio.sleep(1.0)
         assert sim.state.value == "fault" and sim.true_speed_deg_s == 0.0

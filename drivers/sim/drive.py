@@ -48,7 +48,9 @@ _REMOTE, _VOLTAGE_ENABLED, _QUICK_STOP = (
     int(Status.QUICK_STOP),
 )
 _TARGET_REACHED, _SET_POINT_ACKNOWLEDGE = int(Status.TARGET_REACHED), int(Status.SET_POINT_ACKNOWLEDGE)
-_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}  # EMCY class -> 0x1001 bit
+# EMCY code prefix -> error register (0x1001) bit: current, voltage, temperature, communication,
+# device profile specific (position control, the e-stop input).
+_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x81: 0x10, 0x86: 0x20, 0x54: 0x20}
 _QUICK_STOP_OPTIONS = {1, 2, 5, 6}
 _MODES = {int(m): m for m in Mode}
 
@@ -244,7 +246,8 @@ class SimulatedDrive(SimulatedNode):
     def _error_register(self) -> int:
         if self.error_code == 0:
             return 0
-        return 0x01 | _REGISTER_BITS.get(self.error_code >> 12, 0)
+        code = self.error_code
+        return 0x01 | _REGISTER_BITS.get(code >> 8, _REGISTER_BITS.get(code >> 12, 0))
 
     # ------------------------------------------------------------------ fault injection
 
