@@ -35,6 +35,8 @@ class RigController:
 
     CONNECT_TIMEOUT_S = 10.0
     STOP_DECELERATION_DEG_S2 = 30.0
+    STANDSTILL_TIMEOUT_S = 5.0
+    STANDSTILL_DEG_S = 1e-3
 
     def __init__(
         self,
@@ -60,7 +62,7 @@ class RigController:
         self.scan_task: asyncio.Task[ScanReport] | None = None
         self.current: Scan | None = None
         self.last_report: ScanReport | None = None
-        self.safety.add_handler("beam quick stop", hardware.drive.quick_stop)
+        self.safety.add_handler("beam quick stop", self._quick_stop)
         if hardware.panel is not None:
             self.safety.add_handler("panel fault light", self._panel_fault)
         self.safety.on_trip(self._cancel_scan)
@@ -171,6 +173,15 @@ class RigController:
             await self._panel("IDLE")
 
         await self.safety.reset(cause, recover)
+
+    async def _quick_stop(self) -> None:
+        """Quick stop, then wait until the encoder shows the beam standing still."""
+        await self.hw.drive.quick_stop()
+        async with asyncio.timeout(self.STANDSTILL_TIMEOUT_S):
+            while True:
+                sample = await self.tracker.next_sample()
+                if abs(sample.speed_deg_s) < self.STANDSTILL_DEG_S:
+                    return
 
     def _cancel_scan(self, cause: str) -> None:
         if self.current is not None and self.busy:

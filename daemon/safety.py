@@ -44,6 +44,8 @@ class SafetyMonitor:
         self._handlers: list[tuple[str, Handler]] = []
         self._listeners: list[Callable[[str], None]] = []
         self._watch: asyncio.Task[None] | None = None
+        self._handled = asyncio.Event()
+        self._handled.set()
 
     def add_handler(self, name: str, handler: Handler) -> None:
         """A shutdown action, run on every trip in registration order (concurrently)."""
@@ -66,6 +68,8 @@ class SafetyMonitor:
         """Latch a fault and run every shutdown handler; a second trip only adds its cause."""
         cause = f"{source}: {detail}"
         first = not self.latched
+        if first:
+            self._handled.clear()
         self.causes.append(cause)
         self.tripped.set()
         self.machine.transition(ScanState.FAULT, cause)
@@ -82,6 +86,11 @@ class SafetyMonitor:
                 failure = f"shutdown handler {name} failed: {type(result).__name__}: {result}"
                 self.causes.append(failure)
                 self.machine.transition(ScanState.FAULT, failure)
+        self._handled.set()
+
+    async def settled(self) -> None:
+        """Wait until the shutdown handlers of the current trip have all finished."""
+        await self._handled.wait()
 
     async def _run(self, name: str, handler: Handler) -> None:
         async with asyncio.timeout(self.HANDLER_TIMEOUT_S):

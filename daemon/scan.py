@@ -83,9 +83,31 @@ def _timed(func: Callable[..., Any], *args: Any) -> tuple[Any, float]:
 
 
 def _reconstruct(sweep: SweepRecord, rig: Rig) -> Any:
+    import dataclasses
+
     from planner.tsdf import fuse
 
-    return fuse(list(sweep.sweep.frames), rig)
+    fused = fuse(list(sweep.sweep.frames), rig)
+    return dataclasses.replace(fused, mesh=canonical_mesh(fused.mesh))
+
+
+def canonical_mesh(mesh: Any) -> Any:
+    """The same surface with vertices and faces in a canonical order.
+
+    Open3D's parallel voxel hash map hands out blocks in a run-dependent order; sorting makes
+    the planner's seeded surface sampling, and so the whole scan, reproducible.
+    """
+    import trimesh
+
+    vertices = np.asarray(mesh.vertices, dtype=float)
+    order = np.lexsort(vertices.T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    faces = rank[np.asarray(mesh.faces)]
+    first = np.argmin(faces, axis=1)
+    faces = np.take_along_axis(faces, (np.arange(3)[None, :] + first[:, None]) % 3, axis=1)
+    faces = faces[np.lexsort(faces.T[::-1])]
+    return trimesh.Trimesh(vertices[order], faces, process=False)
 
 
 def _plan(mesh: Any, rig: Rig, seed: int, points: int | None) -> Any:
@@ -193,6 +215,7 @@ class Scan:
             await self.safety.trip(getattr(self.hw.drive, "name", "beam"),
                                    f"{type(error).__name__}: {error}")
         if self.safety.latched:
+            await self.safety.settled()
             report.outcome = ScanOutcome.FAULTED
             report.reason = "; ".join(self.safety.causes)
         elif self._abort_cause is not None or error is not None:
@@ -435,7 +458,7 @@ def _plan_summary(plan_json: dict[str, Any]) -> dict[str, Any]:
         "visible_fraction": plan_json.get("visible_fraction"),
         "method": PLAN_METHOD,
         "methods": {
-            name: {k: m.get(k) for k in ("total_cost", "in_focus_fraction", "seconds")}
+            name: {k: m.get(k) for k in ("total_cost", "in_focus_fraction")}
             for name, m in plan_json.get("methods", {}).items()
         },
     }

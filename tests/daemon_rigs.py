@@ -1,0 +1,107 @@
+"""Rigs for the daemon's scan tests: the protocol-level drive and depth simulators with mock phones.
+
+The beam drive (CANopen over the loopback bus) and the depth cameras (ray cast) are the real
+simulators; the phones are the mock tier (tests/daemon_mocks.py) so faults can be placed on an
+exact capture. The subject is a capsule of human height: cheap to ray cast and to fuse.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import trimesh
+
+from daemon.controller import RigController
+from daemon.hardware import RigHardware
+from daemon.scan import ScanReport
+from daemon.sim_rig import sim_depth_model
+from daemon.store import ScanStore
+from drivers.sim.clock import run_virtual
+from planner.rig import Rig, load_rig
+from tests.daemon_mocks import MockPhone
+
+RIG = load_rig()
+PLAN_POINTS = 1500
+
+
+def capsule_subject() -> trimesh.Trimesh:
+    body = trimesh.creation.capsule(height=1400.0, radius=170.0, count=[24, 24])
+    body.apply_translation([0.0, 0.0, 870.0])
+    return body
+
+
+@dataclass
+class MockWorld:
+    sim_drive: Any
+    phones: list[MockPhone]
+    tasks: list[asyncio.Task[Any]] = field(default_factory=list)
+
+
+async def build_rig(rig: Rig, seed: int) -> tuple[RigHardware, MockWorld]:
+    from drivers.motor.drive import BeamDrive
+    from drivers.motor.port import LoopbackCanBus
+    from drivers.sim.depth import DepthScene, SimulatedDepthCamera
+    from drivers.sim.drive import SimulatedDrive
+
+    bus = LoopbackCanBus("test")
+    sim_drive = SimulatedDrive(bus.port("drive"), rig.motor)
+    world = MockWorld(sim_drive, [MockPhone(p.serial, seed=seed * 10 + i) for i, p in enumerate(rig.phones)])
+    world.tasks.append(asyncio.create_task(sim_drive.run()))
+    scene = DepthScene(capsule_subject())
+    model = sim_depth_model(rig.depth_camera_model, 4, 10.0)
+    cameras = [SimulatedDepthCamera(c, model, scene, lambda _t: sim_drive.true_angle_deg, seed=seed * 10 + i)
+               for i, c in enumerate(rig.depth_cameras)]
+
+    async def stop_sims() -> None:
+        for task in world.tasks:
+            task.cancel()
+        await asyncio.gather(*world.tasks, return_exceptions=True)
+
+    hardware = RigHardware(BeamDrive(bus.port("host"), rig.motor), world.phones, cameras, None,
+                           closers=[stop_sims])
+    return hardware, world
+
+
+Hook = Callable[[RigController, MockWorld], Awaitable[None]]
+
+
+def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: Hook | None = None,
+             store_factory: Callable[[Path], ScanStore] = ScanStore,
+             prepare: Callable[[MockWorld], None] | None = None) -> tuple[ScanReport, RigController, MockWorld]:
+    """One scan in virtual time; ``during`` runs concurrently with it, ``after`` once it ended."""
+
+    async def main() -> tuple[ScanReport, RigController, MockWorld]:
+        hardware, world = await build_rig(RIG, seed)
+        if prepare is not None:
+            prepare(world)
+        with ThreadPoolExecutor(max_workers=1) as executor:
+            controller = RigController(RIG, hardware, store_factory(store), executor=executor,
+                                       seed=seed, plan_points=PLAN_POINTS)
+            await controller.start()
+            side = asyncio.create_task(during(controller, world)) if during is not None else None
+            try:
+                report = await controller.scan(f"test-seed{seed}")
+                if after is not None:
+                    await after(controller, world)
+            finally:
+                if side is not None:
+                    side.cancel()
+                    await asyncio.gather(side, return_exceptions=True)
+                await controller.close()
+        return report, controller, world
+
+    return run_virtual(main())
+
+
+async def wait_captured(controller: RigController, count: int) -> None:
+    """Until the running scan has captured ``count`` images."""
+    while True:
+        scan = controller.current
+        if scan is not None and scan.runner is not None and scan.runner.captured >= count:
+            return
+        await asyncio.sleep(0.05)

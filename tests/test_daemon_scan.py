@@ -1,0 +1,166 @@
+"""Whole scans in virtual time on the simulated drive and depth cameras (mock phones):
+a complete scan, determinism, e-stop, drive fault, lost heartbeat, phones lost, disk full."""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.errors import ScanBusy
+from daemon.states import ScanOutcome, ScanState
+from daemon.store import AtomicWriter, ScanStore
+from tests.daemon_rigs import RIG, run_scan, wait_captured
+
+pytestmark = pytest.mark.slow
+
+
+def _manifest(report) -> dict:
+    return json.loads((report.folder / "manifest.json").read_text())
+
+
+def _captures(report) -> list[dict]:
+    return json.loads((report.folder / "captures.json").read_text())
+
+
+def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
+    report, controller, _ = run_scan(tmp_path)
+    assert report.outcome is ScanOutcome.COMPLETED, report.reason
+    assert report.captured == RIG.n_poses == 336 and report.missing == 0
+    assert report.max_abs_angle_error_deg <= RIG.capture.angle_tolerance_deg
+    assert report.lens_late == 0
+    assert report.min_speed_ratio >= 0.999
+    manifest = _manifest(report)
+    assert manifest["state"] == "complete" and manifest["in_progress"] is False
+    assert manifest["counts"]["verified"] == 336
+    for image in manifest["images"]:
+        data = (report.folder / image["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == image["sha256"]
+        assert abs(image["actual_angle_deg"] - image["planned_angle_deg"]) <= 0.2
+    for name in ("mesh.ply", "plan.json", "trace.npz", "captures.json", "qa.json", "depth_sweep.json"):
+        assert (report.folder / name).is_file(), name
+    assert controller.machine.state is ScanState.IDLE
+    states = [e.state for e in controller.machine.history if e.kind == "transition"]
+    assert states[:7] == [ScanState.PREPARING, ScanState.DEPTH_SWEEP, ScanState.RECONSTRUCTING,
+                          ScanState.PLANNING, ScanState.CAPTURING, ScanState.STORING, ScanState.IDLE]
+    assert report.phase_s["total"] <= 100.0
+
+
+def test_same_seed_same_scan(tmp_path: Path) -> None:
+    a, _, _ = run_scan(tmp_path / "a", seed=3)
+    b, _, _ = run_scan(tmp_path / "b", seed=3)
+    plan_a = json.loads((a.folder / "plan.json").read_text())
+    plan_b = json.loads((b.folder / "plan.json").read_text())
+    assert plan_a["methods"]["shape-aware"]["focus_mm"] == plan_b["methods"]["shape-aware"]["focus_mm"]
+    angles_a = [c["exposure_angle_deg"] for c in _captures(a)]
+    angles_b = [c["exposure_angle_deg"] for c in _captures(b)]
+    assert angles_a == angles_b
+    ma, mb = _manifest(a), _manifest(b)
+    for key in ("created_utc", "ended_utc"):
+        ma.pop(key), mb.pop(key)
+    assert ma == mb
+
+
+def test_estop_during_capture_latches_fault_and_keeps_images(tmp_path: Path) -> None:
+    async def press(controller, world) -> None:
+        await wait_captured(controller, 40)
+        world.sim_drive.press_estop()
+
+    async def after(controller, world) -> None:
+        assert controller.machine.state is ScanState.FAULT
+        assert abs(world.sim_drive.true_speed_deg_s) < 0.01
+        with pytest.raises(ScanBusy):
+            controller.start_scan("again")
+        with pytest.raises(Exception):
+            await controller.reset("estop still pressed")
+        assert controller.machine.state is ScanState.FAULT
+        world.sim_drive.release_estop()
+        await controller.reset("operator")
+        assert controller.machine.state is ScanState.IDLE
+
+    report, _, _ = run_scan(tmp_path, during=press, after=after)
+    assert report.outcome is ScanOutcome.FAULTED
+    assert "beam" in report.reason
+    manifest = _manifest(report)
+    assert manifest["state"] == "fault"
+    assert manifest["counts"]["verified"] == report.captured >= 40
+    assert report.captured < RIG.n_poses
+
+
+@pytest.mark.parametrize("fault", ["drive_fault", "heartbeat_lost"])
+def test_drive_faults_stop_the_beam_and_latch(tmp_path: Path, fault: str) -> None:
+    async def inject(controller, world) -> None:
+        await wait_captured(controller, 20)
+        if fault == "drive_fault":
+            world.sim_drive.inject_fault(0x2310)  # continuous over-current
+        else:
+            world.sim_drive.stop_heartbeat()
+
+    report, controller, world = run_scan(tmp_path, during=inject)
+    assert report.outcome is ScanOutcome.FAULTED
+    expected = "DriveFault" if fault == "drive_fault" else "HeartbeatLost"
+    assert expected in report.reason
+    assert controller.machine.state is ScanState.FAULT
+    assert _manifest(report)["state"] == "fault"
+    assert 20 <= report.captured < RIG.n_poses
+
+
+def test_a_phone_that_drops_is_retaken(tmp_path: Path) -> None:
+    def prepare(world) -> None:
+        world.phones[2].fail_after = 2 + 25  # two warm-up captures, then 25 poses
+
+    report, controller, _ = run_scan(tmp_path, prepare=prepare)
+    assert report.outcome is ScanOutcome.COMPLETED
+    assert report.captured == 336 and report.retaken == 48 - 25
+    assert ScanState.RETAKING in [e.state for e in controller.machine.history]
+    assert report.max_abs_angle_error_deg <= 0.2
+
+
+def test_a_phone_that_vanishes_is_recorded_missing(tmp_path: Path) -> None:
+    def prepare(world) -> None:
+        world.phones[4].fail_after = 2 + 10
+        world.phones[4].reconnectable = False
+
+    report, _, _ = run_scan(tmp_path, prepare=prepare)
+    assert report.outcome is ScanOutcome.COMPLETED
+    assert report.missing == 48 - 10
+    missing = [i for i in _manifest(report)["images"] if i["status"] == "missing"]
+    assert len(missing) == 38 and all(i["camera_id"] == "cam4" for i in missing)
+    assert all("PhoneGone" in i["error"] for i in missing)
+
+
+class _FillingWriter(AtomicWriter):
+    """A disk with ``room`` bytes left: writes beyond it fail with ENOSPC, like the real one."""
+
+    def __init__(self, room: int) -> None:
+        self.room = room
+
+    def _write_all(self, fd: int, data: bytes) -> None:
+        if len(data) > self.room:
+            self.room = 0
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(data)
+        super()._write_all(fd, data)
+
+
+def test_disk_full_ends_the_scan_with_a_consistent_folder(tmp_path: Path) -> None:
+    writer = _FillingWriter(room=6_000_000)
+    report, controller, _ = run_scan(tmp_path, store_factory=lambda p: ScanStore(p, writer=writer))
+    assert report.outcome is ScanOutcome.ABORTED
+    assert "StoreFull" in report.reason
+    assert any("StoreFull" in e for e in report.errors)
+    manifest = _manifest(report)  # the last manifest that fitted is intact
+    assert manifest["in_progress"] is True
+    verified = [i for i in manifest["images"] if i["status"] == "verified"]
+    for image in verified:
+        assert (report.folder / image["file"]).is_file()
+    assert controller.machine.state is ScanState.IDLE
+    recovered = ScanStore(tmp_path).recover()
+    assert [f.scan_id for f in recovered] == [report.scan_id]
+    assert np.isfinite(report.phase_s.get("preparing", 0.0))
+    assert asyncio.iscoroutinefunction(controller.reset)
