@@ -1,0 +1,21 @@
+"""The project's own ADB client: wire framing, host key and AUTH, streams, shell, sync, transports.
+
+Transports: TCP and any asyncio reader/writer pair (drivers/adb/transport.py), USB bulk
+endpoints through pyusb (drivers/adb/usb.py, real hardware only).
+"""
+
+from drivers.adb.auth import AdbKey
+from drivers.adb.connection import AdbConnection, DeviceBanner
+from drivers.adb.errors import (
+    AdbError, AdbProtocolError, AdbTimeout, AuthRefused, ConnectionLost, KeyFileError, StreamClosed,
+    StreamRefused, SyncFail, UsbDeviceNotFound,
+)
+from drivers.adb.streams import AdbStream
+from drivers.adb.sync import SyncClient, SyncStat
+from drivers.adb.transport import AdbTransport, StreamTransport, open_tcp
+
+__all__ = [
+    "AdbConnection", "AdbError", "AdbKey", "AdbProtocolError", "AdbStream", "AdbTimeout", "AdbTransport",
+    "AuthRefused", "ConnectionLost", "DeviceBanner", "KeyFileError", "StreamClosed", "StreamRefused",
+    "StreamTransport", "SyncClient", "SyncFail", "SyncStat", "UsbDeviceNotFound", "open_tcp",
+]
