@@ -16,6 +16,7 @@ import pytest
 from drivers.motor import (
     BeamDrive,
     Cia402State,
+    DriveError,
     DriveFault,
     DriveNotReady,
     DriveRebooted,
@@ -421,6 +422,20 @@ def test_motion_timeout_names_goal_and_the_real_timeout() -> None:
             await drive.wait_speed(30.0, timeout_s=3.0)  # never commanded: never reached
         assert info.value.timeout_s == 3.0 and info.value.goal == "speed 30 deg/s"
         assert "beam [operation enabled]: did not reach speed 30 deg/s within 3 s" in str(info.value)
+
+    run(scenario)
+
+
+def test_a_crashed_receiver_is_latched_not_silent() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        def broken(cob_id: int, data: bytes) -> None:
+            raise RuntimeError("decoder bug")
+
+        drive._dispatch = broken  # type: ignore[method-assign]
+        await asyncio.sleep(0.02)
+        assert isinstance(
+            drive.fault, DriveError
+        ) and "receive task failed: RuntimeError('decoder bug')" in str(drive.fault)
 
     run(scenario)
 

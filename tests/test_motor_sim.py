@@ -12,9 +12,12 @@ from typing import Any
 
 import can
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from drivers.motor import LoopbackCanBus, sdo
+from drivers.motor import LoopbackCanBus, SdoAbort, sdo
 from drivers.motor.port import LoopbackPort
+from drivers.motor.sdo import SdoClient
 from drivers.sim.clock import run_virtual
 from drivers.sim.drive import SimulatedDrive
 from planner.rig import load_rig
@@ -205,3 +208,49 @@ def test_estop_ramp_then_fault_with_emcy() -> None:
         assert struct.unpack_from("<H", code, 4)[0] == 0x5441
 
     run(scenario)
+
+
+_WRITABLE = [(0x607A, "<i"), (0x607C, "<i"), (0x6081, "<I"), (0x6083, "<I"), (0x1016, "<I"), (0x1017, "<H")]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from(_WRITABLE), st.data())
+def test_sdo_client_and_server_agree_on_every_value(obj: tuple[int, str], data: st.DataObject) -> None:
+    index, fmt = obj
+    bits = struct.calcsize(fmt) * 8
+    signed = fmt[-1] in "bhi"
+    value = data.draw(st.integers(-(2 ** (bits - 1)) if signed else 0, 2 ** (bits - int(signed)) - 1))
+    subindex = 1 if index == 0x1016 else 0
+
+    async def main() -> int | str:
+        bus = LoopbackCanBus()
+        host = bus.port("host")
+        sim_task = asyncio.create_task(SimulatedDrive(bus.port("sim"), MOTOR).run())
+
+        async def send(cob_id: int, payload: bytes) -> None:
+            await host.send(can.Message(arbitration_id=cob_id, data=payload, is_extended_id=False))
+
+        client = SdoClient(send, N, device="test", state=lambda: "pre-operational")
+
+        async def pump() -> None:
+            while True:
+                msg = await host.recv()
+                if msg.arbitration_id == 0x580 + N:
+                    client.on_frame(bytes(msg.data))
+
+        pump_task = asyncio.create_task(pump())
+        try:
+            await client.write(index, subindex, fmt, value)
+            return await client.read(index, subindex, fmt)
+        except SdoAbort as exc:
+            return f"{exc.code:08X}"
+        finally:
+            for task in (sim_task, pump_task):
+                task.cancel()
+            await asyncio.gather(sim_task, pump_task, return_exceptions=True)
+
+    result = run_virtual(main())
+    if index == 0x6083 and value == 0:
+        assert result == "06090030"  # a zero acceleration is refused
+    else:
+        assert result == value

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import dataclass
+from typing import Any
 
 import can
 import structlog
@@ -156,7 +157,7 @@ class BeamDrive:
         returns once the first position sample arrived."""
         if self._connected or self._closed:
             raise DriveNotReady(self.name, self.state.value, "connect() on a connected or closed drive")
-        self._tasks.append(asyncio.create_task(self._receive(), name=f"{self.name}-receive"))
+        self._start(self._receive(), "receive")
         self._boot.clear()
         await self._nmt(nmt.NmtCommand.RESET_COMMUNICATION)
         try:
@@ -169,11 +170,11 @@ class BeamDrive:
                 f"no boot-up within {self.BOOT_TIMEOUT_S:g} s of NMT reset communication",
             ) from None
         await self._configure()
-        self._tasks.append(asyncio.create_task(self._produce_heartbeat(), name=f"{self.name}-heartbeat"))
+        self._start(self._produce_heartbeat(), "heartbeat")
         self._connected = True
         await self._nmt(nmt.NmtCommand.START)
         self.nmt_state = nmt.NmtState.OPERATIONAL
-        self._tasks.append(asyncio.create_task(self._watch_heartbeat(), name=f"{self.name}-watchdog"))
+        self._start(self._watch_heartbeat(), "watchdog")
         await self._until(
             lambda: self.latest is not None,
             self.FIRST_SAMPLE_TIMEOUT_S,
@@ -553,6 +554,21 @@ class BeamDrive:
 
     async def _nmt(self, command: nmt.NmtCommand) -> None:
         await self._send(nmt.NMT_COB_ID, nmt.nmt_frame(command, self.node_id))
+
+    def _start(self, coro: Coroutine[Any, Any, None], role: str) -> None:
+        task = asyncio.create_task(coro, name=f"{self.name}-{role}")
+        task.add_done_callback(self._task_done)
+        self._tasks.append(task)
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        """A background task that dies of an unexpected error latches it (the drive is then blind)."""
+        if task.cancelled() or self._closed:
+            return
+        exc = task.exception()
+        if exc is not None:
+            error = DriveError(self.name, self.state.value, f"{task.get_name()} task failed: {exc!r}")
+            error.__cause__ = exc
+            self._latch(error)
 
     def _wake(self) -> None:
         event, self._update = self._update, asyncio.Event()
