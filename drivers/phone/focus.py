@@ -1,0 +1,109 @@
+"""Per-phone focus calibration: commanded LENS_FOCUS_DISTANCE (diopters) -> measured sharpest distance.
+
+Camera2 focus distances are approximate at best (LENS_INFO_FOCUS_DISTANCE_CALIBRATION 1 drifts,
+0 is in arbitrary units), so each phone's table is measured on the rig and kept in
+calibration_data/focus/*.yaml:
+
+    points:            # commanded diopters (increasing) -> sharpest distance in mm (decreasing)
+      - [0.5, 1950.0]
+      - [1.0, 985.0]
+
+Between points the table is interpolated linearly in measured diopters (1000 / mm), which is
+nearly linear in commanded diopters for a voice-coil lens; the inverse is the same
+piecewise-linear map read the other way, so both directions round-trip exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from drivers.phone.errors import FocusCalibrationError, FocusOutOfRange
+
+MIN_DISTANCE_MM = 20.0
+MAX_DISTANCE_MM = 100_000.0
+MAX_DIOPTERS = 50.0
+
+
+@dataclass(frozen=True)
+class FocusCalibration:
+    """A monotonic focus table. diopters: (n,) commanded, strictly increasing, >= 0;
+    distance_mm: (n,) measured sharpest distance, strictly decreasing, mm."""
+
+    diopters: np.ndarray
+    distance_mm: np.ndarray
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        d = np.asarray(self.diopters, dtype=float)
+        mm = np.asarray(self.distance_mm, dtype=float)
+        object.__setattr__(self, "diopters", d)
+        object.__setattr__(self, "distance_mm", mm)
+        if d.ndim != 1 or d.shape != mm.shape or len(d) < 2:
+            raise FocusCalibrationError(self.source, "points", f"need >= 2 [diopters, mm] pairs, got {len(d)}")
+        if not (np.all(np.isfinite(d)) and np.all(np.isfinite(mm))):
+            raise FocusCalibrationError(self.source, "points", "values must be finite numbers")
+        if d.min() < 0 or d.max() > MAX_DIOPTERS:
+            raise FocusCalibrationError(self.source, "points",
+                                        f"diopters {d.min():g}..{d.max():g} outside [0, {MAX_DIOPTERS:g}]")
+        if mm.min() < MIN_DISTANCE_MM or mm.max() > MAX_DISTANCE_MM:
+            raise FocusCalibrationError(self.source, "points", f"distances {mm.min():g}..{mm.max():g} mm "
+                                        f"outside [{MIN_DISTANCE_MM:g}, {MAX_DISTANCE_MM:g}] mm")
+        if np.any(np.diff(d) <= 0):
+            raise FocusCalibrationError(self.source, "points", "commanded diopters must strictly increase")
+        if np.any(np.diff(mm) >= 0):
+            raise FocusCalibrationError(self.source, "points",
+                                        "sharpest distance must strictly decrease as diopters increase")
+
+    @property
+    def near_mm(self) -> float:
+        """Nearest distance the table reaches (mm)."""
+        return float(self.distance_mm[-1])
+
+    @property
+    def far_mm(self) -> float:
+        """Farthest distance the table reaches (mm)."""
+        return float(self.distance_mm[0])
+
+    @property
+    def max_diopters(self) -> float:
+        return float(self.diopters[-1])
+
+    def focus_mm(self, diopters: float) -> float:
+        """Sharpest distance (mm) for a commanded focus (diopters within the table)."""
+        measured = np.interp(diopters, self.diopters, 1000.0 / self.distance_mm)
+        return float(1000.0 / measured)
+
+    def diopters_for(self, focus_mm: float, *, device: str | None = None) -> float:
+        """The focus to command (diopters) so the sharpest distance is focus_mm; FocusOutOfRange outside."""
+        if not (math.isfinite(focus_mm) and self.near_mm <= focus_mm <= self.far_mm):
+            raise FocusOutOfRange(device or self.source, "planning", float(focus_mm), self.near_mm, self.far_mm)
+        measured = 1000.0 / self.distance_mm
+        return float(np.interp(1000.0 / focus_mm, measured, self.diopters))
+
+
+def load_focus_calibration(path: Path | str) -> FocusCalibration:
+    """Read and validate a focus table file (see the module docstring for the format)."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise FocusCalibrationError(str(path), "file", f"cannot read: {exc.strerror}") from exc
+    except yaml.YAMLError as exc:
+        raise FocusCalibrationError(str(path), "file", f"not valid YAML: {exc}") from exc
+    if not isinstance(doc, dict):
+        raise FocusCalibrationError(str(path), "file", "expected a mapping with 'points'")
+    unknown = sorted(set(doc) - {"points", "phone_model", "measured"})
+    if unknown:
+        raise FocusCalibrationError(str(path), unknown[0], "unknown key (allowed: points, phone_model, measured)")
+    points = doc.get("points")
+    if not isinstance(points, list) or not all(
+            isinstance(p, list) and len(p) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                        for v in p) for p in points):
+        raise FocusCalibrationError(str(path), "points", "expected a list of [diopters, distance_mm] number pairs")
+    table = np.array(points, dtype=float).reshape(-1, 2)
+    return FocusCalibration(table[:, 0], table[:, 1], source=str(path))
