@@ -41,12 +41,19 @@ S = Cia402State
 Scenario = Callable[[BeamDrive, SimulatedDrive], Awaitable[Any]]
 
 
-def run(scenario: Scenario, *, motor: Motor = MOTOR, connect: bool = True, enable: bool = True) -> Any:
+def run(
+    scenario: Scenario,
+    *,
+    motor: Motor = MOTOR,
+    connect: bool = True,
+    enable: bool = True,
+    **sim_options: Any,
+) -> Any:
     """Run ``scenario(drive, sim)`` with a connected (and enabled) drive in virtual time."""
 
     async def main() -> Any:
         bus = LoopbackCanBus()
-        sim = SimulatedDrive(bus.port("sim"), motor)
+        sim = SimulatedDrive(bus.port("sim"), motor, **sim_options)
         sim_task = asyncio.create_task(sim.run())
         drive = BeamDrive(bus.port("host"), motor)
         try:
@@ -192,6 +199,24 @@ def test_limits_and_states_are_checked_before_moving() -> None:
         assert sim.true_speed_deg_s == 0.0
 
     run(scenario)
+
+
+def test_enable_waits_for_a_drive_still_initialising() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> float:
+        assert drive.state is S.NOT_READY_TO_SWITCH_ON
+        await drive.enable()
+        assert drive.state is S.OPERATION_ENABLED
+        return now()
+
+    assert run(scenario, enable=False, init_s=0.5) >= 0.5
+
+
+def test_enable_gives_up_on_a_drive_that_never_initialises() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        with pytest.raises(StateTransitionTimeout, match="not ready to switch on.*automatic state"):
+            await drive.enable()
+
+    run(scenario, enable=False, init_s=5.0)
 
 
 def test_commands_before_connect_are_refused() -> None:

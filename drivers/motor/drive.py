@@ -69,6 +69,7 @@ class BeamSample:
 
 
 _END = object()
+_AUTOMATIC = (Cia402State.NOT_READY_TO_SWITCH_ON, Cia402State.FAULT_REACTION_ACTIVE)
 
 
 class SampleStream:
@@ -526,6 +527,13 @@ class BeamDrive:
             raise on_timeout(timeout_s) from None
 
     async def _goto(self, goal: Cia402State) -> None:
+        if self.state in _AUTOMATIC:
+            # The drive leaves these states by itself (initialisation, fault reaction).
+            await self._until(
+                lambda: self.state not in _AUTOMATIC,
+                self.TRANSITION_TIMEOUT_S,
+                self._transition_timeout("the end of an automatic state", self._controlword),
+            )
         if self.state is goal:
             return
         try:

@@ -62,6 +62,7 @@ class SimulatedDrive(SimulatedNode):
         port: the drive's CAN port.
         config: the rig's motor section (node id, gear ratio, counts, limits).
         initial_angle_deg: the beam's physical angle at power-on; the encoder then reads 0.
+        init_s: how long the drive reports NOT READY TO SWITCH ON after power-on (its self-test).
         name: used in logs.
     """
 
@@ -70,11 +71,19 @@ class SimulatedDrive(SimulatedNode):
     DEFAULT_TPDO_MAPPING = {0: (0x6041_0010,)}  # TPDO1: statusword, as most drives ship
 
     def __init__(
-        self, port: CanPort, config: Motor, *, initial_angle_deg: float = 0.0, name: str = "sim-drive"
+        self,
+        port: CanPort,
+        config: Motor,
+        *,
+        initial_angle_deg: float = 0.0,
+        init_s: float = 0.0,
+        name: str = "sim-drive",
     ) -> None:
         self.config = config
         self.counts_per_degree = config.counts_per_degree
         self.initial_angle_deg = initial_angle_deg
+        self.init_s = init_s
+        self._ready_at: float | None = None
         self.state = S.SWITCH_ON_DISABLED
         self.estop_pressed = False
         self.jammed_at: float | None = None
@@ -138,7 +147,9 @@ class SimulatedDrive(SimulatedNode):
         self._offset = -self._position_velocity(self._now())[0]
         self._controlword = 0
         self.error_code = emcy.EMERGENCY_STOP if self.estop_pressed else 0
-        self.state = S.FAULT if self.estop_pressed else S.SWITCH_ON_DISABLED
+        self._ready_at = None
+        self.state = S.NOT_READY_TO_SWITCH_ON
+        self._initialised()
 
     def read_object(self, index: int, subindex: int) -> int:
         if subindex == 0:
@@ -416,7 +427,17 @@ class SimulatedDrive(SimulatedNode):
 
     # ------------------------------------------------------------------ cyclic work
 
+    def _initialised(self) -> None:
+        """Leave NOT READY TO SWITCH ON once the power-on self-test time has passed."""
+        now = self._now()
+        if self._ready_at is None:
+            self._ready_at = now + self.init_s
+        if now >= self._ready_at:
+            self.state = S.FAULT if self.estop_pressed else S.SWITCH_ON_DISABLED
+
     async def on_tick(self, now: float) -> None:
+        if self.state is S.NOT_READY_TO_SWITCH_ON:
+            self._initialised()
         if self.jammed_at is not None and self.state is S.OPERATION_ENABLED:
             demand, _ = self._trajectory.at(now)
             if abs(demand - self.jammed_at) > self.od[(cia402.FOLLOWING_ERROR_WINDOW, 0)].value:
