@@ -37,6 +37,11 @@ DECIMATION = 2
 BLOCK_RESOLUTION = 8
 #: A surface within this many voxels of the volume's side or top counts as touching it.
 BOUNDARY_MARGIN_VOXELS = 1.5
+#: Open loops reaching this close to the floor clearance, and not above FOOT_TOP_MM, are closed down
+#: to the floor; loops of at most SMALL_HOLE_VERTICES vertices are filled.
+FLOOR_BAND_MM = 25.0
+FOOT_TOP_MM = 250.0
+SMALL_HOLE_VERTICES = 40
 #: A person: height and horizontal extent ranges (mm).
 HEIGHT_RANGE_MM = (900.0, 2300.0)
 EXTENT_RANGE_MM = (150.0, 1200.0)
@@ -156,7 +161,55 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
     used = np.unique(keep)
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    return trimesh.Trimesh(v[used], remap[keep], process=False)
+    vertices, faces = close_openings(v[used], remap[keep], FLOOR_BAND_MM + cfg.floor_clearance_mm)
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Close the floor openings around the feet and small holes of the extracted surface.
+
+    Where the subject stands, the cropped TSDF surface ends in open loops around the feet (the soles
+    cannot be seen): a loop reaching below ``floor_band_mm`` and staying below FOOT_TOP_MM gets a
+    vertical strip down to z = 0 and a fan across the floor. Loops of at most SMALL_HOLE_VERTICES
+    vertices (voxels seen too few times) get a fan at their centroid. New faces are wound to match
+    the adjacent ones. vertices (V, 3) mm, faces (F, 3) int; returns the extended arrays.
+    """
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    key = np.minimum(directed[:, 0], directed[:, 1]) * len(vertices) + np.maximum(directed[:, 0], directed[:, 1])
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    boundary = directed[counts[inverse] == 1]
+    if len(boundary) == 0:
+        return vertices, faces
+    graph = coo_matrix(
+        (np.ones(len(boundary), dtype=np.int8), (boundary[:, 0], boundary[:, 1])), shape=(len(vertices),) * 2
+    )
+    _, loop_of = connected_components(graph, directed=False)
+    edge_loop = loop_of[boundary[:, 0]]
+    order = np.argsort(edge_loop, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(edge_loop[order]) != 0, True])
+    new_vertices, new_faces, n = [vertices], [faces], len(vertices)
+    for first, last in zip(starts[:-1], starts[1:]):
+        edges = boundary[order[first:last]]
+        ring = np.unique(edges)
+        if len(ring) < 3:
+            continue
+        u, v = edges[:, 0], edges[:, 1]
+        index = np.full(len(vertices), -1, dtype=np.int64)
+        z = vertices[ring, 2]
+        if z.min() < floor_band_mm and z.max() < FOOT_TOP_MM:
+            drop = vertices[ring].copy()
+            drop[:, 2] = 0.0
+            index[ring] = n + np.arange(len(ring))
+            centre = n + len(ring)
+            new_faces += [np.stack([v, u, index[u]], 1), np.stack([v, index[u], index[v]], 1)]
+            new_faces.append(np.stack([np.full(len(u), centre), index[v], index[u]], 1))
+            new_vertices += [drop, drop.mean(axis=0)[None]]
+            n = centre + 1
+        elif len(ring) <= SMALL_HOLE_VERTICES:
+            new_faces.append(np.stack([np.full(len(u), n), v, u], 1))
+            new_vertices.append(vertices[ring].mean(axis=0)[None])
+            n += 1
+    return np.concatenate(new_vertices), np.concatenate(new_faces)
 
 
 def _validate(subject: trimesh.Trimesh, rig: Rig) -> None:
