@@ -171,3 +171,46 @@ def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_tbp_motor_commissions_a_drive_served_by_another_process(capsys: pytest.CaptureFixture[str]) -> None:
+    """``tbp motor`` against ``drivers.sim.drive.serve`` in its own process, through socketcand."""
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    from daemon.cli import main
+
+    code = (
+        "import argparse, asyncio\n"
+        "from drivers.sim.drive import add_arguments, serve\n"
+        "p = argparse.ArgumentParser(); add_arguments(p)\n"
+        "asyncio.run(serve(p.parse_args(['--port', '0'])))\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        match = None
+        for _ in range(20):
+            line = proc.stdout.readline() if proc.stdout else ""
+            match = re.search(r"socketcand 127\.0\.0\.1:(\d+) channel can0", line)
+            if match or not line:
+                break
+        assert match, line
+        bus = ["motor", "--interface", "socketcand", "--port", match.group(1)]
+        assert main([*bus, "move", "4", "--speed", "20", "--acceleration", "40"]) == 0
+        assert "beam: operation enabled, angle 4.00" in capsys.readouterr().out
+        assert main([*bus, "zero", "90"]) == 0
+        assert main([*bus, "status"]) == 0
+        assert "angle 90.00" in capsys.readouterr().out.splitlines()[-1]
+        assert main([*bus, "rotate", "100"]) == 1
+        assert "MotionLimitError" in capsys.readouterr().err
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()

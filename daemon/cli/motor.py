@@ -1,0 +1,114 @@
+"""``tbp motor``: commission the beam drive by hand (status, enable, zero, move, rotate, reset).
+
+For installing and checking a drive, or a simulated one served by ``tbp sim motor``; never while
+the daemon runs, because bring-up resets the drive's CANopen communication.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "motor",
+        help="commission the beam drive: status, enable, zero, move, rotate, stop, reset",
+        description="Connect to the beam's CiA 402 drive, run one action and print the drive's state "
+        "and beam angle. Not while the daemon runs: bring-up resets the drive's communication.",
+    )
+    parser.add_argument(
+        "--interface", default="socketcan", help="python-can interface (socketcan, slcan, socketcand...)"
+    )
+    parser.add_argument("--channel", default="can0", help="CAN channel (can0, /dev/ttyACM0...)")
+    parser.add_argument("--host", default="127.0.0.1", help="socketcand host")
+    parser.add_argument("--port", type=int, default=29536, help="socketcand TCP port")
+    parser.add_argument(
+        "--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)"
+    )
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    actions.add_parser("status", help="connect and report")
+    actions.add_parser("enable", help="walk to OPERATION ENABLED")
+    actions.add_parser("disable", help="disable voltage")
+    actions.add_parser("reset", help="reset a latched fault")
+    zero = actions.add_parser("zero", help="make the current position read as ANGLE")
+    zero.add_argument("angle", type=float, nargs="?", default=0.0, help="deg (default 0)")
+    move = actions.add_parser("move", help="move to ANGLE and wait")
+    move.add_argument("angle", type=float, help="deg")
+    rotate = actions.add_parser("rotate", help="rotate at SPEED for --seconds, then stop")
+    rotate.add_argument("speed", type=float, help="deg/s, signed")
+    rotate.add_argument("--seconds", type=float, default=2.0, help="time at speed (default 2)")
+    for sub in (move, rotate):
+        sub.add_argument(
+            "--speed",
+            dest="limit_speed",
+            type=float,
+            default=None,
+            help="deg/s (default: a quarter of the rig's maximum)",
+        )
+        sub.add_argument(
+            "--acceleration",
+            type=float,
+            default=None,
+            help="deg/s^2 (default: a quarter of the rig's maximum)",
+        )
+    parser.set_defaults(func=run)
+
+
+def _open_port(args: argparse.Namespace) -> Any:
+    from drivers.motor import PythonCanPort
+
+    options: dict[str, Any] = {}
+    if args.interface == "socketcand":
+        options = {"host": args.host, "port": args.port}
+    return PythonCanPort.open(args.interface, args.channel, **options)
+
+
+async def _act(args: argparse.Namespace) -> str:
+    from drivers.motor import BeamDrive
+    from planner.rig import DEFAULT_RIG_PATH, load_rig
+
+    motor = load_rig(args.rig or DEFAULT_RIG_PATH).motor
+    drive = BeamDrive(_open_port(args), motor)
+    speed = getattr(args, "limit_speed", None) or motor.max_speed_deg_s / 4
+    accel = getattr(args, "acceleration", None) or motor.max_acceleration_deg_s2 / 4
+    try:
+        await drive.connect()
+        if args.action in ("enable", "zero", "move", "rotate"):
+            await drive.enable()
+        if args.action == "disable":
+            await drive.disable()
+        elif args.action == "reset":
+            await drive.reset_fault()
+        elif args.action == "zero":
+            await drive.set_zero(args.angle)
+        elif args.action == "move":
+            await drive.move_to(args.angle, speed, accel)
+        elif args.action == "rotate":
+            import asyncio
+
+            await drive.rotate(args.speed, accel)
+            await drive.wait_speed(args.speed)
+            await asyncio.sleep(args.seconds)
+            await drive.stop(accel)
+        sample = drive.latest
+        angle = f"{sample.angle_deg:.3f} deg" if sample else "unknown"
+        return f"{drive.name}: {drive.state.value}, angle {angle}, statusword 0x{drive.statusword:04X}"
+    finally:
+        await drive.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from drivers.motor import DriveError
+    from planner.rig import RigConfigError
+
+    try:
+        print(asyncio.run(_act(args)))
+    except (DriveError, RigConfigError) as exc:
+        print(f"tbp motor {args.action}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    return 0
