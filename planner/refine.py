@@ -46,26 +46,31 @@ class _PointBest:
         self.best_pair = np.full(n, -1, dtype=np.int64)
         self.recompute(np.flatnonzero(table.seen))
 
-    def pairs_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """All pairs of ``points`` grouped by point: (pairs, segment of each, segment starts)."""
+    def positions(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in point order (``table.order``) of all pairs of ``points``, and where each
+        point's run starts."""
         t = self.table
         starts = t.point_ptr[points]
         counts = t.point_ptr[points + 1] - starts
         seg_starts = np.zeros(len(points), dtype=np.int64)
         np.cumsum(counts[:-1], out=seg_starts[1:])
-        within = np.arange(int(counts.sum())) - np.repeat(seg_starts, counts)
-        pairs = t.order[np.repeat(starts, counts) + within]
-        return pairs, np.repeat(np.arange(len(points)), counts), seg_starts
+        return np.repeat(starts - seg_starts, counts) + np.arange(int(counts.sum())), seg_starts
+
+    def poses_seeing(self, points: np.ndarray) -> np.ndarray:
+        """Poses (with repeats) of all pairs of ``points``."""
+        return self.table.by_point[0][self.positions(points)[0]]
 
     def recompute(self, points: np.ndarray) -> np.ndarray:
         """Refresh ``points`` (each with >= 1 pair) from pair_cost.
 
-        Returns the pairs of the points whose best or second-best cost changed: only the poses
-        of those pairs see a different subproblem.
+        Returns the points whose best or second-best cost changed: only the poses seeing them
+        face a different subproblem.
         """
         if len(points) == 0:
-            return np.zeros(0, dtype=np.int64)
-        pairs, segment, seg_starts = self.pairs_of(points)
+            return points
+        positions, seg_starts = self.positions(points)
+        pairs = self.table.order[positions]
+        segment = np.repeat(np.arange(len(points)), np.diff(np.r_[seg_starts, len(positions)]))
         costs = self.pair_cost[pairs]
         mins = np.minimum.reduceat(costs, seg_starts)
         hits = np.flatnonzero(costs == mins[segment])
@@ -84,14 +89,14 @@ class _PointBest:
         self.best[points] = best
         self.second[points] = second
         self.best_pair[points] = best_pair
-        return pairs[changed[segment]]
+        return points[changed]
 
     def update(self, index: np.ndarray, points: np.ndarray, old: np.ndarray) -> np.ndarray:
         """Pairs ``index`` (of distinct ``points``) changed cost from ``old`` to pair_cost[index].
 
         Updates best/second in O(1) per pair where that is exact (a cost fell, or a pair that
-        was neither best nor second rose); recomputes the rest. Returns the pairs of every
-        point whose best or second changed.
+        was neither best nor second rose); recomputes the rest. Returns the points whose best
+        or second changed.
         """
         new = np.minimum(self.pair_cost[index], INVISIBLE_COST)
         old = np.minimum(old, INVISIBLE_COST)
@@ -115,10 +120,7 @@ class _PointBest:
         self.best[direct] = nb[changed & ~redo]
         self.second[direct] = ns[changed & ~redo]
         self.best_pair[direct] = nbp[changed & ~redo]
-        touched = self.recompute(points[redo])
-        if len(direct):
-            touched = np.concatenate([touched, self.pairs_of(direct)[0]])
-        return touched
+        return np.concatenate([direct, self.recompute(points[redo])])
 
 
 def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20) -> RefineResult:
@@ -129,6 +131,8 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
     pair_cost = table.pair_cost(focus)
     state = _PointBest(table, pair_cost)
     dirty = np.diff(vis.pose_ptr) > 0
+    pair_index = np.arange(len(vis), dtype=np.int64)
+    base_all, lo_all, hi_all = table.base, table.lo, table.hi
     sweeps = updates = 0
     while sweeps < max_sweeps and dirty.any():
         sweeps += 1
@@ -137,28 +141,32 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
             dirty[c] = False
             sl = vis.pairs_of(int(c))
             points = vis.point[sl]
-            index = np.arange(sl.start, sl.stop)
-            other = np.where(state.best_pair[points] == index, state.second[points], state.best[points])
-            base = table.base[sl]
-            gain = np.minimum(other, base + w3) - np.minimum(other, base)
-            useful = gain > 0
-            if not useful.any():
+            # other_p: the point's best cost without this pose.
+            other = state.best[points]
+            mine = np.flatnonzero(state.best_pair[points] == pair_index[sl])
+            other[mine] = state.second[points[mine]]
+            base = base_all[sl]
+            useful = np.flatnonzero(other > base)  # only there does focus change the point's cost
+            if not len(useful):
                 continue
-            lo, hi, gain = table.lo[sl][useful], table.hi[sl][useful], gain[useful]
-            s_now = focus[c]
-            current = float(gain[(lo <= s_now) & (s_now <= hi)].sum())
+            b = base[useful]
+            gain = np.minimum(other[useful], b + w3) - b
+            lo, hi = lo_all[sl][useful], hi_all[sl][useful]
+            s_old = focus[c]
+            current = float(gain[(lo <= s_old) & (s_old <= hi)].sum())
             s, score = sweep(lo, hi, gain)
             if score <= current + MIN_GAIN:
                 continue
             focus[c] = s
             updates += 1
             changed_any = True
-            new_cost = base + w3 * ~((table.lo[sl] <= s) & (s <= table.hi[sl]))
-            moved = np.flatnonzero(new_cost != pair_cost[sl])
-            old_cost = pair_cost[sl][moved]
-            pair_cost[sl] = new_cost
-            touched = state.update(moved + sl.start, points[moved], old_cost)
-            dirty[vis.pose[touched]] = True
+            lo, hi = lo_all[sl], hi_all[sl]
+            moved = np.flatnonzero(((lo <= s_old) & (s_old <= hi)) != ((lo <= s) & (s <= hi)))
+            moved_pairs = moved + sl.start
+            old_cost = pair_cost[moved_pairs]
+            pair_cost[moved_pairs] = np.where(old_cost > base[moved], base[moved], base[moved] + w3)
+            changed = state.update(moved_pairs, points[moved], old_cost)
+            dirty[state.poses_seeing(changed)] = True
             dirty[c] = False
         if not changed_any:
             break
