@@ -45,6 +45,8 @@ class BeamTracker:
         self._new_sample = asyncio.Event()
 
     async def start(self) -> None:
+        if self.latest is None:
+            self.latest = getattr(self.drive, "latest", None)
         if self._task is None:
             self._task = asyncio.create_task(self._follow(), name=f"{self.name}-tracker")
             await asyncio.sleep(0)

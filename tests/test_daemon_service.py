@@ -1,0 +1,104 @@
+"""The daemon service in-process: start-up recovery, control API scan/abort/reset, health."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+from daemon.control import CommandFailed, ControlClient
+from daemon.controller import RigController
+from daemon.notify import SystemdNotifier
+from daemon.service import RigService
+from daemon.store import ScanStore
+from drivers.sim.clock import run_virtual
+from tests.daemon_rigs import PLAN_POINTS, RIG, build_rig
+
+pytestmark = pytest.mark.slow
+
+
+class _Notes(SystemdNotifier):
+    """Records what would go to systemd."""
+
+    def __init__(self) -> None:
+        super().__init__(None)
+        self.sent: list[str] = []
+
+    def notify(self, *lines: str) -> bool:
+        self.sent.extend(lines)
+        return True
+
+
+def test_service_recovers_then_scans_and_aborts_over_the_socket(tmp_path: Path) -> None:
+    store_root = tmp_path / "scans"
+    left = ScanStore(store_root).create(RIG, scan_id="killed")  # a folder a killed daemon left
+    sock = tmp_path / "control.sock"
+    notes = _Notes()
+
+    async def main() -> None:
+        hardware, _world = await build_rig(RIG, 0)
+        with ThreadPoolExecutor(max_workers=1) as executor:
+            controller = RigController(RIG, hardware, ScanStore(store_root), executor=executor,
+                                       plan_points=PLAN_POINTS)
+            service = RigService(controller, socket_path=sock, notifier=notes)
+            await service.start()
+            try:
+                client = ControlClient(sock)
+                status = await client.status()
+                assert status["state"] == "IDLE" and status["healthy"] is True
+                assert [r["scan_id"] for r in status["recovered_scans"]] == ["killed"]
+                assert status["beam_speed_deg_s"] == 0.0
+                assert "READY=1" in notes.sent
+
+                events = client.subscribe()
+                await anext(events)
+                started = await client.scan(scan_id="api-1")
+                assert started["scan_id"] == "api-1"
+                with pytest.raises(CommandFailed) as busy:
+                    await client.scan(scan_id="api-2")
+                assert busy.value.error_type == "ScanBusy"
+                seen = []
+                async for event in events:
+                    seen.append(event["state"])
+                    if event["kind"] == "progress" and event["cause"] == "captured" \
+                            and event["data"]["captured"] == 30:
+                        assert (await client.abort())["aborted"] is True
+                    if event["kind"] == "transition" and event["state"] == "IDLE":
+                        break
+                assert "ABORTING" in seen and "CAPTURING" in seen
+                last = (await client.status())["last_scan"]
+                assert last["outcome"] == "ABORTED" and last["captured"] >= 30
+                assert (await client.reset())["state"] == "IDLE"  # nothing latched: a no-op
+                assert any(line.startswith("STATUS=CAPTURING") for line in notes.sent)
+            finally:
+                await service.stop()
+            assert "STOPPING=1" in notes.sent
+
+    run_virtual(main())
+    manifest = json.loads((left.path / "manifest.json").read_text())
+    assert manifest["state"] == "incomplete" and manifest["in_progress"] is False
+    aborted = next(p for p in store_root.iterdir() if p.name.endswith("api-1"))
+    assert json.loads((aborted / "manifest.json").read_text())["state"] == "aborted"
+
+
+def test_health_follows_the_drive_heartbeat(tmp_path: Path) -> None:
+    async def main() -> None:
+        hardware, world = await build_rig(RIG, 0)
+        controller = RigController(RIG, hardware, ScanStore(tmp_path))
+        service = RigService(controller, notifier=_Notes())
+        await service.start()
+        try:
+            await asyncio.sleep(0.5)
+            assert service.healthy()
+            world.sim_drive.stop_heartbeat()
+            await asyncio.sleep(1.0)
+            assert not service.healthy()
+            assert controller.machine.state.value == "FAULT"
+            assert any("HeartbeatLost" in c for c in controller.safety.causes)
+        finally:
+            await service.stop()
+
+    run_virtual(main())
