@@ -109,6 +109,27 @@ async def test_beam_drive_over_socketcand_bridge(bridge: tuple[SocketcandServer,
         await drive.close()
 
 
+async def test_handshake_survives_a_busy_bus(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
+    server, _ = bridge
+    chatter_port = server.bus.port("chatter")
+
+    async def chatter() -> None:
+        while True:
+            await chatter_port.send(can.Message(arbitration_id=0x77F, data=b"\x05", is_extended_id=False))
+            await asyncio.sleep(0.0005)
+
+    task = asyncio.create_task(chatter())
+    try:
+        for _ in range(3):
+            port = await _client_port(server)
+            msg = await asyncio.wait_for(port.recv(), 2.0)
+            assert msg.arbitration_id == 0x77F
+            port.close()
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
 async def test_client_going_away_leaves_the_bridge_serving(
     bridge: tuple[SocketcandServer, SimulatedDrive],
 ) -> None:

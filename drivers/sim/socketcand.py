@@ -63,6 +63,8 @@ class SocketcandServer:
         port: TCP port, 0 to pick a free one (see :attr:`port` after :meth:`start`).
     """
 
+    HANDSHAKE_SETTLE_S = 0.2
+
     def __init__(
         self, bus: LoopbackCanBus, *, channel: str = "can0", host: str = "127.0.0.1", port: int = 0
     ) -> None:
@@ -115,6 +117,9 @@ class SocketcandServer:
             port = self.bus.port(f"socketcand:{peer}")
             writer.write(b"< ok >")
             await writer.drain()
+            # python-can's client compares its whole first read with "< ok >": let that read
+            # happen before frames (queued on the port meanwhile) can share its TCP segment.
+            await asyncio.sleep(self.HANDSHAKE_SETTLE_S)
             log.info("socketcand_client", peer=str(peer), channel=self.channel)
             pump = asyncio.create_task(_bus_to_tcp(port, writer))
             while True:
