@@ -1,0 +1,92 @@
+"""Images for the simulated phone: the subject ray cast from the phone's pose, shaded by normal,
+blurred by the distance from the focal plane, encoded as JPEG.
+
+The blur is the thin-lens circle of confusion, diameter c = A * |z - s| / z * f / (s - f) on the
+sensor (A = f / N aperture, f focal length, s focus distance, z the surface depth), converted to
+image pixels of the reduced-resolution render. The image is blurred at a few CoC levels and each
+pixel takes the level nearest its own CoC: cheap, and enough to see focus errors.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from PIL import Image
+from scipy.ndimage import gaussian_filter
+
+from planner.rig import Optics
+
+SKIN_RGB = np.array([224.0, 178.0, 150.0])
+FLOOR_RGB = np.array([90.0, 90.0, 96.0])
+BACKGROUND_RGB = np.array([24.0, 26.0, 30.0])
+BLUR_LEVELS_PX = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0)
+JPEG_QUALITY = 90
+
+
+def circle_of_confusion_mm(z_mm: np.ndarray, focus_mm: float, optics: Optics) -> np.ndarray:
+    """(...) blur circle diameter on the sensor (mm) for surfaces at depth z_mm, lens focused at focus_mm."""
+    f = optics.focal_length_mm
+    aperture = f / optics.f_number
+    s = max(float(focus_mm), f * 1.001)
+    z = np.maximum(np.asarray(z_mm, dtype=float), f * 1.001)
+    return aperture * np.abs(z - s) / z * f / (s - f)
+
+
+class PhoneRenderer:
+    """Renders one phone's view at width x height pixels (the full sensor's field of view)."""
+
+    def __init__(self, scene, optics: Optics, width_px: int = 768, height_px: int = 1024) -> None:
+        self.scene = scene
+        self.optics = optics
+        self.width_px, self.height_px = int(width_px), int(height_px)
+        self.scale = self.width_px / optics.image_width_px
+        focal = optics.focal_length_px * self.scale
+        u, v = np.meshgrid(np.arange(self.width_px) + 0.5, np.arange(self.height_px) + 0.5)
+        self._rays = np.stack([(u - self.width_px / 2) / focal, (v - self.height_px / 2) / focal,
+                               np.ones_like(u)], axis=-1).reshape(-1, 3)
+        # sensor pixel pitch (mm) of the render's pixels
+        self.pixel_mm = optics.focal_length_mm / focal
+
+    def render(self, camera_to_world: np.ndarray, focus_mm: float) -> np.ndarray:
+        """(H, W, 3) uint8 image of the subject from camera_to_world (4, 4), lens focused at focus_mm."""
+        rotation, origin = camera_to_world[:3, :3], camera_to_world[:3, 3]
+        directions = self._rays @ rotation.T
+        t_hit, normals = self.scene.cast(origin, directions)
+        lengths = np.linalg.norm(directions, axis=1)
+        hit = np.isfinite(t_hit)
+        shade = np.abs(np.einsum("ij,ij->i", normals, directions)) / lengths
+        hit_point_z = np.where(hit, origin[2] + t_hit * directions[:, 2], np.inf)
+        floor = hit & (np.abs(hit_point_z) < 0.5)
+        colour = np.where(floor[:, None], FLOOR_RGB, SKIN_RGB) * (0.25 + 0.75 * shade[:, None])
+        rgb = np.where(hit[:, None], colour, BACKGROUND_RGB).reshape(self.height_px, self.width_px, 3)
+        depth = np.where(hit, t_hit, 1e6).reshape(self.height_px, self.width_px)  # z-depth: rays have z = 1
+        coc_px = circle_of_confusion_mm(depth, focus_mm, self.optics) / self.pixel_mm
+        return self._defocus(rgb, coc_px)
+
+    @staticmethod
+    def _defocus(rgb: np.ndarray, coc_px: np.ndarray) -> np.ndarray:
+        levels = np.array(BLUR_LEVELS_PX)
+        index = np.abs(coc_px[..., None] - levels).argmin(axis=-1)
+        out = np.empty_like(rgb)
+        for i, level in enumerate(levels):
+            mask = index == i
+            if not mask.any():
+                continue
+            layer = rgb if level == 0 else gaussian_filter(rgb, sigma=(level / 2, level / 2, 0))
+            out[mask] = layer[mask]
+        return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def encode_jpeg(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
+    """JPEG bytes of an (H, W, 3) uint8 image."""
+    buffer = io.BytesIO()
+    Image.fromarray(rgb, "RGB").save(buffer, format="JPEG", quality=quality)
+    return buffer.getvalue()
+
+
+def test_card(width_px: int, height_px: int, seed: int) -> np.ndarray:
+    """(H, W, 3) uint8 grey gradient with seeded noise: the picture of an empty rig (no subject)."""
+    rng = np.random.default_rng(seed)
+    ramp = np.linspace(40, 200, height_px)[:, None, None] * np.ones((1, width_px, 3))
+    return np.clip(ramp + rng.normal(0, 4, ramp.shape), 0, 255).astype(np.uint8)
