@@ -103,6 +103,7 @@ class CaptureRunner:
         latency: one :class:`TriggerLatency` per phone (measured before the rotation).
         on_capture: called with every captured record (the store pulls it in the background).
         progress: called with (event, fields) for status events.
+        gone: phones known to be unreachable before the rotation (their poses go to the retake).
     """
 
     FOCUS_TIMEOUT_S = 2.0
@@ -129,6 +130,7 @@ class CaptureRunner:
         *,
         on_capture: Callable[[CaptureRecord], None] = lambda r: None,
         progress: Callable[..., None] = lambda event, **kw: None,
+        gone: Sequence[bool] | None = None,
     ) -> None:
         self.rig = rig
         self.schedule = schedule
@@ -139,7 +141,7 @@ class CaptureRunner:
         self.latency = list(latency)
         self.on_capture = on_capture
         self.progress = progress
-        self.gone = [False] * rig.n_cameras
+        self.gone = list(gone) if gone is not None else [False] * rig.n_cameras
         self.records = [
             CaptureRecord(
                 pose_index=rig.pose_index(k, c), angle_index=k, camera_index=c,

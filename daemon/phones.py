@@ -10,6 +10,7 @@ comes back.
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,11 +26,12 @@ log = structlog.get_logger("daemon.phones")
 
 @dataclass
 class PhonePrep:
-    """Per phone, in rig order: clock mapping, latency estimate, nearest focus (mm), readiness."""
+    """Per phone, in rig order: clock mapping, latency estimate, focus range (mm), readiness."""
 
     clocks: list[ClockSync]
     latency: list[TriggerLatency]
     min_focus_mm: list[float]
+    max_focus_mm: list[float]
     ready: list[bool]
     errors: list[str | None]
 
@@ -51,19 +53,22 @@ class PhonePreparer:
         prep = PhonePrep(
             clocks=[ClockSync(self.rig.phones[c].id) for c in range(n)],
             latency=[TriggerLatency() for _ in range(n)],
-            min_focus_mm=[self._min_focus_mm(p) for p in self.phones],
+            min_focus_mm=[self._focus_range_mm(p)[0] for p in self.phones],
+            max_focus_mm=[self._focus_range_mm(p)[1] for p in self.phones],
             ready=[False] * n,
             errors=[None] * n,
         )
         await asyncio.gather(*(self._one(c, prep) for c in range(n)))
         return prep
 
-    def _min_focus_mm(self, phone: Any) -> float:
-        info = getattr(phone, "info", None)
-        diopters = getattr(info, "min_focus_diopters", None)
-        if diopters:
-            return 1000.0 / float(diopters)
-        return self.DEFAULT_MIN_FOCUS_MM
+    def _focus_range_mm(self, phone: Any) -> tuple[float, float]:
+        """Nearest and farthest focus (mm): the phone's focus table, else its reported minimum."""
+        table = getattr(phone, "focus_table", None)
+        if table is not None:
+            return float(table.near_mm), float(table.far_mm)
+        diopters = getattr(getattr(phone, "info", None), "min_focus_diopters", None)
+        near = 1000.0 / float(diopters) if diopters else self.DEFAULT_MIN_FOCUS_MM
+        return near, math.inf
 
     async def _one(self, c: int, prep: PhonePrep) -> None:
         phone, loop = self.phones[c], asyncio.get_running_loop()

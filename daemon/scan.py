@@ -29,7 +29,7 @@ from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.pulls import PullQueue
 from daemon.store import ImageStatus, ScanEnd, ScanFolder, ScanStore, StoreError
-from daemon.timeline import CaptureSchedule, compile_plan, phone_timings, rig_profile
+from daemon.timeline import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 from planner.rig import Rig
 
 log = structlog.get_logger("daemon.scan")
@@ -52,6 +52,7 @@ class ScanReport:
     missing: int = 0
     retaken: int = 0
     lens_late: int = 0
+    focus_clipped: int = 0
     max_abs_angle_error_deg: float | None = None
     min_speed_ratio: float | None = None
     phase_s: dict[str, float] = field(default_factory=dict)
@@ -68,6 +69,7 @@ class ScanReport:
             "scan_id": self.scan_id, "folder": str(self.folder), "outcome": self.outcome.value,
             "reason": self.reason, "captured": self.captured, "missing": self.missing,
             "retaken": self.retaken, "lens_late": self.lens_late,
+            "focus_clipped": self.focus_clipped,
             "max_abs_angle_error_deg": self.max_abs_angle_error_deg,
             "min_speed_ratio": self.min_speed_ratio, "phase_s": dict(self.phase_s),
             "compute_s": dict(self.compute_s), "sweep_to_capture_s": self.sweep_to_capture_s,
@@ -208,6 +210,7 @@ class Scan:
     async def _finish(self, error: BaseException | None) -> None:
         assert self.folder is not None and self.report is not None
         report = self.report
+        self.safety.expect_samples = False
         if self._body is not None and not self._body.done():
             self._body.cancel()
             await asyncio.gather(self._body, return_exceptions=True)
@@ -293,12 +296,16 @@ class Scan:
             plan, report.compute_s["planning"] = await loop.run_in_executor(
                 self.executor, _timed, _plan, fused.mesh, rig, self.seed, self.plan_points)
             plan_json = plan.to_json()
-            focus = np.asarray(plan.methods[PLAN_METHOD].focus_mm, dtype=float)
-            timings = phone_timings(rig, trigger_latency_s=[p.value_s for p in self.prep.latency],
-                                    min_focus_mm=self.prep.min_focus_mm)
-            self.schedule = compile_plan(focus, rig, timings, profile=profile)
+            focus = self._reachable(np.asarray(plan.methods[PLAN_METHOD].focus_mm, dtype=float))
             self.folder.write_plan(plan_json, _plan_summary(plan_json))
             self.folder.plan_images(rig.capture.angles_deg, focus)
+            timings = [
+                PhoneTiming(rig.capture.capture_cycle_s, rig.capture.lens_settle_s,
+                            self.prep.latency[c].value_s, self.prep.min_focus_mm[c],
+                            self.prep.max_focus_mm[c])
+                for c in range(rig.n_cameras)
+            ]
+            self.schedule = compile_plan(focus, rig, timings, profile=profile)
             self.pulls = PullQueue(self.folder)
             self.pulls.start()
         finally:
@@ -311,6 +318,7 @@ class Scan:
         self.runner = CaptureRunner(
             rig, self.schedule, drive, self.tracker, self.hw.phones, self.prep.clocks,
             self.prep.latency, on_capture=self._captured, progress=self._progress,
+            gone=[not ready for ready in self.prep.ready],
         )
         await self.runner.main_pass()
         self._mark("capture_end")
@@ -323,6 +331,16 @@ class Scan:
             if record.status != "captured":
                 record.status = "missing"
         self.safety.expect_samples = False
+
+    def _reachable(self, focus: np.ndarray) -> np.ndarray:
+        """(P,) focus clipped to each phone's lens range: beyond its far end means 'focus far'."""
+        assert self.prep is not None and self.report is not None
+        n_c = self.rig.n_cameras
+        near = np.tile(np.asarray(self.prep.min_focus_mm), len(focus) // n_c)
+        far = np.tile(np.asarray(self.prep.max_focus_mm), len(focus) // n_c)
+        clipped = np.clip(focus, near, far)
+        self.report.focus_clipped = int(np.count_nonzero(clipped != focus))
+        return clipped
 
     async def _rebase_angle(self, near_deg: float) -> None:
         """Renumber the resting beam's angle by whole turns to within half a turn of ``near_deg``."""

@@ -72,15 +72,16 @@ Hook = Callable[[RigController, MockWorld], Awaitable[None]]
 
 def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: Hook | None = None,
              store_factory: Callable[[Path], ScanStore] = ScanStore,
-             prepare: Callable[[MockWorld], None] | None = None) -> tuple[ScanReport, RigController, MockWorld]:
+             prepare: Callable[[MockWorld], None] | None = None,
+             rig: Rig = RIG) -> tuple[ScanReport, RigController, MockWorld]:
     """One scan in virtual time; ``during`` runs concurrently with it, ``after`` once it ended."""
 
     async def main() -> tuple[ScanReport, RigController, MockWorld]:
-        hardware, world = await build_rig(RIG, seed)
+        hardware, world = await build_rig(rig, seed)
         if prepare is not None:
             prepare(world)
         with ThreadPoolExecutor(max_workers=1) as executor:
-            controller = RigController(RIG, hardware, store_factory(store), executor=executor,
+            controller = RigController(rig, hardware, store_factory(store), executor=executor,
                                        seed=seed, plan_points=PLAN_POINTS)
             await controller.start()
             side = asyncio.create_task(during(controller, world)) if during is not None else None

@@ -4,6 +4,7 @@ a complete scan, determinism, e-stop, drive fault, lost heartbeat, phones lost, 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import errno
 import hashlib
 import json
@@ -132,6 +133,19 @@ def test_a_phone_that_vanishes_is_recorded_missing(tmp_path: Path) -> None:
     missing = [i for i in _manifest(report)["images"] if i["status"] == "missing"]
     assert len(missing) == 38 and all(i["camera_id"] == "cam4" for i in missing)
     assert all("PhoneGone" in i["error"] for i in missing)
+
+
+def test_an_infeasible_plan_is_refused_before_the_rotation(tmp_path: Path) -> None:
+    slow_phones = dataclasses.replace(RIG, capture=dataclasses.replace(RIG.capture, capture_cycle_s=1.5))
+    report, controller, world = run_scan(tmp_path, rig=slow_phones)
+    assert report.outcome is ScanOutcome.ABORTED
+    assert "PlanInfeasible" in report.reason and "angle indices [1, 2," in report.reason
+    assert report.captured == 0
+    assert all(p.captures == [] or len(p.captures) == 2 for p in world.phones)  # warm-ups only
+    states = [e.state for e in controller.machine.history if e.kind == "transition"]
+    assert ScanState.CAPTURING not in states and states[-1] is ScanState.IDLE
+    assert (report.folder / "plan.json").is_file()
+    assert _manifest(report)["state"] == "aborted"
 
 
 class _FillingWriter(AtomicWriter):
