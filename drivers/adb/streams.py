@@ -169,7 +169,7 @@ class AdbStream:
         self._arrived.set()
         self._ready.set()
         if not self._opened.done():
-            self._opened.set_exception(StreamRefused(self.mux.name, "opening", self.service))
+            self._opened.set_exception(self._error or StreamRefused(self.mux.name, "opening", self.service))
             self._opened.exception()  # retrieved here so an abandoned open never warns
 
     def _fail(self, error: AdbError) -> None:

@@ -1,0 +1,262 @@
+"""The ADB client against the simulated adbd: handshake, auth paths, streams, flow control, sync, faults."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import os
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.adb.auth import AdbKey
+from drivers.adb.connection import AdbConnection
+from drivers.adb.errors import AdbTimeout, AuthRefused, ConnectionLost, StreamRefused, SyncFail
+from drivers.adb.message import A_CNXN, A_OKAY, A_OPEN, A_WRTE, AdbMessage, connect_message
+from drivers.adb.transport import StreamTransport, open_tcp
+from drivers.sim.adbd import SimulatedAdbd
+from drivers.sim.clock import run_virtual
+from tests.adb_links import SimLink, stream_pair
+
+KEY = AdbKey.generate("test@host")
+
+
+def run(scenario: Callable[..., Awaitable[Any]], *, known: bool = True, **device_options: Any) -> Any:
+    """Run scenario(conn, device, link) on virtual time against a fresh simulated adbd."""
+
+    async def main() -> Any:
+        device = SimulatedAdbd("SIMSER01", known_keys=[KEY.public_blob()] if known else [], **device_options)
+        link = SimLink(device)
+        conn = AdbConnection(await link.transport(), KEY)
+        try:
+            return await scenario(conn, device, link)
+        finally:
+            await conn.close()
+            await link.finish()
+
+    return run_virtual(main())
+
+
+def test_handshake_with_known_key_then_shell() -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        banner = await conn.connect()
+        assert banner.kind == "device" and banner.properties["ro.product.model"] == "TBP Simulated Phone"
+        assert conn.state == "online" and conn.mux.with_checksum is False
+        assert await conn.shell("getprop ro.serialno") == b"SIMSER01\n"
+        assert await conn.shell("echo 'hello world'") == b"hello world\n"
+        assert b"sh: nosuch: inaccessible or not found" in await conn.exec("nosuch")
+        assert len(device.known_keys) == 1
+
+    run(scenario)
+
+
+def test_unknown_key_is_sent_and_accepted_then_signature_suffices() -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        assert device.known_keys == [KEY.public_blob()]
+        second = AdbConnection(await link.transport(), KEY)
+        await second.connect()
+        assert len(device.known_keys) == 1  # the stored key verified the signature
+        await second.close()
+
+    run(scenario, known=False)
+
+
+def test_refused_key_raises_auth_refused_and_goes_lost() -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        with pytest.raises(AuthRefused, match="SIMSER01"):
+            await conn.connect()
+        assert conn.state == "lost"
+        with pytest.raises(ConnectionLost):
+            await conn.shell("echo hi")
+
+    run(scenario, known=False, accept_new_keys=False)
+
+
+def test_refuse_auth_fault_refuses_even_known_keys() -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        device.refuse_auth = True
+        with pytest.raises(AuthRefused):
+            await conn.connect()
+
+    run(scenario)
+
+
+def test_handshake_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(AdbConnection, "HANDSHAKE_TIMEOUT_S", 0.5)
+
+    async def main() -> None:
+        (hr, hw), (dr, dw) = await stream_pair()  # nobody answers on the device end
+        conn = AdbConnection(StreamTransport(hr, hw, name="mute"), KEY)
+        with pytest.raises(AdbTimeout, match="within 0.5 s"):
+            await conn.connect()
+        dw.close()
+
+    run_virtual(main())
+
+
+def test_refused_service() -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        with pytest.raises(StreamRefused, match="localabstract:nothing"):
+            await conn.open("localabstract:nothing")
+        assert await conn.shell("echo still") == b"still\n"
+
+    run(scenario)
+
+
+def test_sync_push_stat_list_pull(tmp_path: Path) -> None:
+    data = os.urandom(3 * 1024 * 1024 + 17)
+
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        async with await conn.sync() as sync:
+            await sync.push(data, "/sdcard/DCIM/a.bin", mode=0o600, mtime=1234)
+            st = await sync.stat("/sdcard/DCIM/a.bin")
+            assert (st.size, st.mtime, st.mode & 0o777, st.exists) == (len(data), 1234, 0o600, True)
+            assert not (await sync.stat("/sdcard/none")).exists
+            assert (await sync.stat("/sdcard")).is_dir
+            assert [e.name for e in await sync.list("/sdcard/DCIM")] == ["a.bin"]
+            size, sha = await sync.pull("/sdcard/DCIM/a.bin", tmp_path / "a.bin")
+            assert await sync.pull_bytes("/sdcard/DCIM/a.bin") == data
+        assert device.fs.read("/sdcard/DCIM/a.bin") == data
+        assert (size, sha) == (len(data), hashlib.sha256(data).hexdigest())
+        assert (tmp_path / "a.bin").read_bytes() == data
+
+    run(scenario)
+
+
+def test_pull_missing_file_is_sync_fail_and_leaves_nothing(tmp_path: Path) -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        async with await conn.sync() as sync:
+            with pytest.raises(SyncFail, match="does not exist") as info:
+                await sync.pull("/sdcard/missing.jpg", tmp_path / "m.jpg")
+        assert info.value.path == "/sdcard/missing.jpg"
+        assert list(tmp_path.iterdir()) == []
+
+    run(scenario)
+
+
+def test_disconnect_mid_transfer(tmp_path: Path) -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        device.fs.write("/sdcard/big.bin", os.urandom(4 * 1024 * 1024))
+        device.disconnect_after_bytes = 1_500_000
+        async with await conn.sync() as sync:
+            with pytest.raises(ConnectionLost):
+                await sync.pull("/sdcard/big.bin", tmp_path / "big.bin")
+        assert list(tmp_path.iterdir()) == []  # neither the file nor its .part
+        await asyncio.sleep(0)
+        assert conn.state == "lost" and not conn.online
+        with pytest.raises(ConnectionLost):
+            await conn.shell("echo hi")
+
+    run(scenario)
+
+
+def test_vanish_drops_the_link_and_refuses_reconnects() -> None:
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        device.vanish()
+        with pytest.raises(ConnectionLost):
+            await conn.shell("echo hi")
+        again = AdbConnection(await link.transport(), KEY)
+        with pytest.raises(ConnectionLost):
+            await again.connect()
+        device.reappear()
+        back = AdbConnection(await link.transport(), KEY)
+        await back.connect()
+        assert await back.shell("echo back") == b"back\n"
+        await back.close()
+
+    run(scenario)
+
+
+def test_flow_control_one_wrte_in_flight_and_okay_on_consumption() -> None:
+    """A scripted device: the host sends the next WRTE only after OKAY, and ACKs only what was read."""
+
+    async def main() -> None:
+        (hr, hw), (dr, dw) = await stream_pair()
+        device = StreamTransport(dr, dw, name="scripted")
+        conn = AdbConnection(StreamTransport(hr, hw, name="scripted"), None)
+
+        async def device_side() -> None:
+            assert (await device.recv()).command == A_CNXN
+            await device.send(connect_message(b"device::ro.product.model=x;features=", max_payload=4096))
+            opened = await device.recv()
+            assert opened.command == A_OPEN and opened.payload == b"exec:cat\0"
+            await device.send(AdbMessage(A_OKAY, 77, opened.arg0))
+            first = await device.recv()
+            assert first.command == A_WRTE and len(first.payload) == 4096
+            with pytest.raises(TimeoutError):  # no second WRTE before our OKAY
+                await asyncio.wait_for(device.recv(), 1.0)
+            await device.send(AdbMessage(A_OKAY, 77, opened.arg0))
+            second = await device.recv()
+            assert second.command == A_WRTE and len(second.payload) == 1808
+            await device.send(AdbMessage(A_OKAY, 77, opened.arg0))
+            # device -> host: the host answers OKAY only when its consumer reads
+            await device.send(AdbMessage(A_WRTE, 77, opened.arg0, b"reply"))
+            with pytest.raises(TimeoutError):
+                await asyncio.wait_for(device.recv(), 1.0)
+            consumed.set()
+            okay = await device.recv()
+            assert (okay.command, okay.arg0, okay.arg1) == (A_OKAY, opened.arg0, 77)
+
+        consumed = asyncio.Event()
+        task = asyncio.create_task(device_side())
+        await conn.connect()
+        stream = await conn.open("exec:cat")
+        await stream.write(os.urandom(4096 + 1808))
+        await asyncio.sleep(2.0)
+        await consumed.wait()
+        assert await stream.read() == b"reply"
+        await task
+        await conn.close()
+        dw.close()
+
+    run_virtual(main())
+
+
+def test_device_sending_garbage_loses_the_connection() -> None:
+    async def main() -> None:
+        (hr, hw), (dr, dw) = await stream_pair()
+        device = StreamTransport(dr, dw, name="garbage")
+        conn = AdbConnection(StreamTransport(hr, hw, name="garbage"), None)
+
+        async def device_side() -> None:
+            await device.recv()
+            await device.send(connect_message(b"device::features="))
+            dw.write(b"\x00" * 24)  # bad magic
+            await dw.drain()
+
+        task = asyncio.create_task(device_side())
+        await conn.connect()
+        await task
+        with pytest.raises(ConnectionLost, match="bad magic"):
+            await conn.shell("echo hi")
+        await conn.close()
+        dw.close()
+
+    run_virtual(main())
+
+
+async def test_client_over_tcp_loopback(tmp_path: Path) -> None:
+    device = SimulatedAdbd("TCPSIM", known_keys=[KEY.public_blob()])
+    data = os.urandom(2_000_000)
+    device.fs.write("/sdcard/x.bin", data)
+    server = await asyncio.start_server(device.accept, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        conn = AdbConnection(await open_tcp("127.0.0.1", port), KEY)
+        await conn.connect()
+        assert await conn.shell("getprop ro.serialno") == b"TCPSIM\n"
+        async with await conn.sync() as sync:
+            size, sha = await sync.pull("/sdcard/x.bin", tmp_path / "x.bin")
+        assert sha == hashlib.sha256(data).hexdigest() and size == len(data)
+        await conn.close()
+        await conn.close()  # idempotent
+    with pytest.raises(ConnectionLost, match="TCP connect failed"):
+        await open_tcp("127.0.0.1", port, timeout_s=1.0)
