@@ -156,45 +156,74 @@ def frustum_tangents(optics: Optics) -> tuple[float, float]:
 POSE_BLOCK = 16
 
 
+def _height_windows(poses: Poses, points: np.ndarray, tan_w: float, tan_h: float) -> np.ndarray:
+    """(P, 2) float: a z range outside which no point can be in each pose's frustum.
+
+    Every frustum ray lies within the circumscribed cone of half-angle alpha around the optical
+    axis, so its elevation is within alpha of the axis' elevation; a point's height differs from
+    the camera's by at most its horizontal distance times the tangent of that elevation.
+    """
+    alpha = math.atan(math.hypot(tan_w, tan_h))
+    elevation = np.arcsin(np.clip(poses.forward[:, 2], -1.0, 1.0))
+    reach = np.hypot(poses.centres[:, 0], poses.centres[:, 1]) + np.hypot(points[:, 0], points[:, 1]).max()
+    limit = math.radians(89.0)
+    up, down = elevation + alpha, elevation - alpha
+    with np.errstate(over="ignore", invalid="ignore"):
+        high = np.where(up < limit, poses.centres[:, 2] + reach * np.maximum(np.tan(up), 0.0), np.inf)
+        low = np.where(down > -limit, poses.centres[:, 2] + reach * np.minimum(np.tan(down), 0.0), -np.inf)
+    return np.stack([low, high], axis=1)
+
+
 def _candidates(
     poses: Poses, samples: SurfaceSamples, optics: Optics
 ) -> tuple[np.ndarray, ...]:
-    """In-frustum, front-facing pairs of every pose (sorted by pose), before the occlusion test.
+    """In-frustum, front-facing pairs of every pose (grouped by block), before the occlusion test.
 
-    Returns pose, point, depth, off_axis, facing arrays as in :class:`Visibility`.
+    Points are sorted by height and each block of poses with similar height windows tests only
+    the points inside its window (about half the body per camera). Returns pose, point, depth,
+    off_axis, facing arrays as in :class:`Visibility`.
     """
     tan_w, tan_h = frustum_tangents(optics)
-    n = len(samples)
-    pts_t = np.ascontiguousarray(samples.points.T, dtype=np.float32)  # (3, N)
-    nrm_t = np.ascontiguousarray(samples.normals.T, dtype=np.float32)  # (3, N)
+    by_height = np.argsort(samples.points[:, 2], kind="stable")
+    heights = samples.points[by_height, 2]
+    pts_t = np.ascontiguousarray(samples.points[by_height].T, dtype=np.float32)  # (3, N)
+    nrm_t = np.ascontiguousarray(samples.normals[by_height].T, dtype=np.float32)  # (3, N)
     point_dot_normal = np.einsum("ij,ij->j", pts_t, nrm_t)  # (N,) <p, n_p>
+    windows = _height_windows(poses, samples.points, tan_w, tan_h)
+    first = np.searchsorted(heights, windows[:, 0], side="left")
+    last = np.searchsorted(heights, windows[:, 1], side="right")
+    pose_order = np.lexsort((last, first))
     parts: list[tuple[np.ndarray, ...]] = []
-    for first in range(0, len(poses), POSE_BLOCK):
-        block = slice(first, min(first + POSE_BLOCK, len(poses)))
-        k = block.stop - block.start
-        # Rows: right, down and forward axes of every pose in the block, then their normal test.
-        rows = np.concatenate(
-            [poses.right[block], poses.down[block], poses.forward[block]]
-        ).astype(np.float32)
-        cam = (rows @ pts_t).reshape(3, k, n)
+    for b in range(0, len(poses), POSE_BLOCK):
+        block = pose_order[b : b + POSE_BLOCK]
+        k = len(block)
+        lo, hi = int(first[block].min()), int(last[block].max())
+        if hi <= lo:
+            continue
+        n = hi - lo
+        # Rows: right, down and forward axes of every pose in the block.
+        rows = np.concatenate([poses.right[block], poses.down[block], poses.forward[block]]).astype(np.float32)
+        cam = (rows @ pts_t[:, lo:hi]).reshape(3, k, n)
         cam -= np.einsum("akj,kj->ak", rows.reshape(3, k, 3), poses.centres[block]).astype(np.float32)[:, :, None]
         x, y, z = cam
         inside = np.abs(x) <= tan_w * z
         inside &= np.abs(y) <= tan_h * z
         # Front-facing: <p - p_c, n_p> > 0 with the inward normal n_p.
-        inside &= point_dot_normal > poses.centres[block].astype(np.float32) @ nrm_t
+        inside &= point_dot_normal[lo:hi] > poses.centres[block].astype(np.float32) @ nrm_t[:, lo:hi]
         flat = np.flatnonzero(inside)
-        which, point = np.divmod(flat, n)
-        facing = (poses.forward[block].astype(np.float32) @ nrm_t).ravel()[flat]
+        which, local = np.divmod(flat, n)
+        facing = (poses.forward[block].astype(np.float32) @ nrm_t[:, lo:hi]).ravel()[flat]
         parts.append(
             (
-                (which + first).astype(np.int32),
-                point.astype(np.int32),
+                block[which].astype(np.int16 if len(poses) < 32768 else np.int32),
+                by_height[local + lo].astype(np.int32),
                 z.ravel()[flat],
                 np.hypot(x.ravel()[flat], y.ravel()[flat]),
                 facing,
             )
         )
+    if not parts:
+        return (np.zeros(0, np.int16), np.zeros(0, np.int32), *(np.zeros(0, np.float32),) * 3)
     return tuple(np.concatenate(column) for column in zip(*parts))
 
 
@@ -214,7 +243,9 @@ def visible_pairs(
     for start in range(0, len(pose), RAY_BATCH):
         batch = slice(start, start + RAY_BATCH)
         clear[batch] = ~scene.occluded(centres[pose[batch]], points[point[batch]], epsilon_mm)
-    pose, point = pose[clear], point[clear]
+    keep = np.flatnonzero(clear)
+    keep = keep[np.argsort(pose[keep], kind="stable")]  # group by pose (16-bit keys: radix sort)
+    pose, point = pose[keep].astype(np.int32), point[keep]
     ptr = np.zeros(len(poses) + 1, dtype=np.int64)
     np.cumsum(np.bincount(pose, minlength=len(poses)), out=ptr[1:])
     return Visibility(
@@ -222,8 +253,8 @@ def visible_pairs(
         n_points=len(samples),
         pose=pose,
         point=point,
-        depth=depth[clear].astype(float),
-        off_axis=off_axis[clear].astype(float),
-        facing=facing[clear].astype(float),
+        depth=depth[keep].astype(float),
+        off_axis=off_axis[keep].astype(float),
+        facing=facing[keep].astype(float),
         pose_ptr=ptr,
     )
