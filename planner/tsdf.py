@@ -25,14 +25,15 @@ from planner.sweep import PosedDepth, select_by_spacing
 
 log = structlog.get_logger(__name__)
 
-#: Beam rotation between fused frames of one camera (deg); 30 fps at 30 deg/s gives 1 deg steps.
-FRAME_SPACING_DEG = 3.0
+#: Beam rotation between fused frames of one camera (deg); 30 fps at 30 deg/s gives 1 deg steps,
+#: and frames closer than this add little to the fusion but cost time.
+FRAME_SPACING_DEG = 6.0
 #: Fewer usable frames than this cannot cover a person from all sides.
 MIN_FRAMES = 12
 #: A frame with fewer measured pixels inside the scan volume adds nothing (stray floor noise).
 MIN_FRAME_PIXELS = 100
 #: Depth images are decimated by this factor before fusion (a pixel stays well under a voxel).
-DECIMATION = 2
+DECIMATION = 4
 #: Voxel blocks are block_resolution^3 voxels.
 BLOCK_RESOLUTION = 8
 #: A surface within this many voxels of the volume's side or top counts as touching it.
