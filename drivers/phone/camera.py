@@ -22,13 +22,14 @@ import structlog
 
 from drivers.adb.auth import AdbKey
 from drivers.adb.connection import AdbConnection
-from drivers.adb.errors import AdbError, ConnectionLost, SyncFail
+from drivers.adb.errors import AdbError, AuthRefused, ConnectionLost, SyncFail
 from drivers.adb.streams import AdbStream
 from drivers.adb.transport import AdbTransport, StreamTransport
 from drivers.phone import protocol
 from drivers.phone.errors import (
     AgentError, AgentMissing, AgentProtocolError, AgentStartFailed, CaptureFailed, CaptureTimeout, FocusFailed,
-    FocusOutOfRange, FocusTimeout, PhoneDisconnected, PhoneError, PullFailed, RequestTimeout, WrongPhone,
+    FocusOutOfRange, FocusTimeout, PhoneDisconnected, PhoneError, PhoneUnauthorized, PullFailed, RequestTimeout,
+    WrongPhone,
 )
 from drivers.phone.focus import FocusCalibration
 from planner.rig import Phone
@@ -127,7 +128,8 @@ class PhoneCamera:
         except AdbError as exc:
             await self._teardown()
             self.state = "disconnected"
-            raise PhoneDisconnected(self.serial, "connecting", str(exc)) from exc
+            error = PhoneUnauthorized if isinstance(exc, AuthRefused) else PhoneDisconnected
+            raise error(self.serial, "connecting", str(exc)) from exc
         except BaseException:
             await self._teardown()
             self.state = "disconnected"

@@ -25,6 +25,10 @@ class PhoneDisconnected(PhoneError):
     """The ADB link or the agent's stream dropped, or the phone cannot be reached."""
 
 
+class PhoneUnauthorized(PhoneDisconnected):
+    """The phone refused this host's ADB key: accept it on the phone ("Allow USB debugging")."""
+
+
 class WrongPhone(PhoneError):
     """The device on this link reports another serial than the rig file's phone."""
 

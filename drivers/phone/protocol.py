@@ -52,8 +52,8 @@ class AgentResponse:
         value = self.fields.get(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or \
                 (integer and not isinstance(value, int)) or not math.isfinite(value):
-            kind = "integer" if integer else "number"
-            raise AgentProtocolError(device, "answer", f"field {name!r} must be a {kind}, got {value!r}")
+            kind = "an integer" if integer else "a number"
+            raise AgentProtocolError(device, "answer", f"field {name!r} must be {kind}, got {value!r}")
         return value
 
     def text(self, name: str, *, device: str = "agent") -> str:
