@@ -40,6 +40,8 @@ class PhonePreparer:
     """Clock round trips and warm-up captures for every phone, concurrently."""
 
     CLOCK_SAMPLES = 8
+    CLOCK_SPACING_S = 0.2
+    """Clock pings spread out: a drift fit over a few ms of pings would be all jitter."""
     WARMUP_CAPTURES = 2
     STEP_TIMEOUT_S = 2.0
     DEFAULT_MIN_FOCUS_MM = 100.0
@@ -73,7 +75,9 @@ class PhonePreparer:
     async def _one(self, c: int, prep: PhonePrep) -> None:
         phone, loop = self.phones[c], asyncio.get_running_loop()
         try:
-            for _ in range(self.CLOCK_SAMPLES):
+            for i in range(self.CLOCK_SAMPLES):
+                if i:
+                    await asyncio.sleep(self.CLOCK_SPACING_S)
                 async with asyncio.timeout(self.STEP_TIMEOUT_S):
                     prep.clocks[c].add(await phone.clock_sample())
             for _ in range(self.WARMUP_CAPTURES):
@@ -92,3 +96,23 @@ class PhonePreparer:
 
 async def prepare_phones(phones: Sequence[Any], rig: Rig) -> PhonePrep:
     return await PhonePreparer(phones, rig).run()
+
+
+async def keep_clocks_synced(phones: Sequence[Any], prep: PhonePrep, period_s: float = 1.0) -> None:
+    """Ping every ready phone's clock each ``period_s`` until cancelled (tracks drift).
+
+    A phone that stops answering is left alone: its capture requests report the typed error.
+    """
+    active = [c for c, ready in enumerate(prep.ready) if ready]
+
+    async def one(c: int) -> None:
+        while True:
+            await asyncio.sleep(period_s)
+            try:
+                async with asyncio.timeout(PhonePreparer.STEP_TIMEOUT_S):
+                    prep.clocks[c].add(await phones[c].clock_sample())
+            except Exception as exc:  # recorded on the phone; its captures carry the real error
+                prep.errors[c] = f"clock sync stopped: {type(exc).__name__}: {exc}"
+                return
+
+    await asyncio.gather(*(one(c) for c in active))

@@ -24,7 +24,7 @@ from daemon.beam import BeamTracker
 from daemon.capture import CaptureRecord, CaptureRunner, TriggerLatency
 from daemon.depth_sweep import DepthSweeper, SweepRecord
 from daemon.hardware import RigHardware
-from daemon.phones import PhonePrep, prepare_phones
+from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.pulls import PullQueue
@@ -252,8 +252,7 @@ class Scan:
 
     async def _sequence(self) -> None:
         assert self.folder is not None and self.report is not None
-        rig, drive, report = self.rig, self.hw.drive, self.report
-        loop = asyncio.get_running_loop()
+        rig, drive = self.rig, self.hw.drive
         a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
         profile = rig_profile(rig)
 
@@ -267,7 +266,19 @@ class Scan:
         finally:
             await move
         self.folder.log_event("prepared", latency_s=[p.value_s for p in self.prep.latency],
-                              phones_ready=self.prep.ready)
+                              phones_ready=self.prep.ready, errors=self.prep.errors)
+        clocks = asyncio.create_task(keep_clocks_synced(self.hw.phones, self.prep), name="clock-sync")
+        try:
+            await self._after_prepare(profile)
+        finally:
+            clocks.cancel()
+            await asyncio.gather(clocks, return_exceptions=True)
+
+    async def _after_prepare(self, profile: Any) -> None:
+        assert self.folder is not None and self.report is not None and self.prep is not None
+        rig, drive, report = self.rig, self.hw.drive, self.report
+        loop = asyncio.get_running_loop()
+        a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
         self._mark("prepared")
 
         # DEPTH_SWEEP
