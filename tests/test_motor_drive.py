@@ -227,6 +227,40 @@ def test_commands_before_connect_are_refused() -> None:
     run(scenario, connect=False)
 
 
+def test_orderly_close_leaves_the_drive_disabled_and_unwatched() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.move_to(5.0, 10.0, 20.0)
+        await drive.close()
+        await asyncio.sleep(2.0)
+        assert sim.state is S.SWITCH_ON_DISABLED and not sim.emcy_sent  # no heartbeat fault
+        assert sim.value(0x1016, 1) == 0
+
+    run(scenario)
+
+
+def test_close_of_a_silent_drive_skips_the_goodbye() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        sim.disconnect()
+        await asyncio.sleep(0.5)
+        assert isinstance(drive.fault, HeartbeatLost)
+        await drive.close()  # no SDO to a drive known to be gone: nothing to wait for
+
+    run(scenario)
+
+
+def test_close_reports_a_failed_goodbye_after_cleaning_up() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        sim.drop_sdo_replies(1)
+        stream = drive.samples()
+        with pytest.raises(SdoTimeout):
+            await drive.close()
+        assert drive.port.closed  # type: ignore[attr-defined]
+        assert [s async for s in stream] is not None
+        await drive.close()  # idempotent
+
+    run(scenario)
+
+
 def test_each_subscriber_gets_its_own_stream_and_close_ends_them() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> tuple[int, int]:
         first, second = drive.samples(), drive.samples()

@@ -396,9 +396,23 @@ class BeamDrive:
         self._wake()
 
     async def close(self) -> None:
-        """Stop the heartbeat and the reader, end every sample stream, close the port (idempotent)."""
+        """Leave the drive disabled and unwatched, stop the heartbeat and the reader, end every
+        sample stream, close the port (idempotent).
+
+        An orderly goodbye: voltage off, then the drive's heartbeat consumer off, so the drive does
+        not fault over the host's silence. A host that dies instead leaves the consumer on and
+        the drive stops and faults by itself. An error of the goodbye is raised after cleanup.
+        """
         if self._closed:
             return
+        goodbye_error: DriveError | None = None
+        receiving = any(t.get_name().endswith("-receive") and not t.done() for t in self._tasks)
+        if self._connected and receiving and not isinstance(self.fault, (HeartbeatLost, CanBusError)):
+            try:
+                await self._write_controlword(cia402.DISABLE_VOLTAGE)
+                await self.sdo.write(cia402.HEARTBEAT_CONSUMER, 1, "<I", 0)
+            except DriveError as exc:
+                goodbye_error = exc
         self._closed = True
         self._connected = False
         for task in self._tasks:
@@ -409,7 +423,9 @@ class BeamDrive:
             stream.put(_END)
         self.port.close()
         self._wake()
-        log.info("drive_closed", drive=self.name)
+        log.info("drive_closed", drive=self.name, goodbye_error=str(goodbye_error) if goodbye_error else None)
+        if goodbye_error is not None:
+            raise goodbye_error
 
     def samples(self) -> AsyncIterator[BeamSample]:
         """A live stream of position samples from now on; each call its own queue."""
