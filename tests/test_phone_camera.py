@@ -1,0 +1,252 @@
+"""PhoneCamera against the simulated phone on virtual time: bring-up, focus, capture, clock, pull, faults."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import io
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from PIL import Image
+
+from drivers.adb.auth import AdbKey
+from drivers.phone import protocol
+from drivers.phone.camera import PhoneCamera
+from drivers.phone.errors import (
+    AgentMissing, AgentStartFailed, CaptureFailed, FocusOutOfRange, FocusTimeout, PhoneDisconnected,
+    PhoneUnauthorized, PullFailed, RequestTimeout, WrongPhone,
+)
+from drivers.phone.focus import load_focus_calibration
+from drivers.sim.clock import run_virtual
+from drivers.sim.phone import SimulatedPhone
+from planner.rig import load_rig
+from tests.adb_links import SimLink
+
+RIG = load_rig()
+PHONE = RIG.phones[2]
+TABLE = load_focus_calibration(RIG.resolve(PHONE.focus_calibration))
+KEY = AdbKey.generate("test@host")
+
+
+def run(scenario: Callable[[PhoneCamera, SimulatedPhone], Awaitable[Any]], *, serial: str = PHONE.serial,
+        known: bool = True, agent_jar: Path | None = None, **options: Any) -> Any:
+    async def main() -> Any:
+        sim = SimulatedPhone(serial, known_keys=[KEY.public_blob()] if known else [], optics=RIG.optics,
+                             seed=3, **options)
+        link = SimLink(sim)
+        camera = PhoneCamera(link.streams, PHONE, TABLE, key=KEY, agent_jar=agent_jar)
+        try:
+            return await scenario(camera, sim)
+        finally:
+            await camera.close()
+            await link.finish()
+
+    return run_virtual(main())
+
+
+def now() -> float:
+    return asyncio.get_running_loop().time()
+
+
+def test_connect_focus_capture_clock_pull(tmp_path: Path) -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        info = await camera.connect()
+        assert (info.serial, info.min_focus_diopters, info.focus_calibration_quality, info.timestamp_source) == \
+            (PHONE.serial, 10.0, 1, "realtime")
+        assert camera.state == "ready" and sim.agent_running
+
+        start = now()
+        focus = await camera.set_focus_mm(400.0)
+        expected_s = sim.LENS_BASE_S + sim.LENS_S_PER_DIOPTER * focus.diopters + sim.LENS_SETTLE_S
+        assert now() - start == pytest.approx(expected_s)
+        assert focus.focus_mm == pytest.approx(400.0, rel=1e-4)
+        assert focus.diopters == pytest.approx(TABLE.diopters_for(400.0), abs=1e-6) == sim.lens_diopters
+        assert focus.lens_stationary_at_ns == sim.sensor_ns(now())
+
+        sample = await camera.clock_sample()
+        assert sample.host_send_s < sim.loop_time_of(sample.device_ns) < sample.host_recv_s
+
+        sent = now()
+        done = await camera.capture()
+        exposure_start = sim.loop_time_of(done.sensor_timestamp_ns)
+        assert sent < exposure_start < now()
+        assert done.exposure_s == RIG.optics.exposure_s and done.focus_diopters == focus.diopters
+        assert sim.fs.read(done.path) is not None and len(sim.fs.read(done.path)) == done.size_bytes
+
+        size, sha = await camera.pull(done.path, tmp_path / "img.jpg")
+        assert size == done.size_bytes and sha == hashlib.sha256(sim.fs.read(done.path)).hexdigest()
+        assert Image.open(io.BytesIO((tmp_path / "img.jpg").read_bytes())).size == (192, 256)
+        await camera.delete(done.path)
+        assert sim.fs.read(done.path) is None
+
+    run(scenario)
+
+
+def test_sensor_clock_has_offset_and_drift() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        first = await camera.clock_sample()
+        await asyncio.sleep(5000.0)  # link delay jitter (< 0.3 ms) is then < 0.1 ppm
+        second = await camera.clock_sample()
+        device_s = (second.device_ns - first.device_ns) * 1e-9
+        host_s = second.host_send_s - first.host_send_s
+        assert abs(first.device_ns * 1e-9 - first.host_send_s) > 100.0
+        assert device_s / host_s - 1 == pytest.approx(sim.clock_drift_ppm * 1e-6, abs=2e-7)
+
+    run(scenario)
+
+
+def test_agent_is_pushed_once_then_reused(tmp_path: Path) -> None:
+    jar = tmp_path / "agent.jar"
+    jar.write_bytes(b"PK\x03\x04" + bytes(5000))
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        assert sim.fs.read(protocol.AGENT_PATH) is None
+        await camera.connect()
+        pushed = sim.fs.files[protocol.AGENT_PATH]
+        assert pushed.data == jar.read_bytes()
+        await camera.connect()  # reconnect: same size on the phone, no second push
+        assert sim.fs.files[protocol.AGENT_PATH] is pushed and sim.connections == 2
+
+    run(scenario, agent_jar=jar, agent_installed=False)
+
+
+def test_agent_missing_everywhere() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        with pytest.raises(AgentMissing, match="no local jar"):
+            await camera.connect()
+        assert camera.state == "disconnected"
+
+    run(scenario, agent_installed=False)
+
+
+def test_agent_that_does_not_start_quotes_its_output() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        del sim.commands["app_process"]
+        with pytest.raises(AgentStartFailed, match="app_process: inaccessible or not found"):
+            await camera.connect()
+
+    run(scenario)
+
+
+def test_wrong_serial_and_refused_key() -> None:
+    async def wrong(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        with pytest.raises(WrongPhone, match="reports serial 'OTHER123'"):
+            await camera.connect()
+
+    run(wrong, serial="OTHER123")
+
+    async def refused(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        with pytest.raises(PhoneUnauthorized, match=PHONE.serial):
+            await camera.connect()
+        assert camera.state == "disconnected"
+
+    run(refused, known=False, accept_new_keys=False)
+
+
+def test_focus_outside_the_table_or_the_lens_is_refused_before_sending() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        with pytest.raises(FocusOutOfRange, match="focus 50.0 mm"):
+            await camera.set_focus_mm(50.0)
+        sim.min_focus_diopters = 4.0
+        camera.info = await camera.connect()
+        with pytest.raises(FocusOutOfRange) as info:
+            await camera.set_focus_mm(150.0)
+        assert info.value.near_mm == pytest.approx(TABLE.focus_mm(4.0))
+        assert sim.lens_diopters == 0.0
+
+    run(scenario)
+
+
+def test_slow_lens_times_out_and_the_camera_stays_usable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(PhoneCamera, "FOCUS_TIMEOUT_S", 0.2)
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        sim.lens_slowdown = 50.0
+        with pytest.raises(FocusTimeout, match="no answer to 'focus' within 0.2 s"):
+            await camera.set_focus_mm(300.0)
+        sim.lens_slowdown = 1.0
+        await asyncio.sleep(2.0)  # the late answer arrives and is dropped
+        assert camera.state == "ready"
+        assert (await camera.set_focus_mm(300.0)).focus_mm == pytest.approx(300.0, rel=1e-4)
+
+    run(scenario)
+
+
+def test_capture_failure_is_typed_and_the_next_capture_works() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        sim.fail_captures = 1
+        with pytest.raises(CaptureFailed, match="CAPTURE_FAILED") as info:
+            await camera.capture()
+        assert info.value.code == "CAPTURE_FAILED" and info.value.device == PHONE.serial
+        assert (await camera.capture()).size_bytes > 0
+
+    run(scenario)
+
+
+def test_mute_agent_times_out(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(PhoneCamera, "REQUEST_TIMEOUT_S", 0.5)
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        sim.mute_agent = True
+        with pytest.raises(RequestTimeout, match="'clock'"):
+            await camera.clock_sample()
+
+    run(scenario)
+
+
+def test_vanish_then_reconnect() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        focus = asyncio.create_task(camera.set_focus_mm(500.0))
+        await asyncio.sleep(0.005)
+        sim.vanish()
+        with pytest.raises(PhoneDisconnected):
+            await focus
+        assert camera.state == "disconnected"
+        with pytest.raises(PhoneDisconnected):
+            await camera.capture()
+        with pytest.raises(PhoneDisconnected):
+            await camera.connect()
+        sim.reappear()
+        await camera.connect()
+        assert (await camera.capture()).size_bytes > 0
+
+    run(scenario)
+
+
+def test_pull_faults(tmp_path: Path) -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        with pytest.raises(PullFailed, match="/sdcard/DCIM/tbp/none.jpg"):
+            await camera.pull("/sdcard/DCIM/tbp/none.jpg", tmp_path / "none.jpg")
+        sim.fs.write("/sdcard/DCIM/tbp/big.jpg", bytes(3_000_000))
+        sim.disconnect_after_bytes = 1_000_000
+        with pytest.raises(PhoneDisconnected, match="big.jpg"):
+            await camera.pull("/sdcard/DCIM/tbp/big.jpg", tmp_path / "big.jpg")
+        assert list(tmp_path.iterdir()) == []
+        with pytest.raises(PhoneDisconnected):
+            await camera.capture()
+
+    run(scenario)
+
+
+def test_close_is_idempotent_and_final() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        await camera.close()
+        await camera.close()
+        assert camera.state == "closed"
+        await asyncio.sleep(0.01)
+        assert not sim.agent_running
+        with pytest.raises(PhoneDisconnected):
+            await camera.capture()
+
+    run(scenario)
