@@ -1,7 +1,8 @@
 """``tbp motor``: commission the beam drive by hand (status, enable, zero, move, rotate, reset).
 
 For installing and checking a drive, or a simulated one served by ``tbp sim motor``; never while
-the daemon runs, because bring-up resets the drive's CANopen communication.
+the daemon runs, because bring-up resets the drive's CANopen communication. Every action ends
+with the drive disabled (BeamDrive.close), the beam standing where the action left it.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("status", help="connect and report")
-    actions.add_parser("enable", help="walk to OPERATION ENABLED")
+    actions.add_parser("enable", help="check the drive reaches OPERATION ENABLED")
     actions.add_parser("disable", help="disable voltage")
     actions.add_parser("reset", help="reset a latched fault")
     zero = actions.add_parser("zero", help="make the current position read as ANGLE")
