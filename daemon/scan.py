@@ -369,6 +369,10 @@ class Scan:
 
     def _captured(self, record: CaptureRecord) -> None:
         assert self.folder is not None and self.pulls is not None
+        if self.pulls.fatal is not None and self.store_error is None:
+            # The disk is full: images stay safe on the phones, the rotation stops now.
+            self.store_error = self.pulls.fatal
+            self.abort(f"store: {type(self.pulls.fatal).__name__}: {self.pulls.fatal}")
         try:
             # The pull's verification rewrites the manifest; one rewrite per image, not two.
             self.folder.update_image(
