@@ -11,6 +11,10 @@ a jammed beam (following error, EMCY 0x8611), loss of the host heartbeat (EMCY 0
 the node-level faults of :class:`SimulatedNode` (dropped TPDOs, silent heartbeat, late or
 missing SDO answers, a pulled cable).
 
+Simplifications: a new profile-position set-point always takes effect at once (as with
+"change immediately"); the beam follows the demand exactly unless jammed; leaving OPERATION
+ENABLED brakes the beam on the quick-stop ramp.
+
 ``tbp sim motor --port P`` serves the drive on a socketcand bridge at 127.0.0.1:P.
 """
 
