@@ -32,10 +32,13 @@ FRAME_SPACING_DEG = 6.0
 MIN_FRAMES = 12
 #: A frame with fewer measured pixels inside the scan volume adds nothing (stray floor noise).
 MIN_FRAME_PIXELS = 100
-#: Depth images are decimated by this factor before fusion (a pixel stays well under a voxel).
-DECIMATION = 4
-#: Voxel blocks are block_resolution^3 voxels.
+#: Depth images are decimated so a pixel spans at most one voxel at this depth (mm): for the default
+#: camera and 4 mm voxels every 4th pixel, a sixteenth of the pixels to fuse.
+DECIMATION_DEPTH_MM = 1000.0
+#: Voxel blocks are block_resolution^3 voxels; the hash map starts with room for BLOCK_COUNT blocks
+#: (a standing adult touches about 10,000 at 4 mm voxels) and grows when needed.
 BLOCK_RESOLUTION = 8
+BLOCK_COUNT = 12_000
 #: A surface within this many voxels of the volume's side or top counts as touching it.
 BOUNDARY_MARGIN_VOXELS = 1.5
 #: Open loops reaching this close to the floor clearance, and not above FOOT_TOP_MM, are closed down
@@ -111,13 +114,14 @@ def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
         attr_channels=((1), (1)),
         voxel_size=cfg.voxel_mm,
         block_resolution=BLOCK_RESOLUTION,
-        block_count=40_000,
+        block_count=BLOCK_COUNT,
         device=device,
     )
     depth_max = rig.depth_camera_model.max_range_mm
     integrated = 0
     for f in frames:
-        depth, k = _decimate(f.depth, f.intrinsics, DECIMATION)
+        factor = max(1, int(cfg.voxel_mm * min(f.intrinsics[0, 0], f.intrinsics[1, 1]) / DECIMATION_DEPTH_MM))
+        depth, k = _decimate(f.depth, f.intrinsics, factor)
         depth = _mask_outside_volume(depth * np.float32(f.depth_unit_mm), k, f.camera_to_world, rig)
         if np.count_nonzero(depth) < MIN_FRAME_PIXELS:
             continue
@@ -138,6 +142,11 @@ def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
     return vbg
 
 
+def _used(indices: np.ndarray, count: int) -> np.ndarray:
+    """Sorted unique vertex indices referenced by an index array (a bincount is faster than a sort)."""
+    return np.flatnonzero(np.bincount(indices.ravel(), minlength=count))
+
+
 def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
     """Crop (V, 3) vertices / (T, 3) triangles to the scan cylinder above the floor; keep the largest component."""
     cfg = rig.tsdf
@@ -149,7 +158,7 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
             f"no surface above {cfg.floor_clearance_mm:g} mm within radius {cfg.volume_radius_mm:g} mm "
             f"and height {cfg.volume_height_mm:g} mm"
         )
-    used = np.unique(faces)
+    used = _used(faces, len(v))
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     local = remap[faces]
@@ -159,7 +168,7 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
     face_labels = labels[local[:, 0]]
     sizes = np.bincount(face_labels)
     keep = faces[sizes[face_labels] >= MIN_COMPONENT_SHARE * sizes.max()]
-    used = np.unique(keep)
+    used = _used(keep, len(v))
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     vertices, faces = close_openings(v[used], remap[keep], FLOOR_BAND_MM + cfg.floor_clearance_mm)
@@ -177,39 +186,52 @@ def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float
     """
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     key = np.minimum(directed[:, 0], directed[:, 1]) * len(vertices) + np.maximum(directed[:, 0], directed[:, 1])
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    boundary = directed[counts[inverse] == 1]
-    if len(boundary) == 0:
+    ordered = np.sort(key)
+    alone = np.r_[True, ordered[1:] != ordered[:-1]] & np.r_[ordered[:-1] != ordered[1:], True]
+    singles = ordered[alone]
+    if len(singles) == 0:
         return vertices, faces
+    at = np.minimum(np.searchsorted(singles, key), len(singles) - 1)
+    boundary = directed[singles[at] == key]
     graph = coo_matrix(
         (np.ones(len(boundary), dtype=np.int8), (boundary[:, 0], boundary[:, 1])), shape=(len(vertices),) * 2
     )
     _, loop_of = connected_components(graph, directed=False)
-    edge_loop = loop_of[boundary[:, 0]]
-    order = np.argsort(edge_loop, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(edge_loop[order]) != 0, True])
-    new_vertices, new_faces, n = [vertices], [faces], len(vertices)
-    for first, last in zip(starts[:-1], starts[1:]):
-        edges = boundary[order[first:last]]
-        ring = np.unique(edges)
-        if len(ring) < 3:
-            continue
-        u, v = edges[:, 0], edges[:, 1]
-        index = np.full(len(vertices), -1, dtype=np.int64)
-        z = vertices[ring, 2]
-        if z.min() < floor_band_mm and z.max() < FOOT_TOP_MM:
-            drop = vertices[ring].copy()
-            drop[:, 2] = 0.0
-            index[ring] = n + np.arange(len(ring))
-            centre = n + len(ring)
-            new_faces += [np.stack([v, u, index[u]], 1), np.stack([v, index[u], index[v]], 1)]
-            new_faces.append(np.stack([np.full(len(u), centre), index[v], index[u]], 1))
-            new_vertices += [drop, drop.mean(axis=0)[None]]
-            n = centre + 1
-        elif len(ring) <= SMALL_HOLE_VERTICES:
-            new_faces.append(np.stack([np.full(len(u), n), v, u], 1))
-            new_vertices.append(vertices[ring].mean(axis=0)[None])
-            n += 1
+    ring = _used(boundary, len(vertices))
+    ring_loop = loop_of[ring]
+    size = np.bincount(ring_loop)
+    z_min = np.full(len(size), np.inf)
+    z_max = np.full(len(size), -np.inf)
+    np.minimum.at(z_min, ring_loop, vertices[ring, 2])
+    np.maximum.at(z_max, ring_loop, vertices[ring, 2])
+    floor = (size >= 3) & (z_min < floor_band_mm) & (z_max < FOOT_TOP_MM)
+    small = (size >= 3) & (size <= SMALL_HOLE_VERTICES) & ~floor
+    n = len(vertices)
+    # one centre per closed loop: on the floor for floor openings, the ring's mean for small holes
+    closed_loops = np.flatnonzero(floor | small)
+    centre_of = np.full(len(size), -1, dtype=np.int64)
+    centre_of[closed_loops] = n + np.arange(len(closed_loops))
+    sums = np.zeros((len(size), 3))
+    np.add.at(sums, ring_loop, vertices[ring])
+    centres = sums[closed_loops] / size[closed_loops, None]
+    centres[floor[closed_loops], 2] = 0.0
+    # floor openings: every ring vertex gets a copy on the floor below it
+    dropped = ring[floor[ring_loop]]
+    below = np.full(len(vertices), -1, dtype=np.int64)
+    below[dropped] = n + len(closed_loops) + np.arange(len(dropped))
+    drop = vertices[dropped].copy()
+    drop[:, 2] = 0.0
+    u, v = boundary[:, 0], boundary[:, 1]
+    edge_loop = loop_of[u]
+    f, s_ = floor[edge_loop], small[edge_loop]
+    new_faces = [
+        faces,
+        np.stack([v[f], u[f], below[u[f]]], 1),
+        np.stack([v[f], below[u[f]], below[v[f]]], 1),
+        np.stack([centre_of[edge_loop[f]], below[v[f]], below[u[f]]], 1),
+        np.stack([centre_of[edge_loop[s_]], v[s_], u[s_]], 1),
+    ]
+    new_vertices = [vertices, centres, drop]
     return np.concatenate(new_vertices), np.concatenate(new_faces)
 
 

@@ -42,7 +42,7 @@ def test_standing_cylinder_is_recovered_and_passes_validation():
     assert v[:, 2].max() == pytest.approx(1700.0, abs=4.0)
     # nothing of the floor survives: what lies on it is the closed base, within the footprint
     on_floor = v[v[:, 2] < RIG.tsdf.floor_clearance_mm]
-    assert len(on_floor) > 0 and np.hypot(on_floor[:, 0], on_floor[:, 1]).max() < 155.0
+    assert len(on_floor) > 0 and np.hypot(on_floor[:, 0], on_floor[:, 1]).max() < 160.0
     metrics = shape_metrics(truth, result.mesh, samples=20_000)
     assert metrics.estimate_to_true_mean_mm < 1.0
     assert metrics.true_to_estimate_mean_mm < 1.5
