@@ -47,7 +47,7 @@ def progress_printer(out: TextIO) -> Callable[[StatusEvent], None]:
 
 async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
                    plan_points: int | None = None, depth_decimation: int = 2,
-                   out: TextIO | None = None, subject: Any | None = None,
+                   out: TextIO | None = None, subject: Any | None = None, panel: bool = True,
                    on_ready: Callable[[RigController, Any], None] | None = None) -> ScanReport:
     """Build the simulated rig, run one scan, close everything; returns the scan's report.
 
@@ -55,7 +55,7 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
     """
     rig = load_rig(config or DEFAULT_RIG_PATH)
     hardware, world = await build_sim_rig(
-        rig, SimOptions(seed=seed, depth_decimation=depth_decimation), subject=subject)
+        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
         controller = RigController(rig, hardware, scans, executor=executor, seed=seed,
