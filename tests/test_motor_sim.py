@@ -254,3 +254,30 @@ def test_sdo_client_and_server_agree_on_every_value(obj: tuple[int, str], data: 
         assert result == "06090030"  # a zero acceleration is refused
     else:
         assert result == value
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from([0x00, 0x02, 0x06, 0x07, 0x0F, 0x80, 0x86, 0x1F]), min_size=1, max_size=12))
+def test_simulated_state_machine_follows_the_transition_table(words: list[int]) -> None:
+    """Any controlword sequence moves the simulated drive only along CiA 402 transitions, and each
+    controlword of the table takes the drive exactly where the table says."""
+    from drivers.motor import cia402
+    from drivers.motor.cia402 import Cia402State
+
+    async def main() -> list[tuple[Cia402State, int, Cia402State]]:
+        sim = SimulatedDrive(LoopbackCanBus().port("sim"), MOTOR)
+        steps = []
+        for word in words:
+            before = sim.state
+            sim.write_object(0x6040, 0, word)
+            steps.append((before, word, sim.state))
+            await asyncio.sleep(0.01)
+        return steps
+
+    for before, word, after in run_virtual(main()):
+        if after is not before:
+            assert (before, after) in cia402.TRANSITIONS, (before, hex(word), after)
+        table = {dst: cw for (src, dst), cw in cia402.TRANSITIONS.items() if src is before}
+        for dst, cw in table.items():
+            if cw == word and word != cia402.FAULT_RESET:
+                assert after is dst, (before, hex(word), after)
