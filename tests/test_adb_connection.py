@@ -175,8 +175,8 @@ def test_vanish_drops_the_link_and_refuses_reconnects() -> None:
     run(scenario)
 
 
-def test_flow_control_one_wrte_in_flight_and_okay_on_consumption() -> None:
-    """A scripted device: the host sends the next WRTE only after OKAY, and ACKs only what was read."""
+def test_flow_control_one_wrte_in_flight_and_bounded_read_window() -> None:
+    """A scripted device: the host sends the next WRTE only after OKAY and buffers at most one unread."""
 
     async def main() -> None:
         (hr, hw), (dr, dw) = await stream_pair()
@@ -197,8 +197,11 @@ def test_flow_control_one_wrte_in_flight_and_okay_on_consumption() -> None:
             second = await device.recv()
             assert second.command == A_WRTE and len(second.payload) == 1808
             await device.send(AdbMessage(A_OKAY, 77, opened.arg0))
-            # device -> host: the host answers OKAY only when its consumer reads
+            # device -> host: one unread payload is acknowledged at once, the next only once read
             await device.send(AdbMessage(A_WRTE, 77, opened.arg0, b"reply"))
+            okay = await device.recv()
+            assert (okay.command, okay.arg0, okay.arg1) == (A_OKAY, opened.arg0, 77)
+            await device.send(AdbMessage(A_WRTE, 77, opened.arg0, b" more"))
             with pytest.raises(TimeoutError):
                 await asyncio.wait_for(device.recv(), 1.0)
             consumed.set()
@@ -213,6 +216,7 @@ def test_flow_control_one_wrte_in_flight_and_okay_on_consumption() -> None:
         await asyncio.sleep(2.0)
         await consumed.wait()
         assert await stream.read() == b"reply"
+        assert await stream.read() == b" more"
         await task
         await conn.close()
         dw.close()

@@ -53,7 +53,7 @@ class AdbMessage:
     command: int
     arg0: int
     arg1: int
-    payload: bytes = b""
+    payload: bytes | bytearray = b""
 
     @property
     def name(self) -> str:
@@ -100,8 +100,8 @@ def decode_header(data: bytes, *, device: str = "adb", max_payload: int = MAX_PA
     return Header(command, arg0, arg1, length, check)
 
 
-def finish_message(header: Header, payload: bytes, *, device: str = "adb") -> AdbMessage:
-    """Join a header and its payload, verifying a non-zero checksum."""
+def finish_message(header: Header, payload: bytes | bytearray, *, device: str = "adb") -> AdbMessage:
+    """Join a header and its payload (kept, not copied), verifying a non-zero checksum."""
     if len(payload) != header.data_length:
         raise AdbProtocolError(device, "framing",
                                f"payload {len(payload)} bytes, header says {header.data_length}")
@@ -109,7 +109,7 @@ def finish_message(header: Header, payload: bytes, *, device: str = "adb") -> Ad
         raise AdbProtocolError(device, "framing",
                                f"{COMMAND_NAMES[header.command]} checksum 0x{checksum(payload):08X} "
                                f"!= header 0x{header.data_check:08X}")
-    return AdbMessage(header.command, header.arg0, header.arg1, bytes(payload))
+    return AdbMessage(header.command, header.arg0, header.arg1, payload)
 
 
 def decode(data: bytes, *, device: str = "adb") -> AdbMessage:

@@ -2,8 +2,9 @@
 
 Both halves use :class:`StreamMux`: the host opens services, the simulated adbd accepts them.
 Flow control follows adbd: a writer sends one WRTE and waits for the peer's OKAY before the
-next; a reader answers OKAY only when its consumer takes the payload, so a slow consumer
-throttles the sender instead of buffering without bound.
+next. A reader answers OKAY at once while its consumer has nothing else queued (so the sender
+prepares the next payload while this one is consumed), otherwise only when the consumer takes
+a payload: a slow consumer throttles the sender with at most READ_WINDOW payloads buffered.
 """
 
 from __future__ import annotations
@@ -39,9 +40,10 @@ class AdbStream:
         self._ready.set()
         self._payloads: deque[bytes] = deque()
         self._arrived = asyncio.Event()
-        self._chunk = b""
+        self._chunk: bytes | bytearray = b""
         self._pos = 0
         self._error: AdbError | None = None
+        self._okay_owed = False
         self.bytes_read = 0
         self.bytes_written = 0
 
@@ -56,7 +58,7 @@ class AdbStream:
         for start in range(0, len(view), step):
             await self._wait_ready()
             self._ready.clear()
-            chunk = bytes(view[start:start + step])
+            chunk = data if isinstance(data, bytes) and len(data) <= step else bytes(view[start:start + step])
             await self.mux.send(AdbMessage(A_WRTE, self.local_id, self.remote_id, chunk))
             self.bytes_written += len(chunk)
 
@@ -95,7 +97,8 @@ class AdbStream:
             self._arrived.clear()
             await self._arrived.wait()
         payload = self._payloads.popleft()
-        if self.state == "open":
+        if self._okay_owed and len(self._payloads) < self.mux.READ_WINDOW and self.state == "open":
+            self._okay_owed = False
             await self.mux.send(AdbMessage(A_OKAY, self.local_id, self.remote_id))
         self.bytes_read += len(payload)
         return payload
@@ -103,7 +106,7 @@ class AdbStream:
     async def readexactly(self, n: int) -> bytes:
         """Exactly n bytes; StreamClosed if the stream ends first."""
         if len(self._chunk) - self._pos >= n:
-            data = self._chunk[self._pos:self._pos + n]
+            data = bytes(self._chunk[self._pos:self._pos + n])
             self._pos += n
             return data
         parts = [self._chunk[self._pos:]]
@@ -120,6 +123,14 @@ class AdbStream:
             if take < len(payload):
                 self._chunk, self._pos = payload, take
         return b"".join(parts)
+
+    async def readview(self, n: int) -> memoryview:
+        """Exactly n bytes without copying when they lie in one received payload (bulk data path)."""
+        if len(self._chunk) - self._pos >= n:
+            view = memoryview(self._chunk)[self._pos:self._pos + n]
+            self._pos += n
+            return view
+        return memoryview(await self.readexactly(n))
 
     async def readline(self, limit: int = 1 << 20) -> bytes:
         """Bytes up to and including b"\\n"; whatever is left (maybe b"") at end of stream."""
@@ -182,6 +193,7 @@ class StreamMux:
 
     OPEN_TIMEOUT_S = 5.0
     WRITE_TIMEOUT_S = 10.0
+    READ_WINDOW = 1  # payloads a stream may hold unread and still acknowledged
 
     def __init__(self, transport: AdbTransport, *, name: str, resolver: ServiceResolver | None = None) -> None:
         self.transport = transport
@@ -258,6 +270,10 @@ class StreamMux:
         elif msg.command == A_WRTE:
             stream._payloads.append(msg.payload)
             stream._arrived.set()
+            if len(stream._payloads) <= self.READ_WINDOW:
+                await self.send(AdbMessage(A_OKAY, stream.local_id, stream.remote_id))
+            else:
+                stream._okay_owed = True
         else:
             stream._mark_closed()
 

@@ -11,6 +11,7 @@ import hashlib
 import os
 import stat as statmod
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,8 +106,8 @@ class SyncClient:
             name = (await self.stream.readexactly(namelen)).decode("utf-8", "replace")
             entries.append(DirEntry(name, mode, size, mtime))
 
-    async def _receive(self, path: str, sink) -> int:
-        """RECV path, feeding each chunk to sink(bytes); returns the byte count."""
+    async def _receive(self, path: str, sink: Callable[[memoryview], object]) -> int:
+        """RECV path, feeding each chunk to sink (a view valid until the next read); returns the byte count."""
         await self.stream.write(request(b"RECV", path))
         total = 0
         while True:
@@ -114,7 +115,7 @@ class SyncClient:
             if ident == b"DATA":
                 if length > SYNC_DATA_MAX:
                     raise self._fail(path, f"DATA chunk of {length} bytes > {SYNC_DATA_MAX}")
-                sink(await self.stream.readexactly(length))
+                sink(await self.stream.readview(length))
                 total += length
             elif ident == b"DONE":
                 return total
@@ -126,7 +127,7 @@ class SyncClient:
     async def pull_bytes(self, path: str) -> bytes:
         """The whole file in memory."""
         parts: list[bytes] = []
-        await self._receive(path, parts.append)
+        await self._receive(path, lambda view: parts.append(bytes(view)))
         return b"".join(parts)
 
     async def pull(self, path: str, dest: Path) -> tuple[int, str]:
@@ -139,9 +140,8 @@ class SyncClient:
         digest = hashlib.sha256()
         fd = os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         try:
-            def sink(chunk: bytes) -> None:
-                digest.update(chunk)
-                view = memoryview(chunk)
+            def sink(view: memoryview) -> None:
+                digest.update(view)
                 while view:
                     view = view[os.write(fd, view):]
 
