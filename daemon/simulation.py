@@ -89,13 +89,17 @@ def run_sim_scan(*, time_scale: float | None = None, **kwargs: Any) -> ScanRepor
 
 async def sim_service(*, config: Path | None, store: Path, socket_path: Path | None, seed: int = 0,
                       plan_points: int | None = None, depth_decimation: int = 2,
-                      group: str | None = None) -> int:
+                      group: str | None = None, subject_path: Path | None = None,
+                      panel: bool = True) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM."""
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
+    from planner.plan import load_subject_mesh
 
     rig = load_rig(config or DEFAULT_RIG_PATH)
-    hardware, _world = await build_sim_rig(rig, SimOptions(seed=seed, depth_decimation=depth_decimation))
+    subject = load_subject_mesh(subject_path) if subject_path is not None else None
+    hardware, _world = await build_sim_rig(
+        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -27,6 +27,11 @@ def register(subparsers: Any) -> None:
                         help="with --sim: virtual time runs at X times real time (default 1)")
     parser.add_argument("--plan-points", type=int, default=None, metavar="N",
                         help="surface samples for planning (default: the rig file's planner.points)")
+    parser.add_argument("--depth-decimation", type=int, default=2, metavar="N",
+                        help="with --sim: depth cameras render at 1/N resolution")
+    parser.add_argument("--subject", type=Path, default=None, metavar="MESH",
+                        help="with --sim: the subject's mesh file (default: a body for --seed)")
+    parser.add_argument("--no-panel", action="store_true", help="with --sim: a rig without a panel")
     parser.add_argument("--log-level", default="info", help="debug, info, warning or error")
     parser.set_defaults(func=run)
 
@@ -50,5 +55,6 @@ def run(args: argparse.Namespace) -> int:
     with asyncio.Runner(loop_factory=lambda: VirtualTimeLoop(time_scale=args.time_scale)) as runner:
         return runner.run(sim_service(
             config=args.config, store=args.store, socket_path=socket_path, seed=args.seed,
-            plan_points=args.plan_points, group=group,
+            plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
+            subject_path=args.subject, panel=not args.no_panel,
         ))

@@ -1,0 +1,90 @@
+"""`tbp daemon --sim` killed with SIGKILL mid-scan, then restarted: the folder is consistent, the
+interrupted scan is reported, the beam stands still, and SIGTERM stops the daemon cleanly."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from daemon.control import ControlClient, DaemonUnavailable
+from tests.daemon_rigs import PLAN_POINTS, capsule_subject
+
+pytestmark = pytest.mark.slow
+
+TBP = str(Path(sys.executable).with_name("tbp"))
+
+
+def _start(sock: Path, store: Path, subject: Path, log: Path) -> subprocess.Popen:
+    cmd = [TBP, "daemon", "--sim", "--no-panel", "--subject", str(subject), "--socket", str(sock),
+           "--store", str(store), "--time-scale", "10", "--plan-points", str(PLAN_POINTS),
+           "--depth-decimation", "4", "--log-level", "warning"]
+    return subprocess.Popen(cmd, stdout=log.open("ab"), stderr=subprocess.STDOUT,
+                            env={**os.environ, "NOTIFY_SOCKET": ""})
+
+
+async def _ready(sock: Path, proc: subprocess.Popen, timeout_s: float = 120.0) -> dict:
+    async with asyncio.timeout(timeout_s):
+        while True:
+            assert proc.poll() is None, f"daemon exited with {proc.returncode}"
+            try:
+                return await ControlClient(sock).status()
+            except DaemonUnavailable:
+                await asyncio.sleep(0.2)
+
+
+async def _scan_until_captured(sock: Path, count: int) -> str:
+    client = ControlClient(sock)
+    events = client.subscribe()
+    await anext(events)
+    scan_id = (await client.scan(scan_id="killed-scan"))["scan_id"]
+    async with asyncio.timeout(180):
+        async for event in events:
+            if event["cause"] == "captured" and event["data"]["captured"] >= count:
+                return scan_id
+    raise AssertionError("the scan never reached the capture")
+
+
+def test_sigkill_mid_scan_then_restart(tmp_path: Path) -> None:
+    sock, store, subject, log = tmp_path / "c.sock", tmp_path / "scans", tmp_path / "subject.ply", tmp_path / "log"
+    capsule_subject().export(subject)
+    first = _start(sock, store, subject, log)
+    try:
+        asyncio.run(_ready(sock, first))
+        scan_id = asyncio.run(_scan_until_captured(sock, 30))
+        first.send_signal(signal.SIGKILL)
+        first.wait(timeout=10)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    folder = next(store.iterdir())
+    assert folder.name.endswith(scan_id)
+    left = json.loads((folder / "manifest.json").read_text())  # a whole manifest, never torn
+    assert left["in_progress"] is True and left["state"] == "incomplete"
+
+    second = _start(sock, store, subject, log)
+    try:
+        status = asyncio.run(_ready(sock, second))
+        assert [r["scan_id"] for r in status["recovered_scans"]] == [scan_id]
+        assert status["state"] == "IDLE"
+        assert status["beam_speed_deg_s"] == 0.0
+        second.send_signal(signal.SIGTERM)
+        assert second.wait(timeout=30) == 0
+    finally:
+        if second.poll() is None:
+            second.kill()
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["in_progress"] is False and manifest["state"] == "incomplete"
+    assert "stopped while the scan was in progress" in manifest["reason"]
+    verified = [i for i in manifest["images"] if i["status"] == "verified"]
+    assert verified, log.read_text()[-2000:]
+    for image in verified:
+        assert hashlib.sha256((folder / image["file"]).read_bytes()).hexdigest() == image["sha256"]
+    assert not [p for p in folder.rglob(".*.tmp")]
