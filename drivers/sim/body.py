@@ -1,0 +1,259 @@
+"""Simulated subjects: realistic adult bodies from the Anny model, the world every simulator sees.
+
+A body is a closed triangle mesh of the outer skin in the rig frame: millimetres, feet on z = 0,
+the body's volume centroid on the rotation axis (x = y = 0), the subject's front looking toward
++x (beam angle 0 looks at the front) and its left toward +y; standing anatomical pose with the
+arms lowered ARM_ABDUCTION_DEG from the vertical and the feet slightly apart. Bodies are cached
+in the process and on disk (``$TBP_CACHE_DIR`` or ``~/.cache/tbp``), keyed by every parameter
+and by this code's source, because many tests and benchmarks ask for the same few bodies.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+import os
+import tempfile
+from dataclasses import astuple, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import structlog
+import trimesh
+
+from drivers.sim import anny
+from drivers.sim.anny import ANKLE_SPACING_M, ARM_ABDUCTION_DEG
+from drivers.sim.body_errors import BodyError, BodyFileError, PhenotypeError
+
+__all__ = [
+    "ADULT_AGE",
+    "ANKLE_SPACING_M",
+    "ARM_ABDUCTION_DEG",
+    "Body",
+    "MAX_SWAY_DEG",
+    "Phenotype",
+    "generate_body",
+    "load_body",
+    "make_body",
+    "random_adult_phenotype",
+    "save_body",
+]
+
+log = structlog.get_logger(__name__)
+
+ADULT_AGE = (0.67, 0.92)
+"""Anny's age control for adults: 2/3 is its 'young adult' (about 25 years) anchor, 1 is 'old'."""
+AVERAGE_ADULT_AGE = 0.75
+MAX_SWAY_DEG = 10.0
+"""Postural sway is small; larger turns would make a different pose, not sway."""
+
+# Rig frame from Anny's model frame: front (-y) becomes +x, left (+x) becomes +y, metres -> mm.
+_MODEL_TO_RIG = 1000.0 * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Phenotype:
+    """Anny's phenotype controls, each in its native range [0, 1].
+
+    gender: 0 female .. 1 male; age: 2/3 young adult .. 1 old (below 2/3: children);
+    muscle, weight, height: min .. max; proportions: ideal .. uncommon. Default: average adult.
+    """
+
+    gender: float = 0.5
+    age: float = AVERAGE_ADULT_AGE
+    muscle: float = 0.5
+    weight: float = 0.5
+    height: float = 0.5
+    proportions: float = 0.5
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+                raise PhenotypeError(f.name, value, "not a number")
+            if not math.isfinite(value) or not 0.0 <= value <= 1.0:
+                raise PhenotypeError(f.name, value, "outside [0, 1]")
+            object.__setattr__(self, f.name, float(value))
+
+    @classmethod
+    def parse(cls, text: str) -> Phenotype:
+        """Phenotype from "gender,age,muscle,weight,height,proportions", e.g. "0.5,0.75,0.5,0.5,0.5,0.5"."""
+        names = [f.name for f in fields(cls)]
+        parts = [p.strip() for p in text.split(",")]
+        if len(parts) != len(names):
+            field = names[len(parts)] if len(parts) < len(names) else "proportions"
+            raise PhenotypeError(field, text, f"expected {len(names)} comma-separated values "
+                                 f"({','.join(names)}), got {len(parts)}")
+        values = {}
+        for name, part in zip(names, parts):
+            try:
+                values[name] = float(part)
+            except ValueError:
+                raise PhenotypeError(name, part, "not a number") from None
+        return cls(**values)
+
+    def shape(self) -> np.ndarray:
+        """(6,) float32 Anny shape vector: gender, age, muscle, weight, height, proportions."""
+        return np.array(astuple(self), dtype=np.float32)
+
+    def __str__(self) -> str:
+        return ",".join(f"{v:.4g}" for v in astuple(self))
+
+
+def random_adult_phenotype(rng: np.random.Generator) -> Phenotype:
+    """A varied adult: any gender, ages 25..~75, spread muscle, weight and height (1.5..2.0 m)."""
+    return Phenotype(
+        gender=float(rng.uniform(0.0, 1.0)),
+        age=float(rng.uniform(*ADULT_AGE)),
+        muscle=float(rng.uniform(0.2, 0.8)),
+        weight=float(rng.uniform(0.15, 0.85)),
+        height=float(rng.uniform(0.1, 0.9)),
+        proportions=float(rng.uniform(0.2, 0.8)),
+    )
+
+
+@dataclass(frozen=True)
+class Body:
+    """A generated subject: the skin mesh (rig frame, mm) and its joints (name -> (3,) mm)."""
+
+    mesh: trimesh.Trimesh
+    joints: dict[str, np.ndarray]
+    phenotype: Phenotype
+    sway_deg: float
+
+    @property
+    def height_mm(self) -> float:
+        return float(self.mesh.bounds[1, 2] - self.mesh.bounds[0, 2])
+
+
+def make_body(*, seed: int = 0, phenotype: Phenotype | None = None, sway_deg: float = 0.0) -> trimesh.Trimesh:
+    """The subject's outer skin: closed mesh in mm, feet on z = 0, centred, facing +x.
+
+    Without a phenotype the seed draws a random adult (random_adult_phenotype); the seed also
+    draws the sway axes. Deterministic for given arguments; returns a fresh copy each call.
+    """
+    return generate_body(seed=seed, phenotype=phenotype, sway_deg=sway_deg).mesh.copy()
+
+
+def generate_body(*, seed: int = 0, phenotype: Phenotype | None = None, sway_deg: float = 0.0) -> Body:
+    """make_body with the joints; cached in the process and on disk (treat the result as read-only)."""
+    if not math.isfinite(sway_deg) or not 0.0 <= sway_deg <= MAX_SWAY_DEG:
+        raise BodyError(f"sway_deg={sway_deg!r}: must be in [0, {MAX_SWAY_DEG}] degrees")
+    if phenotype is None:
+        phenotype = random_adult_phenotype(np.random.default_rng(_seeds(seed)[0]))
+    # The seed only changes a body with a given phenotype through its sway.
+    return _cached_body(phenotype, float(sway_deg), int(seed) if sway_deg else 0)
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_body(phenotype: Phenotype, sway_deg: float, sway_seed: int) -> Body:
+    path = _cache_dir() / f"body-{_cache_key(phenotype, sway_deg, sway_seed)}.npz"
+    body = _read_cached(path, phenotype, sway_deg)
+    if body is None:
+        sway_rng = np.random.default_rng(_seeds(sway_seed)[1])
+        posed = anny.posed_body(phenotype.shape(), sway_deg=sway_deg, rng=sway_rng)
+        body = _to_rig_frame(posed, phenotype, sway_deg)
+        _write_cached(path, body)
+    body.mesh.vertices.flags.writeable = False
+    return body
+
+
+def _seeds(seed: int) -> list[np.random.SeedSequence]:
+    """Independent streams of one seed: [0] draws the phenotype, [1] the sway axes."""
+    return np.random.SeedSequence(int(seed)).spawn(2)
+
+
+def _to_rig_frame(posed: anny.PosedBody, phenotype: Phenotype, sway_deg: float) -> Body:
+    """Rotate to face +x, scale to mm, stand on z = 0 and centre the volume on the axis."""
+    mesh = trimesh.Trimesh(posed.vertices @ _MODEL_TO_RIG.T, posed.faces, process=False)
+    mesh.remove_unreferenced_vertices()
+    if mesh.volume < 0:
+        mesh.invert()
+    if not mesh.is_watertight or not mesh.is_winding_consistent:
+        raise BodyError(f"Anny skin for phenotype {phenotype} is not a closed consistently wound surface")
+    offset = np.array([-mesh.center_mass[0], -mesh.center_mass[1], -mesh.bounds[0, 2]])
+    mesh.apply_translation(offset)
+    joints = {name: p @ _MODEL_TO_RIG.T + offset for name, p in posed.joints.items()}
+    return Body(mesh=mesh, joints=joints, phenotype=phenotype, sway_deg=sway_deg)
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("TBP_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "tbp"
+    )
+    return Path(root) / "bodies"
+
+
+@functools.lru_cache(maxsize=1)
+def _code_version() -> str:
+    """Digest of the code that shapes a body, so an edited pose never reads a stale cache."""
+    digest = hashlib.sha256()
+    for module in (anny.__file__, __file__):
+        digest.update(Path(module).read_bytes())
+    try:
+        from importlib.metadata import version
+
+        digest.update(version("body-models").encode() + version("anny").encode())
+    except Exception as exc:  # a missing distribution still gives a valid key
+        digest.update(repr(exc).encode())
+    return digest.hexdigest()
+
+
+def _cache_key(phenotype: Phenotype, sway_deg: float, sway_seed: int) -> str:
+    text = f"{_code_version()}|{astuple(phenotype)!r}|{sway_deg!r}|{sway_seed}"
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _read_cached(path: Path, phenotype: Phenotype, sway_deg: float) -> Body | None:
+    """The cached body, or None when absent or unreadable (it is then rebuilt)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            mesh = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+            joints = dict(zip(data["joint_names"].tolist(), data["joint_positions"]))
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning("body_cache_unreadable", path=str(path), error=str(exc))
+        return None
+    return Body(mesh=mesh, joints=joints, phenotype=phenotype, sway_deg=sway_deg)
+
+
+def _write_cached(path: Path, body: Body) -> None:
+    """Write atomically (temporary file + rename) so concurrent processes never see half a file."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".body-", suffix=".npz", delete=False) as tmp:
+            np.savez(
+                tmp,
+                vertices=np.asarray(body.mesh.vertices),
+                faces=np.asarray(body.mesh.faces),
+                joint_names=np.array(list(body.joints)),
+                joint_positions=np.array(list(body.joints.values())),
+            )
+        os.replace(tmp.name, path)
+    except OSError as exc:
+        log.warning("body_cache_not_written", path=str(path), error=str(exc))
+
+
+def save_body(mesh: trimesh.Trimesh, path: str | Path) -> None:
+    """Write a body mesh (mm) as binary PLY (or any format trimesh knows from the suffix)."""
+    path = Path(path)
+    try:
+        mesh.export(path)
+    except (OSError, ValueError) as exc:
+        raise BodyFileError(path, f"cannot write: {exc}") from exc
+
+
+def load_body(path: str | Path) -> trimesh.Trimesh:
+    """Read a body mesh (mm) written by save_body or another tool; it must be one closed surface."""
+    path = Path(path)
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except (OSError, ValueError) as exc:
+        raise BodyFileError(path, f"cannot read: {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise BodyFileError(path, "holds no triangles")
+    if not mesh.is_watertight:
+        raise BodyFileError(path, "is not watertight")
+    return mesh
