@@ -21,9 +21,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "and beam angle. Not while the daemon runs: bring-up resets the drive's communication.",
     )
     parser.add_argument(
-        "--interface", default="socketcan", help="python-can interface (socketcan, slcan, socketcand...)"
+        "--interface", default=None, help="python-can interface (default: the rig file's motor.can_interface)"
     )
-    parser.add_argument("--channel", default="can0", help="CAN channel (can0, /dev/ttyACM0...)")
+    parser.add_argument(
+        "--channel", default=None, help="CAN channel (default: the rig file's motor.can_channel)"
+    )
     parser.add_argument("--host", default="127.0.0.1", help="socketcand host")
     parser.add_argument("--port", type=int, default=29536, help="socketcand TCP port")
     parser.add_argument(
@@ -58,13 +60,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _open_port(args: argparse.Namespace) -> Any:
-    from drivers.motor import PythonCanPort
+def _open_port(args: argparse.Namespace, motor: Any) -> Any:
+    import dataclasses
 
+    from drivers.motor import open_rig_port
+
+    motor = dataclasses.replace(
+        motor,
+        can_interface=args.interface or motor.can_interface,
+        can_channel=args.channel or motor.can_channel,
+    )
     options: dict[str, Any] = {}
-    if args.interface == "socketcand":
+    if motor.can_interface == "socketcand":
         options = {"host": args.host, "port": args.port}
-    return PythonCanPort.open(args.interface, args.channel, **options)
+    return open_rig_port(motor, **options)
 
 
 async def _act(args: argparse.Namespace) -> str:
@@ -72,7 +81,7 @@ async def _act(args: argparse.Namespace) -> str:
     from planner.rig import DEFAULT_RIG_PATH, load_rig
 
     motor = load_rig(args.rig or DEFAULT_RIG_PATH).motor
-    drive = BeamDrive(_open_port(args), motor)
+    drive = BeamDrive(_open_port(args, motor), motor)
     speed = getattr(args, "limit_speed", None) or motor.max_speed_deg_s / 4
     accel = getattr(args, "acceleration", None) or motor.max_acceleration_deg_s2 / 4
     try:

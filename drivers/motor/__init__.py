@@ -26,7 +26,7 @@ from drivers.motor.errors import (
     SdoTimeout,
     StateTransitionTimeout,
 )
-from drivers.motor.port import CanPort, LoopbackCanBus, PythonCanPort
+from drivers.motor.port import CanPort, LoopbackCanBus, PythonCanPort, open_rig_port
 
 __all__ = [
     "BeamDrive",
@@ -51,4 +51,5 @@ __all__ = [
     "SdoProtocolError",
     "SdoTimeout",
     "StateTransitionTimeout",
+    "open_rig_port",
 ]
