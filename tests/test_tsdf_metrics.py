@@ -117,7 +117,8 @@ def test_cli_reconstructs_a_simulated_body_and_a_recorded_sweep(tmp_path, capsys
     assert result["timings_s"]["tsdf_total"] > 0
     capsys.readouterr()
     assert tbp(["reconstruct", "--frames", str(frames), "--true-body", str(body), "--rig", str(small_rig_file)]) == 0
-    again = json.loads(capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    again = json.loads(printed[printed.index("\n{") + 1 :])
     assert again["vertices"] == result["vertices"]
 
 
