@@ -321,6 +321,18 @@ def test_injected_emcy_fault_names_code_and_meaning() -> None:
     run(scenario)
 
 
+def test_fault_without_emcy_reads_the_error_code_from_the_drive() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.sdo.write(0x1014, 0, "<I", 0x8000_0000 | (0x80 + MOTOR.node_id))  # EMCY off
+        sim.inject_fault(0x4310)
+        await asyncio.sleep(0.05)
+        assert isinstance(drive.fault, DriveFault)
+        assert (drive.fault.code, drive.fault.register) == (0x4310, 0x09)
+        assert "excess temperature drive" in str(drive.fault)
+
+    run(scenario)
+
+
 def test_jammed_beam_raises_following_error() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         move = asyncio.create_task(drive.move_to(90.0, 30.0, 60.0))

@@ -669,7 +669,21 @@ class BeamDrive:
         if state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE) and self.fault is None:
             last = self._last_emcy
             self._latch(self._fault_from(last.code if last else None, last.register if last else 0))
+            if last is None:
+                # No EMCY (disabled, or lost): ask the drive for its error code (0x603F, 0x1001).
+                self._start(self._read_error_code(), "error-code")
         self._wake()
+
+    async def _read_error_code(self) -> None:
+        try:
+            code = await self.sdo.read(cia402.ERROR_CODE, 0, "<H")
+            register = await self.sdo.read(cia402.ERROR_REGISTER, 0, "<B")
+        except DriveError as exc:
+            if self.fault is not None:
+                self.fault.add_note(f"reading the error code 0x603F failed: {exc}")
+            return
+        if code:
+            self._latch(self._fault_from(code, register))
 
     def _fault_from(self, code: int | None, register: int) -> DriveFault:
         cls = FollowingError if code == emcy.FOLLOWING_ERROR else DriveFault

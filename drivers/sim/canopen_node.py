@@ -89,6 +89,7 @@ class SimulatedNode:
             {
                 (0x1000, 0): ObjectEntry("<I", self.DEVICE_TYPE, writable=False),
                 (0x1001, 0): ObjectEntry("<B", 0, writable=False, mappable=True),
+                (0x1014, 0): ObjectEntry("<I", nmt.emcy_cob_id(n)),  # EMCY COB-ID, bit 31: no EMCY
                 (0x1016, 0): ObjectEntry("<B", 1, writable=False),
                 (0x1016, 1): ObjectEntry("<I", 0),
                 (0x1017, 0): ObjectEntry("<H", 0),
@@ -238,6 +239,12 @@ class SimulatedNode:
             self._on_heartbeat(cob_id - 0x700, data)
         else:
             await self.on_message(cob_id, data)
+
+    async def send_emcy(self, data: bytes) -> None:
+        """Send an EMCY frame unless the EMCY COB-ID (0x1014) is marked invalid."""
+        cob_id = self.od[(0x1014, 0)].value
+        if not cob_id & pdo.COB_ID_INVALID:
+            await self.send(cob_id & 0x7FF, data)
 
     async def on_message(self, cob_id: int, data: bytes) -> None:
         """Hook: any other frame (RPDO, SYNC...)."""

@@ -28,7 +28,7 @@ from typing import Any
 
 import structlog
 
-from drivers.motor import cia402, emcy, nmt, sdo
+from drivers.motor import cia402, emcy, sdo
 from drivers.motor.cia402 import Cia402State, Mode, Status
 from drivers.motor.port import CanPort, LoopbackCanBus
 from drivers.sim.canopen_node import ObjectEntry, SdoAbortRequest, SimulatedNode
@@ -296,7 +296,7 @@ class SimulatedDrive(SimulatedNode):
         self.error_code = code
         message = emcy.Emcy(code, self._error_register(), vendor)
         self.emcy_sent.append(message)
-        self._spawn(self.send(nmt.emcy_cob_id(self.node_id), emcy.emcy_frame(message)))
+        self._spawn(self.send_emcy(emcy.emcy_frame(message)))
         log.info("sim_drive_fault", drive=self.name, code=f"0x{code:04X}", meaning=message.meaning)
         if self.state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE) and self.jammed_at is None:
             self.state = S.FAULT_REACTION_ACTIVE
@@ -324,9 +324,7 @@ class SimulatedDrive(SimulatedNode):
             if rising & cia402.Control.FAULT_RESET and not self.estop_pressed and self.jammed_at is None:
                 self.state = S.SWITCH_ON_DISABLED
                 self.error_code = 0
-                self._spawn(
-                    self.send(nmt.emcy_cob_id(self.node_id), emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0)))
-                )
+                self._spawn(self.send_emcy(emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0))))
             self._statusword_changed()
             return
         if state is S.FAULT_REACTION_ACTIVE:
