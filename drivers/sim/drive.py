@@ -298,12 +298,11 @@ class SimulatedDrive(SimulatedNode):
         self.emcy_sent.append(message)
         self._spawn(self.send_emcy(emcy.emcy_frame(message)))
         log.info("sim_drive_fault", drive=self.name, code=f"0x{code:04X}", meaning=message.meaning)
-        if self.state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE) and self.jammed_at is None:
-            self.state = S.FAULT_REACTION_ACTIVE
-            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
-        else:
-            self.state = S.FAULT
-            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        # A driven beam brakes on the quick-stop ramp (FAULT REACTION ACTIVE until it stands);
+        # a beam not driven, or jammed, is in FAULT at once.
+        driven = self.state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE) and self.jammed_at is None
+        self.state = S.FAULT_REACTION_ACTIVE if driven else S.FAULT
+        self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
         self._statusword_changed()
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
