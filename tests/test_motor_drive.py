@@ -263,6 +263,18 @@ def test_close_reports_a_failed_goodbye_after_cleaning_up() -> None:
     run(scenario)
 
 
+def test_a_slow_subscriber_loses_the_oldest_samples_not_the_newest() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        drive.SAMPLE_QUEUE_SIZE = 10
+        stream = drive.samples()
+        await asyncio.sleep(1.0)
+        first = await anext(stream)
+        assert 185 <= stream.dropped <= 195  # type: ignore[attr-defined]  # ~200 arrived, 10 kept
+        assert now() - first.time_s <= 10 / MOTOR.position_rate_hz
+
+    run(scenario)
+
+
 def test_each_subscriber_gets_its_own_stream_and_close_ends_them() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> tuple[int, int]:
         first, second = drive.samples(), drive.samples()
