@@ -221,11 +221,11 @@ class SimulatedPanel:
         seq = self._seq
         self._seq = protocol.next_seq(seq)
         raw = protocol.encode(Line(seq, verb, args), FROM_PANEL)
+        self._last_raw = raw  # a resend repeats the line as meant, not as the noise left it
         if self.corrupt_next > 0:
             self.corrupt_next -= 1
             body, crc = raw[:-3], int(raw[-3:-1], 16)
             raw = body + b"%02X\n" % (crc ^ 0x5A)
-        self._last_raw = raw
         self._write(raw)
         return seq
 

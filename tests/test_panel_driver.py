@@ -1,0 +1,356 @@
+"""OperatorPanel against the simulated panel: over a socketpair in virtual time, over a real pty.
+
+The socketpair scenarios run on drivers.sim.clock's virtual-time loop, so heartbeat periods and
+timeouts are simulated seconds and the outcome never depends on machine load.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from drivers.panel import (
+    LinkState,
+    OperatorPanel,
+    PanelCommandRefused,
+    PanelDisconnected,
+    PanelEvent,
+    PanelHeartbeatLost,
+    PanelProtocolError,
+    PanelStateError,
+    PanelTimeout,
+    StatusLed,
+    open_serial,
+)
+from drivers.panel.protocol import FROM_HOST, FROM_PANEL, Line, encode
+from drivers.sim.clock import run_virtual
+from drivers.sim.panel import SimulatedPanel
+
+Scenario = Callable[[OperatorPanel, SimulatedPanel], Awaitable[Any]]
+
+
+async def _stream_pair() -> tuple[Any, Any]:
+    a, b = socket.socketpair()
+    return await asyncio.open_connection(sock=a), await asyncio.open_connection(sock=b)
+
+
+def run(scenario: Scenario, *, connect: bool = True, **sim_options: Any) -> Any:
+    """Run ``scenario(panel, sim)`` over a socketpair on the virtual-time loop."""
+
+    async def main() -> Any:
+        (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+        sim = SimulatedPanel(dev_r, dev_w, **sim_options)
+        sim_task = asyncio.create_task(sim.run())
+        panel = OperatorPanel(host_r, host_w, name="test-panel")
+        try:
+            if connect:
+                await panel.connect()
+            return await scenario(panel, sim)
+        finally:
+            await panel.close()
+            sim.close()
+            sim_task.cancel()
+            await asyncio.gather(sim_task, return_exceptions=True)
+
+    return run_virtual(main())
+
+
+async def next_event(events: AsyncIterator[PanelEvent], timeout_s: float = 2.0) -> PanelEvent:
+    async with asyncio.timeout(timeout_s):
+        return await anext(events)
+
+
+# ---------------------------------------------------------------------- commands
+
+
+def test_status_and_light_reach_the_panel_and_are_acknowledged() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        assert panel.state is LinkState.CONNECTED and sim.led is StatusLed.OFF
+        await panel.set_status(StatusLed.SCANNING)
+        await panel.set_light(True)
+        assert (sim.led, sim.light) == (StatusLed.SCANNING, True)
+        assert (panel.status_led, panel.light_on) == (StatusLed.SCANNING, True)
+        await asyncio.sleep(0.3)
+        assert (panel.reported_led, panel.reported_light) == (StatusLed.SCANNING, True)
+        await panel.set_light(False)
+        assert sim.light is False
+        seqs = [line.seq for line in sim.received]
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+
+    run(scenario)
+
+
+def test_close_says_bye_so_the_panel_shows_off_not_fault() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        await panel.set_status(StatusLed.IDLE)
+        await panel.set_light(True)
+        await panel.close()
+        await panel.close()  # idempotent
+        await asyncio.sleep(2.0)
+        assert (sim.led, sim.light, sim.host_lost) == (StatusLed.OFF, False, False)
+        assert sim.received[-1].verb == "BYE"
+        with pytest.raises(PanelStateError, match="closed"):
+            await panel.set_status(StatusLed.IDLE)
+        assert [e async for e in panel.events()] == []
+
+    run(scenario)
+
+
+def test_command_before_connect_is_refused() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        with pytest.raises(PanelStateError, match="cannot send LED IDLE while the link is new"):
+            await panel.set_status(StatusLed.IDLE)
+        assert panel.estop_active  # unknown counts as pressed
+
+    run(scenario, connect=False)
+
+
+def test_unanswered_command_times_out_after_retries() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        sim.ignore_commands = True
+        with pytest.raises(PanelTimeout, match=r"'LIGHT 1' after 3 attempt") as info:
+            await panel.set_light(True)
+        assert info.value.device == "test-panel" and info.value.attempts == 3
+        sent = [line for line in sim.received if line.verb == "LIGHT"]
+        assert len(sent) == 3 and len({line.seq for line in sent}) == 3
+        assert panel.light_on is None
+
+    run(scenario)
+
+
+def test_refused_command_names_the_reason() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        sim.nak_reason = "LIGHT_DRIVER_FAULT"
+        with pytest.raises(PanelCommandRefused, match="refused 'LIGHT 1': LIGHT_DRIVER_FAULT"):
+            await panel.set_light(True)
+
+    run(scenario)
+
+
+def test_silent_panel_fails_connect() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        sim.ignore_commands = True
+        with pytest.raises(PanelTimeout, match="HELLO 1"):
+            await panel.connect()
+        assert panel.state is LinkState.NEW
+
+    run(scenario, connect=False)
+
+
+def test_protocol_version_mismatch_fails_connect() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        with pytest.raises(PanelProtocolError, match="panel speaks protocol 2, host speaks 1"):
+            await panel.connect()
+
+    run(scenario, connect=False, protocol_version=2)
+
+
+# ---------------------------------------------------------------------- events
+
+
+def test_buttons_and_estop_become_events_for_every_subscriber() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        first, second = panel.events(), panel.events()
+        assert not panel.estop_active
+        sim.press_start()
+        sim.press_stop()
+        sim.press_estop()
+        expected = [PanelEvent.START_PRESSED, PanelEvent.STOP_PRESSED, PanelEvent.ESTOP_PRESSED]
+        assert [await next_event(first) for _ in expected] == expected
+        assert [await next_event(second) for _ in expected] == expected
+        assert panel.estop_active
+        sim.release_estop()
+        assert await next_event(first) is PanelEvent.ESTOP_RELEASED
+        assert not panel.estop_active
+
+    async def exact(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.press_start()
+        assert await next_event(events) is PanelEvent.START_PRESSED
+        await asyncio.sleep(1.0)
+        sim.press_stop()
+        assert await next_event(events) is PanelEvent.STOP_PRESSED  # no resent START in between
+
+    run(scenario)
+    run(exact)
+
+
+def test_estop_held_at_connect_is_the_first_event() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        assert panel.estop_active
+        events = panel.events()
+        assert await next_event(events) is PanelEvent.ESTOP_PRESSED
+        sim.release_estop()
+        assert await next_event(events) is PanelEvent.ESTOP_RELEASED
+
+    run(scenario, estop=True)
+
+
+def test_corrupted_event_is_resent_and_reported_once() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.corrupt_lines(1)
+        sim.press_start()
+        assert await next_event(events) is PanelEvent.START_PRESSED
+        assert panel.bad_lines == 1 and "checksum" in str(panel.last_error)
+        await asyncio.sleep(1.0)
+        sim.press_stop()
+        assert await next_event(events) is PanelEvent.STOP_PRESSED
+
+    run(scenario)
+
+
+def test_duplicate_event_sequence_number_is_acknowledged_but_not_repeated() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        line = encode(Line(0x42, "EVT", ("STOP",)), FROM_PANEL)
+        sim.send_garbage(line)
+        sim.send_garbage(line)
+        assert await next_event(events) is PanelEvent.STOP_PRESSED
+        sim.press_start()
+        assert await next_event(events) is PanelEvent.START_PRESSED
+        acks = [l for l in sim.received if l.verb == "ACK" and l.args == ("42",)]
+        assert len(acks) == 2
+
+    run(scenario)
+
+
+def test_estop_change_seen_in_heartbeat_when_its_event_is_lost() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.estop = True  # the EVT line never made it; the heartbeat carries the state
+        assert await next_event(events) is PanelEvent.ESTOP_PRESSED
+        assert panel.estop_active
+
+    run(scenario)
+
+
+# ---------------------------------------------------------------------- loss
+
+
+def test_panel_heartbeat_loss_and_return() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.stop_heartbeats()
+        assert await next_event(events) is PanelEvent.HEARTBEAT_LOST
+        assert isinstance(panel.fault, PanelHeartbeatLost)
+        assert panel.state is LinkState.LOST and panel.estop_active
+        assert "no heartbeat for 0.60 s" in str(panel.fault)
+        late = panel.events()
+        assert await next_event(late) is PanelEvent.HEARTBEAT_LOST  # joins knowing the link is down
+        sim.resume_heartbeats()
+        assert await next_event(events) is PanelEvent.RECONNECTED
+        assert panel.fault is None and not panel.estop_active
+
+    run(scenario)
+
+
+def test_only_garbage_is_a_lost_heartbeat_that_names_the_garbage() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.corrupt_lines(1000)
+        assert await next_event(events) is PanelEvent.HEARTBEAT_LOST
+        assert panel.fault is not None and panel.fault.bad_lines >= 2
+        assert "checksum" in str(panel.fault)
+
+    run(scenario)
+
+
+def test_noise_without_newline_is_dropped_as_one_bad_line() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        sim.send_garbage(b"\x00\xff" * 100)
+        await asyncio.sleep(0.5)
+        assert panel.bad_lines >= 1 and panel.state is LinkState.CONNECTED
+        await panel.set_status(StatusLed.BUSY)
+        assert sim.led is StatusLed.BUSY
+
+    run(scenario)
+
+
+def test_pulled_cable_is_a_disconnect() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.disconnect()
+        assert await next_event(events) is PanelEvent.HEARTBEAT_LOST
+        assert [e async for e in events] == []  # the stream ends with the link
+        assert isinstance(panel.fault, PanelDisconnected) and panel.estop_active
+        with pytest.raises(PanelDisconnected, match="link lost: "):
+            await panel.set_status(StatusLed.FAULT)
+
+    run(scenario)
+
+
+def test_panel_shows_fault_and_lights_off_when_the_host_vanishes() -> None:
+    """A host that greets the panel and then goes silent (no BYE)."""
+
+    async def main() -> None:
+        (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+        sim = SimulatedPanel(dev_r, dev_w)
+        task = asyncio.create_task(sim.run())
+        for seq, verb, args in [(0, "HELLO", ("1",)), (1, "LIGHT", ("1",)), (2, "LED", ("IDLE",))]:
+            host_w.write(encode(Line(seq, verb, args), FROM_HOST))
+        await asyncio.sleep(0.1)
+        assert (sim.led, sim.light) == (StatusLed.IDLE, True)
+        await asyncio.sleep(0.5)
+        assert not sim.host_lost  # within the 0.6 s allowance
+        await asyncio.sleep(0.5)
+        assert sim.host_lost and (sim.led, sim.light) == (StatusLed.FAULT, False)
+        host_w.write(encode(Line(3, "HB", ()), FROM_HOST))
+        await asyncio.sleep(0.1)
+        assert not sim.host_lost and sim.led is StatusLed.FAULT  # FAULT stays until told
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        host_w.close()
+        sim.close()
+
+    run_virtual(main())
+
+
+def test_host_heartbeat_keeps_the_panel_happy() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        await panel.set_status(StatusLed.IDLE)
+        await asyncio.sleep(5.0)
+        assert not sim.host_lost and sim.led is StatusLed.IDLE
+        assert sum(line.verb == "HB" for line in sim.received) >= 20
+
+    run(scenario)
+
+
+# ---------------------------------------------------------------------- pty (real time)
+
+
+async def test_over_a_pty_like_a_real_serial_port() -> None:
+    sim, path = await SimulatedPanel.on_pty()
+    task = asyncio.create_task(sim.run())
+    try:
+        reader, writer = await open_serial(path)
+        panel = OperatorPanel(reader, writer, name="pty-panel")
+        await panel.connect()
+        events = panel.events()
+        await panel.set_status(StatusLed.SCANNING)
+        await panel.set_light(True)
+        assert (sim.led, sim.light) == (StatusLed.SCANNING, True)
+        sim.press_estop()
+        assert await next_event(events) is PanelEvent.ESTOP_PRESSED
+        sim.press_start()
+        assert await next_event(events) is PanelEvent.START_PRESSED
+        # the host vanishes without BYE: the port closes but the panel sees no end of stream
+        writer.transport.abort()
+        await panel.close()
+        async with asyncio.timeout(5.0):
+            while not sim.host_lost:
+                await asyncio.sleep(0.05)
+        assert (sim.led, sim.light) == (StatusLed.FAULT, False)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        sim.close()
+
+
+async def test_missing_serial_port_names_the_path() -> None:
+    with pytest.raises(PanelDisconnected, match="/dev/tbp-no-such-panel"):
+        await open_serial("/dev/tbp-no-such-panel")
