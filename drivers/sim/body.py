@@ -45,6 +45,14 @@ log = structlog.get_logger(__name__)
 ADULT_AGE = (0.67, 0.92)
 """Anny's age control for adults: 2/3 is its 'young adult' (about 25 years) anchor, 1 is 'old'."""
 AVERAGE_ADULT_AGE = 0.75
+AVERAGE_ADULT_HEIGHT = 0.38
+"""Anny's height control for a stature of about 1.70 m at gender 0.5 (0.5 gives about 1.84 m)."""
+ADULT_STATURE_M = ((1.76, 0.07), (1.63, 0.065))
+"""Mean and standard deviation of adult stature (m) for gender 0 (male) and 1 (female)."""
+STATURE_LIMITS_M = (1.55, 1.95)
+# Unposed stature (m) ~ 1 * c0 + gender, age, muscle, weight, height, proportions controls;
+# least-squares fit over 40 random adults, largest error 23 mm.
+_STATURE_MODEL = np.array([1.39180, -0.136538, -0.0556173, 0.0192854, 0.0100350, 1.08268, -0.00757853])
 MAX_SWAY_DEG = 10.0
 """Postural sway is small; larger turns would make a different pose, not sway."""
 
@@ -56,15 +64,17 @@ _MODEL_TO_RIG = 1000.0 * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0,
 class Phenotype:
     """Anny's phenotype controls, each in its native range [0, 1].
 
-    gender: 0 female .. 1 male; age: 2/3 young adult .. 1 old (below 2/3: children);
-    muscle, weight, height: min .. max; proportions: ideal .. uncommon. Default: average adult.
+    gender: 0 male .. 1 female; age: 2/3 young adult .. 1 old (below 2/3: children);
+    muscle, weight, height: min .. max (height spans about 1.08 m of stature per unit, so
+    adults of 1.5..2.0 m need height in about 0.1..0.75); proportions: ideal .. uncommon.
+    Default: an average adult of about 1.70 m.
     """
 
     gender: float = 0.5
     age: float = AVERAGE_ADULT_AGE
     muscle: float = 0.5
     weight: float = 0.5
-    height: float = 0.5
+    height: float = AVERAGE_ADULT_HEIGHT
     proportions: float = 0.5
 
     def __post_init__(self) -> None:
@@ -102,15 +112,26 @@ class Phenotype:
 
 
 def random_adult_phenotype(rng: np.random.Generator) -> Phenotype:
-    """A varied adult: any gender, ages 25..~75, spread muscle, weight and height (1.5..2.0 m)."""
-    return Phenotype(
-        gender=float(rng.uniform(0.0, 1.0)),
+    """A varied adult: any gender, ages 25..~75, spread muscle and weight, realistic stature.
+
+    The height control is solved from a stature drawn for the gender (ADULT_STATURE_M, clipped
+    to STATURE_LIMITS_M) so that every body stands 1.5..2.0 m tall.
+    """
+    gender = float(rng.uniform(0.0, 1.0))
+    others = dict(
         age=float(rng.uniform(*ADULT_AGE)),
         muscle=float(rng.uniform(0.2, 0.8)),
         weight=float(rng.uniform(0.15, 0.85)),
-        height=float(rng.uniform(0.1, 0.9)),
         proportions=float(rng.uniform(0.2, 0.8)),
     )
+    (mean_m, sd_m), (mean_f, sd_f) = ADULT_STATURE_M
+    stature = rng.normal(mean_m + gender * (mean_f - mean_m), sd_m + gender * (sd_f - sd_m))
+    stature = float(np.clip(stature, *STATURE_LIMITS_M))
+    c0, c_gender, c_age, c_muscle, c_weight, c_height, c_proportions = _STATURE_MODEL
+    rest = (c0 + c_gender * gender + c_age * others["age"] + c_muscle * others["muscle"]
+            + c_weight * others["weight"] + c_proportions * others["proportions"])
+    height = float(np.clip((stature - rest) / c_height, 0.0, 1.0))
+    return Phenotype(gender=gender, height=height, **others)
 
 
 @dataclass(frozen=True)
@@ -166,14 +187,15 @@ def _seeds(seed: int) -> list[np.random.SeedSequence]:
 
 def _to_rig_frame(posed: anny.PosedBody, phenotype: Phenotype, sway_deg: float) -> Body:
     """Rotate to face +x, scale to mm, stand on z = 0 and centre the volume on the axis."""
-    mesh = trimesh.Trimesh(posed.vertices @ _MODEL_TO_RIG.T, posed.faces, process=False)
+    mesh = trimesh.Trimesh(posed.vertices @ _MODEL_TO_RIG.T, posed.faces.astype(np.int32), process=False)
     mesh.remove_unreferenced_vertices()
     if mesh.volume < 0:
         mesh.invert()
     if not mesh.is_watertight or not mesh.is_winding_consistent:
         raise BodyError(f"Anny skin for phenotype {phenotype} is not a closed consistently wound surface")
     offset = np.array([-mesh.center_mass[0], -mesh.center_mass[1], -mesh.bounds[0, 2]])
-    mesh.apply_translation(offset)
+    # float32 positions (0.1 um at 2 m) so a body read from the disk cache equals a fresh one.
+    mesh.vertices = (mesh.vertices + offset).astype(np.float32).astype(np.float64)
     joints = {name: p @ _MODEL_TO_RIG.T + offset for name, p in posed.joints.items()}
     return Body(mesh=mesh, joints=joints, phenotype=phenotype, sway_deg=sway_deg)
 
@@ -211,7 +233,7 @@ def _read_cached(path: Path, phenotype: Phenotype, sway_deg: float) -> Body | No
         return None
     try:
         with np.load(path, allow_pickle=False) as data:
-            mesh = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+            mesh = trimesh.Trimesh(data["vertices"].astype(np.float64), data["faces"], process=False)
             joints = dict(zip(data["joint_names"].tolist(), data["joint_positions"]))
     except (OSError, ValueError, KeyError) as exc:
         log.warning("body_cache_unreadable", path=str(path), error=str(exc))
@@ -226,8 +248,8 @@ def _write_cached(path: Path, body: Body) -> None:
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".body-", suffix=".npz", delete=False) as tmp:
             np.savez(
                 tmp,
-                vertices=np.asarray(body.mesh.vertices),
-                faces=np.asarray(body.mesh.faces),
+                vertices=np.asarray(body.mesh.vertices, dtype=np.float32),
+                faces=np.asarray(body.mesh.faces, dtype=np.int32),
                 joint_names=np.array(list(body.joints)),
                 joint_positions=np.array(list(body.joints.values())),
             )
