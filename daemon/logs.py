@@ -2,7 +2,8 @@
 
 Every line carries timestamp (UTC ISO 8601), level, event and the context keys scan_id,
 state and device (null when unset), bound with contextvars so each asyncio task carries its
-own: the daemon binds the scan id and state, a driver task binds its device. Under
+own: the daemon binds the scan id and state (or sets a process-wide source for them with
+:func:`set_context_source`), a driver task binds its device. Under
 journald (stdout is the $JOURNAL_STREAM) each line starts with a syslog priority prefix
 "<N>" so `journalctl -p err` works. No patient data: the subject is only an opaque scan id.
 """
@@ -13,7 +14,7 @@ import contextlib
 import logging
 import os
 import sys
-from collections.abc import Iterator, MutableMapping
+from collections.abc import Callable, Iterator, Mapping, MutableMapping
 from typing import Any, TextIO
 
 import structlog
@@ -23,9 +24,24 @@ _PRIORITY = {"critical": 2, "exception": 3, "error": 3, "warning": 4, "warn": 4,
              "debug": 7}
 
 
+_context_source: Callable[[], Mapping[str, Any]] | None = None
+
+
+def set_context_source(source: Callable[[], Mapping[str, Any]] | None) -> None:
+    """A process-wide fallback for the context keys, e.g. the state machine's scan id and state.
+
+    Lines from tasks that bound nothing themselves (driver tasks, the control server) then
+    still name the scan and state; keys bound with contextvars or passed to the call win.
+    """
+    global _context_source
+    _context_source = source
+
+
 def _context_defaults(_: Any, __: str, event: MutableMapping[str, Any]) -> MutableMapping[str, Any]:
+    fallback = _context_source() if _context_source is not None else {}
     for key in CONTEXT_KEYS:
-        event.setdefault(key, None)
+        if event.get(key) is None:
+            event[key] = fallback.get(key)
     return event
 
 

@@ -10,13 +10,21 @@ import os
 import pytest
 import structlog
 
-from daemon.logs import bind_scan, bind_state, bound_device, configure_logging, under_journald
+from daemon.logs import (
+    bind_scan,
+    bind_state,
+    bound_device,
+    configure_logging,
+    set_context_source,
+    under_journald,
+)
 from daemon.states import ScanState
 
 
 @pytest.fixture(autouse=True)
 def _restore():
     yield
+    set_context_source(None)
     structlog.contextvars.clear_contextvars()
     structlog.reset_defaults()
 
@@ -49,6 +57,21 @@ def test_json_lines_carry_context_in_every_line():
     assert lines[3]["device"] is None
     assert lines[3]["scan_id"] == "abc123" and lines[3]["state"] == "CAPTURING"
     assert lines[3]["level"] == "warning" and lines[3]["timestamp"].endswith("Z")
+
+
+def test_process_wide_context_source_fills_unbound_keys():
+    out = io.StringIO()
+    configure_logging(json=True, stream=out)
+    machine = {"scan_id": "feed01", "state": "CAPTURING"}
+    set_context_source(lambda: machine)
+    log = structlog.get_logger()
+    log.info("tpdo_late")
+    machine["state"] = "FAULT"
+    with bound_device("beam"):
+        log.error("heartbeat_lost", state="explicit")
+    first, second = (json.loads(x) for x in out.getvalue().splitlines())
+    assert (first["scan_id"], first["state"], first["device"]) == ("feed01", "CAPTURING", None)
+    assert (second["state"], second["device"]) == ("explicit", "beam")
 
 
 def test_console_output_is_readable():
