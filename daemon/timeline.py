@@ -65,16 +65,16 @@ class Violation:
     def describe(self) -> str:
         who = "all cameras" if self.camera_index < 0 else f"camera {self.camera_index}"
         words = {
-            "focus_missing": "focus is not a finite number",
+            "focus_missing": "focus is not a finite positive distance",
             "focus_range": "focus outside the phone's focus range",
             "cycle": "time between captures shorter than the phone's capture cycle",
             "lens_settle": "lens cannot settle between the previous capture and this trigger",
             "motion_blur": "motion blur above the limit",
         }[self.kind]
-        return (
-            f"angle {self.angle_index} ({self.angle_deg:.2f} deg), {who}: {words}: "
-            f"{self.value:.4g} {self.unit} (limit {self.limit:.4g} {self.unit})"
-        )
+        where = f"angle {self.angle_index} ({self.angle_deg:.2f} deg), {who}: {words}"
+        if self.kind == "focus_missing":
+            return f"{where}: {self.value!r}"
+        return f"{where}: {self.value:.4g} {self.unit} (limit {self.limit:.4g} {self.unit})"
 
 
 class PlanInfeasible(TimelineError):

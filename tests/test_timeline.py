@@ -152,6 +152,8 @@ def test_incomplete_and_out_of_range_plans_list_offending_angles(rig):
     kinds = {(v.kind, v.angle_index, v.camera_index) for v in info.value.violations}
     assert kinds == {("focus_missing", 3, 2), ("focus_range", 10, 0)}
     assert "angle indices [3, 10]" in str(info.value)
+    assert "angle 3 (-10.00 deg), camera 2: focus is not a finite positive distance: nan" in str(info.value)
+    assert "angle 10 (54.00 deg), camera 0: focus outside the phone's focus range: 50 mm (limit 100 mm)" in str(info.value)
 
 
 def test_wrong_plan_shape_is_refused(rig):
