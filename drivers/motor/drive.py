@@ -16,13 +16,13 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import AsyncIterator, Callable, Coroutine
-from dataclasses import dataclass
 from typing import Any
 
 import can
 import structlog
 
 from drivers.motor import cia402, emcy, nmt, pdo
+from drivers.motor.bringup import POSITION_TPDO, STATUS_TPDO, configure
 from drivers.motor.cia402 import Cia402State, Control, Mode, Status
 from drivers.motor.errors import (
     CanBusError,
@@ -39,65 +39,13 @@ from drivers.motor.errors import (
     StateTransitionTimeout,
 )
 from drivers.motor.port import CanPort
+from drivers.motor.samples import BeamSample, SampleStream
 from drivers.motor.sdo import SdoClient
 from planner.rig import Motor
 
 log = structlog.get_logger(__name__)
 
-POSITION_TPDO = (
-    pdo.MappedObject(cia402.POSITION_ACTUAL, 0, "<i"),
-    pdo.MappedObject(cia402.VELOCITY_ACTUAL, 0, "<i"),
-)
-STATUS_TPDO = (pdo.MappedObject(cia402.STATUSWORD, 0, "<H"),)
-
-
-@dataclass(frozen=True)
-class BeamSample:
-    """One position report of the beam.
-
-    Attributes:
-        time_s: event-loop clock when the TPDO arrived, s.
-        angle_deg: beam angle, continuous (not wrapped), deg.
-        speed_deg_s: beam speed (latest velocity actual), deg/s.
-        statusword: the latest statusword (0x6041).
-    """
-
-    time_s: float
-    angle_deg: float
-    speed_deg_s: float
-    statusword: int
-
-
-_END = object()
 _AUTOMATIC = (Cia402State.NOT_READY_TO_SWITCH_ON, Cia402State.FAULT_REACTION_ACTIVE)
-
-
-class SampleStream:
-    """One subscriber's queue of :class:`BeamSample`; drops the oldest sample when full."""
-
-    def __init__(self, drive: BeamDrive, maxsize: int) -> None:
-        self._drive = drive
-        self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize)
-        self.dropped = 0
-
-    def put(self, item: object) -> None:
-        if self._queue.full():
-            self._queue.get_nowait()
-            self.dropped += 1
-        self._queue.put_nowait(item)
-
-    def __aiter__(self) -> SampleStream:
-        return self
-
-    async def __anext__(self) -> BeamSample:
-        item = await self._queue.get()
-        if item is _END:
-            self._drive._streams.discard(self)
-            raise StopAsyncIteration
-        return item  # type: ignore[return-value]
-
-    async def aclose(self) -> None:
-        self._drive._streams.discard(self)
 
 
 class BeamDrive:
@@ -420,7 +368,7 @@ class BeamDrive:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
         for stream in list(self._streams):
-            stream.put(_END)
+            stream.end()
         self.port.close()
         self._wake()
         log.info("drive_closed", drive=self.name, goodbye_error=str(goodbye_error) if goodbye_error else None)
@@ -429,9 +377,7 @@ class BeamDrive:
 
     def samples(self) -> AsyncIterator[BeamSample]:
         """A live stream of position samples from now on; each call its own queue."""
-        stream = SampleStream(self, self.SAMPLE_QUEUE_SIZE)
-        self._streams.add(stream)
-        return stream
+        return SampleStream(self._streams, self.SAMPLE_QUEUE_SIZE)
 
     def angle_to_counts(self, angle_deg: float) -> int:
         """Encoder counts (motor side) for a beam angle."""
@@ -440,33 +386,7 @@ class BeamDrive:
     # ------------------------------------------------------------------ bring-up
 
     async def _configure(self) -> None:
-        n, cfg = self.node_id, self.config
-        write = self.sdo.write
-        await write(cia402.HEARTBEAT_PRODUCER, 0, "<H", cfg.heartbeat_producer_ms)
-        await write(
-            cia402.HEARTBEAT_CONSUMER,
-            1,
-            "<I",
-            nmt.consumer_heartbeat_value(self.host_node_id, cfg.heartbeat_timeout_ms),
-        )
-        period_ms = max(1, round(1000 / cfg.position_rate_hz))
-        for k, mapping in enumerate((POSITION_TPDO, STATUS_TPDO)):
-            comm, mapping_index, cob_id = (
-                pdo.TPDO_COMMUNICATION + k,
-                pdo.TPDO_MAPPING + k,
-                nmt.tpdo_cob_id(k + 1, n),
-            )
-            await write(comm, 1, "<I", pdo.COB_ID_INVALID | cob_id)
-            await write(mapping_index, 0, "<B", 0)
-            for sub, obj in enumerate(mapping, start=1):
-                await write(mapping_index, sub, "<I", obj.entry)
-            await write(mapping_index, 0, "<B", len(mapping))
-            await write(comm, 2, "<B", pdo.TRANSMISSION_EVENT_DRIVEN)
-            await write(comm, 5, "<H", period_ms)
-            await write(comm, 1, "<I", cob_id)
-        await write(cia402.FOLLOWING_ERROR_WINDOW, 0, "<I", self._counts(cfg.following_error_deg))
-        await write(cia402.QUICK_STOP_DECELERATION, 0, "<I", self._counts(cfg.max_acceleration_deg_s2))
-        await write(cia402.QUICK_STOP_OPTION, 0, "<h", 6)  # brake on the quick-stop ramp, stay there
+        await configure(self.sdo, self.config, self.host_node_id)
         self._on_statusword(await self.sdo.read(cia402.STATUSWORD, 0, "<H"))
         self._mode = None
 
