@@ -158,6 +158,15 @@ async def test_client_without_daemon(sock):
         await ControlClient(sock).status()
 
 
+async def test_socket_is_given_to_the_operators_group(sock):
+    import grp
+
+    group = grp.getgrgid(os.getgid()).gr_name  # a group this process may chown to
+    async with ControlServer(sock, FakeDaemon(), group=group):
+        st = os.stat(sock)
+        assert st.st_gid == os.getgid() and stat.S_IMODE(st.st_mode) == 0o660
+
+
 async def test_unknown_group_is_refused(sock):
     from daemon.control import ControlError
 
