@@ -79,6 +79,7 @@ class PullQueue:
 
     RETRIES = 2
     RETRY_DELAY_S = 0.5
+    PULL_TIMEOUT_S = 120.0
     SPACE_MARGIN_BYTES = 1 << 20
 
     def __init__(self, folder: ScanFolder, *, workers: int = 2) -> None:
@@ -149,7 +150,8 @@ class PullQueue:
             folder.update_image(job.camera_index, job.angle_index, attempts=attempt, save=False)
             try:
                 self._check_space(dest, job.expected_size)
-                size, sha = await job.pull(job.phone_path, dest)
+                async with asyncio.timeout(self.PULL_TIMEOUT_S):
+                    size, sha = await job.pull(job.phone_path, dest)
                 await self._verify(dest, size, sha, job.expected_size)
             except StoreFull as exc:
                 self._disk_full(job, exc)
@@ -159,6 +161,8 @@ class PullQueue:
                     self._disk_full(job, StoreFull(dest, job.expected_size or 0))
                     return
                 cause = f"{type(exc).__name__}: {exc}"
+            except TimeoutError:
+                cause = f"TimeoutError: no pull within {self.PULL_TIMEOUT_S:g} s"
             except Exception as exc:  # the phone's typed errors: recorded, then retried
                 cause = f"{type(exc).__name__}: {exc}"
             else:

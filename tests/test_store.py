@@ -205,6 +205,25 @@ async def test_background_pulls_verify_retry_and_record(tmp_path, rig, monkeypat
     assert [f.camera_id for f in q.failures] == ["cam2"]
 
 
+async def test_a_hanging_pull_times_out_and_is_retried(tmp_path, rig, monkeypatch):
+    folder = _planned(ScanStore(tmp_path), rig)
+    monkeypatch.setattr(PullQueue, "PULL_TIMEOUT_S", 0.05)
+    monkeypatch.setattr(PullQueue, "RETRY_DELAY_S", 0.0)
+    calls = []
+
+    async def stuck_then_fine(phone_path: str, dest: Path) -> tuple[int, str]:
+        calls.append(phone_path)
+        if len(calls) == 1:
+            await asyncio.Event().wait()  # the phone never answers
+        return await FakePhone().pull(phone_path, dest)
+
+    async with PullQueue(folder) as q:
+        q.submit(5, 2, "/sdcard/e.jpg", stuck_then_fine)
+        await q.join()
+    image = _manifest(folder)["images"][rig.pose_index(2, 5)]
+    assert image["status"] == "verified" and image["attempts"] == 2 and len(calls) == 2
+
+
 async def test_pull_onto_a_full_disk_keeps_the_image_captured(tmp_path, rig):
     folder = _planned(ScanStore(tmp_path), rig)
     folder.record_capture(3, 4, sensor_timestamp_ns=1, host_time_s=1.0, actual_angle_deg=0.0,
