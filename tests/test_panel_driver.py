@@ -354,3 +354,21 @@ async def test_over_a_pty_like_a_real_serial_port() -> None:
 async def test_missing_serial_port_names_the_path() -> None:
     with pytest.raises(PanelDisconnected, match="/dev/tbp-no-such-panel"):
         await open_serial("/dev/tbp-no-such-panel")
+
+
+def test_line_noise_is_survived() -> None:
+    """One line in twenty broken: no false loss, every press reported once."""
+
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        presses = [sim.press_start, sim.press_stop] * 5
+        for press in presses:
+            press()
+            await asyncio.sleep(1.0)
+        seen = []
+        while len(seen) < len(presses):
+            seen.append(await next_event(events))
+        assert seen == [PanelEvent.START_PRESSED, PanelEvent.STOP_PRESSED] * 5
+        assert panel.state is LinkState.CONNECTED and panel.bad_lines > 0
+
+    run(scenario, noise=0.05, seed=1)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import random
 import signal
 import stat
 import sys
@@ -40,6 +41,8 @@ class SimulatedPanel:
         reader, writer: the panel's end of the link.
         estop: the e-stop is pressed at power-on.
         protocol_version: the version it answers HELLO with.
+        noise: fraction of the lines it sends that arrive with a broken checksum.
+        seed: seeds the choice of those lines.
         name: used in logs.
     """
 
@@ -56,6 +59,8 @@ class SimulatedPanel:
         *,
         estop: bool = False,
         protocol_version: int = protocol.PROTOCOL_VERSION,
+        noise: float = 0.0,
+        seed: int = 0,
         name: str = "sim-panel",
     ) -> None:
         self._reader, self._writer = reader, writer
@@ -72,6 +77,8 @@ class SimulatedPanel:
         self.ignore_commands = False
         self.nak_reason: str | None = None
         self.corrupt_next = 0
+        self.noise = noise
+        self._rng = random.Random(seed)
         self.dropped_bytes = 0
         self._seq = 0
         self._last_raw = b""
@@ -222,8 +229,9 @@ class SimulatedPanel:
         self._seq = protocol.next_seq(seq)
         raw = protocol.encode(Line(seq, verb, args), FROM_PANEL)
         self._last_raw = raw  # a resend repeats the line as meant, not as the noise left it
-        if self.corrupt_next > 0:
-            self.corrupt_next -= 1
+        noisy = self.noise > 0 and self._rng.random() < self.noise
+        if self.corrupt_next > 0 or noisy:
+            self.corrupt_next = max(0, self.corrupt_next - 1)
             body, crc = raw[:-3], int(raw[-3:-1], 16)
             raw = body + b"%02X\n" % (crc ^ 0x5A)
         self._write(raw)
@@ -274,8 +282,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="protocol version to answer HELLO with (test a mismatch)")
     parser.add_argument("--no-heartbeat", action="store_true",
                         help="never send heartbeats (the host must report the panel lost)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="accepted for symmetry with the other simulators (the panel is not random)")
+    parser.add_argument("--noise", type=float, default=0.0,
+                        help="fraction of sent lines whose checksum is broken (line noise)")
+    parser.add_argument("--seed", type=int, default=0, help="seeds which lines the noise hits")
 
 
 async def serve(args: argparse.Namespace) -> int:
@@ -283,8 +292,9 @@ async def serve(args: argparse.Namespace) -> int:
 
     Keys on stdin press buttons: ``s`` start, ``x`` stop, ``e`` e-stop, ``r`` release it.
     """
-    panel, path = await SimulatedPanel.on_pty(estop=args.estop,
-                                              protocol_version=args.protocol_version)
+    panel, path = await SimulatedPanel.on_pty(
+        estop=args.estop, protocol_version=args.protocol_version, noise=args.noise, seed=args.seed
+    )
     if args.no_heartbeat:
         panel.stop_heartbeats()
     print(f"simulated panel on {path}", flush=True)

@@ -1,0 +1,76 @@
+"""``tbp sim motor|phone|panel``: run one simulated device as a standalone process.
+
+Each simulator module (drivers.sim.drive, drivers.sim.phone, drivers.sim.panel) owns its options
+(``add_arguments``) and its server (``serve``); this command only dispatches. A simulator module
+is imported when its sub-command is parsed, so ``tbp --help`` stays fast and one simulator that
+cannot be imported never breaks the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from types import ModuleType
+from typing import Any
+
+SIMULATORS = {
+    "motor": ("drivers.sim.drive",
+              "CiA 402 beam drive on a socketcand bridge at 127.0.0.1:--port"),
+    "phone": ("drivers.sim.phone", "one phone's adbd with the capture agent at 127.0.0.1:--port"),
+    "panel": ("drivers.sim.panel", "the operator panel on a new pty (prints its path)"),
+}
+
+
+class _SimulatorParser(argparse.ArgumentParser):
+    """A sub-command parser that imports its simulator and adds its options on first use."""
+
+    def __init__(self, *args: Any, module: str = "", **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.module_name = module
+        self.module: ModuleType | None = None
+
+    def load(self) -> ModuleType:
+        if self.module is None:
+            try:
+                module = importlib.import_module(self.module_name)
+            except ImportError as exc:
+                self.error(f"simulator module {self.module_name} cannot be imported: {exc}")
+            if not callable(getattr(module, "add_arguments", None)) or not callable(
+                getattr(module, "serve", None)
+            ):
+                self.error(f"simulator module {self.module_name} lacks add_arguments/serve")
+            module.add_arguments(self)
+            self.set_defaults(sim_module=self.module_name)
+            self.module = module
+        return self.module
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        self.load()
+        return super().parse_known_args(args, namespace)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "sim",
+        help="run a simulated motor drive, phone or operator panel as its own process",
+        description="Serve one simulated device at the protocol level (socketcand, ADB, serial "
+        "pty) until SIGINT/SIGTERM, for driver commissioning and protocol tests.",
+    )
+    devices = parser.add_subparsers(
+        dest="device", metavar="DEVICE", required=True, parser_class=_SimulatorParser
+    )
+    for name, (module, help_text) in SIMULATORS.items():
+        devices.add_parser(name, help=help_text, description=help_text, module=module)
+    parser.add_argument("--log-level", default="warning", help="debug, info, warning or error")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+    import sys
+
+    from daemon.logs import configure_logging
+
+    configure_logging(level=args.log_level, stream=sys.stderr)
+    module = importlib.import_module(args.sim_module)
+    return int(asyncio.run(module.serve(args)) or 0)

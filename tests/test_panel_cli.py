@@ -1,0 +1,80 @@
+"""``tbp sim panel`` as its own process: it prints its pty path and a real OperatorPanel talks to it."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+
+from daemon.cli import build_parser
+from drivers.panel import OperatorPanel, PanelEvent, StatusLed, open_serial
+
+TBP = Path(sys.executable).with_name("tbp")
+
+
+async def test_tbp_sim_panel_serves_a_pty_that_the_driver_can_use() -> None:
+    proc = await asyncio.create_subprocess_exec(
+        str(TBP), "sim", "panel", "--estop",
+        stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+    )
+    panel: OperatorPanel | None = None
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        async with asyncio.timeout(60):
+            line = (await proc.stdout.readline()).decode()
+        assert line.startswith("simulated panel on /dev/"), line
+        path = line.split(" on ", 1)[1].strip()
+        assert os.path.exists(path)
+        panel = OperatorPanel(*await open_serial(path), name="cli-panel")
+        await panel.connect()
+        events = panel.events()
+        async with asyncio.timeout(5):
+            assert await anext(events) is PanelEvent.ESTOP_PRESSED  # --estop: held at power-on
+        await panel.set_status(StatusLed.IDLE)
+        assert panel.reported_led in (None, StatusLed.OFF, StatusLed.IDLE)
+        proc.stdin.write(b"r")  # the operator releases the e-stop and presses START
+        proc.stdin.write(b"s")
+        await proc.stdin.drain()
+        async with asyncio.timeout(5):
+            assert await anext(events) is PanelEvent.ESTOP_RELEASED
+            assert await anext(events) is PanelEvent.START_PRESSED
+    finally:
+        if panel is not None:
+            await panel.close()
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(30):
+            code = await proc.wait()
+    assert code == 0
+
+
+def test_sim_subcommands_take_their_simulators_options() -> None:
+    args = build_parser().parse_args(["sim", "panel", "--noise", "0.1", "--seed", "3"])
+    assert (args.sim_module, args.noise, args.seed) == ("drivers.sim.panel", 0.1, 3)
+    args = build_parser().parse_args(["sim", "phone", "--port", "5999", "--seed", "2"])
+    assert (args.sim_module, args.port, args.seed) == ("drivers.sim.phone", 5999, 2)
+    args = build_parser().parse_args(["sim", "motor", "--port", "29999"])
+    assert (args.sim_module, args.port) == ("drivers.sim.drive", 29999)
+
+
+def test_unknown_simulator_option_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        build_parser().parse_args(["sim", "panel", "--port", "5"])
+    assert info.value.code == 2
+    assert "unrecognized arguments: --port" in capsys.readouterr().err
+
+
+def test_missing_simulator_module_is_a_clear_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import daemon.cli.sim as sim_cli
+
+    monkeypatch.setitem(sim_cli.SIMULATORS, "lidar", ("drivers.sim.no_such_lidar", "not here"))
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["sim", "lidar"])
+    assert "drivers.sim.no_such_lidar cannot be imported" in capsys.readouterr().err
+    assert build_parser().parse_args(["sim", "panel"]).sim_module == "drivers.sim.panel"
