@@ -4,7 +4,8 @@ The capture rotation must never wait for a file transfer, so every captured imag
 here and pulled by a few asyncio workers while the beam keeps turning. A pull is the
 daemon's coroutine ``pull(phone_path, dest) -> (size_bytes, sha256)`` (PhoneCamera.pull);
 the store then checks the file on disk against that size, the size the phone reported at
-capture, and its own SHA-256. A failed pull is retried RETRIES times, then recorded in the
+capture, and its own SHA-256. A failed pull (an error, a mismatch, or no answer within
+PULL_TIMEOUT_S) is retried RETRIES times, then recorded in the
 manifest as failed with the error. A full disk is not retried: it is recorded, the image
 stays 'captured' (still on the phone) and :meth:`PullQueue.join` raises the StoreFull
 (likewise any StoreError that kept the manifest from being rewritten).
