@@ -18,7 +18,6 @@ import pytest
 from daemon.pulls import PullQueue
 from daemon.store import (
     AtomicWriter,
-    ImageStatus,
     ManifestError,
     ScanEnd,
     ScanStore,
