@@ -215,3 +215,18 @@ def test_scan_rig_time_under_the_paper_figure(rig):
         move_duration(gap, rig.motor.max_speed_deg_s, rig.motor.max_acceleration_deg_s2))
     assert t.total_s == pytest.approx(t.sweep_s + t.reposition_s + t.capture_s)
     assert t.total_s < 100.0
+
+
+@settings(max_examples=25, deadline=None)
+@given(cycle=st.floats(0.1, 2.5), settle=st.floats(0.0, 0.5), latency=st.floats(0.0, 0.2))
+def test_feasibility_refuses_exactly_the_too_close_captures(rig, cycle, settle, latency):
+    phones = [PhoneTiming(cycle, settle, latency) for _ in range(rig.n_cameras)]
+    s = compile_plan(np.full(rig.n_poses, 450.0), rig, phones, check=False)
+    gaps = np.diff(s.crossing_s)  # the same for every camera (equal latencies)
+    too_close = {k + 1 for k in np.flatnonzero(gaps < cycle + settle)}
+    assert {v.angle_index for v in s.violations} == too_close
+    for v in s.violations:
+        assert v.kind == ("cycle" if gaps[v.angle_index - 1] < cycle else "lens_settle")
+    if too_close:
+        with pytest.raises(PlanInfeasible):
+            compile_plan(np.full(rig.n_poses, 450.0), rig, phones)
