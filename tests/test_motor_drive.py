@@ -154,8 +154,25 @@ def test_stop_from_rotation_and_from_move() -> None:
         await asyncio.sleep(1.5)
         await drive.stop(60.0)
         assert sim.true_speed_deg_s == 0.0 and drive.latest is not None and drive.latest.speed_deg_s == 0.0
-        with pytest.raises(MotionInterrupted, match=r"move to 157.5\d* deg stopped at 37.5\d* deg"):
+        with pytest.raises(MotionInterrupted, match=r"move to 157.5\d* deg superseded by stop at \d"):
             await move
+
+    run(scenario)
+
+
+def test_a_move_superseded_by_a_rotation_says_so() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        move = asyncio.create_task(drive.move_to(90.0, 30.0, 60.0))
+        await asyncio.sleep(0.5)
+        await drive.rotate(10.0, 60.0)
+        with pytest.raises(MotionInterrupted, match="move to 90 deg superseded by rotate"):
+            await move
+        await drive.wait_speed(10.0)
+        second = asyncio.create_task(drive.move_to(0.0, 30.0, 60.0))
+        await asyncio.sleep(0.1)
+        await drive.quick_stop()
+        with pytest.raises(MotionInterrupted, match="superseded by quick stop"):
+            await second
 
     run(scenario)
 

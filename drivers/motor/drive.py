@@ -90,6 +90,7 @@ class BeamDrive:
         self.sdo.RESPONSE_TIMEOUT_S = self.SDO_TIMEOUT_S
         self._speed_counts = 0
         self._controlword = 0
+        self._command = (0, "")  # (serial, name) of the latest motion command
         self._mode: Mode | None = None
         self._last_emcy: emcy.Emcy | None = None
         self._update = asyncio.Event()
@@ -149,6 +150,7 @@ class BeamDrive:
 
     async def disable(self) -> None:
         """Disable voltage (SWITCH ON DISABLED); with a latched fault it only sends the command."""
+        self._new_command("disable")
         await self._write_controlword(cia402.DISABLE_VOLTAGE)
         if self.fault is None:
             await self._until(
@@ -165,6 +167,7 @@ class BeamDrive:
             raise DriveNotReady(
                 self.name, self.state.value, f"set_zero while moving at {self.latest.speed_deg_s:.3f} deg/s"
             )
+        self._new_command("set_zero")
         await self.sdo.write(cia402.HOME_OFFSET, 0, "<i", self._counts(angle_deg))
         await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION)
         await self._set_mode(Mode.HOMING)
@@ -193,6 +196,7 @@ class BeamDrive:
         once the drive accepted the command (see :meth:`wait_speed`)."""
         self._check_limits(speed_deg_s, acceleration_deg_s2)
         self._check_enabled()
+        self._new_command("rotate")
         counts_s2 = self._counts(acceleration_deg_s2)
         await self.sdo.write(cia402.PROFILE_ACCELERATION, 0, "<I", counts_s2)
         await self.sdo.write(cia402.PROFILE_DECELERATION, 0, "<I", counts_s2)
@@ -228,6 +232,7 @@ class BeamDrive:
                 self.name, self.state.value, f"move speed {speed_deg_s:g} deg/s must be positive"
             )
         self._check_enabled()
+        mine = self._new_command("move_to")
         counts_s2 = self._counts(acceleration_deg_s2)
         await self.sdo.write(cia402.TARGET_POSITION, 0, "<i", self._counts(angle_deg))
         await self.sdo.write(cia402.PROFILE_VELOCITY, 0, "<I", self._counts(speed_deg_s))
@@ -248,14 +253,23 @@ class BeamDrive:
         duration = abs(angle_deg - here) / speed_deg_s + (speed_deg_s + speed_now) / acceleration_deg_s2 * 2
         await self._until(
             lambda: (
-                bool(self.statusword & Status.TARGET_REACHED)
-                and not self.statusword & Status.SET_POINT_ACKNOWLEDGE
+                self._command[0] != mine
+                or (
+                    bool(self.statusword & Status.TARGET_REACHED)
+                    and not self.statusword & Status.SET_POINT_ACKNOWLEDGE
+                )
             ),
             duration + self.MOTION_MARGIN_S,
             self._transition_timeout(f"target {angle_deg:g} deg", start),
         )
-        if self.state is not Cia402State.OPERATION_ENABLED or self._controlword & Control.HALT:
-            where = f"{self.latest.angle_deg:.3f}" if self.latest else "unknown"
+        where = f"{self.latest.angle_deg:.3f}" if self.latest else "unknown"
+        if self._command[0] != mine:
+            raise MotionInterrupted(
+                self.name,
+                self.state.value,
+                f"move to {angle_deg:g} deg superseded by {self._command[1]} at {where} deg",
+            )
+        if self.state is not Cia402State.OPERATION_ENABLED:
             raise MotionInterrupted(
                 self.name, self.state.value, f"move to {angle_deg:g} deg stopped at {where} deg"
             )
@@ -268,6 +282,7 @@ class BeamDrive:
             raise self.fault
         if self.state is not Cia402State.OPERATION_ENABLED:
             return
+        self._new_command("stop")
         await self.sdo.write(cia402.PROFILE_DECELERATION, 0, "<I", self._counts(deceleration_deg_s2))
         if self._mode is Mode.PROFILE_VELOCITY:
             await self.sdo.write(cia402.TARGET_VELOCITY, 0, "<i", 0)
@@ -286,6 +301,7 @@ class BeamDrive:
     async def quick_stop(self) -> None:
         """CiA 402 quick stop: the drive brakes on its quick-stop ramp; returns at standstill.
         With a latched fault the command is sent and the drive's own fault reaction brakes."""
+        self._new_command("quick stop")
         await self._write_controlword(cia402.QUICK_STOP)
         if self.fault is not None or self.state not in (
             Cia402State.OPERATION_ENABLED,
@@ -408,6 +424,13 @@ class BeamDrive:
         self._check_ready()
         if self.state is not Cia402State.OPERATION_ENABLED:
             raise DriveNotReady(self.name, self.state.value, "needs OPERATION ENABLED (call enable())")
+
+    def _new_command(self, name: str) -> int:
+        """Number a motion command; a move_to still waiting sees it and ends as superseded."""
+        serial = self._command[0] + 1
+        self._command = (serial, name)
+        self._wake()
+        return serial
 
     def _check_limits(self, speed_deg_s: float, acceleration_deg_s2: float) -> None:
         cfg = self.config
