@@ -82,7 +82,9 @@ class Phenotype:
             value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
                 raise PhenotypeError(f.name, value, "not a number")
-            if not math.isfinite(value) or not 0.0 <= value <= 1.0:
+            if not math.isfinite(value):
+                raise PhenotypeError(f.name, value, "not finite")
+            if not 0.0 <= value <= 1.0:
                 raise PhenotypeError(f.name, value, "outside [0, 1]")
             object.__setattr__(self, f.name, float(value))
 
@@ -90,11 +92,13 @@ class Phenotype:
     def parse(cls, text: str) -> Phenotype:
         """Phenotype from "gender,age,muscle,weight,height,proportions", e.g. "0.5,0.75,0.5,0.5,0.5,0.5"."""
         names = [f.name for f in fields(cls)]
-        parts = [p.strip() for p in text.split(",")]
-        if len(parts) != len(names):
-            field = names[len(parts)] if len(parts) < len(names) else "proportions"
-            raise PhenotypeError(field, text, f"expected {len(names)} comma-separated values "
-                                 f"({','.join(names)}), got {len(parts)}")
+        parts = [p.strip() for p in text.split(",")] if text.strip() else []
+        if len(parts) < len(names):
+            raise PhenotypeError(names[len(parts)], None, f"missing: {text!r} has {len(parts)} of the "
+                                 f"{len(names)} values {','.join(names)}")
+        if len(parts) > len(names):
+            raise PhenotypeError(names[-1], parts[len(names)], f"a value after {names[-1]} in {text!r}: "
+                                 f"expected only {','.join(names)}")
         values = {}
         for name, part in zip(names, parts):
             try:
@@ -213,12 +217,13 @@ def _code_version() -> str:
     digest = hashlib.sha256()
     for module in (anny.__file__, __file__):
         digest.update(Path(module).read_bytes())
-    try:
-        from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
 
-        digest.update(version("body-models").encode() + version("anny").encode())
-    except Exception as exc:  # a missing distribution still gives a valid key
-        digest.update(repr(exc).encode())
+    for distribution in ("body-models", "anny"):
+        try:
+            digest.update(version(distribution).encode())
+        except PackageNotFoundError:  # a missing distribution fails later, when the model loads
+            digest.update(distribution.encode())
     return digest.hexdigest()
 
 
@@ -272,7 +277,7 @@ def load_body(path: str | Path) -> trimesh.Trimesh:
     path = Path(path)
     try:
         mesh = trimesh.load(path, force="mesh")
-    except (OSError, ValueError) as exc:
+    except Exception as exc:  # trimesh's parsers raise anything from IndexError to KeyError
         raise BodyFileError(path, f"cannot read: {exc}") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise BodyFileError(path, "holds no triangles")
