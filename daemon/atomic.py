@@ -9,6 +9,7 @@ the path and the bytes needed.
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import shutil
 from pathlib import Path
@@ -88,3 +89,12 @@ class AtomicWriter:
         view = memoryview(data)
         while view:
             view = view[os.write(fd, view):]
+
+
+def sha256_of(path: Path) -> str:
+    """SHA-256 (hex) of a file's content, read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

@@ -48,14 +48,6 @@ class VerifyFailed(StoreError):
     """A pulled file does not match the expected size or checksum."""
 
 
-def file_sha256_sync(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(_CHUNK), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 async def file_sha256(path: Path) -> str:
     """SHA-256 of a file, yielding to the event loop between 1 MiB chunks."""
     h = hashlib.sha256()

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for
+from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
 from planner.rig import Rig
 
 FORMAT_VERSION = 1
@@ -347,6 +347,32 @@ class ScanFolder:
                        status: ImageStatus = ImageStatus.FAILED) -> ImageRecord:
         return self.update_image(camera_index, angle_index, status=status, error=error)
 
+    def check(self) -> list[str]:
+        """Re-read the folder against its manifest; returns the problems found (none: consistent).
+
+        Listed files must exist; every verified image's file must have its recorded size
+        and SHA-256; a folder still marked in progress is reported too.
+        """
+        problems = []
+        if self.manifest.in_progress:
+            problems.append("still marked in progress (running, or left by a killed daemon)")
+        for key, name in self.manifest.files.items():
+            if not (self.path / name).is_file():
+                problems.append(f"{key} file {name} is listed but missing")
+        for image in self.manifest.images:
+            if image.status is not ImageStatus.VERIFIED:
+                continue
+            who = f"{image.camera_id} angle {image.angle_index}"
+            path = self.path / (image.file or "")
+            if not image.file or not path.is_file():
+                problems.append(f"{who}: verified image file {image.file} is missing")
+            elif path.stat().st_size != image.size_bytes:
+                problems.append(f"{who}: {image.file} has {path.stat().st_size} bytes, "
+                                f"manifest says {image.size_bytes}")
+            elif sha256_of(path) != image.sha256:
+                problems.append(f"{who}: {image.file} does not match its SHA-256")
+        return problems
+
     # ------------------------------------------------------------------ end
 
     def finish(self, state: ScanEnd, reason: str | None = None) -> None:
@@ -477,8 +503,6 @@ class ScanStore:
 
 
 def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:
-    from daemon.pulls import file_sha256_sync
-
     for image in images:
         if image.status is ImageStatus.PLANNED:
             image.status = ImageStatus.MISSING
@@ -488,7 +512,7 @@ def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:
         elif image.status is ImageStatus.PULLED:
             path = folder.path / (image.file or "")
             ok = (image.file and path.is_file() and path.stat().st_size == image.size_bytes
-                  and file_sha256_sync(path) == image.sha256)
+                  and sha256_of(path) == image.sha256)
             if ok:
                 image.status = ImageStatus.VERIFIED
             else:

@@ -306,3 +306,30 @@ def test_without_reserve_a_full_disk_leaves_the_previous_manifest(tiny_tmpfs, ri
     with pytest.raises(StoreFull):
         folder.finish(ScanEnd.COMPLETE)
     assert (folder.path / "manifest.json").read_bytes() == before
+
+
+def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
+    from daemon.cli import main as tbp_main
+
+    store = ScanStore(tmp_path)
+    folder = _planned(store, rig, "good")
+    image = folder.path / "images" / "cam0-a00.jpg"
+    image.write_bytes(b"pixels")
+    folder.update_image(0, 0, status="verified", file="images/cam0-a00.jpg", size_bytes=6,
+                        sha256=hashlib.sha256(b"pixels").hexdigest())
+    folder.finish(ScanEnd.COMPLETE)
+    assert folder.check() == []
+    assert tbp_main(["scans", "--store", str(tmp_path), "--check"]) == 0
+    assert "complete" in capsys.readouterr().out
+
+    image.write_bytes(b"pixelz")  # bit rot
+    folder.write_plan({}, {})
+    (folder.path / "plan.json").unlink()
+    live = _planned(store, rig, "live")
+    assert live.check() == ["still marked in progress (running, or left by a killed daemon)"]
+    problems = folder.check()
+    assert problems == ["plan file plan.json is listed but missing",
+                        "cam0 angle 0: images/cam0-a00.jpg does not match its SHA-256"]
+    assert tbp_main(["scans", "--store", str(tmp_path), "--check", "--json"]) == 1
+    rows = [json.loads(x) for x in capsys.readouterr().out.splitlines() if x.startswith("{")]
+    assert {r["scan_id"]: len(r["problems"]) for r in rows} == {"good": 2, "live": 1}

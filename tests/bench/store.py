@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.pulls import file_sha256_sync
+from daemon.atomic import sha256_of
 from daemon.store import ScanEnd, ScanStore
 from daemon.timeline import compile_plan, phone_timings
 from planner.rig import load_rig
@@ -64,7 +64,7 @@ def _sha_mb_s(root: Path) -> float:
     runs = []
     for _ in range(REPEATS):
         t = time.perf_counter()
-        file_sha256_sync(path)
+        sha256_of(path)
         runs.append(time.perf_counter() - t)
     return 32 * 1.048576 / statistics.median(runs)
 
