@@ -22,6 +22,7 @@ from drivers.sim.body import (
     make_body,
     random_adult_phenotype,
     save_body,
+    seed_phenotype,
 )
 from drivers.sim.body_errors import BodyError, BodyFileError, BodyModelMissing, PhenotypeError
 
@@ -163,6 +164,15 @@ def test_sway_moves_the_body_a_little(average) -> None:
     assert np.array_equal(zero.mesh.vertices, average.mesh.vertices)  # sway 0 = exact standing pose
 
 
+def test_one_adult_swayed_into_several_poses() -> None:
+    still = generate_body(seed=7)
+    poses = [generate_body(seed=7, sway_deg=2.0, sway_seed=k) for k in range(3)]
+    assert all(p.phenotype == still.phenotype == seed_phenotype(7) for p in poses)
+    assert np.abs(poses[0].mesh.vertices - poses[1].mesh.vertices).max() > 1.0
+    assert np.array_equal(make_body(seed=7, sway_deg=2.0, sway_seed=7).vertices,
+                          make_body(seed=7, sway_deg=2.0).vertices)  # sway_seed defaults to the seed
+
+
 def test_sway_grows_with_its_angle(average) -> None:
     small = generate_body(phenotype=Phenotype(), sway_deg=0.5, seed=3).mesh.vertices
     large = generate_body(phenotype=Phenotype(), sway_deg=4.0, seed=3).mesh.vertices
@@ -301,7 +311,8 @@ def test_missing_anny_package_is_a_typed_error(monkeypatch) -> None:
 
 def test_cli_writes_a_binary_ply(tmp_path, capsys) -> None:
     out = tmp_path / "sub" / "body.ply"
-    assert tbp(["body", "--out", str(out), "--phenotype", "0.5,0.75,0.5,0.5,0.38,0.5", "--sway", "1"]) == 0
+    assert tbp(["body", "--out", str(out), "--phenotype", "0.5,0.75,0.5,0.5,0.38,0.5", "--sway", "1",
+                "--sway-seed", "3"]) == 0
     text = capsys.readouterr().out
     assert "height " in text and "vertices" in text and "watertight True" in text
     mesh = load_body(out)

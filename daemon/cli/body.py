@@ -25,6 +25,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--sway", type=float, default=0.0, metavar="DEG",
                         help="postural sway: turn ankles, knees, hips, lumbar, neck and head by DEG")
+    parser.add_argument("--sway-seed", type=int, default=None, metavar="K",
+                        help="draw the sway axes from K instead of --seed (several poses of one adult)")
     parser.set_defaults(func=run)
 
 
@@ -34,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         phenotype = Phenotype.parse(args.phenotype) if args.phenotype is not None else None
-        body = generate_body(seed=args.seed, phenotype=phenotype, sway_deg=args.sway)
+        body = generate_body(seed=args.seed, phenotype=phenotype, sway_deg=args.sway, sway_seed=args.sway_seed)
         mesh = body.mesh.copy()
         args.out.parent.mkdir(parents=True, exist_ok=True)
         save_body(mesh, args.out)

@@ -38,6 +38,7 @@ __all__ = [
     "make_body",
     "random_adult_phenotype",
     "save_body",
+    "seed_phenotype",
 ]
 
 log = structlog.get_logger(__name__)
@@ -152,23 +153,35 @@ class Body:
         return float(self.mesh.bounds[1, 2] - self.mesh.bounds[0, 2])
 
 
-def make_body(*, seed: int = 0, phenotype: Phenotype | None = None, sway_deg: float = 0.0) -> trimesh.Trimesh:
+def make_body(
+    *, seed: int = 0, phenotype: Phenotype | None = None, sway_deg: float = 0.0, sway_seed: int | None = None
+) -> trimesh.Trimesh:
     """The subject's outer skin: closed mesh in mm, feet on z = 0, centred, facing +x.
 
-    Without a phenotype the seed draws a random adult (random_adult_phenotype); the seed also
-    draws the sway axes. Deterministic for given arguments; returns a fresh copy each call.
+    Without a phenotype the seed draws a random adult (seed_phenotype(seed)). sway_deg turns
+    each sway joint by that angle about an axis drawn from sway_seed (default: the seed), so
+    make_body(seed=s, sway_deg=2, sway_seed=k) for k = 0, 1... sways one adult into many poses.
+    Deterministic for given arguments; returns a fresh copy each call.
     """
-    return generate_body(seed=seed, phenotype=phenotype, sway_deg=sway_deg).mesh.copy()
+    return generate_body(seed=seed, phenotype=phenotype, sway_deg=sway_deg, sway_seed=sway_seed).mesh.copy()
 
 
-def generate_body(*, seed: int = 0, phenotype: Phenotype | None = None, sway_deg: float = 0.0) -> Body:
+def seed_phenotype(seed: int) -> Phenotype:
+    """The random adult that make_body(seed=seed) builds when given no phenotype."""
+    return random_adult_phenotype(np.random.default_rng(_seeds(seed)[0]))
+
+
+def generate_body(
+    *, seed: int = 0, phenotype: Phenotype | None = None, sway_deg: float = 0.0, sway_seed: int | None = None
+) -> Body:
     """make_body with the joints; cached in the process and on disk (treat the result as read-only)."""
     if not math.isfinite(sway_deg) or not 0.0 <= sway_deg <= MAX_SWAY_DEG:
         raise BodyError(f"sway_deg={sway_deg!r}: must be in [0, {MAX_SWAY_DEG}] degrees")
     if phenotype is None:
-        phenotype = random_adult_phenotype(np.random.default_rng(_seeds(seed)[0]))
-    # The seed only changes a body with a given phenotype through its sway.
-    return _cached_body(phenotype, float(sway_deg), int(seed) if sway_deg else 0)
+        phenotype = seed_phenotype(seed)
+    sway_seed = seed if sway_seed is None else sway_seed
+    # Without sway the seed has no further effect: one cache entry per phenotype.
+    return _cached_body(phenotype, float(sway_deg), int(sway_seed) if sway_deg else 0)
 
 
 @functools.lru_cache(maxsize=16)
