@@ -38,6 +38,7 @@ class StoreWriteError(StoreError):
 
 
 def fsync_dir(path: Path) -> None:
+    """Make a rename or a new entry in ``path`` durable."""
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(fd)
@@ -65,7 +66,7 @@ class AtomicWriter:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
             try:
                 self._write_all(fd, data)
-                os.fsync(fd)
+                os.fdatasync(fd)  # data and size on disk; the name is made durable below
             finally:
                 os.close(fd)
             os.replace(tmp, path)
@@ -79,7 +80,7 @@ class AtomicWriter:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o640)
             try:
                 self._write_all(fd, line)
-                os.fsync(fd)
+                os.fdatasync(fd)
             finally:
                 os.close(fd)
         except OSError as exc:
