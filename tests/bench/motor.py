@@ -1,6 +1,8 @@
 """Beam motor benchmark: position update rate and latency from the simulated drive to BeamDrive.
 
-Two paths, each in real time on a standard asyncio loop while the beam rotates at 20 deg/s:
+On the virtual-time loop (drivers.sim.clock): samples per simulated second and the CPU a
+100 s simulated rotation costs. Then two paths, each in real time on a standard asyncio loop
+while the beam rotates at 20 deg/s:
 
 * loopback: the simulated drive and the driver share the in-process LoopbackCanBus;
 * socketcand: the simulated drive runs in its own process behind the socketcand bridge
@@ -104,6 +106,32 @@ async def _socketcand(tcp_port: int) -> tuple[float, list[float], float]:
     return await _measure(PythonCanPort(bus, name="socketcand"), motor)
 
 
+async def _virtual() -> tuple[float, float]:
+    """(samples per simulated second, CPU s per 100 simulated s) on the virtual-time loop."""
+    from drivers.motor import BeamDrive, LoopbackCanBus
+    from drivers.sim.drive import SimulatedDrive
+    from planner.rig import load_rig
+
+    motor = load_rig().motor
+    bus = LoopbackCanBus()
+    sim = SimulatedDrive(bus.port("sim"), motor)
+    task = asyncio.create_task(sim.run())
+    drive = BeamDrive(bus.port("host"), motor)
+    try:
+        await drive.connect()
+        await drive.enable()
+        await drive.rotate(9.0, 30.0)
+        await drive.wait_speed(9.0)
+        loop = asyncio.get_running_loop()
+        count, start, cpu = drive.samples_received, loop.time(), time.process_time()
+        await asyncio.sleep(100.0)
+        return (drive.samples_received - count) / (loop.time() - start), time.process_time() - cpu
+    finally:
+        await drive.close()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -150,6 +178,15 @@ def run() -> None:
     # python-can's socketcand client warns whenever a TCP read ends mid-frame (it then waits for
     # the rest): normal for a stream, noise here.
     logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+    from drivers.sim.clock import run_virtual
+
+    virtual = [run_virtual(_virtual()) for _ in range(RUNS)]
+    print(
+        f"{'virtual':<11} rate {statistics.median(r for r, _ in virtual):7.1f} Hz per simulated second "
+        f"(goal >= {GOAL_HZ:.0f} Hz); CPU {statistics.median(c for _, c in virtual):.2f} s "
+        "per 100 simulated s (driver + simulated drive, beam at 9 deg/s)",
+        flush=True,
+    )
     _report("loopback", [asyncio.run(_loopback()) for _ in range(RUNS)])
     tcp_port = _free_port()
     proc = _serve_in_subprocess(tcp_port)
