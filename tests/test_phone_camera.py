@@ -250,3 +250,17 @@ def test_close_is_idempotent_and_final() -> None:
             await camera.capture()
 
     run(scenario)
+
+
+async def test_tcp_link_to_a_simulated_phone_server(tmp_path: Path) -> None:
+    from drivers.phone.links import tcp_link
+
+    sim = SimulatedPhone(PHONE.serial, known_keys=[KEY.public_blob()], optics=RIG.optics, render_size=None)
+    server = await asyncio.start_server(sim.accept, "127.0.0.1", 0)
+    async with server:
+        camera = PhoneCamera(tcp_link("127.0.0.1", server.sockets[0].getsockname()[1]), PHONE, TABLE, key=KEY)
+        await camera.connect()
+        done = await camera.capture()
+        size, _ = await camera.pull(done.path, tmp_path / "img.jpg")
+        assert size == done.size_bytes == (tmp_path / "img.jpg").stat().st_size
+        await camera.close()
