@@ -106,3 +106,42 @@ def test_watchdog_pings_only_while_healthy(listener):
 
     # 1 s pings on virtual time: 1 at t=0; 3 more by 3 s; none while unhealthy; 3 after.
     assert run_virtual(scenario()) == [1, 3, 0, 3]
+
+
+@pytest.mark.slow
+def test_sim_daemon_speaks_the_type_notify_protocol(tmp_path):
+    """`tbp daemon --sim` as systemd runs it: READY=1 once up, watchdog pings, STOPPING=1."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tbp = Path(sys.executable).parent / "tbp"
+    if not tbp.exists():
+        pytest.skip("the tbp command is not installed in this environment")
+    sock = _receiver(str(tmp_path / "notify.sock"))
+    sock.setblocking(True)
+    sock.settimeout(120.0)  # a generous wait for a loaded machine, not a timing assertion
+    env = dict(os.environ, NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="1000000")
+    proc = subprocess.Popen(
+        [str(tbp), "daemon", "--sim", "--socket", str(tmp_path / "control.sock"),
+         "--store", str(tmp_path / "store")],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )
+    try:
+        messages = [sock.recv(4096).decode()]
+        while sum(m == "WATCHDOG=1" for m in messages) < 2:
+            messages.append(sock.recv(4096).decode())
+        proc.terminate()
+        while not messages[-1].startswith("STOPPING=1"):
+            messages.append(sock.recv(4096).decode())
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sock.close()
+    ready = [i for i, m in enumerate(messages) if m.startswith("READY=1\nSTATUS=")]
+    assert len(ready) == 1, messages
+    assert messages[ready[0] + 1:].count("WATCHDOG=1") >= 1  # pings once ready
+    assert messages[-1].startswith("STOPPING=1")
+    assert not (tmp_path / "control.sock").exists()  # removed on the way out
