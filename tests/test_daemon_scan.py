@@ -1,5 +1,6 @@
-"""Whole scans in virtual time on the simulated drive and depth cameras (mock phones):
-a complete scan, determinism, e-stop, drive fault, lost heartbeat, phones lost, disk full."""
+"""Whole scans in virtual time on the simulated drive and depth cameras (mock phones, so faults
+land on an exact capture): a complete scan, e-stop, drive fault, lost heartbeat, an infeasible
+plan, disk full. Phones lost and determinism are tested on the complete simulated rig."""
 
 from __future__ import annotations
 
@@ -52,21 +53,6 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
     assert report.phase_s["total"] <= 100.0
 
 
-def test_same_seed_same_scan(tmp_path: Path) -> None:
-    a, _, _ = run_scan(tmp_path / "a", seed=3)
-    b, _, _ = run_scan(tmp_path / "b", seed=3)
-    plan_a = json.loads((a.folder / "plan.json").read_text())
-    plan_b = json.loads((b.folder / "plan.json").read_text())
-    assert plan_a["methods"]["shape-aware"]["focus_mm"] == plan_b["methods"]["shape-aware"]["focus_mm"]
-    angles_a = [c["exposure_angle_deg"] for c in _captures(a)]
-    angles_b = [c["exposure_angle_deg"] for c in _captures(b)]
-    assert angles_a == angles_b
-    ma, mb = _manifest(a), _manifest(b)
-    for key in ("created_utc", "ended_utc"):
-        ma.pop(key), mb.pop(key)
-    assert ma == mb
-
-
 def test_estop_during_capture_latches_fault_and_keeps_images(tmp_path: Path) -> None:
     async def press(controller, world) -> None:
         await wait_captured(controller, 40)
@@ -109,30 +95,6 @@ def test_drive_faults_stop_the_beam_and_latch(tmp_path: Path, fault: str) -> Non
     assert controller.machine.state is ScanState.FAULT
     assert _manifest(report)["state"] == "fault"
     assert 20 <= report.captured < RIG.n_poses
-
-
-def test_a_phone_that_drops_is_retaken(tmp_path: Path) -> None:
-    def prepare(world) -> None:
-        world.phones[2].fail_after = 2 + 25  # two warm-up captures, then 25 poses
-
-    report, controller, _ = run_scan(tmp_path, prepare=prepare)
-    assert report.outcome is ScanOutcome.COMPLETED
-    assert report.captured == 336 and report.retaken == 48 - 25
-    assert ScanState.RETAKING in [e.state for e in controller.machine.history]
-    assert report.max_abs_angle_error_deg <= 0.2
-
-
-def test_a_phone_that_vanishes_is_recorded_missing(tmp_path: Path) -> None:
-    def prepare(world) -> None:
-        world.phones[4].fail_after = 2 + 10
-        world.phones[4].reconnectable = False
-
-    report, _, _ = run_scan(tmp_path, prepare=prepare)
-    assert report.outcome is ScanOutcome.COMPLETED
-    assert report.missing == 48 - 10
-    missing = [i for i in _manifest(report)["images"] if i["status"] == "missing"]
-    assert len(missing) == 38 and all(i["camera_id"] == "cam4" for i in missing)
-    assert all("PhoneGone" in i["error"] for i in missing)
 
 
 def test_an_infeasible_plan_is_refused_before_the_rotation(tmp_path: Path) -> None:

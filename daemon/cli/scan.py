@@ -30,6 +30,9 @@ def register(subparsers: Any) -> None:
                         help="surface samples for planning (default: the rig file's planner.points)")
     parser.add_argument("--depth-decimation", type=int, default=2, metavar="N",
                         help="simulated depth cameras render at 1/N resolution (--sim)")
+    parser.add_argument("--subject", type=Path, default=None, metavar="MESH",
+                        help="with --sim: the subject's mesh file (default: a body for --seed)")
+    parser.add_argument("--no-panel", action="store_true", help="with --sim: a rig without a panel")
     parser.add_argument("--socket", type=Path, default=None, help="control socket of the running daemon")
     parser.add_argument("--verbose", action="store_true", help="log at info level to stderr")
     parser.set_defaults(func=run)
@@ -41,14 +44,32 @@ def run(args: argparse.Namespace) -> int:
     configure_logging(level="info" if args.verbose else "warning", stream=sys.stderr)
     if args.sim:
         from daemon.simulation import run_sim_scan
+        from planner.plan import load_subject_mesh
 
         report = run_sim_scan(
             config=args.config, store=args.store, seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
+            subject=load_subject_mesh(args.subject) if args.subject else None,
+            panel=not args.no_panel,
         )
+        _summary(report)
         print(report.folder, flush=True)
         return 0 if report.outcome.value == "COMPLETED" else 1
     return asyncio.run(_remote(args.socket))
+
+
+def _summary(report: Any) -> None:
+    """The scan's figures against the rig goals, one line each."""
+    lines = [
+        f"outcome {report.outcome.value}" + (f": {report.reason}" if report.reason else ""),
+        f"images {report.captured} captured, {report.missing} missing, {report.retaken} retaken",
+        f"max |exposure angle - planned| {report.max_abs_angle_error_deg or 0.0:.3f} deg (goal <= 0.2)",
+        f"lens late {report.lens_late}; min beam speed / profile {report.min_speed_ratio or 0.0:.4f}",
+        f"sweep end -> capture start {report.sweep_to_capture_s:.2f} s (goal <= 2 s); "
+        f"rig time {report.phase_s.get('total', 0.0):.1f} s (goal <= 100 s)",
+    ]
+    for line in lines:
+        print(line, flush=True)
 
 
 async def _remote(socket: Path | None) -> int:
