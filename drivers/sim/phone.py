@@ -35,7 +35,7 @@ from drivers.adb.streams import AdbStream
 from drivers.phone import protocol
 from drivers.phone.errors import AgentProtocolError
 from drivers.sim.adbd import SimulatedAdbd
-from drivers.sim.phone_render import PhoneRenderer, encode_jpeg, test_card
+from drivers.sim.phone_render import PhoneRenderer, encode_jpeg, empty_rig_picture
 from planner.rig import Optics
 
 log = structlog.get_logger("drivers.sim.phone")
@@ -222,7 +222,7 @@ class SimulatedPhone(SimulatedAdbd):
     def _picture(self, pose: np.ndarray | None, focus_diopters: float, index: int) -> bytes:
         width, height = self._image_size()
         if self.subject is None or pose is None or self.render_size is None:
-            return encode_jpeg(test_card(width, height, seed=index))
+            return encode_jpeg(empty_rig_picture(width, height, seed=index))
         if self._renderer is None:
             self._renderer = PhoneRenderer(_scene_for(self.subject), self.optics, width, height)
         focus_mm = 1000.0 / focus_diopters if focus_diopters > 0 else 1e7

@@ -85,7 +85,7 @@ def encode_jpeg(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
     return buffer.getvalue()
 
 
-def test_card(width_px: int, height_px: int, seed: int) -> np.ndarray:
+def empty_rig_picture(width_px: int, height_px: int, seed: int) -> np.ndarray:
     """(H, W, 3) uint8 grey gradient with seeded noise: the picture of an empty rig (no subject)."""
     rng = np.random.default_rng(seed)
     ramp = np.linspace(40, 200, height_px)[:, None, None] * np.ones((1, width_px, 3))

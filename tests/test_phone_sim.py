@@ -1,0 +1,92 @@
+"""The simulated phone's pictures (thin-lens defocus) and its standalone adbd server."""
+
+from __future__ import annotations
+
+import io
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from drivers.sim.depth import DepthScene
+from drivers.sim.phone import DEFAULT_OPTICS, SimulatedPhone
+from drivers.sim.phone_render import PhoneRenderer, circle_of_confusion_mm, encode_jpeg, empty_rig_picture
+
+
+def test_circle_of_confusion_is_zero_at_focus_and_grows_away() -> None:
+    z = np.array([200.0, 300.0, 400.0, 600.0, 2000.0])
+    coc = circle_of_confusion_mm(z, 400.0, DEFAULT_OPTICS)
+    assert coc[2] == 0.0
+    assert coc[0] > coc[1] > 0 and 0 < coc[3] < coc[4]
+    f, n = DEFAULT_OPTICS.focal_length_mm, DEFAULT_OPTICS.f_number
+    assert coc[0] == pytest.approx((f / n) * 200.0 / 200.0 * f / (400.0 - f))
+
+
+def _sharpness(rgb: np.ndarray) -> float:
+    grey = rgb.astype(float).mean(axis=2)
+    return float(np.var(np.diff(grey, axis=0)) + np.var(np.diff(grey, axis=1)))
+
+
+@pytest.fixture(scope="module")
+def scene() -> DepthScene:
+    box = trimesh.creation.box(extents=[300.0, 300.0, 300.0])  # near face at x = 150 mm
+    box.apply_translation([0.0, 0.0, 1000.0])
+    return DepthScene(box, floor=False)
+
+
+def test_render_is_sharpest_with_the_lens_on_the_subject(scene: DepthScene) -> None:
+    renderer = PhoneRenderer(scene, DEFAULT_OPTICS, 96, 128)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2] = [0, 1, 0], [0, 0, -1], [-1, 0, 0]  # looks along -x
+    pose[:3, 3] = [550.0, 0.0, 1000.0]  # 400 mm from the box's near face
+    sharp = renderer.render(pose, 400.0)
+    assert sharp.shape == (128, 96, 3) and sharp.dtype == np.uint8
+    assert sharp[64, 48].mean() > 100 and sharp[2, 2].mean() < 40  # skin in the middle, background at the corner
+    assert _sharpness(sharp) > _sharpness(renderer.render(pose, 150.0))
+    assert _sharpness(sharp) > _sharpness(renderer.render(pose, 2000.0))
+
+
+def test_jpeg_and_test_card() -> None:
+    card = empty_rig_picture(64, 48, seed=1)
+    assert card.shape == (48, 64, 3)
+    assert np.array_equal(card, empty_rig_picture(64, 48, seed=1))
+    assert Image.open(io.BytesIO(encode_jpeg(card))).size == (64, 48)
+
+
+def test_sensor_clock_inverse() -> None:
+    phone = SimulatedPhone("CLOCK001", seed=5)
+    for t in (0.0, 12.5, 3600.0):
+        assert phone.loop_time_of(phone.sensor_ns(t)) == pytest.approx(t, abs=1e-8)
+    other = SimulatedPhone("CLOCK002", seed=6)
+    assert other.clock_offset_s != phone.clock_offset_s and other.clock_drift_ppm != phone.clock_drift_ppm
+
+
+def test_standalone_server_serves_until_sigterm() -> None:
+    code = ("import asyncio, argparse, sys; from drivers.sim.phone import add_arguments, serve; "
+            "p = argparse.ArgumentParser(); add_arguments(p); "
+            "sys.exit(asyncio.run(serve(p.parse_args(sys.argv[1:]))))")
+    proc = subprocess.Popen([sys.executable, "-c", code, "--port", "0", "--serial", "STANDALONE1",
+                             "--file", "/sdcard/x.bin=1000"], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert "STANDALONE1" in line and "127.0.0.1:" in line
+        port = int(line.rsplit(":", 1)[1])
+        script = ("import asyncio; from drivers.adb.auth import AdbKey; from drivers.adb.connection import "
+                  "AdbConnection; from drivers.adb.transport import open_tcp\n"
+                  "async def main():\n"
+                  f"    c = AdbConnection(await open_tcp('127.0.0.1', {port}), AdbKey.generate())\n"
+                  "    await c.connect(); s = await c.sync()\n"
+                  "    print(len(await s.pull_bytes('/sdcard/x.bin'))); await s.close(); await c.close()\n"
+                  "asyncio.run(main())")
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+        assert out.stdout.strip().endswith("1000"), out.stderr
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
