@@ -111,9 +111,6 @@ class ClockSync:
         for s in samples:
             self.add(s)
 
-    def __len__(self) -> int:
-        return len(self._samples)
-
     @property
     def fit(self) -> ClockFit:
         if self._fit is None:

@@ -101,10 +101,6 @@ class PullQueue:
         self.folder.image(camera_index, angle_index)  # refuses unknown images up front
         self._queue.put_nowait(PullJob(camera_index, angle_index, phone_path, pull, expected_size))
 
-    @property
-    def pending(self) -> int:
-        return self._queue.qsize()
-
     async def join(self) -> None:
         """Wait until every queued pull is done; raises the StoreError (disk full, manifest
         unwritable) that stopped the pulls, if any."""
