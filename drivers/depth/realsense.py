@@ -1,0 +1,311 @@
+"""Intel RealSense depth cameras through pyrealsense2 (the optional extra ``realsense``).
+
+:class:`RealSenseStream` holds what live cameras and ``.bag`` playback share: the lazy import
+of pyrealsense2, Z16 frames copied out of librealsense's callback thread and handed to the
+event loop with ``call_soon_threadsafe``, the depth scale read from the device, the intrinsics
+from the stream profile, and device timestamps mapped onto the host event-loop clock.
+:class:`RealSenseCamera` opens one camera by serial at 1280 x 720 Z16;
+:class:`drivers.depth.bag.BagPlayback` replays a recording through the same interface.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import AsyncIterator
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import structlog
+
+from drivers.depth.base import DepthFrame
+from drivers.depth.errors import DepthCameraError, DepthStreamStalled
+from planner.rig import DepthCamera as DepthCameraConfig
+
+log = structlog.get_logger(__name__)
+
+INSTALL_HINT = "pip install tbp-rig[realsense] (or: pip install pyrealsense2)"
+END_OF_STREAM = object()
+RawFrame = tuple[int, float, str, np.ndarray]  # frame number, device ms, timestamp domain, depth
+
+
+class DepthBackendMissing(DepthCameraError):
+    """The camera's SDK module is not installed."""
+
+    def __init__(self, camera_id: str, module: str, cause: BaseException) -> None:
+        self.module = module
+        super().__init__(camera_id, f"{module} cannot be imported ({cause}); {INSTALL_HINT}")
+
+
+class DepthCameraNotFound(DepthCameraError):
+    """No connected camera has the configured serial number."""
+
+    def __init__(self, camera_id: str, serial: str, available: list[str]) -> None:
+        self.serial, self.available = serial, available
+        found = ", ".join(available) if available else "none"
+        super().__init__(camera_id, f"no RealSense device with serial {serial!r} (connected: {found})")
+
+
+def import_pyrealsense2(camera_id: str) -> ModuleType:
+    """pyrealsense2, or DepthBackendMissing with the install command."""
+    try:
+        return importlib.import_module("pyrealsense2")
+    except ImportError as exc:
+        raise DepthBackendMissing(camera_id, "pyrealsense2", exc) from exc
+
+
+def intrinsics_matrix(intrinsics: Any) -> np.ndarray:
+    """(3, 3) float64 pinhole K in pixels from an ``rs.intrinsics`` (fx, fy, ppx, ppy)."""
+    return np.array(
+        [[intrinsics.fx, 0.0, intrinsics.ppx], [0.0, intrinsics.fy, intrinsics.ppy], [0.0, 0.0, 1.0]]
+    )
+
+
+class HostClockMap:
+    """Maps a camera's timestamps (ms) onto the host event-loop clock (s).
+
+    Each frame's arrival on the loop is its device time plus a fixed offset plus a transport
+    latency that is never negative; the smallest ``arrival - device`` seen over the last
+    ``window_s`` is the offset with the least latency in it. A device clock that runs backwards
+    (the camera was reset) starts the estimate afresh.
+    """
+
+    def __init__(self, window_s: float = 10.0) -> None:
+        self.window_s = window_s
+        self._offsets: deque[tuple[float, float]] = deque()  # (arrival_s, offset_s), offsets rising
+        self._last_device_ms: float | None = None
+
+    def host_time(self, device_ms: float, arrival_s: float) -> float:
+        """The host-clock time of a frame stamped ``device_ms`` that arrived at ``arrival_s``."""
+        if self._last_device_ms is not None and device_ms < self._last_device_ms:
+            self._offsets.clear()
+        self._last_device_ms = device_ms
+        device_s = device_ms / 1000.0
+        offset = arrival_s - device_s
+        while self._offsets and self._offsets[-1][1] >= offset:
+            self._offsets.pop()
+        self._offsets.append((arrival_s, offset))
+        while self._offsets[0][0] < arrival_s - self.window_s:
+            self._offsets.popleft()
+        return device_s + self._offsets[0][1]
+
+
+class RealSenseStream(ABC):
+    """A pyrealsense2 pipeline streaming depth frames into asyncio.
+
+    Subclasses say which device or file to open (:meth:`_configure`) and how frames reach the
+    loop. ``FRAME_TIMEOUT_S``: no frame for this long -> DepthStreamStalled from ``frames()``.
+    """
+
+    FRAME_TIMEOUT_S = 1.0
+    START_TIMEOUT_S = 15.0
+    STOP_TIMEOUT_S = 5.0
+    QUEUE_FRAMES = 16  # frames held for a slow consumer; a live camera drops the oldest beyond
+
+    def __init__(self, camera_id: str) -> None:
+        self.id = camera_id
+        self.depth_unit_mm: float | None = None
+        self.intrinsics: np.ndarray | None = None
+        self.timestamp_domain: str | None = None
+        self.dropped_frames = 0
+        self._pipeline: Any = None
+        self._queue: asyncio.Queue[Any] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopping = False
+        self._early: list[RawFrame] = []
+        self._log = log.bind(camera=camera_id)
+
+    # ------------------------------------------------------------------ DepthCamera protocol
+
+    async def start(self) -> None:
+        """Open the device (or file) and start streaming; blocking SDK calls run in the executor."""
+        if self._pipeline is not None:
+            raise DepthCameraError(self.id, "start() while already streaming")
+        rs = import_pyrealsense2(self.id)
+        loop = self._loop = asyncio.get_running_loop()
+        self._queue = asyncio.Queue(self.QUEUE_FRAMES)
+        self._stopping = False
+        self.depth_unit_mm = self.intrinsics = None
+        pipeline, config = self._configure(rs)
+        try:
+            async with asyncio.timeout(self.START_TIMEOUT_S):
+                profile = await loop.run_in_executor(None, pipeline.start, config, self._on_frame)
+        except TimeoutError:
+            raise DepthCameraError(self.id, f"pipeline did not start within {self.START_TIMEOUT_S} s") from None
+        except RuntimeError as exc:  # pyrealsense2 raises rs.error, a RuntimeError
+            raise DepthCameraError(self.id, f"pipeline start failed: {exc}") from exc
+        self._pipeline = pipeline
+        try:
+            device = profile.get_device()
+            self.depth_unit_mm = float(device.first_depth_sensor().get_depth_scale()) * 1000.0
+            video = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+            self.intrinsics = intrinsics_matrix(video.get_intrinsics())
+            self._started(profile)
+        except RuntimeError as exc:
+            await self.stop()
+            raise DepthCameraError(self.id, f"cannot read the stream's scale/intrinsics: {exc}") from exc
+        early, self._early = self._early, []
+        for raw in early:
+            self._arrived(raw)
+        self._log.info("realsense_started", depth_unit_mm=self.depth_unit_mm,
+                       fx=float(self.intrinsics[0, 0]), cx=float(self.intrinsics[0, 2]))
+
+    async def frames(self) -> AsyncIterator[DepthFrame]:
+        """Frames in arrival order, stamped on the loop clock; ends after stop() (or a bag's end)."""
+        queue = self._queue
+        if queue is None:
+            raise DepthCameraError(self.id, "frames() before start()")
+        count = 0
+        while True:
+            try:
+                async with asyncio.timeout(self.FRAME_TIMEOUT_S):
+                    item = await queue.get()
+            except TimeoutError:
+                raise DepthStreamStalled(self.id, count, self.FRAME_TIMEOUT_S) from None
+            if item is END_OF_STREAM:
+                return
+            if isinstance(item, BaseException):
+                raise DepthCameraError(self.id, f"frame handling failed: {item}") from item
+            count += 1
+            yield item
+
+    async def stop(self) -> None:
+        """Stop streaming and release the device (idempotent); a waiting frames() then ends."""
+        pipeline, self._pipeline = self._pipeline, None
+        self._stopping = True
+        if pipeline is not None:
+            self._discard_queued()  # a callback blocked on a full queue must return for stop()
+            loop = asyncio.get_running_loop()
+            try:
+                async with asyncio.timeout(self.STOP_TIMEOUT_S):
+                    await loop.run_in_executor(None, pipeline.stop)
+            except TimeoutError:
+                raise DepthCameraError(self.id, f"pipeline did not stop within {self.STOP_TIMEOUT_S} s") from None
+            except RuntimeError as exc:
+                raise DepthCameraError(self.id, f"pipeline stop failed: {exc}") from exc
+            self._log.info("realsense_stopped", dropped_frames=self.dropped_frames)
+        if self._queue is not None:
+            self._discard_queued()
+            self._queue.put_nowait(END_OF_STREAM)
+
+    # ------------------------------------------------------------------ subclass hooks
+
+    @abstractmethod
+    def _configure(self, rs: ModuleType) -> tuple[Any, Any]:
+        """(rs.pipeline, rs.config) for this source."""
+
+    def _started(self, profile: Any) -> None:
+        """Called on the loop once the pipeline runs (playback settings, for instance)."""
+
+    def _hand_over(self, loop: asyncio.AbstractEventLoop, raw: RawFrame) -> None:
+        """From the SDK thread: give a converted frame to the loop without blocking (live)."""
+        loop.call_soon_threadsafe(self._arrived, raw)
+
+    @abstractmethod
+    def _host_time(self, device_ms: float, arrival_s: float) -> float:
+        """The host event-loop time of a frame stamped ``device_ms`` that arrived at ``arrival_s``."""
+
+    # ------------------------------------------------------------------ frame path
+
+    def _on_frame(self, frame: Any) -> None:
+        """librealsense's callback thread: copy the depth image out, hand it to the loop."""
+        loop = self._loop
+        if self._stopping or loop is None:
+            return
+        try:
+            raw = self._convert(frame)
+        except Exception as exc:  # reaches frames() as a typed error, not a dead callback
+            loop.call_soon_threadsafe(self._failed, exc)
+            return
+        if raw is not None:
+            self._hand_over(loop, raw)
+
+    def _convert(self, frame: Any) -> RawFrame | None:
+        if frame.is_frameset():
+            frame = frame.as_frameset().get_depth_frame()
+            if not frame:
+                return None
+        elif frame.is_depth_frame():
+            frame = frame.as_depth_frame()
+        else:
+            return None
+        height, width = frame.get_height(), frame.get_width()
+        data = np.asanyarray(frame.get_data())
+        if data.dtype != np.uint16 or data.size != height * width:
+            raise ValueError(f"expected {width}x{height} Z16 depth, got {data.dtype} x {data.size}")
+        depth = data.reshape(height, width).copy()  # the SDK recycles the frame's buffer
+        domain = frame.get_frame_timestamp_domain()
+        return (int(frame.get_frame_number()), float(frame.get_timestamp()),
+                getattr(domain, "name", str(domain)), depth)
+
+    def _arrived(self, raw: RawFrame) -> None:
+        """On the loop: stamp the frame on the host clock and queue it."""
+        queue = self._queue
+        if self._stopping or queue is None:
+            return
+        if self.depth_unit_mm is None or self.intrinsics is None:
+            self._early.append(raw)  # came before start() read the scale and intrinsics
+            return
+        frame = self._frame(raw, self.depth_unit_mm, self.intrinsics)
+        if queue.full():
+            queue.get_nowait()
+            self.dropped_frames += 1
+            self._log.warning("realsense_frame_dropped", dropped_frames=self.dropped_frames)
+        queue.put_nowait(frame)
+
+    def _frame(self, raw: RawFrame, depth_unit_mm: float, intrinsics: np.ndarray) -> DepthFrame:
+        number, device_ms, domain, depth = raw
+        self.timestamp_domain = domain
+        return DepthFrame(
+            camera_id=self.id,
+            frame_number=number,
+            timestamp_s=self._host_time(device_ms, asyncio.get_running_loop().time()),
+            device_timestamp_ms=device_ms,
+            depth=depth,
+            depth_unit_mm=depth_unit_mm,
+            intrinsics=intrinsics,
+        )
+
+    def _failed(self, exc: BaseException) -> None:
+        if self._queue is not None and not self._stopping:
+            self._discard_queued()
+            self._queue.put_nowait(exc)
+
+    def _discard_queued(self) -> None:
+        while self._queue is not None and not self._queue.empty():
+            self._queue.get_nowait()
+
+
+class RealSenseCamera(RealSenseStream):
+    """A live RealSense camera of the rig, selected by serial: 1280 x 720 Z16 at ``fps``.
+
+    Device timestamps (hardware clock, or whatever domain the camera reports) are mapped onto
+    the event-loop clock by :class:`HostClockMap`.
+    """
+
+    WIDTH_PX = 1280
+    HEIGHT_PX = 720
+
+    def __init__(self, camera: DepthCameraConfig, *, fps: float = 30.0) -> None:
+        super().__init__(camera.id)
+        self.serial = camera.serial
+        self.fps = fps
+        self._clock = HostClockMap()
+
+    def _configure(self, rs: ModuleType) -> tuple[Any, Any]:
+        context = rs.context()
+        serials = [d.get_info(rs.camera_info.serial_number) for d in context.query_devices()]
+        if self.serial not in serials:
+            raise DepthCameraNotFound(self.id, self.serial, serials)
+        config = rs.config()
+        config.enable_device(self.serial)
+        config.enable_stream(rs.stream.depth, self.WIDTH_PX, self.HEIGHT_PX, rs.format.z16,
+                             int(round(self.fps)))
+        self._clock = HostClockMap()
+        return rs.pipeline(context), config
+
+    def _host_time(self, device_ms: float, arrival_s: float) -> float:
+        return self._clock.host_time(device_ms, arrival_s)

@@ -1,0 +1,259 @@
+"""A fake ``pyrealsense2`` at its API boundary, for the RealSense and bag playback driver tests.
+
+``FakeRealSense`` holds scripted devices and recordings; ``module()`` builds the module object a
+test injects as ``sys.modules["pyrealsense2"]``. Streaming runs on a thread, as librealsense's
+does, calling the pipeline's frame callback; timestamps come from a device clock that runs from
+an arbitrary origin.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+import time
+import types
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+class stream(enum.Enum):  # noqa: N801 - pyrealsense2's spelling
+    depth = 1
+    color = 2
+
+
+class format(enum.Enum):  # noqa: N801,A001
+    z16 = 1
+    rgb8 = 2
+
+
+class camera_info(enum.Enum):  # noqa: N801
+    serial_number = 1
+    product_line = 2
+
+
+class timestamp_domain(enum.Enum):  # noqa: N801
+    hardware_clock = 0
+    system_time = 1
+    global_time = 2
+
+
+class playback_status(enum.Enum):  # noqa: N801
+    unknown = 0
+    playing = 1
+    paused = 2
+    stopped = 3
+
+
+@dataclass
+class intrinsics:  # noqa: N801
+    width: int
+    height: int
+    ppx: float
+    ppy: float
+    fx: float
+    fy: float
+
+
+@dataclass
+class FakeDevice:
+    """A scripted camera (or the device behind a recording).
+
+    frames: how many frames it delivers; stop_after: it goes silent after this many;
+    period_s: real time between frames; device_ms0: its clock's reading at the first frame;
+    device_period_ms: clock step per frame (None: follows real elapsed time).
+    """
+
+    serial: str
+    depth_scale: float = 0.001
+    intrinsics: intrinsics = field(default_factory=lambda: intrinsics(1280, 720, 641.5, 359.25, 912.0, 911.0))
+    frames: int = 10
+    stop_after: int | None = None
+    period_s: float = 0.002
+    device_ms0: float = 123_456.0
+    device_period_ms: float | None = None
+    domain: timestamp_domain = timestamp_domain.hardware_clock
+    dtype: Any = np.uint16
+    size: tuple[int, int] | None = None  # (height, width); None: as configured
+    fail_start: str | None = None
+    # what the driver asked for
+    real_time: bool | None = None
+    configured: list[tuple[Any, ...]] = field(default_factory=list)
+    delivered: int = 0
+    status_callback: Callable[[playback_status], None] | None = None
+
+    def get_info(self, info: camera_info) -> str:
+        return self.serial if info is camera_info.serial_number else "D455"
+
+    def first_depth_sensor(self) -> FakeDevice:
+        return self
+
+    def get_depth_scale(self) -> float:
+        return self.depth_scale
+
+    def as_playback(self) -> FakeDevice:
+        return self
+
+    def set_real_time(self, real_time: bool) -> None:
+        self.real_time = real_time
+
+    def set_status_changed_callback(self, callback: Callable[[playback_status], None]) -> None:
+        self.status_callback = callback
+
+
+class FakeDepthFrame:
+    def __init__(self, number: int, device_ms: float, data: np.ndarray, domain: timestamp_domain):
+        self._number, self._ms, self._data, self._domain = number, device_ms, data, domain
+
+    def is_frameset(self) -> bool:
+        return False
+
+    def is_depth_frame(self) -> bool:
+        return True
+
+    def as_depth_frame(self) -> FakeDepthFrame:
+        return self
+
+    def __bool__(self) -> bool:
+        return True
+
+    def get_data(self) -> np.ndarray:
+        return self._data
+
+    def get_width(self) -> int:
+        return self._data.shape[1]
+
+    def get_height(self) -> int:
+        return self._data.shape[0]
+
+    def get_timestamp(self) -> float:
+        return self._ms
+
+    def get_frame_number(self) -> int:
+        return self._number
+
+    def get_frame_timestamp_domain(self) -> timestamp_domain:
+        return self._domain
+
+
+class FakeFrameset:
+    def __init__(self, depth: FakeDepthFrame) -> None:
+        self._depth = depth
+
+    def is_frameset(self) -> bool:
+        return True
+
+    def as_frameset(self) -> FakeFrameset:
+        return self
+
+    def get_depth_frame(self) -> FakeDepthFrame:
+        return self._depth
+
+
+def depth_value(frame_number: int) -> int:
+    """The depth (units) every pixel of scripted frame ``frame_number`` holds."""
+    return 1000 + frame_number
+
+
+class FakeRealSense:
+    """The scripted world behind the fake module: connected devices and recordings on disk."""
+
+    def __init__(self) -> None:
+        self.devices: list[FakeDevice] = []
+        self.files: dict[str, FakeDevice] = {}
+
+    def module(self) -> types.ModuleType:
+        world = self
+        rs = types.ModuleType("pyrealsense2")
+        for enum_type in (stream, format, camera_info, timestamp_domain, playback_status, intrinsics):
+            setattr(rs, enum_type.__name__, enum_type)
+
+        class context:  # noqa: N801
+            def query_devices(self) -> list[FakeDevice]:
+                return list(world.devices)
+
+        class config:  # noqa: N801
+            def __init__(self) -> None:
+                self.serial: str | None = None
+                self.file: str | None = None
+                self.streams: list[tuple[Any, ...]] = []
+
+            def enable_device(self, serial: str) -> None:
+                self.serial = serial
+
+            def enable_device_from_file(self, path: str, repeat_playback: bool = True) -> None:
+                self.file = path
+                self.repeat = repeat_playback
+
+            def enable_stream(self, *args: Any) -> None:
+                self.streams.append(args)
+
+        class stream_profile:  # noqa: N801
+            def __init__(self, device: FakeDevice) -> None:
+                self._device = device
+
+            def as_video_stream_profile(self) -> stream_profile:
+                return self
+
+            def get_intrinsics(self) -> intrinsics:
+                return self._device.intrinsics
+
+        class pipeline_profile:  # noqa: N801
+            def __init__(self, device: FakeDevice) -> None:
+                self._device = device
+
+            def get_device(self) -> FakeDevice:
+                return self._device
+
+            def get_stream(self, kind: stream) -> stream_profile:
+                assert kind is stream.depth
+                return stream_profile(self._device)
+
+        class pipeline:  # noqa: N801
+            def __init__(self, ctx: Any = None) -> None:
+                self._stop = threading.Event()
+                self._thread: threading.Thread | None = None
+
+            def start(self, cfg: config, callback: Callable[[Any], None]) -> pipeline_profile:
+                device = (world.files[cfg.file] if cfg.file is not None
+                          else next(d for d in world.devices if d.serial == cfg.serial))
+                if device.fail_start:
+                    raise RuntimeError(device.fail_start)
+                device.configured = list(cfg.streams)
+                self._thread = threading.Thread(target=self._run, args=(device, cfg, callback))
+                self._thread.start()
+                return pipeline_profile(device)
+
+            def _run(self, device: FakeDevice, cfg: config, callback: Callable[[Any], None]) -> None:
+                if device.size is not None:
+                    height, width = device.size
+                else:
+                    _, width, height, _, _ = cfg.streams[0]
+                buffer = np.zeros((height, width), dtype=device.dtype)  # reused, as the SDK does
+                started = time.monotonic()
+                for k in range(device.frames):
+                    if device.stop_after is not None and k >= device.stop_after:
+                        self._stop.wait()
+                    if self._stop.is_set():
+                        return
+                    buffer[...] = depth_value(k)
+                    step = device.device_period_ms
+                    ms = device.device_ms0 + (k * step if step is not None
+                                              else (time.monotonic() - started) * 1000.0)
+                    frame = FakeDepthFrame(k, ms, buffer, device.domain)
+                    callback(FakeFrameset(frame) if k % 2 else frame)
+                    buffer[...] = 0  # the next use of the buffer overwrites the frame
+                    device.delivered += 1
+                    time.sleep(device.period_s)
+                if device.status_callback is not None:
+                    device.status_callback(playback_status.stopped)
+
+            def stop(self) -> None:
+                self._stop.set()
+                if self._thread is not None:
+                    self._thread.join()
+
+        rs.context, rs.config, rs.pipeline = context, config, pipeline
+        return rs
