@@ -362,6 +362,20 @@ def test_fault_without_emcy_reads_the_error_code_from_the_drive() -> None:
     run(scenario)
 
 
+def test_a_drive_faulted_before_connect_is_latched_with_its_code() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await asyncio.sleep(0.01)
+        sim.inject_fault(0x3210)  # nobody listening to its EMCY yet
+        await drive.connect()
+        assert drive.state is S.FAULT
+        assert isinstance(drive.fault, DriveFault) and drive.fault.code == 0x3210
+        assert "DC link over-voltage" in str(drive.fault)
+        await drive.reset_fault()
+        await drive.enable()
+
+    run(scenario, connect=False)
+
+
 def test_jammed_beam_raises_following_error() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         move = asyncio.create_task(drive.move_to(90.0, 30.0, 60.0))

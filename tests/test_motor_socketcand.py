@@ -156,8 +156,20 @@ async def test_client_going_away_leaves_the_bridge_serving(
         await drive.close()
 
 
+def test_sim_motor_options_leave_callers_common_options_alone() -> None:
+    import argparse
+
+    from drivers.sim.drive import add_arguments
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--port", type=int, default=7)  # `tbp sim` may define it for every simulator
+    add_arguments(parser)
+    args = parser.parse_args(["--estop-after", "2.5", "--fault-code", "0x4310"])
+    assert (args.port, args.estop_after, args.fault_code, args.channel) == (7, 2.5, 0x4310, "can0")
+
+
 @contextlib.contextmanager
-def _served_drive() -> Iterator[tuple[subprocess.Popen[str], int]]:
+def _served_drive(*options: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
     """``drivers.sim.drive.serve`` (what ``tbp sim motor`` runs) in its own process; yields the
     process and the bridge's TCP port; SIGTERM (then kill) on the way out."""
     code = (
@@ -165,7 +177,7 @@ def _served_drive() -> Iterator[tuple[subprocess.Popen[str], int]]:
         "structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))\n"
         "from drivers.sim.drive import add_arguments, serve\n"
         "p = argparse.ArgumentParser(); add_arguments(p)\n"
-        "asyncio.run(serve(p.parse_args(['--port', '0'])))\n"
+        f"asyncio.run(serve(p.parse_args(['--port', '0', *{list(options)!r}])))\n"
     )
     with subprocess.Popen(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
@@ -218,3 +230,12 @@ def test_tbp_motor_commissions_a_drive_served_by_another_process(capsys: pytest.
         assert "angle 90.00" in capsys.readouterr().out.splitlines()[-1]
         assert main([*bus, "rotate", "100"]) == 1
         assert "MotionLimitError" in capsys.readouterr().err
+
+
+def test_served_drive_injects_the_e_stop_it_was_told_to(capsys: pytest.CaptureFixture[str]) -> None:
+    from daemon.cli import main
+
+    with _served_drive("--estop-after", "0") as (_, tcp_port):
+        bus = ["motor", "--interface", "socketcand", "--port", str(tcp_port)]
+        assert main([*bus, "enable"]) == 1
+        assert "0x5441 (emergency stop input" in capsys.readouterr().err

@@ -104,7 +104,8 @@ class BeamDrive:
 
     async def connect(self) -> None:
         """NMT reset communication, heartbeat producer and consumer, PDO mapping, NMT start;
-        returns once the first position sample arrived."""
+        returns once the first position sample arrived. A drive found in FAULT connects with the
+        fault latched (code read from the drive if its EMCY went unheard)."""
         if self._connected or self._closed:
             raise DriveNotReady(self.name, self.state.value, "connect() on a connected or closed drive")
         self._start(self._receive(), "receive")
@@ -131,6 +132,7 @@ class BeamDrive:
             lambda timeout_s: NmtTimeout(
                 self.name, self.state.value, f"no TPDO within {timeout_s:g} s of NMT start"
             ),
+            raise_fault=False,  # a drive that is faulted is still connected: the fault stays latched
         )
         log.info(
             "drive_connected",
@@ -404,6 +406,8 @@ class BeamDrive:
     async def _configure(self) -> None:
         await configure(self.sdo, self.config, self.host_node_id)
         self._on_statusword(await self.sdo.read(cia402.STATUSWORD, 0, "<H"))
+        if isinstance(self.fault, DriveFault) and self.fault.code is None:
+            await self._read_error_code()  # faulted before we came: its EMCY went unheard
         self._mode = None
 
     # ------------------------------------------------------------------ helpers
@@ -612,7 +616,7 @@ class BeamDrive:
         if state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE) and self.fault is None:
             last = self._last_emcy
             self._latch(self._fault_from(last.code if last else None, last.register if last else 0))
-            if last is None:
+            if last is None and self._connected:
                 # No EMCY (disabled, or lost): ask the drive for its error code (0x603F, 0x1001).
                 self._start(self._read_error_code(), "error-code")
         self._wake()
