@@ -126,6 +126,8 @@ class RigController:
         if self.safety.latched or self.machine.state is not ScanState.IDLE:
             raise ScanBusy(self.machine.state.value,
                            "fault latched: reset first (" + "; ".join(self.safety.causes) + ")")
+        if self.hw.panel is not None and self.hw.panel.estop_active:
+            raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
         self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, self.store,
                             scan_id=scan_id, executor=self.executor, seed=self.seed,
                             plan_points=self.plan_points)
@@ -137,12 +139,11 @@ class RigController:
         return await self.start_scan(scan_id)
 
     async def _run_scan(self, scan: Scan) -> ScanReport:
-        await self._panel("SCANNING")
+        await self._panel("SCANNING", light=True)
         try:
             report = await scan.run()
         finally:
-            if not self.safety.latched:
-                await self._panel("IDLE")
+            await self._panel("FAULT" if self.safety.latched else "IDLE", light=False)
         self.last_report = report
         return report
 
@@ -190,12 +191,15 @@ class RigController:
     async def _panel_fault(self) -> None:
         await self.hw.panel.set_status(_led("FAULT"))
 
-    async def _panel(self, led: str) -> None:
+    async def _panel(self, led: str, *, light: bool | None = None) -> None:
+        """Status LED (and the subject lights); a panel that cannot be told is a lost panel."""
         if self.hw.panel is None:
             return
         try:
             await self.hw.panel.set_status(_led(led))
-        except Exception as exc:  # a panel that cannot show status is a lost panel: fault
+            if light is not None:
+                await self.hw.panel.set_light(light)
+        except Exception as exc:  # the trip records it as a fault cause
             await self.safety.trip("panel", f"set_status({led}) failed: {type(exc).__name__}: {exc}")
 
     # ------------------------------------------------------------------ status

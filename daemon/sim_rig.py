@@ -55,7 +55,20 @@ class SimWorld:
     panel: Any | None = None
     tasks: list[asyncio.Task[Any]] = field(default_factory=list)
 
+    def press_estop(self) -> None:
+        """The operator hits the e-stop: the panel reports it and the drive's hard-wired input trips."""
+        if self.panel is not None:
+            self.panel.press_estop()
+        self.drive.press_estop()
+
+    def release_estop(self) -> None:
+        if self.panel is not None:
+            self.panel.release_estop()
+        self.drive.release_estop()
+
     async def close(self) -> None:
+        if self.panel is not None:
+            self.panel.close()
         for task in self.tasks:
             task.cancel()
         await asyncio.gather(*self.tasks, return_exceptions=True)
