@@ -372,3 +372,66 @@ def test_line_noise_is_survived() -> None:
         assert panel.state is LinkState.CONNECTED and panel.bad_lines > 0
 
     run(scenario, noise=0.05, seed=1)
+
+
+def test_reopened_link_reconnects_after_a_replug() -> None:
+    """USB panel unplugged, port missing twice, plugged back with the e-stop pressed."""
+
+    async def main() -> None:
+        sims: list[SimulatedPanel] = []
+        tasks: list[asyncio.Task[None]] = []
+        attempts = 0
+
+        async def plug(estop: bool = False) -> tuple[Any, Any]:
+            (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+            sims.append(SimulatedPanel(dev_r, dev_w, estop=estop))
+            tasks.append(asyncio.create_task(sims[-1].run()))
+            return host_r, host_w
+
+        async def reopen() -> tuple[Any, Any]:
+            nonlocal attempts
+            attempts += 1
+            if attempts <= 2:
+                raise PanelDisconnected("test-panel", "cannot open /dev/tbp-panel: no such device")
+            return await plug(estop=True)
+
+        panel = OperatorPanel(*await plug(), name="test-panel", reopen=reopen)
+        await panel.connect()
+        events = panel.events()
+        sims[0].disconnect()
+        assert await next_event(events) is PanelEvent.HEARTBEAT_LOST
+        with pytest.raises(PanelDisconnected):
+            await panel.set_light(True)
+        assert await next_event(events, 10.0) is PanelEvent.ESTOP_PRESSED
+        assert await next_event(events) is PanelEvent.RECONNECTED
+        assert attempts == 3 and panel.state is LinkState.CONNECTED and panel.fault is None
+        await panel.set_light(True)
+        assert sims[1].light is True
+        await panel.close()
+        assert [e async for e in events] == []
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    run_virtual(main())
+
+
+def test_failed_first_connect_does_not_start_reconnecting() -> None:
+    async def main() -> None:
+        (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+        reopened = 0
+
+        async def reopen() -> tuple[Any, Any]:
+            nonlocal reopened
+            reopened += 1
+            raise PanelDisconnected("test-panel", "unexpected reopen")
+
+        panel = OperatorPanel(host_r, host_w, name="test-panel", reopen=reopen)
+        dev_w.close()
+        with pytest.raises(PanelDisconnected):
+            await panel.connect()
+        await asyncio.sleep(5.0)
+        assert reopened == 0 and panel.state is LinkState.DISCONNECTED
+        await panel.close()
+
+    run_virtual(main())

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import enum
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import structlog
@@ -23,12 +23,14 @@ from drivers.panel import protocol
 from drivers.panel.errors import (
     PanelCommandRefused,
     PanelDisconnected,
+    PanelError,
     PanelHeartbeatLost,
     PanelProtocolError,
     PanelStateError,
     PanelTimeout,
 )
 from drivers.panel.protocol import FROM_HOST, FROM_PANEL, Line, PanelSignal, StatusLed
+from drivers.panel.serial_link import open_serial
 
 log = structlog.get_logger(__name__)
 
@@ -48,9 +50,10 @@ class LinkState(enum.Enum):
     """The host's view of the link."""
 
     NEW = "new"
+    CONNECTING = "connecting"  # greeting the panel (first connect or after a reopen)
     CONNECTED = "connected"
     LOST = "lost"  # heartbeat missing; recovers when it returns
-    DISCONNECTED = "disconnected"  # the stream ended; final
+    DISCONNECTED = "disconnected"  # the stream ended; final unless the panel can be reopened
     CLOSED = "closed"
 
 
@@ -59,6 +62,7 @@ _SIGNAL_EVENTS = {
     PanelSignal.STOP: PanelEvent.STOP_PRESSED,
 }
 _END = object()
+Reopen = Callable[[], Awaitable[tuple[asyncio.StreamReader, asyncio.StreamWriter]]]
 
 
 class OperatorPanel:
@@ -67,6 +71,9 @@ class OperatorPanel:
     Args:
         reader, writer: asyncio streams to the panel (see :func:`open_serial`).
         name: names the panel in errors and logs.
+        reopen: opens the link again after it ended (a USB panel unplugged and plugged back);
+            the panel then retries every ``REOPEN_PERIOD_S`` and reports RECONNECTED.
+            Without it the end of the stream is final.
 
     ``estop_active`` is True while the e-stop is pressed and also whenever the e-stop state is
     unknown (not connected, heartbeat lost): a safety input that cannot be read counts as pressed.
@@ -80,14 +87,23 @@ class OperatorPanel:
     HEARTBEAT_TIMEOUT_S = protocol.HEARTBEAT_TIMEOUT_S
     EVENT_MEMORY_S = 5.0  # an EVT sequence number seen this recently is a resend
     BYE_TIMEOUT_S = 0.2
+    REOPEN_PERIOD_S = 1.0
     READ_CHUNK = 256
 
     def __init__(
-        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, *, name: str = "panel"
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        *,
+        name: str = "panel",
+        reopen: Reopen | None = None,
     ) -> None:
         self.name = name
         self._reader = reader
         self._writer = writer
+        self._reopen = reopen
+        self._reconnect_task: asyncio.Task[None] | None = None
+        self._connected_once = False
         self.state = LinkState.NEW
         self.fault: PanelHeartbeatLost | None = None
         self.bad_lines = 0
@@ -112,19 +128,48 @@ class OperatorPanel:
     def estop_active(self) -> bool:
         return self._estop or self.state is not LinkState.CONNECTED
 
+    @classmethod
+    async def open(cls, path: str, *, name: str = "panel") -> OperatorPanel:
+        """An unconnected panel on the serial port ``path`` that reopens the port when it vanishes."""
+
+        async def reopen() -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+            return await open_serial(path, name=name)
+
+        return cls(*await reopen(), name=name, reopen=reopen)
+
     async def connect(self) -> None:
         """Greet the panel (HELLO, protocol version), then keep and watch the heartbeats."""
         if self.state is not LinkState.NEW:
             raise PanelStateError(self.name, self.state.value, "connect")
-        loop = asyncio.get_running_loop()
+        try:
+            await self._open_session()
+        except BaseException:
+            await self._stop_tasks()
+            if self.state is LinkState.CONNECTING:
+                self.state = LinkState.NEW
+            raise
+
+    async def _open_session(self) -> None:
+        """Read, greet, then heartbeat and watch on the current streams."""
+        self.state = LinkState.CONNECTING
         self._tasks.append(asyncio.create_task(self._read_loop(), name=f"{self.name}-read"))
+        hello, attempts = await self._handshake()
+        self.state, self.fault = LinkState.CONNECTED, None
+        self._connected_once = True
+        self._set_estop(hello.args[2] == "1")
+        self._tasks.append(asyncio.create_task(self._heartbeat_loop(), name=f"{self.name}-hb"))
+        self._tasks.append(asyncio.create_task(self._watchdog_loop(), name=f"{self.name}-watchdog"))
+        self._log.info("panel_connected", estop=self._estop, hello_attempts=attempts)
+
+    async def _handshake(self) -> tuple[Line, int]:
+        """HELLO until the panel answers with our protocol version; (its HELLO, attempts)."""
+        loop = asyncio.get_running_loop()
         started, attempts = loop.time(), 0
         hello: Line | None = None
         while hello is None:
             if self.state is LinkState.DISCONNECTED:
                 raise self.fault  # type: ignore[misc]
             if loop.time() - started >= self.CONNECT_TIMEOUT_S:
-                await self._stop_tasks()
                 raise PanelTimeout(self.name, f"HELLO {protocol.PROTOCOL_VERSION}",
                                    self.HELLO_RETRY_S, attempts)
             self._hello = loop.create_future()
@@ -136,16 +181,11 @@ class OperatorPanel:
                 continue
         version = int(hello.args[1])
         if version != protocol.PROTOCOL_VERSION:
-            await self._stop_tasks()
             raise PanelProtocolError(
                 self.name, protocol.encode(hello, FROM_PANEL),
                 f"panel speaks protocol {version}, host speaks {protocol.PROTOCOL_VERSION}",
             )
-        self._estop = hello.args[2] == "1"
-        self.state = LinkState.CONNECTED
-        self._tasks.append(asyncio.create_task(self._heartbeat_loop(), name=f"{self.name}-hb"))
-        self._tasks.append(asyncio.create_task(self._watchdog_loop(), name=f"{self.name}-watchdog"))
-        self._log.info("panel_connected", estop=self._estop, hello_attempts=attempts)
+        return hello, attempts
 
     def events(self) -> AsyncIterator[PanelEvent]:
         """Events from now on, each subscriber its own queue; starts with the current conditions
@@ -158,7 +198,7 @@ class OperatorPanel:
                 queue.put_nowait(PanelEvent.HEARTBEAT_LOST)
             elif self._estop:
                 queue.put_nowait(PanelEvent.ESTOP_PRESSED)
-            if self.state is LinkState.DISCONNECTED:
+            if self.state is LinkState.DISCONNECTED and self._reopen is None:
                 queue.put_nowait(_END)
             else:
                 self._subscribers.append(queue)
@@ -185,6 +225,9 @@ class OperatorPanel:
             except (TimeoutError, PanelDisconnected) as exc:
                 self._log.warning("panel_bye_not_sent", error=str(exc))
         self.state = LinkState.CLOSED
+        if self._reconnect_task is not None:
+            self._reconnect_task.cancel()
+            await asyncio.gather(self._reconnect_task, return_exceptions=True)
         await self._stop_tasks()
         self._writer.close()
         try:
@@ -211,7 +254,7 @@ class OperatorPanel:
         return seq
 
     async def _command(self, verb: str, arg: str) -> None:
-        if self.state in (LinkState.NEW, LinkState.CLOSED):
+        if self.state in (LinkState.NEW, LinkState.CONNECTING, LinkState.CLOSED):
             raise PanelStateError(self.name, self.state.value, f"send {verb} {arg}")
         loop = asyncio.get_running_loop()
         for _attempt in range(self.COMMAND_ATTEMPTS):
@@ -368,12 +411,35 @@ class OperatorPanel:
                 future.set_exception(self.fault)
         if self._hello is not None and not self._hello.done():
             self._hello.set_exception(self.fault)
-        self._emit(PanelEvent.HEARTBEAT_LOST)
-        self._end_subscribers()
+        reconnecting = self._reconnect_task is not None and not self._reconnect_task.done()
+        if not reconnecting:  # a failed reopen attempt has already been announced
+            self._emit(PanelEvent.HEARTBEAT_LOST)
         current = asyncio.current_task()
         for task in self._tasks:
             if task is not current:
                 task.cancel()
+        if self._reopen is None:
+            self._end_subscribers()
+        elif not reconnecting and self._connected_once:
+            self._reconnect_task = asyncio.create_task(self._reconnect_loop(),
+                                                       name=f"{self.name}-reconnect")
+
+    async def _reconnect_loop(self) -> None:
+        """Reopen the link every REOPEN_PERIOD_S until the panel answers HELLO again."""
+        while True:
+            await asyncio.sleep(self.REOPEN_PERIOD_S)
+            try:
+                self._writer.close()
+                self._reader, self._writer = await self._reopen()  # type: ignore[misc]
+                await self._stop_tasks()
+                await self._open_session()
+            except (PanelError, OSError) as exc:
+                self.state = LinkState.DISCONNECTED
+                self._log.info("panel_reopen_failed", error=str(exc))
+                continue
+            self._log.info("panel_reconnected", how="reopened")
+            self._emit(PanelEvent.RECONNECTED)
+            return
 
     # ------------------------------------------------------------------ plumbing
 
