@@ -518,6 +518,32 @@ def test_drive_reboot_while_connected_is_latched() -> None:
     run(scenario)
 
 
+def test_a_restarted_host_finds_the_beam_turning_and_stops_it() -> None:
+    async def main() -> None:
+        bus = LoopbackCanBus()
+        sim = SimulatedDrive(bus.port("sim"), MOTOR)
+        sim_task = asyncio.create_task(sim.run())
+        first = BeamDrive(bus.port("host"), MOTOR)
+        await first.connect()
+        await first.enable()
+        await first.rotate(20.0, 60.0)
+        await first.wait_speed(20.0)
+        for task in first._tasks:  # the host process is killed: no goodbye
+            task.cancel()
+        first.port.close()
+        second = BeamDrive(bus.port("host again"), MOTOR)
+        await second.connect()  # within the drive's heartbeat timeout: still turning
+        assert second.state is S.OPERATION_ENABLED and sim.true_speed_deg_s == pytest.approx(20.0, abs=0.01)
+        await second.enable()
+        await second.stop(60.0)
+        assert sim.true_speed_deg_s == 0.0 and second.fault is None
+        await second.close()
+        sim_task.cancel()
+        await asyncio.gather(sim_task, return_exceptions=True)
+
+    run_virtual(main())
+
+
 def test_silent_drive_fails_connect() -> None:
     async def main() -> None:
         bus = LoopbackCanBus()

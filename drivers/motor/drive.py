@@ -408,7 +408,9 @@ class BeamDrive:
         self._on_statusword(await self.sdo.read(cia402.STATUSWORD, 0, "<H"))
         if isinstance(self.fault, DriveFault) and self.fault.code is None:
             await self._read_error_code()  # faulted before we came: its EMCY went unheard
-        self._mode = None
+        # The mode the drive is in (a restarted host may find the beam still turning in it).
+        display = await self.sdo.read(cia402.MODES_DISPLAY, 0, "<b")
+        self._mode = next((m for m in Mode if m == display), None)
 
     # ------------------------------------------------------------------ helpers
 

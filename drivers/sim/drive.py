@@ -250,7 +250,7 @@ class SimulatedDrive(SimulatedNode):
         if self.state is not S.OPERATION_ENABLED:
             return False
         if self._mode() is Mode.PROFILE_VELOCITY:
-            return done and not self._halted()
+            return done  # at the target velocity (0 while halted)
         if self._mode() is Mode.HOMING:
             return self._homing_attained
         return done
