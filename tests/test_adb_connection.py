@@ -264,3 +264,39 @@ async def test_client_over_tcp_loopback(tmp_path: Path) -> None:
         await conn.close()  # idempotent
     with pytest.raises(ConnectionLost, match="TCP connect failed"):
         await open_tcp("127.0.0.1", port, timeout_s=1.0)
+
+
+async def test_tcp_grants_credit_when_a_wrte_header_arrives_and_only_with_room() -> None:
+    """Over TCP the host sends OKAY once a WRTE header is in (payload still arriving), at most one ahead."""
+    steps: asyncio.Queue[str] = asyncio.Queue()
+
+    async def device_side(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        device = StreamTransport(reader, writer, name="scripted")
+        await device.recv()
+        await device.send(connect_message(b"device::features=", max_payload=4096))
+        opened = await device.recv()
+        await device.send(AdbMessage(A_OKAY, 9, opened.arg0))
+        first = AdbMessage(A_WRTE, 9, opened.arg0, b"x" * 4000).encode(with_checksum=False)
+        writer.write(first[:1000])  # header and part of the payload
+        okay = await asyncio.wait_for(device.recv(), 5.0)
+        assert (okay.command, okay.arg0, okay.arg1) == (A_OKAY, opened.arg0, 9)
+        writer.write(first[1000:])
+        await device.send(AdbMessage(A_WRTE, 9, opened.arg0, b"y" * 10))  # first one still unread
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(device.recv(), 0.3)
+        await steps.put("no early credit without room")
+        okay = await asyncio.wait_for(device.recv(), 5.0)
+        assert okay.command == A_OKAY
+        await steps.put("credit after reading")
+        await device.recv()  # CLSE or EOF
+        writer.close()
+
+    server = await asyncio.start_server(device_side, "127.0.0.1", 0)
+    async with server:
+        conn = AdbConnection(await open_tcp("127.0.0.1", server.sockets[0].getsockname()[1]), None)
+        await conn.connect()
+        stream = await conn.open("exec:cat")
+        assert await steps.get() == "no early credit without room"
+        assert await stream.readexactly(4010) == b"x" * 4000 + b"y" * 10
+        assert await steps.get() == "credit after reading"
+        await conn.close()

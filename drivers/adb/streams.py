@@ -17,7 +17,7 @@ from collections.abc import Awaitable, Callable
 import structlog
 
 from drivers.adb.errors import AdbError, AdbProtocolError, AdbTimeout, ConnectionLost, StreamClosed, StreamRefused
-from drivers.adb.message import A_CLSE, A_OKAY, A_OPEN, A_WRTE, MAX_PAYLOAD_LEGACY, AdbMessage
+from drivers.adb.message import A_CLSE, A_OKAY, A_OPEN, A_WRTE, MAX_PAYLOAD_LEGACY, AdbMessage, Header
 from drivers.adb.transport import AdbTransport
 
 log = structlog.get_logger("drivers.adb.streams")
@@ -44,6 +44,7 @@ class AdbStream:
         self._pos = 0
         self._error: AdbError | None = None
         self._okay_owed = False
+        self._credit_given = False
         self.bytes_read = 0
         self.bytes_written = 0
 
@@ -206,6 +207,17 @@ class StreamMux:
         self._ids = itertools.count(1)
         self._send_lock = asyncio.Lock()
         self._handlers: set[asyncio.Task[None]] = set()
+        if hasattr(transport, "credit_hook"):
+            transport.credit_hook = self._early_credit
+
+    def _early_credit(self, header: Header) -> AdbMessage | None:
+        """The OKAY for a WRTE whose payload is still arriving, when its stream has room for it."""
+        stream = self.streams.get(header.arg1)
+        if stream is None or stream.state != "open" or stream.remote_id != header.arg0 or \
+                stream._credit_given or len(stream._payloads) >= self.READ_WINDOW or self.lost is not None:
+            return None
+        stream._credit_given = True
+        return AdbMessage(A_OKAY, stream.local_id, stream.remote_id)
 
     async def send(self, message: AdbMessage) -> None:
         if self.lost is not None:
@@ -270,7 +282,9 @@ class StreamMux:
         elif msg.command == A_WRTE:
             stream._payloads.append(msg.payload)
             stream._arrived.set()
-            if len(stream._payloads) <= self.READ_WINDOW:
+            if stream._credit_given:
+                stream._credit_given = False
+            elif len(stream._payloads) <= self.READ_WINDOW:
                 await self.send(AdbMessage(A_OKAY, stream.local_id, stream.remote_id))
             else:
                 stream._okay_owed = True

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
+from collections.abc import Callable
 from typing import Protocol
 
 from drivers.adb.errors import AdbError, ConnectionLost
-from drivers.adb.message import HEADER_SIZE, MAX_PAYLOAD, AdbMessage, Header, decode_header, finish_message
+from drivers.adb.message import A_WRTE, HEADER_SIZE, MAX_PAYLOAD, AdbMessage, Header, decode_header, finish_message
 
 
 class AdbTransport(Protocol):
@@ -95,7 +96,7 @@ class _MessageReceiver(asyncio.BufferedProtocol):
         self._pending: Header | None = None
         self._drained = asyncio.Event()
         self._drained.set()
-        self._writing_paused = False
+        self.credit_hook: Callable[[Header], AdbMessage | None] | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
@@ -112,6 +113,10 @@ class _MessageReceiver(asyncio.BufferedProtocol):
                 header = decode_header(bytes(self._header), device=self.name, max_payload=self.max_payload)
                 if header.data_length:
                     self._pending, self._target, self._filled = header, bytearray(header.data_length), 0
+                    if header.command == A_WRTE and self.credit_hook is not None:
+                        credit = self.credit_hook(header)
+                        if credit is not None and self.transport is not None:
+                            self.transport.write(credit.header(with_checksum=False))
                     return
                 message = finish_message(header, b"", device=self.name)
             else:
@@ -143,13 +148,27 @@ class _MessageReceiver(asyncio.BufferedProtocol):
 
 
 class SocketTransport:
-    """ADB over a connected stream socket (TCP) with a buffered protocol: payloads land in place."""
+    """ADB over a connected stream socket (TCP) with a buffered protocol: payloads land in place.
+
+    Early credit: when a WRTE header arrives, ``credit_hook`` (set by the stream multiplexer) may
+    return the OKAY for it at once, before its payload is in. The sender then streams the next
+    payload right behind this one instead of idling a round trip per MiB; the receiver still
+    grants credit only while it has room (see StreamMux.READ_WINDOW).
+    """
 
     def __init__(self, transport: asyncio.Transport, receiver: _MessageReceiver, *, name: str) -> None:
         self._transport = transport
         self._receiver = receiver
         self.name = name
         self.closed = False
+
+    @property
+    def credit_hook(self) -> Callable[[Header], AdbMessage | None] | None:
+        return self._receiver.credit_hook
+
+    @credit_hook.setter
+    def credit_hook(self, hook: Callable[[Header], AdbMessage | None] | None) -> None:
+        self._receiver.credit_hook = hook
 
     async def send(self, message: AdbMessage, *, with_checksum: bool = True) -> None:
         if self.closed or self._transport.is_closing():
