@@ -180,6 +180,7 @@ def plan_focus(
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
         raise ValueError(f"unknown focus method {unknown[0]!r}; allowed: {', '.join(METHODS)}")
+    RayScene.import_backend(backend)  # a one-off cost, not part of planning
     t_start = time.perf_counter()
     _check_mesh(mesh, mesh_name)
     poses = rgb_poses(rig) if poses is None else poses

@@ -51,6 +51,14 @@ class RayScene:
             self._scene = rtcore_scene.EmbreeScene()
             TriangleMesh(self._scene, np.ascontiguousarray(vertices[faces]))
 
+    @staticmethod
+    def import_backend(backend: str) -> None:
+        """Import a backend's module now (Open3D takes a second or two on first import)."""
+        if backend == "open3d":
+            import open3d  # noqa: F401
+        else:
+            import embreex  # noqa: F401
+
     def _open3d_scene(self) -> object:
         if self._open3d is None:
             import open3d as o3d
