@@ -101,10 +101,11 @@ def _face_parts(folder: Path) -> np.ndarray:
     from body_models._cache import get_cache_dir
     from body_models.anny import _io
 
-    # The quads of the model in its own order, with their texture-coordinate indices.
-    raw = _io._load_data_numpy(folder, get_cache_dir() / "anny" / "preprocessed", rig="default",
-                               eyes=True, tongue=True)
-    quads, quad_uvs = _io._edit_mesh_faces(raw["faces"], raw["face_uvs"])
+    # The quads of the model in its own order, with their texture-coordinate indices: read just
+    # those two arrays from body-models' preprocessed cache (anny_model() has built it).
+    stem = _io._cache_file_stem(folder, "default", eyes=True, tongue=True)
+    with np.load(get_cache_dir() / "anny" / "preprocessed" / f"{stem}.npz", allow_pickle=False) as raw:
+        quads, quad_uvs = _io._edit_mesh_faces(raw["faces"], raw["face_uvs"])
     used = np.unique(quads)
     remap = np.full(int(quads.max()) + 1, -1)
     remap[used] = np.arange(len(used))
