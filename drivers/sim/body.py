@@ -264,13 +264,17 @@ def _write_cached(path: Path, body: Body) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".body-", suffix=".npz", delete=False) as tmp:
-            np.savez(
-                tmp,
-                vertices=np.asarray(body.mesh.vertices, dtype=np.float32),
-                faces=np.asarray(body.mesh.faces, dtype=np.int32),
-                joint_names=np.array(list(body.joints)),
-                joint_positions=np.array(list(body.joints.values())),
-            )
+            try:
+                np.savez(
+                    tmp,
+                    vertices=np.asarray(body.mesh.vertices, dtype=np.float32),
+                    faces=np.asarray(body.mesh.faces, dtype=np.int32),
+                    joint_names=np.array(list(body.joints)),
+                    joint_positions=np.array(list(body.joints.values())),
+                )
+            except OSError:
+                os.unlink(tmp.name)
+                raise
         os.replace(tmp.name, path)
     except OSError as exc:
         log.warning("body_cache_not_written", path=str(path), error=str(exc))
