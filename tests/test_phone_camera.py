@@ -202,6 +202,26 @@ def test_mute_agent_times_out(monkeypatch: pytest.MonkeyPatch) -> None:
     run(scenario)
 
 
+def test_delayed_answers_widen_the_clock_round_trip_then_time_out(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(PhoneCamera, "REQUEST_TIMEOUT_S", 0.5)
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        sim.answer_delay_s = 0.2
+        sample = await camera.clock_sample()
+        assert sample.host_recv_s - sample.host_send_s >= 0.2
+        assert sim.loop_time_of(sample.device_ns) < sample.host_recv_s - 0.2 + 1e-9
+        sim.answer_delay_s = 1.0
+        with pytest.raises(RequestTimeout, match="within 0.5 s"):
+            await camera.clock_sample()
+        sim.answer_delay_s = 0.0
+        await asyncio.sleep(1.0)
+        assert camera.state == "ready"
+        await camera.clock_sample()
+
+    run(scenario)
+
+
 def test_vanish_then_reconnect() -> None:
     async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
         await camera.connect()

@@ -203,6 +203,8 @@ class PhoneCamera:
                 pending = self._pending.pop(answer.id, None)
                 if pending is not None and not pending[1].done():
                     pending[1].set_result(answer)
+                else:  # its request already timed out and raised; the phone caught up since
+                    log.info("phone_late_answer", serial=self.serial, request_id=answer.id, ok=answer.ok)
             cause: PhoneError = PhoneDisconnected(self.serial, self.state, "the capture agent closed its stream")
         except AdbError as exc:
             cause = PhoneDisconnected(self.serial, self.state, str(exc))

@@ -14,8 +14,9 @@ cast from ``pose(t)`` (time -> (4, 4) camera-to-world, provided by the sim wirin
 knows nothing of the motor) and blurred by its distance from the focal plane.
 
 Faults: those of the adbd (refuse_auth, vanish(), disconnect_after_bytes) plus lens_slowdown,
-fail_captures (the next n captures answer CAPTURE_FAILED) and mute_agent (requests go
-unanswered, as when the camera HAL hangs).
+fail_captures (the next n captures answer CAPTURE_FAILED), answer_delay_s (every agent answer
+is held back that long, as on a congested USB hub) and mute_agent (requests go unanswered, as
+when the camera HAL hangs).
 """
 
 from __future__ import annotations
@@ -91,6 +92,7 @@ class SimulatedPhone(SimulatedAdbd):
         self.lens_slowdown = 1.0
         self.fail_captures = 0
         self.mute_agent = False
+        self.answer_delay_s = 0.0
         self.agent_running = False
         self.captures: list[dict[str, Any]] = []
         self._renderer: PhoneRenderer | None = None
@@ -144,6 +146,8 @@ class SimulatedPhone(SimulatedAdbd):
             if self.mute_agent:
                 continue
             answer = await self._handle(request)
+            if self.answer_delay_s > 0:
+                await asyncio.sleep(self.answer_delay_s)
             await stream.write(answer)
 
     async def _handle(self, request: protocol.AgentRequest) -> bytes:
