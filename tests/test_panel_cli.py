@@ -78,3 +78,48 @@ def test_missing_simulator_module_is_a_clear_error(
         build_parser().parse_args(["sim", "lidar"])
     assert "drivers.sim.no_such_lidar cannot be imported" in capsys.readouterr().err
     assert build_parser().parse_args(["sim", "panel"]).sim_module == "drivers.sim.panel"
+
+
+async def _tbp(*argv: str) -> asyncio.subprocess.Process:
+    return await asyncio.create_subprocess_exec(
+        str(TBP), *argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+    )
+
+
+async def test_tbp_panel_commissions_a_panel_on_a_serial_port() -> None:
+    from drivers.sim.panel import SimulatedPanel
+
+    sim, path = await SimulatedPanel.on_pty(estop=True)
+    task = asyncio.create_task(sim.run())
+    try:
+        proc = await _tbp("panel", "--port", path, "status")
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+        assert proc.returncode == 0, err.decode()
+        assert f"panel {path}: connected, e-stop PRESSED, LED OFF, light off" in out.decode()
+
+        proc = await _tbp("panel", "--port", path, "led", "SCANNING", "--seconds", "1")
+        assert proc.stdout is not None
+        assert (await asyncio.wait_for(proc.stdout.readline(), 60)).startswith(b"LED SCANNING")
+        assert sim.led is StatusLed.SCANNING
+        await asyncio.wait_for(proc.wait(), 30)
+        assert proc.returncode == 0 and sim.led is StatusLed.OFF  # BYE at the end
+
+        sim.release_estop()
+        proc = await _tbp("panel", "--port", path, "watch", "--seconds", "2")
+        assert proc.stdout is not None
+        assert b"e-stop released" in await asyncio.wait_for(proc.stdout.readline(), 60)
+        sim.press_start()
+        out, err = await asyncio.wait_for(proc.communicate(), 30)
+        assert proc.returncode == 0, err.decode()
+        assert out.decode().split() == ["START_PRESSED"]
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        sim.close()
+
+
+async def test_tbp_panel_reports_a_missing_port() -> None:
+    proc = await _tbp("panel", "--port", "/dev/tbp-no-such-panel", "status")
+    _, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode == 1
+    assert "tbp panel: operator panel /dev/tbp-no-such-panel: link lost: cannot open" in err.decode()
