@@ -25,6 +25,7 @@ from drivers.motor import (
     LoopbackCanBus,
     MotionInterrupted,
     MotionLimitError,
+    NmtStateLost,
     NmtTimeout,
     SdoAbort,
     SdoTimeout,
@@ -484,6 +485,23 @@ def test_late_sdo_answer_is_not_taken_for_the_next_request() -> None:
         # The 0x6064 answer lands while this 0x1000 request waits: it must not be taken for it.
         assert await drive.sdo.read(0x1000, 0, "<I") == 0x00020192
         assert drive.sdo.stale_replies == 1
+
+    run(scenario)
+
+
+def test_drive_leaving_operational_is_latched_and_reset_restarts_it() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        from drivers.motor import nmt
+
+        await drive._nmt(nmt.NmtCommand.ENTER_PRE_OPERATIONAL)  # as another master would
+        await asyncio.sleep(0.3)
+        assert isinstance(drive.fault, NmtStateLost) and "PRE_OPERATIONAL" in str(drive.fault)
+        before = drive.samples_received
+        await asyncio.sleep(0.2)
+        assert drive.samples_received == before  # no PDOs outside OPERATIONAL
+        await drive.reset_fault()
+        await asyncio.sleep(0.2)
+        assert drive.fault is None and drive.samples_received > before + 30
 
     run(scenario)
 

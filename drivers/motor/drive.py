@@ -35,6 +35,7 @@ from drivers.motor.errors import (
     HeartbeatLost,
     MotionInterrupted,
     MotionLimitError,
+    NmtStateLost,
     NmtTimeout,
     StateTransitionTimeout,
 )
@@ -652,6 +653,8 @@ class BeamDrive:
                 self._latch(DriveRebooted(self.name, self.state.value, "boot-up message while connected"))
             self._boot.set()
         else:
+            if self._connected and state is not nmt.NmtState.OPERATIONAL and state is not self.nmt_state:
+                self._latch(NmtStateLost(self.name, self.state.value, f"heartbeat reports NMT {state.name}"))
             self.nmt_state = state
         self._wake()
 

@@ -122,6 +122,11 @@ class NmtTimeout(DriveError):
     """The drive did not answer an NMT command (no boot-up after a reset, no first TPDO)."""
 
 
+class NmtStateLost(DriveError):
+    """The drive's heartbeat says it left OPERATIONAL (another master, or its CAN error
+    behaviour): its PDOs, and so the position stream, have stopped."""
+
+
 class FrameError(DriveError):
     """A frame from the drive does not fit the configured protocol (PDO length, statusword)."""
 
