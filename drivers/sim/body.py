@@ -275,6 +275,7 @@ def _write_cached(path: Path, body: Body) -> None:
             except OSError:
                 os.unlink(tmp.name)
                 raise
+        os.chmod(tmp.name, 0o644)  # like any other file, not the temporary file's 0600
         os.replace(tmp.name, path)
     except OSError as exc:
         log.warning("body_cache_not_written", path=str(path), error=str(exc))
