@@ -87,6 +87,50 @@ def data_chunks(data: bytes | memoryview, chunk: int = SYNC_DATA_MAX) -> bytes:
                     for i in range(0, len(view), chunk))
 
 
+class _FileSink:
+    """Hashes each received chunk and writes them to fd in batches (one writev per ~1 MiB).
+
+    The chunks are views into received payloads, which are never reused, so holding them until
+    the batch is written is safe.
+    """
+
+    BATCH_BYTES = 1024 * 1024
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.digest = hashlib.sha256()
+        self._views: list[memoryview] = []
+        self._pending = 0
+        self._written = 0
+        self._flushed = 0
+
+    def __call__(self, view: memoryview) -> None:
+        self.digest.update(view)
+        self._views.append(view)
+        self._pending += len(view)
+        if self._pending >= self.BATCH_BYTES:
+            self._write()
+
+    def _write(self) -> None:
+        views = self._views
+        while views:
+            n = os.writev(self.fd, views)
+            self._written += n
+            while views and n >= len(views[0]):
+                n -= len(views.pop(0))
+            if n:
+                views[0] = views[0][n:]
+        self._pending = 0
+        if _START_WRITEBACK is not None and self._written - self._flushed >= WRITEBACK_BYTES:
+            _START_WRITEBACK(self.fd, self._flushed, self._written - self._flushed, _SYNC_FILE_RANGE_WRITE)
+            self._flushed = self._written
+
+    def finish(self) -> None:
+        """Write what is left and fsync."""
+        self._write()
+        os.fsync(self.fd)
+
+
 class SyncClient:
     """A sync session on one 'sync:' stream. Requests run one at a time."""
 
@@ -158,30 +202,17 @@ class SyncClient:
         """
         dest = Path(dest)
         part = dest.with_name(dest.name + ".part")
-        digest = hashlib.sha256()
-        fd = os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        written = flushed = 0
+        sink = _FileSink(os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
         try:
-            def sink(view: memoryview) -> None:
-                nonlocal written, flushed
-                digest.update(view)
-                while view:
-                    n = os.write(fd, view)
-                    view = view[n:]
-                    written += n
-                if _START_WRITEBACK is not None and written - flushed >= WRITEBACK_BYTES:
-                    _START_WRITEBACK(fd, flushed, written - flushed, _SYNC_FILE_RANGE_WRITE)
-                    flushed = written
-
             size = await self._receive(path, sink)
-            os.fsync(fd)
+            sink.finish()
         except BaseException:
-            os.close(fd)
+            os.close(sink.fd)
             part.unlink(missing_ok=True)
             raise
-        os.close(fd)
+        os.close(sink.fd)
         os.replace(part, dest)
-        return size, digest.hexdigest()
+        return size, sink.digest.hexdigest()
 
     async def push(self, data: bytes, path: str, *, mode: int = 0o644, mtime: int = 0) -> None:
         """SEND data to path (regular file, permission bits mode); returns when the device says OKAY."""

@@ -64,11 +64,12 @@ async def _our_client(port: int) -> object:
     return conn
 
 
-async def _our_pull(conn, dest: Path) -> float:
-    start = time.perf_counter()
+async def _our_pull(conn, dest: Path, cpu_ms: list[float]) -> float:
+    start, cpu = time.perf_counter(), time.process_time()
     async with await conn.sync() as sync:
         size, _ = await sync.pull(REMOTE, dest)
     rate = size / (time.perf_counter() - start) / 1e6
+    cpu_ms.append((time.process_time() - cpu) * 1000)
     dest.unlink()
     return rate
 
@@ -100,25 +101,26 @@ class _StandardAdb:
         self._run("kill-server")
 
 
-async def _measure(port: int, folder: Path) -> tuple[list[float], list[float] | None]:
+async def _measure(port: int, folder: Path) -> tuple[list[float], list[float], list[float] | None]:
     """Alternate our pulls with adb's so both see the same machine load."""
     conn = await _our_client(port)
     adb_path = shutil.which("adb")
     standard = _StandardAdb(adb_path, port, folder) if adb_path else None
     ours: list[float] = []
+    cpu_ms: list[float] = []
     theirs: list[float] = []
     try:
         if standard is not None:
             standard.connect()
         for i in range(RUNS):
-            ours.append(await _our_pull(conn, folder / f"ours{i}.bin"))
+            ours.append(await _our_pull(conn, folder / f"ours{i}.bin", cpu_ms))
             if standard is not None:
                 theirs.append(standard.pull(folder / f"adb{i}.bin"))
     finally:
         await conn.close()
         if standard is not None:
             standard.kill_server()
-    return ours, theirs if standard is not None else None
+    return ours, cpu_ms, theirs if standard is not None else None
 
 
 def run() -> None:
@@ -126,7 +128,7 @@ def run() -> None:
     phone = _start_phone(port)
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            ours, standard = asyncio.run(_measure(port, Path(tmp)))
+            ours, cpu_ms, standard = asyncio.run(_measure(port, Path(tmp)))
     finally:
         phone.terminate()
         phone.wait(timeout=10)
@@ -134,6 +136,8 @@ def run() -> None:
     print(f"project client pull 20 MB over TCP loopback (sha256 + fsync included): {median:.0f} MB/s "
           f"median of {RUNS} (min {min(ours):.0f}, max {max(ours):.0f})   goal >= {GOAL_MB_S:.0f} MB/s "
           f"{'OK' if median >= GOAL_MB_S else 'MISSED'}")
+    print(f"  client CPU per 20 MB pull: {statistics.median(cpu_ms):.0f} ms median "
+          f"(= {SIZE / 1e3 / statistics.median(cpu_ms):.0f} MB/s of CPU); load average {os.getloadavg()[0]:.1f}")
     if standard is None:
         print("standard adb client: not installed (apt-get install adb) - comparison skipped")
         return
