@@ -78,6 +78,8 @@ class FakeDevice:
     dtype: Any = np.uint16
     size: tuple[int, int] | None = None  # (height, width); None: as configured
     fail_start: str | None = None
+    start_delay_s: float = 0.0
+    stopped: threading.Event = field(default_factory=threading.Event)
     # what the driver asked for
     real_time: bool | None = None
     configured: list[tuple[Any, ...]] = field(default_factory=list)
@@ -219,8 +221,10 @@ class FakeRealSense:
             def start(self, cfg: config, callback: Callable[[Any], None]) -> pipeline_profile:
                 device = (world.files[cfg.file] if cfg.file is not None
                           else next(d for d in world.devices if d.serial == cfg.serial))
+                time.sleep(device.start_delay_s)  # opening the USB device takes a while
                 if device.fail_start:
                     raise RuntimeError(device.fail_start)
+                self._device = device
                 device.configured = list(cfg.streams)
                 self._thread = threading.Thread(target=self._run, args=(device, cfg, callback))
                 self._thread.start()
@@ -254,6 +258,7 @@ class FakeRealSense:
                 self._stop.set()
                 if self._thread is not None:
                     self._thread.join()
+                    self._device.stopped.set()
 
         rs.context, rs.config, rs.pipeline = context, config, pipeline
         return rs

@@ -122,6 +122,17 @@ async def test_start_failure_and_wrong_pixel_format_are_typed(world: FakeRealSen
         await camera.stop()
 
 
+async def test_slow_start_times_out_and_the_late_pipeline_is_released(world: FakeRealSense) -> None:
+    device = FakeDevice(CAMERA.serial, start_delay_s=0.3)
+    world.devices.append(device)
+    camera = RealSenseCamera(CAMERA)
+    camera.START_TIMEOUT_S = 0.05
+    with pytest.raises(DepthCameraError, match="pipeline did not start within 0.05 s"):
+        await camera.start()
+    loop = asyncio.get_running_loop()
+    assert await loop.run_in_executor(None, device.stopped.wait, 10.0)
+
+
 async def test_stop_ends_a_waiting_reader_and_is_idempotent(world: FakeRealSense) -> None:
     world.devices.append(FakeDevice(CAMERA.serial, frames=100, stop_after=2))
     camera = RealSenseCamera(CAMERA)

@@ -130,10 +130,13 @@ class RealSenseStream(ABC):
         self._stopping = False
         self.depth_unit_mm = self.intrinsics = None
         pipeline, config = self._configure(rs)
+        starting = loop.run_in_executor(None, pipeline.start, config, self._on_frame)
         try:
             async with asyncio.timeout(self.START_TIMEOUT_S):
-                profile = await loop.run_in_executor(None, pipeline.start, config, self._on_frame)
+                profile = await asyncio.shield(starting)
         except TimeoutError:
+            self._stopping = True  # frames of a late start are ignored, and the device released
+            starting.add_done_callback(lambda job: self._release_late_start(loop, pipeline, job))
             raise DepthCameraError(self.id, f"pipeline did not start within {self.START_TIMEOUT_S} s") from None
         except RuntimeError as exc:  # pyrealsense2 raises rs.error, a RuntimeError
             raise DepthCameraError(self.id, f"pipeline start failed: {exc}") from exc
@@ -190,6 +193,14 @@ class RealSenseStream(ABC):
         if self._queue is not None:
             self._discard_queued()
             self._queue.put_nowait(END_OF_STREAM)
+
+    def _release_late_start(
+        self, loop: asyncio.AbstractEventLoop, pipeline: Any, job: asyncio.Future[Any]
+    ) -> None:
+        """A start that gave up waiting still owns the device once the SDK call returns: stop it."""
+        if not job.cancelled() and job.exception() is None:
+            self._log.warning("realsense_late_start_stopped")
+            loop.run_in_executor(None, pipeline.stop)
 
     # ------------------------------------------------------------------ subclass hooks
 
