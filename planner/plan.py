@@ -118,17 +118,18 @@ def load_subject_mesh(path: Path | str) -> trimesh.Trimesh:
     return mesh
 
 
-def _check_mesh(mesh: trimesh.Trimesh, name: str) -> None:
-    faces = len(mesh.faces)
-    area = float(mesh.area) if faces else 0.0
-    if faces == 0 or not area > 0:
-        raise EmptyMesh(name, faces, area)
-
-
-def _samples(mesh: trimesh.Trimesh, rig: Rig, points: int | SurfaceSamples | None, seed: int) -> SurfaceSamples:
+def _samples(
+    mesh: trimesh.Trimesh, rig: Rig, points: int | SurfaceSamples | None, seed: int, name: str
+) -> SurfaceSamples:
+    """The given samples, or fresh ones; EmptyMesh (naming the mesh) if there is no surface."""
+    if len(mesh.faces) == 0:
+        raise EmptyMesh(name, 0, 0.0)
     if isinstance(points, SurfaceSamples):
         return points
-    return sample_surface(mesh, rig.planner.points if points is None else int(points), seed=seed)
+    try:
+        return sample_surface(mesh, rig.planner.points if points is None else int(points), seed=seed)
+    except EmptyMesh as exc:
+        raise EmptyMesh(name, exc.faces, exc.area_mm2) from exc
 
 
 def check_focus(focus_mm: np.ndarray, n_poses: int) -> np.ndarray:
@@ -182,9 +183,8 @@ def plan_focus(
         raise ValueError(f"unknown focus method {unknown[0]!r}; allowed: {', '.join(METHODS)}")
     RayScene.import_backend(backend)  # a one-off cost, not part of planning
     t_start = time.perf_counter()
-    _check_mesh(mesh, mesh_name)
     poses = rgb_poses(rig) if poses is None else poses
-    samples = _samples(mesh, rig, points, seed)
+    samples = _samples(mesh, rig, points, seed, mesh_name)
     t_sampled = time.perf_counter()
     scene = RayScene(mesh, backend)
     table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics)
@@ -263,8 +263,7 @@ def evaluate(
     """
     poses = rgb_poses(rig) if poses is None else poses
     focus = check_focus(focus_mm, len(poses))
-    _check_mesh(mesh, mesh_name)
-    samples = _samples(mesh, rig, points, seed)
+    samples = _samples(mesh, rig, points, seed, mesh_name)
     table = cost_table(visible_pairs(RayScene(mesh, backend), poses, samples, rig.optics), rig.cost, rig.optics)
     return Evaluation(
         n_points=len(samples),

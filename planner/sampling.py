@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from planner.focus_errors import EmptyMesh
+
 
 @dataclass(frozen=True)
 class SurfaceSamples:
@@ -45,23 +47,31 @@ class SurfaceSamples:
 
 
 def sample_surface(mesh: trimesh.Trimesh, count: int, *, seed: int = 0) -> SurfaceSamples:
-    """``count`` area-uniform samples of ``mesh``'s surface, reproducible for a given seed."""
+    """``count`` area-uniform samples of ``mesh``'s surface, reproducible for a given seed.
+
+    Raises EmptyMesh when the mesh has no faces or no area.
+    """
     if count <= 0:
         raise ValueError(f"sample count must be positive, got {count}")
-    triangles = np.asarray(mesh.triangles, dtype=float)
-    areas = np.asarray(mesh.area_faces, dtype=float)
-    total = float(areas.sum())
-    if len(triangles) == 0 or not total > 0:
-        raise ValueError(f"mesh has no surface area ({len(triangles)} faces, area {total:g} mm^2)")
+    vertices = np.asarray(mesh.vertices, dtype=float)
+    corners = np.asarray(mesh.faces, dtype=np.int64)
+    if len(corners) == 0:
+        raise EmptyMesh("<mesh>", 0, 0.0)
+    a = vertices[corners[:, 0]]
+    ab, ac = vertices[corners[:, 1]] - a, vertices[corners[:, 2]] - a
+    doubled = np.linalg.norm(np.cross(ab, ac), axis=1)  # twice each triangle's area
+    total = float(doubled.sum()) / 2.0
+    if not total > 0:
+        raise EmptyMesh("<mesh>", len(corners), total)
     rng = np.random.default_rng(seed)
-    cumulative = np.cumsum(areas)
+    cumulative = np.cumsum(doubled)
     faces = np.searchsorted(cumulative, rng.random(count) * cumulative[-1], side="right")
-    faces = np.minimum(faces, len(areas) - 1)
+    faces = np.minimum(faces, len(corners) - 1)
     # Uniform barycentric coordinates: fold the unit square onto the triangle.
     uv = rng.random((count, 2))
     flip = uv.sum(axis=1) > 1.0
     uv[flip] = 1.0 - uv[flip]
-    a, b, c = triangles[faces, 0], triangles[faces, 1], triangles[faces, 2]
-    points = a + uv[:, :1] * (b - a) + uv[:, 1:] * (c - a)
-    normals = -np.asarray(mesh.face_normals, dtype=float)[faces]
+    points = a[faces] + uv[:, :1] * ab[faces] + uv[:, 1:] * ac[faces]
+    # Inward normal: minus the right-handed (outward, for a consistently wound skin) normal.
+    normals = -np.cross(ab[faces], ac[faces]) / doubled[faces][:, None]
     return SurfaceSamples(points, normals, faces, total)

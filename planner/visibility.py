@@ -37,7 +37,7 @@ class RayScene:
         if backend not in BACKENDS:
             raise ValueError(f"unknown ray backend {backend!r}; allowed: {', '.join(BACKENDS)}")
         self.backend = backend
-        self.face_normals = np.asarray(mesh.face_normals, dtype=float)
+        self._mesh = mesh
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
         faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
         self._triangles = (vertices, faces)
@@ -67,6 +67,11 @@ class RayScene:
             scene.add_triangles(*(o3d.core.Tensor(a) for a in self._triangles))
             self._open3d = scene
         return self._open3d
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) float unit outward normals of the mesh's triangles."""
+        return np.asarray(self._mesh.face_normals, dtype=float)
 
     def closest_faces(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For (Q, 3) points: the closest surface points (Q, 3) and their triangle indices (Q,)."""

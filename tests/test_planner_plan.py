@@ -128,3 +128,9 @@ def test_cli_plan_errors_name_the_file(tmp_path: Path, capsys) -> None:
     assert tbp(["plan", "--mesh", str(empty)]) == 1
     assert "empty" in capsys.readouterr().err
     assert tbp(["plan", "--mesh", str(missing), "--points", "0"]) == 2
+
+
+def test_zero_area_mesh_is_refused() -> None:
+    flat = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [2, 0, 0]], faces=[[0, 1, 2]], process=False)
+    with pytest.raises(EmptyMesh, match="line.ply is empty: 1 faces, surface area 0"):
+        plan_focus(flat, RIG, points=10, mesh_name="line.ply")

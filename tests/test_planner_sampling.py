@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from planner.focus_errors import EmptyMesh
 from planner.sampling import SurfaceSamples, sample_surface
 from tests.planner_standin import sphere
 
@@ -37,7 +38,7 @@ def test_points_lie_on_the_surface_with_inward_normals() -> None:
 def test_bad_requests_are_refused() -> None:
     with pytest.raises(ValueError, match="sample count must be positive, got 0"):
         sample_surface(sphere(), 0)
-    with pytest.raises(ValueError, match="no surface area"):
+    with pytest.raises(EmptyMesh, match="0 faces, surface area 0"):
         sample_surface(trimesh.Trimesh(), 10)
     with pytest.raises(ValueError, match="2 points but 1 normals"):
         SurfaceSamples.from_arrays(np.zeros((2, 3)), np.ones((1, 3)))
