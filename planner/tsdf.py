@@ -27,7 +27,7 @@ log = structlog.get_logger(__name__)
 
 #: Beam rotation between fused frames of one camera (deg); 30 fps at 30 deg/s gives 1 deg steps,
 #: and frames closer than this add little to the fusion but cost time.
-FRAME_SPACING_DEG = 6.0
+FRAME_SPACING_DEG = 8.0
 #: Fewer usable frames than this cannot cover a person from all sides.
 MIN_FRAMES = 12
 #: A frame with fewer measured pixels inside the scan volume adds nothing (stray floor noise).

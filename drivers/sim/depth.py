@@ -60,12 +60,9 @@ class DepthScene:
             faces = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
             self.scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(faces))
 
-    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cast rays from one origin. directions: (N, 3) world. Returns t_hit (N,) and normals (N, 3)."""
-        rays = np.empty((len(directions), 6), dtype=np.float32)
-        rays[:, :3] = origin
-        rays[:, 3:] = directions
-        ans = self.scene.cast_rays(self._o3d.core.Tensor(rays))
+    def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cast (N, 6) float32 rays [origin, direction] (world). Returns t_hit (N,) and normals (N, 3)."""
+        ans = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
         return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
 
 
@@ -76,20 +73,23 @@ class DepthRenderer:
         self.scene = scene
         self.model = model
         u, v = np.meshgrid(
-            np.arange(model.width_px, dtype=np.float64), np.arange(model.height_px, dtype=np.float64)
+            np.arange(model.width_px, dtype=np.float32), np.arange(model.height_px, dtype=np.float32)
         )
         self._rays_camera = np.stack(
             [(u - model.cx_px) / model.fx_px, (v - model.cy_px) / model.fy_px, np.ones_like(u)], axis=-1
         ).reshape(-1, 3)
+        # a rotation keeps ray lengths: 1 / |ray| once per camera model
+        self._inverse_length = 1.0 / np.linalg.norm(self._rays_camera, axis=1)
+        self._rays = np.empty((len(self._rays_camera), 6), dtype=np.float32)
 
     def true_depth(self, camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) float z-depth in mm (inf where nothing is hit) and (H, W) cos of incidence."""
         m = self.model
-        rotation, origin = camera_to_world[:3, :3], camera_to_world[:3, 3]
-        directions = self._rays_camera @ rotation.T
-        t_hit, normals = self.scene.cast(origin, directions)
-        lengths = np.linalg.norm(directions, axis=1)
-        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, directions)) / lengths
+        rays = self._rays
+        rays[:, :3] = camera_to_world[:3, 3]
+        np.matmul(self._rays_camera, camera_to_world[:3, :3].T.astype(np.float32), out=rays[:, 3:])
+        t_hit, normals = self.scene.cast(rays)
+        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, rays[:, 3:])) * self._inverse_length
         return t_hit.reshape(m.height_px, m.width_px), cos_incidence.reshape(m.height_px, m.width_px)
 
     def render(self, camera_to_world: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
