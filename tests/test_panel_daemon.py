@@ -1,0 +1,89 @@
+"""The operator panel in the running daemon: START starts a scan, the e-stop trips the rig,
+a lost panel trips it too, and the panel's LED follows the rig's state.
+
+The daemon rig of tests/daemon_rigs.py (simulated drive and depth cameras, mock phones) gets
+a simulated panel on a socketpair; everything runs in virtual time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import pytest
+
+from daemon.controller import RigController
+from daemon.errors import ScanBusy
+from daemon.service import RigService
+from daemon.store import ScanStore
+from drivers.panel import OperatorPanel, StatusLed
+from drivers.sim.clock import run_virtual
+from drivers.sim.panel import SimulatedPanel
+from tests.daemon_rigs import PLAN_POINTS, RIG, build_rig
+
+pytestmark = pytest.mark.slow
+
+Scenario = Callable[[RigController, SimulatedPanel], Awaitable[None]]
+
+
+def run_service(tmp_path: Path, scenario: Scenario) -> None:
+    async def main() -> None:
+        hardware, _world = await build_rig(RIG, 0)
+        a, b = socket.socketpair()
+        (host_r, host_w), (dev_r, dev_w) = (await asyncio.open_connection(sock=a),
+                                            await asyncio.open_connection(sock=b))
+        sim = SimulatedPanel(dev_r, dev_w)
+        sim_task = asyncio.create_task(sim.run())
+        hardware.panel = OperatorPanel(host_r, host_w)
+        controller = RigController(RIG, hardware, ScanStore(tmp_path), plan_points=PLAN_POINTS)
+        service = RigService(controller)
+        await service.start()
+        try:
+            await scenario(controller, sim)
+        finally:
+            await service.stop()
+            sim_task.cancel()
+            await asyncio.gather(sim_task, return_exceptions=True)
+            sim.close()
+
+    run_virtual(main())
+
+
+async def until(condition: Callable[[], bool], timeout_s: float = 30.0) -> None:
+    async with asyncio.timeout(timeout_s):
+        while not condition():
+            await asyncio.sleep(0.05)
+
+
+def test_start_button_scans_and_estop_trips_until_released_and_reset(tmp_path: Path) -> None:
+    async def scenario(controller: RigController, sim: SimulatedPanel) -> None:
+        await until(lambda: sim.led is StatusLed.IDLE)
+        sim.press_start()
+        await until(lambda: sim.led is StatusLed.SCANNING)
+        assert controller.busy
+        sim.press_estop()
+        await until(lambda: controller.machine.state.value == "FAULT")
+        await until(lambda: sim.led is StatusLed.FAULT)
+        assert any("e-stop" in cause for cause in controller.safety.causes)
+        await until(lambda: not controller.busy)
+        with pytest.raises(ScanBusy, match="e-stop still pressed"):
+            await controller.reset()
+        sim.release_estop()
+        await until(lambda: not controller.hw.panel.estop_active)
+        await controller.reset()
+        await until(lambda: sim.led is StatusLed.IDLE)
+        assert controller.machine.state.value == "IDLE"
+
+    run_service(tmp_path, scenario)
+
+
+def test_lost_panel_trips_the_rig(tmp_path: Path) -> None:
+    async def scenario(controller: RigController, sim: SimulatedPanel) -> None:
+        await until(lambda: sim.led is StatusLed.IDLE)
+        sim.stop_heartbeats()
+        await until(lambda: controller.machine.state.value == "FAULT")
+        assert any("heartbeat" in cause for cause in controller.safety.causes)
+
+    run_service(tmp_path, scenario)
