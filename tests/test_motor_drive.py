@@ -11,6 +11,7 @@ import dataclasses
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+import can
 import pytest
 
 from drivers.motor import (
@@ -493,6 +494,7 @@ def test_drive_leaving_operational_is_latched_and_reset_restarts_it() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         from drivers.motor import nmt
 
+        await asyncio.sleep(0.2)  # the drive's heartbeat has reported OPERATIONAL
         await drive._nmt(nmt.NmtCommand.ENTER_PRE_OPERATIONAL)  # as another master would
         await asyncio.sleep(0.3)
         assert isinstance(drive.fault, NmtStateLost) and "PRE_OPERATIONAL" in str(drive.fault)
@@ -504,6 +506,25 @@ def test_drive_leaving_operational_is_latched_and_reset_restarts_it() -> None:
         assert drive.fault is None and drive.samples_received > before + 30
 
     run(scenario)
+
+
+def test_a_heartbeat_sent_before_the_start_is_not_taken_for_leaving_operational() -> None:
+    async def main() -> None:
+        bus = LoopbackCanBus()
+        sim = SimulatedDrive(bus.port("sim"), MOTOR)
+        sim_task = asyncio.create_task(sim.run())
+        late = bus.port("late frames")
+        drive = BeamDrive(bus.port("host"), MOTOR)
+        await drive.connect()
+        # A PRE-OPERATIONAL heartbeat the drive sent just before it received the NMT start.
+        await late.send(can.Message(arbitration_id=0x700 + MOTOR.node_id, data=b"\x7f", is_extended_id=False))
+        await asyncio.sleep(0.5)
+        assert drive.fault is None and drive.nmt_state is not None and drive.nmt_state.name == "OPERATIONAL"
+        await drive.close()
+        sim_task.cancel()
+        await asyncio.gather(sim_task, return_exceptions=True)
+
+    run_virtual(main())
 
 
 def test_sdo_abort_from_the_drive_is_typed() -> None:

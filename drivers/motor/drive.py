@@ -124,8 +124,9 @@ class BeamDrive:
         await self._configure()
         self._start(self._produce_heartbeat(), "heartbeat")
         self._connected = True
+        # nmt_state follows the drive's own heartbeat: one sent before it got the START must
+        # not read as the drive leaving OPERATIONAL.
         await self._nmt(nmt.NmtCommand.START)
-        self.nmt_state = nmt.NmtState.OPERATIONAL
         self._start(self._watch_heartbeat(), "watchdog")
         await self._until(
             lambda: self.latest is not None,
@@ -342,7 +343,6 @@ class BeamDrive:
             # The reboot wiped the communication set-up (and any zero set by homing).
             await self._configure()
             await self._nmt(nmt.NmtCommand.START)
-            self.nmt_state = nmt.NmtState.OPERATIONAL
         elif self.nmt_state is not nmt.NmtState.OPERATIONAL:
             await self._nmt(nmt.NmtCommand.START)
         if self.state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE):
@@ -652,6 +652,7 @@ class BeamDrive:
             if self._connected:
                 self._latch(DriveRebooted(self.name, self.state.value, "boot-up message while connected"))
             self._boot.set()
+            self.nmt_state = nmt.NmtState.PRE_OPERATIONAL  # where a node goes after boot-up
         else:
             if self._connected and state is not nmt.NmtState.OPERATIONAL and state is not self.nmt_state:
                 self._latch(NmtStateLost(self.name, self.state.value, f"heartbeat reports NMT {state.name}"))
