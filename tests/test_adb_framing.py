@@ -5,7 +5,7 @@ from __future__ import annotations
 import struct
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.adb.errors import AdbProtocolError
@@ -44,6 +44,7 @@ def test_okay_and_clse_have_no_payload() -> None:
     assert AdbMessage(A_CLSE, 0, 9).encode() == b"CLSE" + struct.pack("<IIIII", 0, 9, 0, 0, A_CLSE ^ 0xFFFFFFFF)
 
 
+@settings(deadline=None)
 @given(st.sampled_from(sorted(COMMAND_NAMES)), st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1),
        st.binary(max_size=3000), st.booleans())
 def test_encode_decode_round_trip(command: int, arg0: int, arg1: int, payload: bytes, with_checksum: bool) -> None:
@@ -51,6 +52,7 @@ def test_encode_decode_round_trip(command: int, arg0: int, arg1: int, payload: b
     assert decode(msg.encode(with_checksum=with_checksum)) == msg
 
 
+@settings(deadline=None)
 @given(st.binary(max_size=5000))
 def test_checksum_is_byte_sum(payload: bytes) -> None:
     assert checksum(payload) == sum(payload) % 2**32
@@ -81,6 +83,7 @@ def test_unknown_command_and_oversize_refused() -> None:
         decode_header(bogus[:23])
 
 
+@settings(deadline=None)
 @given(st.binary(min_size=HEADER_SIZE, max_size=HEADER_SIZE))
 def test_random_headers_never_crash(raw: bytes) -> None:
     try:
@@ -105,6 +108,7 @@ def test_sync_requests_exact() -> None:
         request(b"STAT", "/" + "a" * 1024)
 
 
+@settings(deadline=None)
 @given(st.binary(max_size=200_000))
 def test_data_chunks_at_most_64k(data: bytes) -> None:
     framed, out, pos = data_chunks(data), [], 0

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.phone.errors import FocusCalibrationError, FocusOutOfRange
@@ -24,6 +24,7 @@ def tables(draw: st.DrawFn) -> FocusCalibration:
     return FocusCalibration(diopters, 1000.0 / measured)
 
 
+@settings(deadline=None)
 @given(tables(), st.floats(0.0, 1.0))
 def test_inverse_round_trips(table: FocusCalibration, fraction: float) -> None:
     mm = table.near_mm + fraction * (table.far_mm - table.near_mm)
@@ -32,6 +33,7 @@ def test_inverse_round_trips(table: FocusCalibration, fraction: float) -> None:
     assert table.focus_mm(d) == pytest.approx(mm, rel=1e-9)
 
 
+@settings(deadline=None)
 @given(tables(), st.floats(0.0, 1.0), st.floats(0.0, 1.0))
 def test_nearer_focus_needs_more_diopters(table: FocusCalibration, a: float, b: float) -> None:
     lo, hi = sorted((a, b))
@@ -40,6 +42,7 @@ def test_nearer_focus_needs_more_diopters(table: FocusCalibration, a: float, b: 
     assert table.diopters_for(near) >= table.diopters_for(far) - 1e-12
 
 
+@settings(deadline=None)
 @given(tables())
 def test_table_points_are_exact(table: FocusCalibration) -> None:
     for d, mm in zip(table.diopters, table.distance_mm):

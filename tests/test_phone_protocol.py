@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.phone import protocol
@@ -26,6 +26,7 @@ def test_request_bytes_exact() -> None:
         protocol.encode_request(1, "reboot")
 
 
+@settings(deadline=None)
 @given(st.integers(0, 2**53 - 1), st.sampled_from(protocol.OPS),
        st.dictionaries(st.text(min_size=1, max_size=8).filter(lambda k: k not in ("id", "op")), json_values,
                        max_size=4))
@@ -34,6 +35,7 @@ def test_request_round_trip(ident: int, op: str, params: dict) -> None:
     assert (request.id, request.op, request.params) == (ident, op, params)
 
 
+@settings(deadline=None)
 @given(st.integers(0, 2**53 - 1), st.dictionaries(st.sampled_from(["path", "size", "device_ns"]), json_values))
 def test_result_round_trip(ident: int, fields: dict) -> None:
     answer = protocol.parse_response(protocol.encode_result(ident, **fields))
@@ -45,6 +47,7 @@ def test_error_round_trip() -> None:
     assert (answer.ok, answer.id, answer.code, answer.message) == (False, 3, "CAPTURE_FAILED", "HAL error")
 
 
+@settings(deadline=None)
 @given(st.binary(max_size=200))
 def test_random_bytes_give_typed_errors(raw: bytes) -> None:
     for parse in (protocol.parse_response, protocol.parse_request):
@@ -54,6 +57,7 @@ def test_random_bytes_give_typed_errors(raw: bytes) -> None:
             pass
 
 
+@settings(deadline=None)
 @given(json_values)
 def test_json_without_valid_id_or_ok_is_refused(value: object) -> None:
     line = json.dumps(value) + "\n"
