@@ -32,6 +32,7 @@ class format(enum.Enum):  # noqa: N801,A001
 class camera_info(enum.Enum):  # noqa: N801
     serial_number = 1
     product_line = 2
+    firmware_version = 3
 
 
 class timestamp_domain(enum.Enum):  # noqa: N801
@@ -87,7 +88,8 @@ class FakeDevice:
     status_callback: Callable[[playback_status], None] | None = None
 
     def get_info(self, info: camera_info) -> str:
-        return self.serial if info is camera_info.serial_number else "D455"
+        return {camera_info.serial_number: self.serial, camera_info.product_line: "D400",
+                camera_info.firmware_version: "5.16.0.1"}[info]
 
     def first_depth_sensor(self) -> FakeDevice:
         return self

@@ -203,3 +203,44 @@ async def test_bag_playback_delivers_every_frame_at_the_consumers_pace(
 async def test_missing_recording_is_named(world: FakeRealSense, tmp_path: Path) -> None:
     with pytest.raises(DepthCameraError, match="no recording at .*absent.bag"):
         await BagPlayback(tmp_path / "absent.bag", camera_id="depth0").start()
+
+
+# ---------------------------------------------------------------------- tbp depth
+
+
+def test_tbp_depth_list_check_and_play(world: FakeRealSense, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    from daemon.cli import main
+
+    for config in RIG.depth_cameras[:2]:
+        world.devices.append(FakeDevice(config.serial, frames=10_000, period_s=0.01))
+    assert main(["depth", "list"]) == 0
+    listed = capsys.readouterr().out
+    assert all(f"serial {c.serial}  D400  firmware 5.16.0.1" in listed for c in RIG.depth_cameras[:2])
+
+    assert main(["depth", "check", "--seconds", "0.3"]) == 1  # the third camera is not plugged in
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"{RIG.depth_cameras[0].id} (serial {RIG.depth_cameras[0].serial}): ")
+    assert "1280x720, depth unit 1.0000 mm, fx 912.0" in out[0] and "timestamps hardware_clock" in out[0]
+    assert out[2].startswith(f"{RIG.depth_cameras[2].id}: FAILED: ")
+    assert repr(RIG.depth_cameras[2].serial) in out[2]
+    assert main(["depth", "check", "--camera", RIG.depth_cameras[1].id, "--seconds", "0.2"]) == 0
+    assert main(["depth", "check", "--camera", "depth9"]) == 2
+
+    path = tmp_path / "rec.bag"
+    path.write_bytes(b"ROSBAG")
+    world.files[str(path)] = FakeDevice("bag", frames=12, period_s=0.0, device_period_ms=100.0,
+                                        size=(48, 64))
+    capsys.readouterr()
+    assert main(["depth", "play", str(path), "--camera-id", "depth1"]) == 0
+    assert capsys.readouterr().out.startswith(f"depth1 ({path}): 12 frames, 10.0 fps, 64x48")
+
+
+def test_tbp_depth_without_pyrealsense2_says_how_to_install(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from daemon.cli import main
+
+    monkeypatch.setitem(sys.modules, "pyrealsense2", None)
+    assert main(["depth", "list"]) == 1
+    assert "pip install tbp-rig[realsense]" in capsys.readouterr().err
