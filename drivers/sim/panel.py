@@ -213,7 +213,9 @@ class SimulatedPanel:
     def _event(self, signal_: PanelSignal) -> None:
         seq = self._send("EVT", signal_.value)
         self._unacked[seq] = self._last_raw
-        self._tasks.append(asyncio.get_running_loop().create_task(self._resend(seq)))
+        task = asyncio.get_running_loop().create_task(self._resend(seq))
+        self._tasks.append(task)
+        task.add_done_callback(self._tasks.remove)
 
     async def _resend(self, seq: int) -> None:
         for _ in range(self.EVENT_RESENDS):
