@@ -16,6 +16,8 @@ from collections.abc import AsyncIterator, Iterator
 
 import can
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from drivers.motor import BeamDrive, Cia402State, LoopbackCanBus, PythonCanPort
 from drivers.sim.drive import SimulatedDrive
@@ -46,6 +48,37 @@ def test_frame_text_transcripts() -> None:
         False,
     )
     assert parse_send("< send 0000007F 1 5 >").is_extended_id
+
+
+frames = st.builds(
+    lambda ext, cob, data, ts: can.Message(
+        arbitration_id=cob & (0x1FFFFFFF if ext else 0x7FF), data=data, is_extended_id=ext, timestamp=ts
+    ),
+    st.booleans(),
+    st.integers(0, 0x1FFFFFFF),
+    st.binary(max_size=8),
+    st.floats(0, 1e6, allow_nan=False).map(lambda t: round(t, 6)),
+)
+
+
+@given(frames)
+def test_bridge_and_python_can_read_each_others_text(msg: can.Message) -> None:
+    """Our parser reads python-can's ``< send >`` text and python-can reads our ``< frame >`` text."""
+    from can.interfaces.socketcand import socketcand as client
+
+    sent = parse_send(client.convert_can_message_to_ascii_message(msg))
+    assert (sent.arbitration_id, bytes(sent.data), sent.is_extended_id) == (
+        msg.arbitration_id,
+        bytes(msg.data),
+        msg.is_extended_id,
+    )
+    received = client.convert_ascii_message_to_can_message(format_frame(msg))
+    assert (received.arbitration_id, bytes(received.data), received.is_extended_id) == (
+        msg.arbitration_id,
+        bytes(msg.data),
+        msg.is_extended_id,
+    )
+    assert received.timestamp == pytest.approx(msg.timestamp, abs=1e-6)
 
 
 @pytest.mark.parametrize(
