@@ -1,0 +1,41 @@
+"""``tbp phone check`` against ``tbp sim phone`` running as its own process."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from daemon.cli import main
+
+
+@pytest.fixture
+def sim_phone_port() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from daemon.cli import main; sys.exit(main())",
+                             "sim", "phone", "--port", "0", "--serial", "TBPSIM03"], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert "127.0.0.1:" in line, line
+        yield int(line.rsplit(":", 1)[1])
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+
+
+def test_check_a_phone_end_to_end(sim_phone_port: int, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    code = main(["phone", "check", "--tcp", f"127.0.0.1:{sim_phone_port}", "--camera", "cam3",
+                 "--state-dir", str(tmp_path / "state"), "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "TBPSIM03" in out and "lens still after" in out and out.rstrip().endswith("OK")
+    assert (tmp_path / "out" / "cam3-check.jpg").stat().st_size > 0
+    assert (tmp_path / "state" / "adbkey.pub").exists()
+
+
+def test_check_reports_the_typed_error(sim_phone_port: int, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    code = main(["phone", "check", "--tcp", f"127.0.0.1:{sim_phone_port}", "--camera", "cam1",
+                 "--state-dir", str(tmp_path / "state"), "--out", str(tmp_path)])
+    assert code == 1
+    assert "FAILED: WrongPhone" in capsys.readouterr().err
