@@ -249,6 +249,22 @@ def test_panel_heartbeat_loss_and_return() -> None:
     run(scenario)
 
 
+def test_command_to_a_lost_panel_raises_the_heartbeat_loss() -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        sim.stop_heartbeats()
+        sim.ignore_commands = True
+        assert await next_event(events) is PanelEvent.HEARTBEAT_LOST
+        with pytest.raises(PanelHeartbeatLost, match="no heartbeat") as info:
+            await panel.set_status(StatusLed.FAULT)
+        assert isinstance(info.value.__cause__, PanelTimeout)
+        sim.ignore_commands = False  # commands still get through while only heartbeats are lost
+        await panel.set_status(StatusLed.FAULT)
+        assert sim.led is StatusLed.FAULT
+
+    run(scenario)
+
+
 def test_only_garbage_is_a_lost_heartbeat_that_names_the_garbage() -> None:
     async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
         events = panel.events()

@@ -272,7 +272,10 @@ class OperatorPanel:
             if answer.verb == "NAK":
                 raise PanelCommandRefused(self.name, f"{verb} {arg}", answer.args[1])
             return
-        raise PanelTimeout(self.name, f"{verb} {arg}", self.ACK_TIMEOUT_S, self.COMMAND_ATTEMPTS)
+        timeout = PanelTimeout(self.name, f"{verb} {arg}", self.ACK_TIMEOUT_S, self.COMMAND_ATTEMPTS)
+        if self.fault is not None:  # the lost heartbeat is the cause worth reporting
+            raise self.fault from timeout
+        raise timeout
 
     async def _heartbeat_loop(self) -> None:
         while True:
