@@ -185,14 +185,18 @@ def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float
     the adjacent ones. vertices (V, 3) mm, faces (F, 3) int; returns the extended arrays.
     """
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    key = np.minimum(directed[:, 0], directed[:, 1]) * len(vertices) + np.maximum(directed[:, 0], directed[:, 1])
-    ordered = np.sort(key)
-    alone = np.r_[True, ordered[1:] != ordered[:-1]] & np.r_[ordered[:-1] != ordered[1:], True]
-    singles = ordered[alone]
-    if len(singles) == 0:
+    low, high = directed.min(axis=1), directed.max(axis=1)
+    # summed per undirected edge, 4 + direction (+-1) is 3 or 5 exactly for an edge used once
+    code = np.where(directed[:, 0] < directed[:, 1], 5, 3).astype(np.int32)
+    edges = coo_matrix((code, (low, high)), shape=(len(vertices),) * 2).tocsr()
+    edges.sum_duplicates()
+    once = edges.tocoo()
+    single = (once.data == 3) | (once.data == 5)
+    if not single.any():
         return vertices, faces
-    at = np.minimum(np.searchsorted(singles, key), len(singles) - 1)
-    boundary = directed[singles[at] == key]
+    forward = once.data[single] == 5
+    a, b = once.row[single], once.col[single]
+    boundary = np.stack([np.where(forward, a, b), np.where(forward, b, a)], axis=1).astype(np.int64)
     graph = coo_matrix(
         (np.ones(len(boundary), dtype=np.int8), (boundary[:, 0], boundary[:, 1])), shape=(len(vertices),) * 2
     )
