@@ -35,7 +35,8 @@ async def test_tbp_sim_panel_serves_a_pty_that_the_driver_can_use() -> None:
         async with asyncio.timeout(5):
             assert await anext(events) is PanelEvent.ESTOP_PRESSED  # --estop: held at power-on
         await panel.set_status(StatusLed.IDLE)
-        assert panel.reported_led in (None, StatusLed.OFF, StatusLed.IDLE)
+        async with asyncio.timeout(5):  # the simulator shows what the host commanded
+            assert (await proc.stdout.readline()).decode().strip() == "LED IDLE, light off"
         proc.stdin.write(b"r")  # the operator releases the e-stop and presses START
         proc.stdin.write(b"s")
         await proc.stdin.drain()

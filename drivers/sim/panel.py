@@ -22,6 +22,7 @@ import signal
 import stat
 import sys
 import tty
+from collections.abc import Callable
 from typing import Any
 
 import structlog
@@ -71,6 +72,7 @@ class SimulatedPanel:
         self.light = False
         self.host_seen = False  # a host greeted the panel and has not said BYE
         self.host_lost = False
+        self.on_change: Callable[[SimulatedPanel], None] | None = None  # LED, light or host changed
         self.received: list[Line] = []  # every valid host line, for assertions
         self.bad_lines = 0
         self.heartbeats = True
@@ -153,6 +155,7 @@ class SimulatedPanel:
                 self.host_lost = True
                 self.led, self.light = StatusLed.FAULT, False
                 self._log.warning("sim_panel_host_lost")
+                self._changed()
             await asyncio.sleep(self.HEARTBEAT_PERIOD_S)
 
     async def _read_loop(self) -> None:
@@ -173,6 +176,16 @@ class SimulatedPanel:
                 buffer = b""
 
     def _receive(self, raw: bytes) -> None:
+        before = (self.led, self.light, self.host_lost)
+        self._obey(raw)
+        if (self.led, self.light, self.host_lost) != before:
+            self._changed()
+
+    def _changed(self) -> None:
+        if self.on_change is not None:
+            self.on_change(self)
+
+    def _obey(self, raw: bytes) -> None:
         try:
             line = protocol.parse(raw, FROM_HOST, device=self.name)
         except PanelProtocolError as exc:
@@ -300,6 +313,9 @@ async def serve(args: argparse.Namespace) -> int:
     if args.no_heartbeat:
         panel.stop_heartbeats()
     print(f"simulated panel on {path}", flush=True)
+    panel.on_change = lambda p: print(
+        f"LED {p.led.value}, light {'on' if p.light else 'off'}"
+        + (", host lost" if p.host_lost else ""), flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
