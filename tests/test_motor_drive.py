@@ -192,6 +192,25 @@ def test_set_zero_makes_the_current_position_read_as_the_angle() -> None:
     run(scenario)
 
 
+def test_set_zero_on_an_older_drive_uses_homing_method_35() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.set_zero(30.0)
+        assert sim.value(0x6098) == 35
+        assert drive.latest is not None and drive.latest.angle_deg == pytest.approx(30.0, abs=0.002)
+
+    run(scenario, homing_methods=(35,))
+
+
+def test_set_zero_refuses_a_moving_beam() -> None:
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(5.0, 20.0)
+        await drive.wait_speed(5.0)
+        with pytest.raises(DriveNotReady, match=r"set_zero while moving at (4.99|5.00)\d deg/s"):
+            await drive.set_zero(0.0)
+
+    run(scenario)
+
+
 def test_gear_ratio_and_encoder_counts_come_from_config() -> None:
     geared = dataclasses.replace(MOTOR, gear_ratio=10.0, encoder_counts_per_rev=1000)
 

@@ -34,7 +34,8 @@ ERROR_REGISTER = 0x1001  # u8
 HEARTBEAT_CONSUMER = 0x1016  # array of u32
 HEARTBEAT_PRODUCER = 0x1017  # u16, ms
 
-HOMING_ON_CURRENT_POSITION = 37  # (35 in older revisions of CiA 402)
+HOMING_ON_CURRENT_POSITION = 37
+HOMING_ON_CURRENT_POSITION_OLD = 35  # the same method's number in older revisions of CiA 402
 
 
 class Mode(enum.IntEnum):

@@ -21,7 +21,7 @@ from typing import Any
 import can
 import structlog
 
-from drivers.motor import cia402, emcy, nmt, pdo
+from drivers.motor import cia402, emcy, nmt, pdo, sdo
 from drivers.motor.bringup import POSITION_TPDO, STATUS_TPDO, configure
 from drivers.motor.cia402 import Cia402State, Control, Mode, Status
 from drivers.motor.errors import (
@@ -37,6 +37,7 @@ from drivers.motor.errors import (
     MotionLimitError,
     NmtStateLost,
     NmtTimeout,
+    SdoAbort,
     StateTransitionTimeout,
 )
 from drivers.motor.port import CanPort
@@ -173,7 +174,12 @@ class BeamDrive:
             )
         self._new_command("set_zero")
         await self.sdo.write(cia402.HOME_OFFSET, 0, "<i", self._counts(angle_deg))
-        await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION)
+        try:
+            await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION)
+        except SdoAbort as exc:
+            if exc.code != sdo.ABORT_VALUE_RANGE:
+                raise
+            await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION_OLD)
         await self._set_mode(Mode.HOMING)
         await self._write_controlword(cia402.ENABLE_OPERATION)
         start = cia402.ENABLE_OPERATION | Control.NEW_SET_POINT

@@ -67,6 +67,7 @@ class SimulatedDrive(SimulatedNode):
         config: the rig's motor section (node id, gear ratio, counts, limits).
         initial_angle_deg: the beam's physical angle at power-on; the encoder then reads 0.
         init_s: how long the drive reports NOT READY TO SWITCH ON after power-on (its self-test).
+        homing_methods: the "current position" homing methods it accepts (older drives: 35 only).
         name: used in logs.
     """
 
@@ -81,12 +82,14 @@ class SimulatedDrive(SimulatedNode):
         *,
         initial_angle_deg: float = 0.0,
         init_s: float = 0.0,
+        homing_methods: tuple[int, ...] = (35, 37),
         name: str = "sim-drive",
     ) -> None:
         self.config = config
         self.counts_per_degree = config.counts_per_degree
         self.initial_angle_deg = initial_angle_deg
         self.init_s = init_s
+        self.homing_methods = homing_methods
         self._ready_at: float | None = None
         self.state = S.SWITCH_ON_DISABLED
         self.estop_pressed = False
@@ -139,7 +142,7 @@ class SimulatedDrive(SimulatedNode):
                 rw,
                 False,
             ),
-            cia402.HOMING_METHOD: ("<b", cia402.HOMING_ON_CURRENT_POSITION, rw, False),
+            cia402.HOMING_METHOD: ("<b", self.homing_methods[-1], rw, False),
             cia402.TARGET_VELOCITY: ("<i", 0, rw, True),
             cia402.SUPPORTED_MODES: ("<I", self.SUPPORTED_MODES, ro, False),
         }
@@ -173,6 +176,8 @@ class SimulatedDrive(SimulatedNode):
 
     def write_object(self, index: int, subindex: int, value: int) -> None:
         if index == cia402.QUICK_STOP_OPTION and value not in _QUICK_STOP_OPTIONS:
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        if index == cia402.HOMING_METHOD and value not in self.homing_methods:
             raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
         if index == cia402.MODES_OF_OPERATION and value not in (
             0,
@@ -410,9 +415,6 @@ class SimulatedDrive(SimulatedNode):
         self._trajectory = position_move(now, p, v, target_raw, speed, *self._ramps())
 
     def _home(self) -> None:
-        method = self.od[(cia402.HOMING_METHOD, 0)].value
-        if method not in (35, cia402.HOMING_ON_CURRENT_POSITION):
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
         now = self._now()
         p, v = self._position_velocity(now)
         if v != 0:
