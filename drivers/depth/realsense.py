@@ -128,6 +128,7 @@ class RealSenseStream(ABC):
         loop = self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue(self.QUEUE_FRAMES)
         self._stopping = False
+        self._early = []
         self.depth_unit_mm = self.intrinsics = None
         pipeline, config = self._configure(rs)
         starting = loop.run_in_executor(None, pipeline.start, config, self._on_frame)
