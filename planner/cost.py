@@ -152,12 +152,22 @@ class CostTable:
         return best, mins
 
 
+def stable_argsort_indices(keys: np.ndarray) -> np.ndarray:
+    """Stable argsort of non-negative integer keys < 2^32 by two 16-bit radix passes
+    (NumPy radix-sorts 16-bit keys; wider keys fall back to a much slower timsort)."""
+    keys = np.asarray(keys)
+    order = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    if len(keys) and int(keys.max()) > 0xFFFF:
+        order = order[np.argsort((keys[order] >> 16).astype(np.uint16), kind="stable")]
+    return order
+
+
 def cost_table(vis: Visibility, cost: Cost, optics: Optics) -> CostTable:
     """Precompute the focus-independent terms and focus intervals of every visible pair."""
     area = area_term(vis.depth, vis.facing, cost.eps_area)
     axis = axis_term(vis.off_axis, cost.axis_deviation_mm)
     lo, hi = focus_interval(vis.depth, optics.hyperfocal_mm, optics.focal_length_mm)
-    order = np.argsort(vis.point, kind="stable")
+    order = stable_argsort_indices(vis.point)
     point_ptr = np.zeros(vis.n_points + 1, dtype=np.int64)
     np.cumsum(np.bincount(vis.point, minlength=vis.n_points), out=point_ptr[1:])
     base = cost.w_area * area + cost.w_axis * axis

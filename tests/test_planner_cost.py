@@ -64,3 +64,13 @@ def test_assignment_picks_lowest_cost_and_counts_invisible_points() -> None:
     best, k = table.assignment(np.array([300.0]))
     assert best.tolist() == [0, 1, 2, -1]
     assert k == pytest.approx(table.total_cost(np.array([300.0])))
+
+
+def test_radix_argsort_matches_numpy_stable_sort() -> None:
+    from planner.cost import stable_argsort_indices
+
+    rng = np.random.default_rng(0)
+    for high in (5, 70_000, 3_000_000):
+        keys = rng.integers(0, high, 5000).astype(np.int32)
+        np.testing.assert_array_equal(stable_argsort_indices(keys), np.argsort(keys, kind="stable"))
+    assert len(stable_argsort_indices(np.zeros(0, dtype=np.int32))) == 0
