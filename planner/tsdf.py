@@ -169,9 +169,16 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
     sizes = np.bincount(face_labels)
     keep = faces[sizes[face_labels] >= MIN_COMPONENT_SHARE * sizes.max()]
     used = _used(keep, len(v))
+    # canonical order (vertices by position, faces by vertex): the voxel hash map hands out blocks
+    # in a run-dependent order, and a canonical mesh keeps seeded sampling downstream reproducible
+    used = used[np.lexsort(v[used].T[::-1])]
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    vertices, faces = close_openings(v[used], remap[keep], FLOOR_BAND_MM + cfg.floor_clearance_mm)
+    keep = remap[keep]
+    first = np.argmin(keep, axis=1)
+    keep = np.take_along_axis(keep, (np.arange(3)[None, :] + first[:, None]) % 3, axis=1)
+    keep = keep[np.lexsort(keep.T[::-1])]
+    vertices, faces = close_openings(v[used], keep, FLOOR_BAND_MM + cfg.floor_clearance_mm)
     return trimesh.Trimesh(vertices, faces, process=False)
 
 

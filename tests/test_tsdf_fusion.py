@@ -115,3 +115,10 @@ def test_a_subject_too_short_for_a_person_is_refused():
         _fuse(cylinder(200.0, 700.0))
     assert err.value.quantity == "height"
     assert err.value.value_mm == pytest.approx(700.0, abs=5.0)
+
+
+def test_fusing_the_same_sweep_twice_gives_the_identical_mesh():
+    sweep = simulate_sweep(cylinder(), COARSE, seed=0, frame_spacing_deg=9.0)
+    a, b = fuse(sweep.frames, COARSE), fuse(sweep.frames, COARSE)
+    assert np.array_equal(a.mesh.vertices, b.mesh.vertices)
+    assert np.array_equal(a.mesh.faces, b.mesh.faces)
