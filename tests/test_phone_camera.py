@@ -284,3 +284,31 @@ async def test_tcp_link_to_a_simulated_phone_server(tmp_path: Path) -> None:
         size, _ = await camera.pull(done.path, tmp_path / "img.jpg")
         assert size == done.size_bytes == (tmp_path / "img.jpg").stat().st_size
         await camera.close()
+
+
+def test_captures_show_the_subject_from_the_pose_at_exposure(tmp_path: Path) -> None:
+    import numpy as np
+    import trimesh
+
+    from planner.poses import rgb_poses
+
+    body = trimesh.creation.capsule(height=1400.0, radius=170.0, count=[16, 16])
+    body.apply_translation([0.0, 0.0, 870.0])
+    asked: list[float] = []
+
+    def pose(time_s: float) -> np.ndarray:
+        asked.append(time_s)
+        return rgb_poses(RIG, np.array([0.0])).camera_to_world(2)
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        await camera.set_focus_mm(280.0)  # the capsule's surface, 450 - 170 mm from the phone
+        done = await camera.capture()
+        exposure_start = sim.loop_time_of(done.sensor_timestamp_ns)
+        assert asked == [pytest.approx(exposure_start + done.exposure_s / 2)]
+        await camera.pull(done.path, tmp_path / "img.jpg")
+        image = np.asarray(Image.open(tmp_path / "img.jpg"))
+        assert image.shape == (64, 48, 3)
+        assert image[32, 24, 0] > 150 and image[32, 24, 0] > image[32, 24, 2] + 30  # skin in the middle
+
+    run(scenario, subject=body, pose=pose, render_size=(48, 64))

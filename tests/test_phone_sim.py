@@ -12,9 +12,8 @@ import pytest
 import trimesh
 from PIL import Image
 
-from drivers.sim.depth import DepthScene
 from drivers.sim.phone import DEFAULT_OPTICS, SimulatedPhone
-from drivers.sim.phone_render import PhoneRenderer, circle_of_confusion_mm, encode_jpeg, empty_rig_picture
+from drivers.sim.phone_render import PhoneRenderer, SubjectScene, circle_of_confusion_mm, empty_rig_picture, encode_jpeg
 
 
 def test_circle_of_confusion_is_zero_at_focus_and_grows_away() -> None:
@@ -32,13 +31,13 @@ def _sharpness(rgb: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def scene() -> DepthScene:
+def scene() -> SubjectScene:
     box = trimesh.creation.box(extents=[300.0, 300.0, 300.0])  # near face at x = 150 mm
     box.apply_translation([0.0, 0.0, 1000.0])
-    return DepthScene(box, floor=False)
+    return SubjectScene(box)
 
 
-def test_render_is_sharpest_with_the_lens_on_the_subject(scene: DepthScene) -> None:
+def test_render_is_sharpest_with_the_lens_on_the_subject(scene: SubjectScene) -> None:
     renderer = PhoneRenderer(scene, DEFAULT_OPTICS, 96, 128)
     pose = np.eye(4)
     pose[:3, 0], pose[:3, 1], pose[:3, 2] = [0, 1, 0], [0, 0, -1], [-1, 0, 0]  # looks along -x

@@ -53,7 +53,7 @@ class AdbMessage:
     command: int
     arg0: int
     arg1: int
-    payload: bytes | bytearray = b""
+    payload: bytes | bytearray | memoryview = b""
 
     @property
     def name(self) -> str:
@@ -67,7 +67,7 @@ class AdbMessage:
 
     def encode(self, *, with_checksum: bool = True) -> bytes:
         """Header followed by payload, as sent over TCP."""
-        return self.header(with_checksum=with_checksum) + self.payload
+        return self.header(with_checksum=with_checksum) + bytes(self.payload)
 
     def __repr__(self) -> str:
         return f"AdbMessage({self.name}, {self.arg0}, {self.arg1}, {len(self.payload)} bytes)"

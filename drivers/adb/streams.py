@@ -59,7 +59,7 @@ class AdbStream:
         for start in range(0, len(view), step):
             await self._wait_ready()
             self._ready.clear()
-            chunk = data if isinstance(data, bytes) and len(data) <= step else bytes(view[start:start + step])
+            chunk = view[start:start + step]  # no copy: the transport copies what it cannot send now
             await self.mux.send(AdbMessage(A_WRTE, self.local_id, self.remote_id, chunk))
             self.bytes_written += len(chunk)
 

@@ -55,15 +55,28 @@ class MemoryFileSystem:
 
     def __init__(self) -> None:
         self.files: dict[str, SimFile] = {}
+        self._framed: dict[str, bytes] = {}
 
     def write(self, path: str, data: bytes, *, mode: int = 0o644, mtime: int = 0) -> None:
         self.files[posixpath.normpath(path)] = SimFile(bytes(data), statmod.S_IFREG | (mode & 0o7777), mtime)
+        self._framed.pop(posixpath.normpath(path), None)
+
+    def framed(self, path: str) -> bytes | None:
+        """The file as a sync RECV answer (DATA chunks then DONE), built once per file version."""
+        path = posixpath.normpath(path)
+        f = self.files.get(path)
+        if f is None:
+            return None
+        if path not in self._framed:
+            self._framed[path] = data_chunks(f.data) + _ID_LEN.pack(b"DONE", 0)
+        return self._framed[path]
 
     def read(self, path: str) -> bytes | None:
         f = self.files.get(posixpath.normpath(path))
         return None if f is None else f.data
 
     def remove(self, path: str) -> bool:
+        self._framed.pop(posixpath.normpath(path), None)
         return self.files.pop(posixpath.normpath(path), None) is not None
 
     def is_dir(self, path: str) -> bool:
@@ -276,21 +289,22 @@ class SimulatedAdbd:
         await stream.write(b"".join(out))
 
     async def _sync_recv(self, stream: AdbStream, path: str) -> None:
-        data = self.fs.read(path)
-        if data is None:
+        framed = self.fs.framed(path)
+        if framed is None:
             await self._sync_fail(stream, f"remote object '{path}' does not exist")
             return
-        view = memoryview(data)
-        batch = max(stream.mux.max_payload // (SYNC_DATA_MAX + 8), 1) * SYNC_DATA_MAX
+        view = memoryview(framed)
+        frame = SYNC_DATA_MAX + 8
+        batch = max(stream.mux.max_payload // frame, 1) * frame
+        limit = self.disconnect_after_bytes
+        if limit is not None:  # the fault: the link drops once `limit` file bytes are on their way
+            cut = (limit // SYNC_DATA_MAX) * frame
+            await stream.write(view[:cut])
+            log.info("sim_adbd_fault_disconnect", serial=self.serial, path=path, after_bytes=limit)
+            stream.mux.transport.writer.transport.abort()
+            return
         for start in range(0, len(view), batch):
-            limit = self.disconnect_after_bytes
-            if limit is not None and start + batch > limit:
-                await stream.write(data_chunks(view[start:max(limit, start)]))
-                log.info("sim_adbd_fault_disconnect", serial=self.serial, path=path, after_bytes=limit)
-                stream.mux.transport.writer.transport.abort()
-                return
-            await stream.write(data_chunks(view[start:start + batch]))
-        await stream.write(_ID_LEN.pack(b"DONE", 0))
+            await stream.write(view[start:start + batch])
 
     async def _sync_send(self, stream: AdbStream, spec: str) -> None:
         path, _, mode_text = spec.rpartition(",")

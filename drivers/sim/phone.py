@@ -36,7 +36,7 @@ from drivers.adb.streams import AdbStream
 from drivers.phone import protocol
 from drivers.phone.errors import AgentProtocolError
 from drivers.sim.adbd import SimulatedAdbd
-from drivers.sim.phone_render import PhoneRenderer, encode_jpeg, empty_rig_picture
+from drivers.sim.phone_render import PhoneRenderer, SubjectScene, empty_rig_picture, encode_jpeg
 from planner.rig import Optics
 
 log = structlog.get_logger("drivers.sim.phone")
@@ -47,13 +47,11 @@ DEFAULT_OPTICS = Optics(focal_length_mm=6.0, f_number=1.8, hyperfocal_mm=5720.0,
                         image_height_px=8192, hfov_deg=47.66, exposure_s=0.002, iso=50)
 
 
-def _scene_for(subject: Any) -> Any:
+def _scene_for(subject: Any) -> SubjectScene:
     """One ray-casting scene per subject mesh, shared by every simulated phone."""
-    from drivers.sim.depth import DepthScene
-
     scene = _SCENES.get(subject)
     if scene is None:
-        scene = _SCENES[subject] = DepthScene(subject)
+        scene = _SCENES[subject] = SubjectScene(subject)
     return scene
 
 

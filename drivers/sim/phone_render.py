@@ -33,10 +33,37 @@ def circle_of_confusion_mm(z_mm: np.ndarray, focus_mm: float, optics: Optics) ->
     return aperture * np.abs(z - s) / z * f / (s - f)
 
 
+FLOOR_HALF_SIDE_MM = 2500.0
+
+
+class SubjectScene:
+    """The subject mesh (mm, world frame, feet on z = 0) on a floor square, for ray casting."""
+
+    def __init__(self, mesh) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                                 o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+        s = FLOOR_HALF_SIDE_MM
+        floor = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], dtype=np.float32)
+        self.scene.add_triangles(o3d.core.Tensor(floor), o3d.core.Tensor(np.array([[0, 1, 2], [0, 2, 3]],
+                                                                                  dtype=np.uint32)))
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rays from one origin along (N, 3) directions: t_hit (N,) (inf = miss) and normals (N, 3)."""
+        rays = np.empty((len(directions), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = directions
+        answer = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        return answer["t_hit"].numpy(), answer["primitive_normals"].numpy()
+
+
 class PhoneRenderer:
     """Renders one phone's view at width x height pixels (the full sensor's field of view)."""
 
-    def __init__(self, scene, optics: Optics, width_px: int = 768, height_px: int = 1024) -> None:
+    def __init__(self, scene: SubjectScene, optics: Optics, width_px: int = 768, height_px: int = 1024) -> None:
         self.scene = scene
         self.optics = optics
         self.width_px, self.height_px = int(width_px), int(height_px)
