@@ -214,13 +214,16 @@ def _candidates(
         if hi <= lo:
             continue
         n = hi - lo
-        # Rows: right, down and forward axes of every pose in the block.
-        rows = np.concatenate([poses.right[block], poses.down[block], poses.forward[block]]).astype(np.float32)
+        # Rows: right / tan_w, down / tan_h and forward of every pose in the block, so the frustum
+        # test is |x'| <= z and |y'| <= z.
+        rows = np.concatenate(
+            [poses.right[block] / tan_w, poses.down[block] / tan_h, poses.forward[block]]
+        ).astype(np.float32)
         cam = (rows @ pts_t[:, lo:hi]).reshape(3, k, n)
         cam -= np.einsum("akj,kj->ak", rows.reshape(3, k, 3), poses.centres[block]).astype(np.float32)[:, :, None]
         x, y, z = cam
-        inside = np.abs(x) <= tan_w * z
-        inside &= np.abs(y) <= tan_h * z
+        inside = np.abs(x) <= z
+        inside &= np.abs(y) <= z
         # Front-facing: <p - p_c, n_p> > 0 with the inward normal n_p.
         inside &= point_dot_normal[lo:hi] > poses.centres[block].astype(np.float32) @ nrm_t[:, lo:hi]
         flat = np.flatnonzero(inside)
@@ -231,7 +234,7 @@ def _candidates(
                 block[which].astype(np.int16 if len(poses) < 32768 else np.int32),
                 by_height[local + lo].astype(np.int32),
                 z.ravel()[flat],
-                np.hypot(x.ravel()[flat], y.ravel()[flat]),
+                np.hypot(tan_w * x.ravel()[flat], tan_h * y.ravel()[flat]),
                 facing,
             )
         )
