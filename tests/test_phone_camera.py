@@ -312,3 +312,16 @@ def test_captures_show_the_subject_from_the_pose_at_exposure(tmp_path: Path) -> 
         assert image[32, 24, 0] > 150 and image[32, 24, 0] > image[32, 24, 2] + 30  # skin in the middle
 
     run(scenario, subject=body, pose=pose, render_size=(48, 64))
+
+
+def test_an_agent_exception_is_answered_as_camera_error() -> None:
+    def broken_pose(_time_s: float):
+        raise ValueError("pose source failed")
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        with pytest.raises(CaptureFailed, match="CAMERA_ERROR.*pose source failed"):
+            await camera.capture()
+        assert camera.state == "ready"
+
+    run(scenario, pose=broken_pose)

@@ -143,7 +143,11 @@ class SimulatedPhone(SimulatedAdbd):
                 continue
             if self.mute_agent:
                 continue
-            answer = await self._handle(request)
+            try:
+                answer = await self._handle(request)
+            except (ValueError, TypeError, RuntimeError, OSError) as exc:  # the real agent answers so too
+                log.error("sim_phone_agent_error", serial=self.serial, op=request.op, error=repr(exc))
+                answer = protocol.encode_error(request.id, "CAMERA_ERROR", f"{request.op}: {exc!r}")
             if self.answer_delay_s > 0:
                 await asyncio.sleep(self.answer_delay_s)
             await stream.write(answer)
