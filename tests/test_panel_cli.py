@@ -124,3 +124,25 @@ async def test_tbp_panel_reports_a_missing_port() -> None:
     _, err = await asyncio.wait_for(proc.communicate(), 60)
     assert proc.returncode == 1
     assert "tbp panel: operator panel /dev/tbp-no-such-panel: link lost: cannot open" in err.decode()
+
+
+@pytest.mark.parametrize(
+    ("device", "banner"),
+    [("motor", "simulated drive node "), ("phone", "simulated phone TBPSIM00 (adbd) on 127.0.0.1:")],
+)
+async def test_tbp_sim_serves_the_other_simulators_until_sigterm(device: str, banner: str) -> None:
+    proc = await asyncio.create_subprocess_exec(
+        str(TBP), "sim", device, "--port", "0",
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(60):
+            line = (await proc.stdout.readline()).decode()
+        assert line.startswith(banner), line
+    finally:
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(30):
+            _, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()[-2000:]

@@ -67,10 +67,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
+    import signal
     import sys
 
     from daemon.logs import configure_logging
 
     configure_logging(level=args.log_level, stream=sys.stderr)
     module = importlib.import_module(args.sim_module)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # until the simulator installs its own handlers
+        signal.signal(sig, _stop_before_ready)
     return int(asyncio.run(module.serve(args)) or 0)
+
+
+def _stop_before_ready(signum: int, frame: object) -> None:
+    """SIGINT/SIGTERM before the simulator's own handlers exist: the same orderly exit (0)."""
+    raise SystemExit(0)
