@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 import numpy as np
@@ -12,7 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.cli import main as tbp
-from drivers.depth.recording import RecordingError, load_sweep, save_sweep
+from drivers.depth.base import DepthFrame
+from drivers.depth.recording import RecordingError, load_sweep, load_trace, read_recordings, save_sweep
 from drivers.sim.depth import simulate_sweep
 from planner.mesh_metrics import shape_metrics, surface_distance
 from planner.rig import DEFAULT_RIG_PATH
@@ -127,3 +129,41 @@ def test_cli_reports_a_refusal_with_exit_code_1(tmp_path, capsys, small_rig_file
     sphere(40.0, centre=(0.0, 0.0, 300.0)).export(tiny)
     assert tbp(["reconstruct", "--sim-body", str(tiny), "--rig", str(small_rig_file)]) == 1
     assert "no subject" in capsys.readouterr().err
+
+
+class _Recording:
+    """A finite DepthCamera (like a bag playback): frames at 30 fps from t0, then the stream ends."""
+
+    def __init__(self, camera_id: str, count: int, t0: float) -> None:
+        self.id, self.count, self.t0 = camera_id, count, t0
+        self.started = self.stopped = False
+
+    async def start(self) -> None:
+        self.started = True
+
+    async def stop(self) -> None:
+        self.stopped = True
+
+    async def frames(self):
+        for k in range(self.count):
+            yield DepthFrame(self.id, k, self.t0 + k / 30.0, 0.0, np.ones((4, 4), dtype=np.uint16), 1.0, np.eye(3))
+
+
+def test_recordings_are_tagged_on_their_own_time_axis_and_thinned(tmp_path):
+    trace_file = tmp_path / "trace.json"
+    trace_file.write_text(json.dumps({"time_s": [0.0, 2.0], "angle_deg": [0.0, 60.0]}))
+    trace = load_trace(trace_file)
+    cameras = [_Recording("depth0", 90, t0=1000.0), _Recording("depth2", 30, t0=5.0)]
+    sweep = asyncio.run(read_recordings(cameras, trace, RIG, spacing_deg=6.0))
+    depth0 = [f for f in sweep.frames if f.camera_id == "depth0"]
+    # 2 s of trace at 1 deg per frame, one frame per 6 deg; frames after the trace are skipped
+    assert [f.beam_angle_deg for f in depth0] == pytest.approx([0, 6, 12, 18, 24, 30, 36, 42, 48, 54, 60])
+    assert len([f for f in sweep.frames if f.camera_id == "depth2"]) == 5
+    assert all(c.started and c.stopped for c in cameras)
+
+
+def test_a_malformed_trace_file_is_refused(tmp_path):
+    path = tmp_path / "trace.json"
+    path.write_text(json.dumps({"time_s": [0.0]}))
+    with pytest.raises(RecordingError, match="not a beam trace"):
+        load_trace(path)

@@ -7,6 +7,11 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from planner.rig import Rig
+    from planner.sweep import Sweep
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,6 +25,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--frames", type=Path, help="recorded sweep folder (sweep.json + .npz frames)")
     source.add_argument("--sim-body", type=Path, help="simulate the sweep of this body mesh (mm)")
+    source.add_argument(
+        "--bag", action="append", metavar="CAMERA=FILE.bag",
+        help="RealSense recording of one rig depth camera (repeat per camera; needs pyrealsense2 and --trace)",
+    )
+    parser.add_argument(
+        "--trace", type=Path,
+        help="beam trace JSON for --bag: time_s (seconds from each recording's first frame), angle_deg",
+    )
     parser.add_argument("--seed", type=int, default=0, help="depth noise seed of the simulated sweep")
     parser.add_argument("--no-noise", action="store_true", help="simulate without depth noise")
     parser.add_argument("--true-body", type=Path, help="true body mesh for metrics (default: --sim-body)")
@@ -33,6 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import trimesh
 
+    from drivers.depth.errors import DepthCameraError
     from drivers.depth.recording import load_sweep, save_sweep
     from planner.mesh_metrics import shape_metrics
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
@@ -52,11 +66,14 @@ def run(args: argparse.Namespace) -> int:
             report["timings_s"]["simulate"] = time.perf_counter() - t0
             if args.save_frames:
                 save_sweep(sweep, args.save_frames)
+        elif args.bag:
+            sweep = _read_bags(args, rig)
+            report["timings_s"]["load"] = time.perf_counter() - t0
         else:
             sweep = load_sweep(args.frames)
             report["timings_s"]["load"] = time.perf_counter() - t0
         result = fuse(sweep.frames, rig)
-    except (RigConfigError, ShapeEstimateError, OSError, ValueError) as exc:
+    except (RigConfigError, ShapeEstimateError, DepthCameraError, OSError, ValueError) as exc:
         print(f"tbp reconstruct: {exc}", file=sys.stderr)
         return 1
     report["timings_s"].update({f"tsdf_{k}": v for k, v in result.timings_s.items()})
@@ -74,3 +91,22 @@ def run(args: argparse.Namespace) -> int:
         args.json_out.write_text(text + "\n")
     print(text)
     return 0
+
+
+def _read_bags(args: argparse.Namespace, rig: Rig) -> Sweep:
+    """The sweep from ``--bag CAMERA=FILE`` recordings tagged with ``--trace``."""
+    import asyncio
+
+    from drivers.depth.bag import BagPlayback
+    from drivers.depth.recording import load_trace, read_recordings
+    from planner.tsdf import FRAME_SPACING_DEG
+
+    if args.trace is None:
+        raise ValueError("--bag needs --trace (the beam angle over the recording's time)")
+    cameras = []
+    for item in args.bag:
+        camera_id, sep, path = item.partition("=")
+        if not sep or not camera_id or not path:
+            raise ValueError(f"--bag {item!r}: expected CAMERA=FILE.bag, e.g. depth0=front.bag")
+        cameras.append(BagPlayback(path, camera_id=camera_id))
+    return asyncio.run(read_recordings(cameras, load_trace(args.trace), rig, FRAME_SPACING_DEG))

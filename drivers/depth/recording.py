@@ -4,18 +4,25 @@
 camera id, frame number, timestamp, beam angle, depth unit, intrinsics (3x3) and camera-to-world
 pose (4x4, mm). Each ``.npz`` holds ``depth``: (H, W) uint16 in depth units. Files are written
 to a temporary name and renamed, so a folder never holds a half-written frame.
+
+Recordings from the cameras themselves (RealSense ``.bag`` files) are read through the
+DepthCamera interface with a beam trace JSON (:func:`read_recordings`, :func:`load_trace`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from drivers.depth.base import DepthCamera
+from planner.rig import Rig
 from planner.shape_errors import ShapeEstimateError
-from planner.sweep import BeamTrace, PosedDepth, Sweep
+from planner.sweep import BeamTrace, PosedDepth, Sweep, tag_frame
 
 FORMAT = "tbp-depth-sweep/1"
 INDEX = "sweep.json"
@@ -104,3 +111,40 @@ def load_sweep(folder: Path | str) -> Sweep:
     except (KeyError, TypeError, ValueError, OSError) as exc:
         raise RecordingError(path, f"inconsistent entry: {exc!r}") from exc
     return Sweep(tuple(frames), trace)
+
+
+async def read_recordings(cameras: Sequence[DepthCamera], trace: BeamTrace, rig: Rig, spacing_deg: float) -> Sweep:
+    """A sweep from finite recordings (e.g. ``BagPlayback``) and a beam trace on the recordings' time.
+
+    trace.time_s counts seconds from each recording's first frame, so every camera's frames are
+    tagged on the same axis. Frames are thinned to one per spacing_deg of beam angle per camera as
+    they are read (a whole 30 fps recording would not fit in memory comfortably); frames outside
+    the trace are skipped.
+    """
+    frames = []
+    for camera in cameras:
+        await camera.start()
+        try:
+            first: float | None = None
+            last_angle: float | None = None
+            async for frame in camera.frames():
+                first = frame.timestamp_s if first is None else first
+                t = frame.timestamp_s - first
+                if not trace.covers(t):
+                    continue
+                angle = float(trace.angle_at(t))
+                if last_angle is None or abs(angle - last_angle) >= spacing_deg - 1e-9:
+                    frames.append(tag_frame(dataclasses.replace(frame, timestamp_s=t), trace, rig))
+                    last_angle = angle
+        finally:
+            await camera.stop()
+    return Sweep(tuple(frames), trace)
+
+
+def load_trace(path: Path | str) -> BeamTrace:
+    """A beam trace JSON file: {"time_s": [...], "angle_deg": [...]} (RecordingError if malformed)."""
+    try:
+        raw = json.loads(Path(path).read_text())
+        return BeamTrace(np.asarray(raw["time_s"], dtype=float), np.asarray(raw["angle_deg"], dtype=float))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise RecordingError(path, f"not a beam trace ({{'time_s': [...], 'angle_deg': [...]}}): {exc!r}") from exc
