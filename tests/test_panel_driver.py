@@ -7,11 +7,14 @@ timeouts are simulated seconds and the outcome never depends on machine load.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from drivers.panel import (
     LinkState,
@@ -451,3 +454,68 @@ def test_failed_first_connect_does_not_start_reconnecting() -> None:
         await panel.close()
 
     run_virtual(main())
+
+
+ACTIONS = st.lists(
+    st.one_of(
+        st.sampled_from(["start", "stop", "estop", "release", "hb_off", "hb_on", "garbage"]),
+        st.tuples(st.just("corrupt"), st.integers(1, 8)),
+        st.tuples(st.just("led"), st.sampled_from(list(StatusLed))),
+        st.tuples(st.just("wait"), st.floats(0.0, 1.5)),
+    ),
+    max_size=25,
+)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(actions=ACTIONS)
+def test_any_mix_of_operator_actions_and_faults_keeps_the_link_consistent(actions: list) -> None:
+    """Events never invent presses, e-stop events alternate, and once the faults end the host
+    agrees with the panel on the e-stop and the link is up."""
+
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        events = panel.events()
+        seen: list[PanelEvent] = []
+        presses = {PanelEvent.START_PRESSED: 0, PanelEvent.STOP_PRESSED: 0}
+
+        async def collect() -> None:
+            async for event in events:
+                seen.append(event)
+
+        collector = asyncio.create_task(collect())
+        for action in actions:
+            name, arg = (action, None) if isinstance(action, str) else action
+            if name in ("start", "stop"):
+                presses[PanelEvent.START_PRESSED if name == "start" else PanelEvent.STOP_PRESSED] += 1
+                (sim.press_start if name == "start" else sim.press_stop)()
+            elif name == "estop":
+                sim.press_estop()
+            elif name == "release":
+                sim.release_estop()
+            elif name == "hb_off":
+                sim.stop_heartbeats()
+            elif name == "hb_on":
+                sim.resume_heartbeats()
+            elif name == "garbage":
+                sim.send_garbage(b"\x00junk*ZZ\n")
+            elif name == "corrupt":
+                sim.corrupt_lines(arg)
+            elif name == "led":
+                with contextlib.suppress(PanelHeartbeatLost, PanelTimeout):
+                    await panel.set_status(arg)
+            else:
+                await asyncio.sleep(arg)
+        sim.resume_heartbeats()
+        sim.corrupt_next = 0
+        await asyncio.sleep(2.0)
+        collector.cancel()
+        await asyncio.gather(collector, return_exceptions=True)
+        for kind, count in presses.items():
+            assert seen.count(kind) <= count
+        estop_events = [e for e in seen if e in (PanelEvent.ESTOP_PRESSED, PanelEvent.ESTOP_RELEASED)]
+        assert all(a is not b for a, b in zip(estop_events, estop_events[1:]))
+        assert panel.state is LinkState.CONNECTED and panel.estop_active == sim.estop
+        await panel.set_status(StatusLed.IDLE)
+        assert sim.led is StatusLed.IDLE
+
+    run(scenario)
