@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from planner.baselines import average_focus, closest_focus, fixed_focus
 from planner.cost import cost_table
@@ -13,7 +15,7 @@ from planner.poses import rgb_poses
 from planner.refine import refine_focus
 from planner.rig import load_rig
 from planner.sampling import sample_surface
-from planner.visibility import RayScene, visible_pairs
+from planner.visibility import RayScene, Visibility, visible_pairs
 from tests.planner_standin import standin_body
 
 RIG = load_rig()
@@ -74,3 +76,45 @@ def test_shape_aware_beats_baselines_on_stand_in(table) -> None:
 def test_bad_initial_focus_shape_is_refused(table) -> None:
     with pytest.raises(ValueError, match="initial focus has shape"):
         expectation_minimisation(table, np.ones(3))
+
+
+def random_table(seed: int, n_poses: int, n_points: int):
+    """A random sparse problem: each point seen by a few poses at depths 200..1200 mm."""
+    rng = np.random.default_rng(seed)
+    pose, point = [], []
+    for p in range(n_points):
+        seen = rng.choice(n_poses, size=rng.integers(0, min(4, n_poses) + 1), replace=False)
+        pose += seen.tolist()
+        point += [p] * len(seen)
+    pose, point = np.array(pose, dtype=np.int32), np.array(point, dtype=np.int32)
+    by_pose = np.argsort(pose, kind="stable")
+    pose, point = pose[by_pose], point[by_pose]
+    m = len(pose)
+    ptr = np.zeros(n_poses + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pose, minlength=n_poses), out=ptr[1:])
+    vis = Visibility(
+        n_poses, n_points, pose, point,
+        depth=rng.uniform(200.0, 1200.0, m), off_axis=rng.uniform(0.0, 400.0, m),
+        facing=rng.uniform(0.05, 1.0, m), pose_ptr=ptr,
+    )
+    return cost_table(vis, RIG.cost, RIG.optics)
+
+
+@given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 5), n_points=st.integers(1, 25))
+@settings(max_examples=60, deadline=None)
+def test_random_problems_em_refine_monotone_and_refine_optimal(seed: int, n_poses: int, n_points: int) -> None:
+    table = random_table(seed, n_poses, n_points)
+    start = np.random.default_rng(seed + 1).uniform(200.0, 1500.0, n_poses)
+    em = expectation_minimisation(table, start)
+    assert em.total_cost <= table.total_cost(start) + 1e-9
+    refined = refine_focus(table, em.focus_mm, max_sweeps=1000)
+    k = table.total_cost(refined.focus_mm)
+    assert k <= em.total_cost + 1e-9
+    assert refined.total_cost == pytest.approx(k, abs=1e-9)
+    # No single pose can do better: try every interval end of its pairs.
+    for c in range(n_poses):
+        sl = table.vis.pairs_of(c)
+        for s in np.concatenate([table.lo[sl], table.hi[sl][np.isfinite(table.hi[sl])]]):
+            trial = refined.focus_mm.copy()
+            trial[c] = s
+            assert table.total_cost(trial) >= k - 1e-9
