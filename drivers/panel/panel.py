@@ -152,6 +152,7 @@ class OperatorPanel:
     async def _open_session(self) -> None:
         """Read, greet, then heartbeat and watch on the current streams."""
         self.state = LinkState.CONNECTING
+        self._events_seen.clear()  # a re-plugged panel may have restarted its sequence numbers
         self._tasks.append(asyncio.create_task(self._read_loop(), name=f"{self.name}-read"))
         hello, attempts = await self._handshake()
         self.state, self.fault = LinkState.CONNECTED, None
