@@ -72,36 +72,37 @@ class PhoneRenderer:
         u, v = np.meshgrid(np.arange(self.width_px) + 0.5, np.arange(self.height_px) + 0.5)
         self._rays = np.stack([(u - self.width_px / 2) / focal, (v - self.height_px / 2) / focal,
                                np.ones_like(u)], axis=-1).reshape(-1, 3)
+        self._inverse_length = (1.0 / np.linalg.norm(self._rays, axis=1)).astype(np.float32)
         # sensor pixel pitch (mm) of the render's pixels
         self.pixel_mm = optics.focal_length_mm / focal
 
     def render(self, camera_to_world: np.ndarray, focus_mm: float) -> np.ndarray:
         """(H, W, 3) uint8 image of the subject from camera_to_world (4, 4), lens focused at focus_mm."""
         rotation, origin = camera_to_world[:3, :3], camera_to_world[:3, 3]
-        directions = self._rays @ rotation.T
+        directions = (self._rays @ rotation.T).astype(np.float32)
         t_hit, normals = self.scene.cast(origin, directions)
-        lengths = np.linalg.norm(directions, axis=1)
         hit = np.isfinite(t_hit)
-        shade = np.abs(np.einsum("ij,ij->i", normals, directions)) / lengths
-        hit_point_z = np.where(hit, origin[2] + t_hit * directions[:, 2], np.inf)
-        floor = hit & (np.abs(hit_point_z) < 0.5)
-        colour = np.where(floor[:, None], FLOOR_RGB, SKIN_RGB) * (0.25 + 0.75 * shade[:, None])
-        rgb = np.where(hit[:, None], colour, BACKGROUND_RGB).reshape(self.height_px, self.width_px, 3)
-        depth = np.where(hit, t_hit, 1e6).reshape(self.height_px, self.width_px)  # z-depth: rays have z = 1
-        coc_px = circle_of_confusion_mm(depth, focus_mm, self.optics) / self.pixel_mm
-        return self._defocus(rgb, coc_px)
+        t = np.where(hit, t_hit, np.float32(1e6))  # rays have camera z = 1, so t is the z-depth
+        shade = np.abs(np.einsum("ij,ij->i", normals, directions)) * self._inverse_length
+        floor = hit & (np.abs(origin[2] + t * directions[:, 2]) < 0.5)
+        albedo = np.where(floor[:, None], FLOOR_RGB, SKIN_RGB).astype(np.float32)
+        colour = albedo * (0.25 + 0.75 * shade[:, None])
+        rgb = np.where(hit[:, None], colour, BACKGROUND_RGB.astype(np.float32))
+        coc_px = circle_of_confusion_mm(t, focus_mm, self.optics) / self.pixel_mm
+        shape = (self.height_px, self.width_px)
+        return self._defocus(rgb.reshape(*shape, 3), coc_px.reshape(shape))
 
     @staticmethod
     def _defocus(rgb: np.ndarray, coc_px: np.ndarray) -> np.ndarray:
+        """Each pixel from the copy blurred at the level nearest its blur circle (px)."""
         levels = np.array(BLUR_LEVELS_PX)
-        index = np.abs(coc_px[..., None] - levels).argmin(axis=-1)
-        out = np.empty_like(rgb)
-        for i, level in enumerate(levels):
-            mask = index == i
-            if not mask.any():
+        index = np.searchsorted((levels[1:] + levels[:-1]) / 2, coc_px)
+        out = rgb.copy()
+        for i in np.unique(index):
+            if levels[i] == 0:
                 continue
-            layer = rgb if level == 0 else gaussian_filter(rgb, sigma=(level / 2, level / 2, 0))
-            out[mask] = layer[mask]
+            mask = index == i
+            out[mask] = gaussian_filter(rgb, sigma=(levels[i] / 2, levels[i] / 2, 0), truncate=3.0)[mask]
         return np.clip(out, 0, 255).astype(np.uint8)
 
 
