@@ -12,10 +12,12 @@ from drivers.adb.errors import (
 )
 from drivers.adb.streams import AdbStream
 from drivers.adb.sync import SyncClient, SyncStat
-from drivers.adb.transport import AdbTransport, StreamTransport, open_tcp
+from drivers.adb.transport import AdbTransport, SocketTransport, StreamTransport, open_tcp
+from drivers.adb.usb import UsbTransport
 
 __all__ = [
     "AdbConnection", "AdbError", "AdbKey", "AdbProtocolError", "AdbStream", "AdbTimeout", "AdbTransport",
     "AuthRefused", "ConnectionLost", "DeviceBanner", "KeyFileError", "StreamClosed", "StreamRefused",
-    "StreamTransport", "SyncClient", "SyncFail", "SyncStat", "UsbDeviceNotFound", "open_tcp",
+    "SocketTransport", "StreamTransport", "SyncClient", "SyncFail", "SyncStat", "UsbDeviceNotFound", "UsbTransport",
+    "open_tcp",
 ]

@@ -55,11 +55,13 @@ class AdbStream:
     async def write(self, data: bytes | bytearray | memoryview) -> None:
         """Send data as WRTE messages of at most the link's payload size, each acknowledged."""
         view = memoryview(data)
+        if not view.readonly:  # transports may keep a reference past this call (Python 3.12's do)
+            view = memoryview(bytes(view))
         step = self.mux.max_payload
         for start in range(0, len(view), step):
             await self._wait_ready()
             self._ready.clear()
-            chunk = view[start:start + step]  # no copy: the transport copies what it cannot send now
+            chunk = view[start:start + step]  # immutable bytes: slices need no copy
             await self.mux.send(AdbMessage(A_WRTE, self.local_id, self.remote_id, chunk))
             self.bytes_written += len(chunk)
 
