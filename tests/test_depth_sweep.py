@@ -200,3 +200,21 @@ def test_observed_counts_only_points_a_frame_measured():
     assert 0.1 < seen.mean() < 0.9
     inside = (on_surface - [0, 0, 1000.0]) * 0.5 + [0, 0, 1000.0]
     assert not observed(inside, sweep.frames).any()
+
+
+def test_a_camera_that_fails_to_start_never_moves_the_beam():
+    angle, samples, _ = _sweep_parts(1.0)
+    moved: list[bool] = []
+
+    async def motion() -> None:
+        moved.append(True)
+
+    class Broken(SimulatedDepthCamera):
+        async def start(self) -> None:
+            raise DepthStreamStalled(self.id, 0, None)
+
+    cameras = [_sim_camera(0, angle), Broken(RIG.depth_cameras[1], MODEL, sphere(), angle)]
+    with pytest.raises(DepthStreamStalled, match="depth1"):
+        run_virtual(collect_sweep(cameras, motion(), samples(), RIG))
+    assert moved == []
+    assert cameras[0]._t0 is None

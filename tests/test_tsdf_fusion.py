@@ -122,3 +122,11 @@ def test_fusing_the_same_sweep_twice_gives_the_identical_mesh():
     a, b = fuse(sweep.frames, COARSE), fuse(sweep.frames, COARSE)
     assert np.array_equal(a.mesh.vertices, b.mesh.vertices)
     assert np.array_equal(a.mesh.faces, b.mesh.faces)
+
+
+def test_a_subject_too_narrow_for_a_person_is_refused():
+    with pytest.raises(ImplausibleSubject) as err:
+        _fuse(cylinder(50.0, 1700.0))
+    assert err.value.quantity == "horizontal extent"
+    assert err.value.value_mm == pytest.approx(100.0, abs=25.0)
+    assert "150" in str(err.value)
