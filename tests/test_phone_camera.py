@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import io
+import os
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -108,8 +109,12 @@ def test_agent_is_pushed_once_then_reused(tmp_path: Path) -> None:
         await camera.connect()
         pushed = sim.fs.files[protocol.AGENT_PATH]
         assert pushed.data == jar.read_bytes()
-        await camera.connect()  # reconnect: same size on the phone, no second push
+        await camera.connect()  # reconnect: same size and mtime on the phone, no second push
         assert sim.fs.files[protocol.AGENT_PATH] is pushed and sim.connections == 2
+        os.utime(jar, (1_700_000_000, 1_700_000_000))  # a new build of the same size
+        await camera.connect()
+        assert sim.fs.files[protocol.AGENT_PATH] is not pushed
+        assert sim.fs.files[protocol.AGENT_PATH].mtime == 1_700_000_000
 
     run(scenario, agent_jar=jar, agent_installed=False)
 

@@ -171,10 +171,11 @@ class PhoneCamera:
                 return
             try:
                 jar = self.agent_jar.read_bytes()
+                mtime = int(self.agent_jar.stat().st_mtime)
             except OSError as exc:
                 raise AgentMissing(self.serial, "connecting", f"cannot read {self.agent_jar}: {exc.strerror}") from exc
-            if remote.size != len(jar):
-                await sync.push(jar, protocol.AGENT_PATH, mode=0o644)
+            if (remote.size, remote.mtime) != (len(jar), mtime):  # the phone's copy is another build
+                await sync.push(jar, protocol.AGENT_PATH, mode=0o644, mtime=mtime)
                 log.info("phone_agent_pushed", serial=self.serial, bytes=len(jar))
 
     async def _start_agent(self, adb: AdbConnection) -> None:
