@@ -17,7 +17,7 @@ from drivers.adb.auth import AdbKey
 from drivers.phone import protocol
 from drivers.phone.camera import PhoneCamera
 from drivers.phone.errors import (
-    AgentMissing, AgentStartFailed, CaptureFailed, FocusOutOfRange, FocusTimeout, PhoneDisconnected,
+    AgentMissing, AgentProtocolError, AgentStartFailed, CaptureFailed, FocusOutOfRange, FocusTimeout, PhoneDisconnected,
     PhoneUnauthorized, PullFailed, RequestTimeout, WrongPhone,
 )
 from drivers.phone.focus import load_focus_calibration
@@ -133,6 +133,16 @@ def test_agent_that_does_not_start_quotes_its_output() -> None:
         del sim.commands["app_process"]
         with pytest.raises(AgentStartFailed, match="app_process: inaccessible or not found"):
             await camera.connect()
+
+    run(scenario)
+
+
+def test_agent_of_another_protocol_version_is_refused() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        sim.agent_version = 2
+        with pytest.raises(AgentProtocolError, match="agent speaks protocol 2, this host 1"):
+            await camera.connect()
+        assert camera.state == "disconnected"
 
     run(scenario)
 

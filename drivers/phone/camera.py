@@ -153,6 +153,10 @@ class PhoneCamera:
         self._agent = await self.adb.open(f"localabstract:{protocol.SOCKET_NAME}")
         self._reader = asyncio.create_task(self._read_answers(self._agent), name=f"agent-{self.serial}")
         answer = await self._request("hello", self.REQUEST_TIMEOUT_S, version=protocol.PROTOCOL_VERSION)
+        version = answer.number("agent_version", device=self.serial, integer=True)
+        if version != protocol.PROTOCOL_VERSION:
+            raise AgentProtocolError(self.serial, "connecting",
+                                     f"agent speaks protocol {version}, this host {protocol.PROTOCOL_VERSION}")
         quality = int(answer.number("focus_distance_calibration", device=self.serial, integer=True))
         source = answer.text("timestamp_source", device=self.serial)
         if quality not in (0, 1, 2) or source not in ("realtime", "unknown"):

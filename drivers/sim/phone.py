@@ -91,6 +91,7 @@ class SimulatedPhone(SimulatedAdbd):
         self.fail_captures = 0
         self.mute_agent = False
         self.answer_delay_s = 0.0
+        self.agent_version = protocol.PROTOCOL_VERSION
         self.agent_running = False
         self.captures: list[dict[str, Any]] = []
         self._renderer: PhoneRenderer | None = None
@@ -162,7 +163,7 @@ class SimulatedPhone(SimulatedAdbd):
 
     async def _hello(self, request: protocol.AgentRequest) -> bytes:
         return protocol.encode_result(
-            request.id, agent_version=protocol.PROTOCOL_VERSION, model=self.properties["ro.product.model"],
+            request.id, agent_version=self.agent_version, model=self.properties["ro.product.model"],
             serial=self.serial, min_focus_diopters=self.min_focus_diopters,
             focus_distance_calibration=self.focus_calibration_quality, timestamp_source=self.timestamp_source,
             exposure_s=self.optics.exposure_s, iso=self.optics.iso,
