@@ -40,6 +40,18 @@ class NothingVisible(FocusPlanError):
         )
 
 
+class InvertedMesh(FocusPlanError):
+    """The mesh's triangles wind inward (negative volume), so no surface faces the cameras."""
+
+    def __init__(self, mesh: str, volume_mm3: float) -> None:
+        self.mesh = mesh
+        self.volume_mm3 = volume_mm3
+        super().__init__(
+            f"mesh {mesh} is wound inside out (signed volume {volume_mm3:.4g} mm^3): its normals "
+            "point into the body; flip its faces"
+        )
+
+
 class BadFocusPlan(FocusPlanError):
     """A focus plan has the wrong length or a non-positive or non-finite distance."""
 

@@ -21,7 +21,7 @@ import trimesh
 from planner.baselines import autofocus, average_focus, closest_focus, fixed_focus
 from planner.cost import CostTable, cost_table
 from planner.em import expectation_minimisation
-from planner.focus_errors import BadFocusPlan, EmptyMesh, MeshLoadError, NothingVisible
+from planner.focus_errors import BadFocusPlan, EmptyMesh, InvertedMesh, MeshLoadError, NothingVisible
 from planner.optics import resolution_mm_per_px
 from planner.poses import Poses, rgb_poses
 from planner.refine import refine_focus
@@ -118,12 +118,23 @@ def load_subject_mesh(path: Path | str) -> trimesh.Trimesh:
     return mesh
 
 
+def signed_volume_mm3(mesh: trimesh.Trimesh) -> float:
+    """Signed enclosed volume: negative when the triangles wind inward (normals into the body)."""
+    v = np.asarray(mesh.vertices, dtype=float)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    return float(np.einsum("ij,ij->", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])) / 6.0)
+
+
 def _samples(
     mesh: trimesh.Trimesh, rig: Rig, points: int | SurfaceSamples | None, seed: int, name: str
 ) -> SurfaceSamples:
-    """The given samples, or fresh ones; EmptyMesh (naming the mesh) if there is no surface."""
+    """The given samples, or fresh ones; EmptyMesh or InvertedMesh (naming the mesh) if the mesh
+    has no surface or is wound inside out."""
     if len(mesh.faces) == 0:
         raise EmptyMesh(name, 0, 0.0)
+    volume = signed_volume_mm3(mesh)
+    if volume < 0:
+        raise InvertedMesh(name, volume)
     if isinstance(points, SurfaceSamples):
         return points
     try:

@@ -134,3 +134,12 @@ def test_zero_area_mesh_is_refused() -> None:
     flat = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [2, 0, 0]], faces=[[0, 1, 2]], process=False)
     with pytest.raises(EmptyMesh, match="line.ply is empty: 1 faces, surface area 0"):
         plan_focus(flat, RIG, points=10, mesh_name="line.ply")
+
+
+def test_inside_out_mesh_is_named(body) -> None:
+    from planner.focus_errors import InvertedMesh
+
+    flipped = body.copy()
+    flipped.invert()
+    with pytest.raises(InvertedMesh, match="flipped.ply is wound inside out"):
+        plan_focus(flipped, RIG, points=300, mesh_name="flipped.ply")
