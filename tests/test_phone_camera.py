@@ -273,6 +273,20 @@ def test_pull_faults(tmp_path: Path) -> None:
     run(scenario)
 
 
+def test_close_ends_a_request_in_flight_at_once() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        capture = asyncio.create_task(camera.capture())
+        await asyncio.sleep(0.01)
+        start = now()
+        await camera.close()
+        with pytest.raises(PhoneDisconnected, match="capture: link closed by the host"):
+            await capture
+        assert now() - start < 0.01
+
+    run(scenario)
+
+
 def test_close_is_idempotent_and_final() -> None:
     async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
         await camera.connect()

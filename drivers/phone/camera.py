@@ -301,6 +301,10 @@ class PhoneCamera:
             self._reader.cancel()
             await asyncio.gather(self._reader, return_exceptions=True)
             self._reader = None
+        for op, future in self._pending.values():  # requests in flight end now, not at their timeout
+            if not future.done():
+                future.set_exception(PhoneDisconnected(self.serial, self.state, f"{op}: link closed by the host"))
+        self._pending.clear()
         if self.adb is not None:
             await self.adb.close()  # closes the agent streams; the agent exits with its shell stream
             self.adb = None
