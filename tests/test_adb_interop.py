@@ -63,3 +63,25 @@ async def test_standard_adb_connects_runs_shell_and_pulls(tmp_path: Path) -> Non
             assert code != 0 and "does not exist" in out
     finally:
         await _adb(env, "kill-server")
+
+
+async def test_standard_adb_signs_with_a_key_we_wrote(tmp_path: Path) -> None:
+    """adbkey written by AdbKey is loaded by Debian's adb and its signatures verify in the simulator."""
+    from drivers.adb.auth import AdbKey
+
+    key = AdbKey.generate("rig@host")
+    key.save(tmp_path / ".android")
+    phone = SimulatedPhone("INTEROP2", known_keys=[key.public_blob()], accept_new_keys=False)
+    server = await asyncio.start_server(phone.accept, "127.0.0.1", 0)
+    serial = f"127.0.0.1:{server.sockets[0].getsockname()[1]}"
+    env = {**os.environ, "HOME": str(tmp_path), "ANDROID_SDK_HOME": str(tmp_path),
+           "ANDROID_ADB_SERVER_PORT": str(_free_port())}
+    try:
+        async with server:
+            await _adb(env, "connect", serial)
+            code, out = await _adb(env, "-s", serial, "wait-for-device")
+            assert code == 0, out
+            assert (await _adb(env, "-s", serial, "shell", "echo", "signed")) == (0, "signed\n")
+            assert phone.known_keys == [key.public_blob()]  # no new key was needed
+    finally:
+        await _adb(env, "kill-server")
