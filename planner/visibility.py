@@ -4,7 +4,7 @@ A sample is visible from a pose when it lies inside the image frustum (portrait:
 width spans the horizontal field of view), its surface faces the camera, and the segment from
 the camera centre to it does not cross the mesh. Only visible (pose, point) pairs are kept, in
 a sparse table grouped by pose: 336 poses x 100,000 points would be 270 MB per dense float64
-array, while a pose typically sees a few percent of the body.
+array, while a pose sees about a tenth of the body.
 
 Occlusion is ray casting against the mesh. Both Open3D's ``RaycastingScene`` and Embree via
 ``embreex`` are wrapped; Open3D is the default because it measured faster on this work (see
