@@ -300,3 +300,33 @@ async def test_tcp_grants_credit_when_a_wrte_header_arrives_and_only_with_room()
         assert await stream.readexactly(4010) == b"x" * 4000 + b"y" * 10
         assert await steps.get() == "credit after reading"
         await conn.close()
+
+
+def test_open_timeout_then_late_okay_closes_the_orphan(monkeypatch: pytest.MonkeyPatch) -> None:
+    from drivers.adb.streams import StreamMux
+
+    monkeypatch.setattr(StreamMux, "OPEN_TIMEOUT_S", 0.5)
+
+    async def main() -> None:
+        (hr, hw), (dr, dw) = await stream_pair()
+        device = StreamTransport(dr, dw, name="slow")
+        conn = AdbConnection(StreamTransport(hr, hw, name="slow"), None)
+
+        async def device_side() -> None:
+            await device.recv()
+            await device.send(connect_message(b"device::features="))
+            opened = await device.recv()
+            await asyncio.sleep(1.0)  # answers after the host gave up
+            await device.send(AdbMessage(A_OKAY, 42, opened.arg0))
+            close = await device.recv()
+            assert (close.name, close.arg0, close.arg1) == ("CLSE", opened.arg0, 42)
+
+        task = asyncio.create_task(device_side())
+        await conn.connect()
+        with pytest.raises(AdbTimeout, match="OKAY for OPEN 'shell:slow'"):
+            await conn.open("shell:slow")
+        await task
+        await conn.close()
+        dw.close()
+
+    run_virtual(main())

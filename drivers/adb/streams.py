@@ -209,6 +209,7 @@ class StreamMux:
         self._ids = itertools.count(1)
         self._send_lock = asyncio.Lock()
         self._handlers: set[asyncio.Task[None]] = set()
+        self._abandoned: set[int] = set()  # local ids of OPENs that timed out
         if hasattr(transport, "credit_hook"):
             transport.credit_hook = self._early_credit
 
@@ -239,6 +240,7 @@ class StreamMux:
                 await stream._opened
         except TimeoutError:
             self.streams.pop(stream.local_id, None)
+            self._abandoned.add(stream.local_id)
             raise AdbTimeout(self.name, "opening", f"OKAY for OPEN {service!r}", self.OPEN_TIMEOUT_S) from None
         return stream
 
@@ -273,6 +275,9 @@ class StreamMux:
         if stream is None:
             if msg.command == A_WRTE:  # data for a stream we closed: tell the peer it is gone
                 await self.send(AdbMessage(A_CLSE, 0, msg.arg0))
+            elif msg.command == A_OKAY and msg.arg1 in self._abandoned:  # a late answer to a timed-out OPEN
+                self._abandoned.discard(msg.arg1)
+                await self.send(AdbMessage(A_CLSE, msg.arg1, msg.arg0))
             return
         if msg.command == A_OKAY:
             if stream.state == "opening":
