@@ -143,3 +143,14 @@ def test_inside_out_mesh_is_named(body) -> None:
     flipped.invert()
     with pytest.raises(InvertedMesh, match="flipped.ply is wound inside out"):
         plan_focus(flipped, RIG, points=300, mesh_name="flipped.ply")
+
+
+def test_cli_plan_views_of_a_point(tmp_path: Path, body, capsys) -> None:
+    mesh = tmp_path / "body.ply"
+    body.export(mesh)
+    chest = f"{body.bounds[1, 0] + 50:.0f},0,1200"
+    assert tbp(["plan", "--mesh", str(mesh), "--points", "800", "--view", chest]) == 0
+    out = capsys.readouterr().out
+    assert "near" in out and "pixel (" in out and "cam" in out
+    assert tbp(["plan", "--mesh", str(mesh), "--view", "1,2"]) == 2
+    assert "--view expects X,Y,Z in mm, got '1,2'" in capsys.readouterr().err

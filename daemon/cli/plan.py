@@ -25,7 +25,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--fresh", type=int, default=0, metavar="N",
         help="also score the shape-aware plan on N fresh, independent surface samples",
     )
+    parser.add_argument(
+        "--view", action="append", default=[], metavar="X,Y,Z",
+        help="print the best captures (camera, angle, pixel) of the skin point nearest X,Y,Z mm "
+        "under the shape-aware plan; repeatable",
+    )
     parser.set_defaults(func=run)
+
+
+def _parse_point(text: str) -> tuple[float, float, float] | None:
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        return None
+    return x, y, z
 
 
 def _table(result: dict) -> str:
@@ -56,6 +69,11 @@ def run(args: argparse.Namespace) -> int:
     if args.points is not None and args.points <= 0:
         print(f"tbp plan: --points must be positive, got {args.points}", file=sys.stderr)
         return 2
+    queries = [_parse_point(v) for v in args.view]
+    if None in queries:
+        bad = args.view[queries.index(None)]
+        print(f"tbp plan: --view expects X,Y,Z in mm, got {bad!r}", file=sys.stderr)
+        return 2
     try:
         rig = load_rig(args.rig or DEFAULT_RIG_PATH)
         mesh = load_subject_mesh(args.mesh)
@@ -79,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
             f"fresh sample ({f['points']} points): shape-aware in focus "
             f"{100 * f['in_focus_fraction']:.1f} %, visible {100 * f['visible_fraction']:.1f} %"
         )
+    if queries:
+        _print_views(mesh, rig, result, queries)
     if args.json_out is not None:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.json_out.with_name(args.json_out.name + ".tmp")
@@ -86,3 +106,26 @@ def run(args: argparse.Namespace) -> int:
         tmp.replace(args.json_out)
         print(f"plan written to {args.json_out}")
     return 0
+
+
+def _print_views(mesh, rig, result, queries: list[tuple[float, float, float]]) -> None:
+    import numpy as np
+
+    from planner.navigation import find_views
+    from planner.visibility import RayScene
+
+    scene = RayScene(mesh)
+    on_skin, _ = scene.closest_faces(np.array(queries))
+    views = find_views(scene, rig, result.poses, result.focus_mm, on_skin, limit=3)
+    for query, point, found in zip(queries, on_skin, views):
+        where = ", ".join(f"{v:.1f}" for v in point)
+        if not found:
+            print(f"point ({where}) near {query}: seen by no capture")
+            continue
+        print(f"point ({where}) mm near {query}:")
+        for v in found:
+            print(
+                f"  {rig.phones[v.camera_index].id} at {v.angle_deg:g} deg (pose {v.pose}): pixel "
+                f"({v.u_px:.0f}, {v.v_px:.0f}), depth {v.depth_mm:.0f} mm, cost {v.cost:.3f}, "
+                f"{'sharp' if v.in_focus else 'out of focus'}"
+            )
