@@ -7,6 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.sim.depth import simulate_sweep
 from planner.mesh_metrics import shape_metrics
@@ -130,3 +132,29 @@ def test_a_subject_too_narrow_for_a_person_is_refused():
     assert err.value.quantity == "horizontal extent"
     assert err.value.value_mm == pytest.approx(100.0, abs=25.0)
     assert "150" in str(err.value)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), holes=st.integers(1, 12))
+def test_punched_holes_are_closed_watertight_with_consistent_winding(seed, holes):
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=300.0).apply_translation([0, 0, 1000.0])
+    rng = np.random.default_rng(seed)
+    removed: list[int] = []
+    touched: set[int] = set()
+    for f in rng.permutation(len(ball.faces)):
+        # holes of one triangle or of a face and its neighbours, never sharing a vertex
+        patch = [int(f), *ball.face_adjacency[np.any(ball.face_adjacency == f, axis=1)].ravel().tolist()]
+        patch = sorted(set(patch)) if rng.random() < 0.5 else [int(f)]
+        ring = set(ball.faces[patch].ravel().tolist())
+        grown = {int(i) for v in ring for i in ball.vertex_faces[v] if i >= 0}
+        if touched & {v for g in grown for v in ball.faces[g]}:
+            continue
+        removed += patch
+        touched |= {v for g in grown for v in ball.faces[g]}
+        if len(removed) >= holes:
+            break
+    faces = np.delete(ball.faces, removed, axis=0)
+    vertices, closed_faces = close_openings(ball.vertices, faces, floor_band_mm=30.0)
+    closed = trimesh.Trimesh(vertices, closed_faces, process=False)
+    assert closed.is_watertight and closed.is_winding_consistent
+    assert closed.volume == pytest.approx(ball.volume, rel=0.01)
