@@ -187,7 +187,7 @@ def plan_focus(
 
     points: sample count (default rig.planner.points) or given samples. poses: camera poses to
     plan for (default: the rig's calibrated RGB poses).
-    Raises EmptyMesh, NothingVisible.
+    Raises EmptyMesh, InvertedMesh, NothingVisible (all FocusPlanError, naming the mesh).
     """
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
