@@ -145,13 +145,24 @@ def _sweep_parts(duration: float, speed: float = 30.0):
 def test_collect_sweep_tags_every_frame_inside_the_trace():
     angle, samples, motion = _sweep_parts(1.0)
     cameras = [_sim_camera(i, angle) for i in range(3)]
-    sweep = run_virtual(collect_sweep(cameras, motion(), samples(), RIG))
+    sweep = run_virtual(collect_sweep(cameras, motion(), samples(), RIG, spacing_deg=0.0))
     per_camera = sweep.per_camera()
     # 30 fps for 1 s; frames before the first beam sample (t < 0.1 s) are left out
     assert all(27 <= n <= 28 for n in per_camera.values()), per_camera
     for f in sweep.frames:
         assert f.beam_angle_deg == pytest.approx(angle(f.timestamp_s), abs=1e-6)
         assert sweep.trace.covers(f.timestamp_s)
+
+
+def test_frames_are_thinned_to_the_spacing_as_they_arrive():
+    angle, samples, motion = _sweep_parts(2.0)
+    collector = SweepCollector([_sim_camera(0, angle), _sim_camera(2, angle)], RIG, spacing_deg=6.0)
+    sweep = run_virtual(collector.run(motion(), samples()))
+    assert collector.received["depth0"] >= 59
+    for camera_id in ("depth0", "depth2"):
+        angles = [f.beam_angle_deg for f in sweep.frames if f.camera_id == camera_id]
+        assert len(angles) == 10, angles  # 3 .. 57 deg in 6 deg steps
+        assert np.all(np.diff(angles) >= 6.0 - 1e-6)
 
 
 def test_a_stalled_camera_stops_the_sweep_with_a_typed_error():
@@ -171,7 +182,7 @@ def test_a_stalled_camera_stops_the_sweep_with_a_typed_error():
 def test_dropped_frames_leave_gaps_but_the_sweep_completes():
     angle, samples, motion = _sweep_parts(1.0)
     cameras = [_sim_camera(0, angle, DepthFaults(drop_frames=set(range(10, 20)))), _sim_camera(1, angle)]
-    sweep = run_virtual(collect_sweep(cameras, motion(), samples(), RIG))
+    sweep = run_virtual(collect_sweep(cameras, motion(), samples(), RIG, spacing_deg=0.0))
     counts = sweep.per_camera()
     assert counts["depth1"] - counts["depth0"] == 10
     numbers = [f.frame_number for f in sweep.frames if f.camera_id == "depth0"]

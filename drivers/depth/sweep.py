@@ -1,9 +1,9 @@
 """Record a depth sweep: stream every depth camera and the beam position while the beam rotates.
 
 The daemon starts the rotation and hands its awaitable here together with the motor's live
-sample stream; frames are then tagged with the beam angle interpolated in the recorded trace
-(``planner.sweep``). Frames outside the trace (the camera started before the first motor sample
-or after the last) are left out of the sweep and counted.
+sample stream; frames are thinned to the TSDF's spacing as they arrive, then tagged with the
+beam angle interpolated in the recorded trace (``planner.sweep``). Frames outside the trace
+(the camera started before the first motor sample or after the last) are left out and counted.
 """
 
 from __future__ import annotations
@@ -19,33 +19,49 @@ from drivers.depth.errors import DepthStreamStalled
 from planner.rig import Rig
 from planner.shape_errors import BadTrace
 from planner.sweep import BeamTrace, Sweep, tag_frame
+from planner.tsdf import FRAME_SPACING_DEG
 
 log = structlog.get_logger(__name__)
 
 
 class SweepCollector:
-    """Collects one sweep; FRAME_TIMEOUT_S is how long a camera may go without a frame."""
+    """Collects one sweep; FRAME_TIMEOUT_S is how long a camera may go without a frame.
+
+    spacing_deg: keep a camera's frame only when the beam (latest motor sample) has turned this far
+    since its last kept frame, as the TSDF would (0 keeps every frame): a whole 30 fps sweep of
+    three cameras would hold about 1 GB. Frames before the first motor sample and empty frames are
+    not kept.
+    """
 
     FRAME_TIMEOUT_S = 1.0
 
-    def __init__(self, cameras: Sequence[DepthCamera], rig: Rig) -> None:
+    def __init__(self, cameras: Sequence[DepthCamera], rig: Rig, *, spacing_deg: float = FRAME_SPACING_DEG) -> None:
         self.cameras = list(cameras)
         self.rig = rig
+        self.spacing_deg = spacing_deg
         self.frames: dict[str, list[DepthFrame]] = {c.id: [] for c in self.cameras}
+        self.received: dict[str, int] = {c.id: 0 for c in self.cameras}
         self.samples: list[Any] = []
 
     async def _read(self, camera: DepthCamera) -> None:
         stream = camera.frames().__aiter__()
-        received = self.frames[camera.id]
+        kept = self.frames[camera.id]
+        last_angle: float | None = None
         while True:
             try:
                 async with asyncio.timeout(self.FRAME_TIMEOUT_S):
                     frame = await stream.__anext__()
             except TimeoutError:
-                raise DepthStreamStalled(camera.id, len(received), self.FRAME_TIMEOUT_S) from None
+                raise DepthStreamStalled(camera.id, self.received[camera.id], self.FRAME_TIMEOUT_S) from None
             except StopAsyncIteration:
-                raise DepthStreamStalled(camera.id, len(received), None) from None
-            received.append(frame)
+                raise DepthStreamStalled(camera.id, self.received[camera.id], None) from None
+            self.received[camera.id] += 1
+            if not self.samples or not frame.depth.any():
+                continue
+            angle = float(self.samples[-1].angle_deg)
+            if last_angle is None or abs(angle - last_angle) >= self.spacing_deg - 1e-9:
+                kept.append(frame)
+                last_angle = angle
 
     async def _trace(self, samples: AsyncIterator[Any]) -> None:
         async for sample in samples:
@@ -98,6 +114,7 @@ class SweepCollector:
         log.info(
             "depth_sweep.collected",
             frames=len(inside),
+            received=self.received,
             outside_trace=len(frames) - len(inside),
             per_camera=sweep.per_camera(),
             start_deg=round(float(trace.angle_deg[0]), 2),
@@ -107,10 +124,16 @@ class SweepCollector:
 
 
 async def collect_sweep(
-    cameras: Sequence[DepthCamera], motion: Awaitable[Any], beam_samples: AsyncIterator[Any], rig: Rig
+    cameras: Sequence[DepthCamera],
+    motion: Awaitable[Any],
+    beam_samples: AsyncIterator[Any],
+    rig: Rig,
+    *,
+    spacing_deg: float = FRAME_SPACING_DEG,
 ) -> Sweep:
     """Record a sweep while ``motion`` (e.g. ``drive.move_to(end, speed, accel)``) runs.
 
     beam_samples: the motor's live stream (``drive.samples()``), items with time_s and angle_deg.
+    spacing_deg: frames kept per degree of beam rotation (see :class:`SweepCollector`).
     """
-    return await SweepCollector(cameras, rig).run(motion, beam_samples)
+    return await SweepCollector(cameras, rig, spacing_deg=spacing_deg).run(motion, beam_samples)
