@@ -28,6 +28,8 @@ MIN_GAIN = 1e-9
 
 @dataclass(frozen=True)
 class RefineResult:
+    """focus_mm (P,) after descent, its K, full passes over the poses, accepted pose moves."""
+
     focus_mm: np.ndarray
     total_cost: float
     sweeps: int
