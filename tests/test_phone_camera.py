@@ -354,3 +354,18 @@ def test_an_agent_exception_is_answered_as_camera_error() -> None:
         assert camera.state == "ready"
 
     run(scenario, pose=broken_pose)
+
+
+def test_same_seed_same_timeline() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> list:
+        await camera.connect()
+        events = []
+        for focus_mm in (300.0, 420.0, 350.0):
+            events.append(await camera.set_focus_mm(focus_mm))
+            events.append(await camera.capture())
+            events.append(await camera.clock_sample())
+        return events
+
+    first, second = run(scenario), run(scenario)
+    assert first == second
+    assert len({e.sensor_timestamp_ns for e in first[1::3]}) == 3
