@@ -90,7 +90,7 @@ class PlanResult:
 
     def to_json(self) -> dict[str, Any]:
         camera_heights = [p.height_mm for p in self.rig.phones]
-        angles = self.rig.capture.angles_deg
+        angles = pose_angles_deg(self.poses, self.rig)
         return {
             "points": len(self.samples),
             "poses": len(self.poses),
@@ -102,6 +102,23 @@ class PlanResult:
             "timing_s": {k: round(v, 4) for k, v in self.timing_s.items()},
             "pose_order": "angle-major: pose = angle_index * cameras + camera_index",
         }
+
+
+def pose_angles_deg(poses: Poses, rig: Rig) -> np.ndarray:
+    """(A,) capture angle of each angle index: the rig's, or for other pose sets (custom angles,
+    noisy calibrations) the mean azimuth of the poses that share an angle index."""
+    n_angles = int(poses.angle_index.max()) + 1 if len(poses) else 0
+    if n_angles == rig.n_angles and len(poses) == rig.n_poses:
+        nominal = rgb_poses(rig)
+        if np.allclose(nominal.centres, poses.centres, atol=1e-6):
+            return rig.capture.angles_deg
+    xy = np.zeros((n_angles, 2))
+    np.add.at(xy, poses.angle_index, poses.centres[:, :2])
+    angles = np.degrees(np.arctan2(xy[:, 1], xy[:, 0]))
+    if n_angles == rig.n_angles:  # e.g. noisy poses of this rig: stay next to its angles
+        nominal = rig.capture.angles_deg
+        angles = nominal + (angles - nominal + 180.0) % 360.0 - 180.0
+    return np.round(angles, 3)
 
 
 def load_subject_mesh(path: Path | str) -> trimesh.Trimesh:

@@ -154,3 +154,22 @@ def test_cli_plan_views_of_a_point(tmp_path: Path, body, capsys) -> None:
     assert "near" in out and "pixel (" in out and "cam" in out
     assert tbp(["plan", "--mesh", str(mesh), "--view", "1,2"]) == 2
     assert "--view expects X,Y,Z in mm, got '1,2'" in capsys.readouterr().err
+
+
+def test_json_angles_follow_the_poses_planned_for(body) -> None:
+    from planner.plan import pose_angles_deg
+
+    assert pose_angles_deg(rgb_poses(RIG), RIG).tolist() == RIG.capture.angles_deg.tolist()
+    few = rgb_poses(RIG, np.array([0.0, 90.0, 180.0, -90.0]))
+    result = plan_focus(body, RIG, points=300, poses=few, methods=("average",))
+    out = result.to_json()
+    assert out["angles_deg"] == [0.0, 90.0, 180.0, -90.0]
+    assert out["poses"] == 28 and len(out["methods"]["average"]["focus_mm"]) == 28
+
+
+def test_json_angles_of_noisy_poses_stay_near_the_rig_angles() -> None:
+    from planner.plan import pose_angles_deg
+    from planner.pose_noise import perturb_poses
+
+    noisy = pose_angles_deg(perturb_poses(rgb_poses(RIG), seed=2), RIG)
+    np.testing.assert_allclose(noisy, RIG.capture.angles_deg, atol=0.5)
