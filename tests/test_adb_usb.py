@@ -50,6 +50,7 @@ class _BridgedEndpoints:
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
         self.sock.settimeout(0.05)
+        self.wMaxPacketSize = 512
         self.writes: list[int] = []
         self.fail_reads = False
 
@@ -98,6 +99,12 @@ async def test_full_session_over_usb_endpoints(tmp_path: Path, no_release: None)
     conn = AdbConnection(transport, KEY)
     await conn.connect()
     assert endpoints.writes[:2] == [HEADER_SIZE, len(AdbConnection.BANNER) + 1]  # header, then payload
+    stream = await conn.open("shell:cat")
+    endpoints.writes.clear()
+    await stream.write(bytes(1024))  # whole 512-byte packets: a zero-length packet ends the transfer
+    at = endpoints.writes.index(1024)  # (OKAYs for the shell's output may come in between)
+    assert endpoints.writes[at - 1:at + 2] == [HEADER_SIZE, 1024, 0]
+    await stream.close()
     assert await conn.shell("getprop ro.serialno") == b"USB0001\n"
     async with await conn.sync() as sync:
         size, _ = await sync.pull("/sdcard/a.jpg", tmp_path / "a.jpg")

@@ -130,6 +130,10 @@ class UsbTransport:
         self.ep_out.write(message.header(with_checksum=with_checksum), timeout=self.WRITE_TIMEOUT_MS)
         if message.payload:
             self.ep_out.write(message.payload, timeout=self.WRITE_TIMEOUT_MS)
+            if len(message.payload) % self.ep_out.wMaxPacketSize == 0:
+                # a payload filling whole packets ends with a zero-length packet, or the phone's
+                # bulk read waits for more (adb's own host side does the same)
+                self.ep_out.write(b"", timeout=self.WRITE_TIMEOUT_MS)
 
     async def send(self, message: AdbMessage, *, with_checksum: bool = True) -> None:
         import usb.core
