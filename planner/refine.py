@@ -155,7 +155,10 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
             gain = np.minimum(other[useful], b + w3) - b
             lo, hi = lo_all[sl][useful], hi_all[sl][useful]
             s_old = focus[c]
-            current = float(gain[(lo <= s_old) & (s_old <= hi)].sum())
+            sharp = (lo <= s_old) & (s_old <= hi)
+            if not gain[~sharp].sum() > MIN_GAIN:
+                continue  # everything this pose could gain is already in focus
+            current = float(gain[sharp].sum())
             s, score = sweep(lo, hi, gain)
             if score <= current + MIN_GAIN:
                 continue
