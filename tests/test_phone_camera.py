@@ -369,3 +369,18 @@ def test_same_seed_same_timeline() -> None:
     first, second = run(scenario), run(scenario)
     assert first == second
     assert len({e.sensor_timestamp_ns for e in first[1::3]}) == 3
+
+
+def test_agent_crash_is_a_disconnect_and_reconnect_restarts_it() -> None:
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        sim.crash_agent()
+        await asyncio.sleep(0.01)
+        assert not sim.agent_running and camera.state == "disconnected"
+        with pytest.raises(PhoneDisconnected, match="capture agent closed its stream"):
+            await camera.capture()
+        await camera.connect()
+        assert sim.agent_running
+        assert (await camera.capture()).size_bytes > 0
+
+    run(scenario)

@@ -13,7 +13,8 @@ seeded one-way delay, so round trips are not zero. Each image is the subject ray
 cast from ``pose(t)`` (time -> (4, 4) camera-to-world, provided by the sim wiring so the phone
 knows nothing of the motor) and blurred by its distance from the focal plane.
 
-Faults: those of the adbd (refuse_auth, vanish(), disconnect_after_bytes) plus lens_slowdown,
+Faults: those of the adbd (refuse_auth, vanish(), disconnect_after_bytes) plus crash_agent()
+(the agent process dies; adbd stays up, so a reconnect starts it again), lens_slowdown,
 fail_captures (the next n captures answer CAPTURE_FAILED), answer_delay_s (every agent answer
 is held back that long, as on a congested USB hub) and mute_agent (requests go unanswered, as
 when the camera HAL hangs).
@@ -92,6 +93,8 @@ class SimulatedPhone(SimulatedAdbd):
         self.mute_agent = False
         self.answer_delay_s = 0.0
         self.agent_version = protocol.PROTOCOL_VERSION
+        self._agent_sessions: set[AdbStream] = set()
+        self._agent_crashed = asyncio.Event()
         self.agent_running = False
         self.captures: list[dict[str, Any]] = []
         self._renderer: PhoneRenderer | None = None
@@ -122,17 +125,36 @@ class SimulatedPhone(SimulatedAdbd):
         socket_name = next((a.split("=", 1)[1] for a in argv if a.startswith("socket=")), protocol.SOCKET_NAME)
         self.listeners[socket_name] = self._agent_session
         self.agent_running = True
+        self._agent_crashed = asyncio.Event()
         log.info("sim_phone_agent_started", serial=self.serial, socket=socket_name)
         try:
             await stream.write(f"{protocol.READY_PREFIX} {socket_name} {protocol.PROTOCOL_VERSION}\n".encode())
-            while await stream.read():
-                pass  # the agent ignores stdin; it lives until the shell stream closes
+            stdin = asyncio.create_task(stream.read_all())  # the agent ignores stdin
+            crashed = asyncio.create_task(self._agent_crashed.wait())
+            await asyncio.wait({stdin, crashed}, return_when=asyncio.FIRST_COMPLETED)
+            for task in (stdin, crashed):
+                task.cancel()
+            await asyncio.gather(stdin, crashed, return_exceptions=True)
         finally:
             self.listeners.pop(socket_name, None)
             self.agent_running = False
+            for session in list(self._agent_sessions):  # its sockets close with the process
+                await session.close()
             log.info("sim_phone_agent_stopped", serial=self.serial)
 
+    def crash_agent(self) -> None:
+        """Fault: the agent process dies (its socket and shell stream close; adbd stays up)."""
+        if self.agent_running:
+            self._agent_crashed.set()
+
     async def _agent_session(self, stream: AdbStream) -> None:
+        self._agent_sessions.add(stream)
+        try:
+            await self._serve_agent(stream)
+        finally:
+            self._agent_sessions.discard(stream)
+
+    async def _serve_agent(self, stream: AdbStream) -> None:
         while self.agent_running:
             line = await stream.readline(protocol.MAX_LINE)
             if not line:
