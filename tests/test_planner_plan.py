@@ -149,7 +149,7 @@ def test_cli_plan_views_of_a_point(tmp_path: Path, body, capsys) -> None:
     mesh = tmp_path / "body.ply"
     body.export(mesh)
     chest = f"{body.bounds[1, 0] + 50:.0f},0,1200"
-    assert tbp(["plan", "--mesh", str(mesh), "--points", "800", "--view", chest]) == 0
+    assert tbp(["plan", "--mesh", str(mesh), "--points", "800", "--view", chest, "--backend", "embree"]) == 0
     out = capsys.readouterr().out
     assert "near" in out and "pixel (" in out and "cam" in out
     assert tbp(["plan", "--mesh", str(mesh), "--view", "1,2"]) == 2

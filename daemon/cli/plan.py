@@ -26,6 +26,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="also score the shape-aware plan on N fresh, independent surface samples",
     )
     parser.add_argument(
+        "--backend", choices=("open3d", "embree"), default="open3d",
+        help="ray casting backend for the occlusion tests (default: open3d)",
+    )
+    parser.add_argument(
         "--view", action="append", default=[], metavar="X,Y,Z",
         help="print the best captures (camera, angle, pixel) of the skin point nearest X,Y,Z mm "
         "under the shape-aware plan; repeatable",
@@ -77,13 +81,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         rig = load_rig(args.rig or DEFAULT_RIG_PATH)
         mesh = load_subject_mesh(args.mesh)
-        result = plan_focus(mesh, rig, points=args.points, seed=args.seed, mesh_name=str(args.mesh))
+        result = plan_focus(
+            mesh, rig, points=args.points, seed=args.seed, backend=args.backend, mesh_name=str(args.mesh)
+        )
     except (RigConfigError, FocusPlanError) as exc:
         print(f"tbp plan: {exc}", file=sys.stderr)
         return 1
     out = result.to_json()
     if args.fresh > 0:
-        fresh = evaluate(result.focus_mm, mesh, rig, points=args.fresh, seed=args.seed + 1_000_003)
+        fresh = evaluate(
+            result.focus_mm, mesh, rig, points=args.fresh, seed=args.seed + 1_000_003, backend=args.backend
+        )
         out["fresh_sample"] = {
             "points": fresh.n_points,
             "total_cost": round(fresh.total_cost, 4),
@@ -98,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
             f"{100 * f['in_focus_fraction']:.1f} %, visible {100 * f['visible_fraction']:.1f} %"
         )
     if queries:
-        _print_views(mesh, rig, result, queries)
+        _print_views(mesh, rig, result, queries, args.backend)
     if args.json_out is not None:
         args.json_out.parent.mkdir(parents=True, exist_ok=True)
         tmp = args.json_out.with_name(args.json_out.name + ".tmp")
@@ -108,13 +116,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_views(mesh, rig, result, queries: list[tuple[float, float, float]]) -> None:
+def _print_views(mesh, rig, result, queries: list[tuple[float, float, float]], backend: str) -> None:
     import numpy as np
 
     from planner.navigation import find_views
     from planner.visibility import RayScene
 
-    scene = RayScene(mesh)
+    scene = RayScene(mesh, backend)
     on_skin, _ = scene.closest_faces(np.array(queries))
     views = find_views(scene, rig, result.poses, result.focus_mm, on_skin, limit=3)
     for query, point, found in zip(queries, on_skin, views):
