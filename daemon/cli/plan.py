@@ -6,6 +6,13 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from planner.plan import PlanResult
+    from planner.rig import Rig
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -116,7 +123,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_views(mesh, rig, result, queries: list[tuple[float, float, float]], backend: str) -> None:
+def _print_views(
+    mesh: trimesh.Trimesh,
+    rig: Rig,
+    result: PlanResult,
+    queries: list[tuple[float, float, float]],
+    backend: str,
+) -> None:
     import numpy as np
 
     from planner.navigation import find_views
