@@ -135,13 +135,15 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
     dirty = np.diff(vis.pose_ptr) > 0
     pair_index = np.arange(len(vis), dtype=np.int64)
     base_all, lo_all, hi_all = table.base, table.lo, table.hi
+    ptr = vis.pose_ptr.tolist()
+    slices = [slice(a, b) for a, b in zip(ptr[:-1], ptr[1:])]
     sweeps = updates = 0
     while sweeps < max_sweeps and dirty.any():
         sweeps += 1
         changed_any = False
-        for c in np.flatnonzero(dirty):
+        for c in np.flatnonzero(dirty).tolist():
             dirty[c] = False
-            sl = vis.pairs_of(int(c))
+            sl = slices[c]
             points = vis.point[sl]
             # other_p: the point's best cost without this pose.
             other = state.best[points]
@@ -156,9 +158,9 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
             lo, hi = lo_all[sl][useful], hi_all[sl][useful]
             s_old = focus[c]
             sharp = (lo <= s_old) & (s_old <= hi)
-            if not gain[~sharp].sum() > MIN_GAIN:
-                continue  # everything this pose could gain is already in focus
             current = float(gain[sharp].sum())
+            if not float(gain.sum()) - current > MIN_GAIN:
+                continue  # everything this pose could gain is already in focus
             s, score = sweep(lo, hi, gain)
             if score <= current + MIN_GAIN:
                 continue
