@@ -330,3 +330,31 @@ def test_open_timeout_then_late_okay_closes_the_orphan(monkeypatch: pytest.Monke
         dw.close()
 
     run_virtual(main())
+
+
+async def test_concurrent_pulls_over_tcp_keep_their_bytes_apart(tmp_path: Path) -> None:
+    """Two pulls, a shell and a push at once on one TCP link: recycled receive buffers never mix data."""
+    device = SimulatedAdbd("TCPSIM", known_keys=[KEY.public_blob()])
+    files = {name: os.urandom(size) for name, size in (("a", 5_000_000), ("b", 3_333_333))}
+    for name, data in files.items():
+        device.fs.write(f"/sdcard/{name}.bin", data)
+    server = await asyncio.start_server(device.accept, "127.0.0.1", 0)
+    async with server:
+        conn = AdbConnection(await open_tcp("127.0.0.1", server.sockets[0].getsockname()[1]), KEY)
+        await conn.connect()
+
+        async def pull(name: str, dest: str) -> tuple[int, str]:
+            async with await conn.sync() as sync:
+                return await sync.pull(f"/sdcard/{name}.bin", tmp_path / dest)
+
+        async def push() -> None:
+            async with await conn.sync() as sync:
+                await sync.push(files["b"], "/sdcard/c.bin")
+
+        results = await asyncio.gather(pull("a", "a.bin"), pull("b", "b.bin"), conn.shell("echo side"), push(),
+                                       pull("a", "a2.bin"))
+        assert results[0] == results[4] == (5_000_000, hashlib.sha256(files["a"]).hexdigest())
+        assert results[1] == (3_333_333, hashlib.sha256(files["b"]).hexdigest())
+        assert results[2] == b"side\n" and device.fs.read("/sdcard/c.bin") == files["b"]
+        assert (tmp_path / "b.bin").read_bytes() == files["b"]
+        await conn.close()

@@ -38,7 +38,7 @@ class AdbStream:
         self._opened: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._ready = asyncio.Event()
         self._ready.set()
-        self._payloads: deque[bytes] = deque()
+        self._payloads: deque[bytes | bytearray] = deque()
         self._arrived = asyncio.Event()
         self._chunk: bytes | bytearray = b""
         self._pos = 0
@@ -83,15 +83,30 @@ class AdbStream:
             raise StreamClosed(self.mux.name, self.state, f"stream {self.service!r} is closed")
 
     # ---------------------------------------------------------------- reading
+    # The current payload (_chunk) may be a receive buffer the transport recycles once the stream
+    # moves past it (_drop_chunk); everything returned to callers is a copy, except readview's
+    # view, which is valid until the next read.
     async def read(self) -> bytes:
         """The next received bytes (any length); b"" once the peer closed the stream."""
         if self._pos < len(self._chunk):
-            data = self._chunk[self._pos:]
-            self._chunk, self._pos = b"", 0
+            data = bytes(self._chunk[self._pos:])
+            self._drop_chunk()
             return data
-        return await self._next_payload()
+        self._drop_chunk()
+        return bytes(await self._next_payload())
 
-    async def _next_payload(self) -> bytes:
+    def _drop_chunk(self) -> None:
+        if isinstance(self._chunk, bytearray):
+            self.mux.recycle(self._chunk)
+        self._chunk, self._pos = b"", 0
+
+    async def _advance(self) -> bool:
+        """Make the next payload current, recycling the exhausted one; False at end of stream."""
+        self._drop_chunk()
+        self._chunk = await self._next_payload()
+        return bool(self._chunk)
+
+    async def _next_payload(self) -> bytes | bytearray:
         while not self._payloads:
             if self._error is not None:
                 raise self._error
@@ -108,27 +123,26 @@ class AdbStream:
 
     async def readexactly(self, n: int) -> bytes:
         """Exactly n bytes; StreamClosed if the stream ends first."""
-        if len(self._chunk) - self._pos >= n:
-            data = bytes(self._chunk[self._pos:self._pos + n])
-            self._pos += n
-            return data
-        parts = [self._chunk[self._pos:]]
-        have = len(parts[0])
-        self._chunk, self._pos = b"", 0
-        while have < n:
-            payload = await self._next_payload()
-            if not payload:
-                raise StreamClosed(self.mux.name, self.state,
-                                   f"{self.service!r} ended after {have} of {n} bytes")
-            take = min(n - have, len(payload))
-            parts.append(payload[:take])
-            have += take
-            if take < len(payload):
-                self._chunk, self._pos = payload, take
-        return b"".join(parts)
+        parts: list[bytes] = []
+        have = 0
+        while True:
+            take = min(n - have, len(self._chunk) - self._pos)
+            if take:
+                parts.append(bytes(self._chunk[self._pos:self._pos + take]))
+                self._pos += take
+                have += take
+            if have == n:
+                return parts[0] if len(parts) == 1 else b"".join(parts)
+            if not await self._advance():
+                raise StreamClosed(self.mux.name, self.state, f"{self.service!r} ended after {have} of {n} bytes")
 
     async def readview(self, n: int) -> memoryview:
-        """Exactly n bytes without copying when they lie in one received payload (bulk data path)."""
+        """Exactly n bytes, without copying when they lie in one received payload (bulk data path).
+
+        The view is valid until the next read on this stream: use it (hash, write) before then.
+        """
+        if len(self._chunk) - self._pos == 0 and n:
+            await self._advance()
         if len(self._chunk) - self._pos >= n:
             view = memoryview(self._chunk)[self._pos:self._pos + n]
             self._pos += n
@@ -140,19 +154,16 @@ class AdbStream:
         parts: list[bytes] = []
         size = 0
         while True:
-            if self._pos >= len(self._chunk):
-                payload = await self._next_payload()
-                if not payload:
-                    return b"".join(parts)
-                self._chunk, self._pos = payload, 0
+            if self._pos >= len(self._chunk) and not await self._advance():
+                return b"".join(parts)
             end = self._chunk.find(b"\n", self._pos)
             if end >= 0:
-                parts.append(self._chunk[self._pos:end + 1])
+                parts.append(bytes(self._chunk[self._pos:end + 1]))
                 self._pos = end + 1
                 return b"".join(parts)
-            parts.append(self._chunk[self._pos:])
+            parts.append(bytes(self._chunk[self._pos:]))
             size += len(self._chunk) - self._pos
-            self._chunk, self._pos = b"", 0
+            self._pos = len(self._chunk)
             if size > limit:
                 raise AdbProtocolError(self.mux.name, self.state,
                                        f"line on {self.service!r} longer than {limit} bytes")
@@ -212,6 +223,12 @@ class StreamMux:
         self._abandoned: set[int] = set()  # local ids of OPENs that timed out
         if hasattr(transport, "credit_hook"):
             transport.credit_hook = self._early_credit
+
+    def recycle(self, buffer: bytearray) -> None:
+        """Hand a consumed receive buffer back to the transport, when it keeps a pool."""
+        pool = getattr(self.transport, "recycle", None)
+        if pool is not None:
+            pool(buffer)
 
     def _early_credit(self, header: Header) -> AdbMessage | None:
         """The OKAY for a WRTE whose payload is still arriving, when its stream has room for it."""

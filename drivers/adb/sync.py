@@ -88,46 +88,26 @@ def data_chunks(data: bytes | memoryview, chunk: int = SYNC_DATA_MAX) -> bytes:
 
 
 class _FileSink:
-    """Hashes each received chunk and writes them to fd in batches (one writev per ~1 MiB).
-
-    The chunks are views into received payloads, which are never reused, so holding them until
-    the batch is written is safe.
-    """
-
-    BATCH_BYTES = 1024 * 1024
+    """Hashes and writes each received chunk at once (the chunk is a view valid until the next read)."""
 
     def __init__(self, fd: int) -> None:
         self.fd = fd
         self.digest = hashlib.sha256()
-        self._views: list[memoryview] = []
-        self._pending = 0
         self._written = 0
         self._flushed = 0
 
     def __call__(self, view: memoryview) -> None:
         self.digest.update(view)
-        self._views.append(view)
-        self._pending += len(view)
-        if self._pending >= self.BATCH_BYTES:
-            self._write()
-
-    def _write(self) -> None:
-        views = self._views
-        while views:
-            n = os.writev(self.fd, views)
+        while view:
+            n = os.write(self.fd, view)
+            view = view[n:]
             self._written += n
-            while views and n >= len(views[0]):
-                n -= len(views.pop(0))
-            if n:
-                views[0] = views[0][n:]
-        self._pending = 0
         if _START_WRITEBACK is not None and self._written - self._flushed >= WRITEBACK_BYTES:
             _START_WRITEBACK(self.fd, self._flushed, self._written - self._flushed, _SYNC_FILE_RANGE_WRITE)
             self._flushed = self._written
 
     def finish(self) -> None:
-        """Write what is left and fsync."""
-        self._write()
+        """fsync: the data is on disk before the file gets its final name."""
         os.fsync(self.fd)
 
 

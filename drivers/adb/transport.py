@@ -81,6 +81,7 @@ class _MessageReceiver(asyncio.BufferedProtocol):
     """Parses ADB messages as bytes arrive: headers into a fixed buffer, each payload into a fresh one."""
 
     QUEUE_HIGH = 8  # messages waiting for recv() before the socket stops being read
+    POOL_PER_SIZE = 4  # recycled payload buffers kept per size
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -97,9 +98,21 @@ class _MessageReceiver(asyncio.BufferedProtocol):
         self._drained = asyncio.Event()
         self._drained.set()
         self.credit_hook: Callable[[Header], AdbMessage | None] | None = None
+        self._free: dict[int, list[bytearray]] = {}
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
+
+    def _buffer(self, size: int) -> bytearray:
+        """A payload buffer: a recycled one of this size if any (fresh memory costs page faults:
+        about as much CPU as the copy from the kernel itself)."""
+        free = self._free.get(size)
+        return free.pop() if free else bytearray(size)
+
+    def recycle(self, buffer: bytearray) -> None:
+        free = self._free.setdefault(len(buffer), [])
+        if len(free) < self.POOL_PER_SIZE:
+            free.append(buffer)
 
     def get_buffer(self, sizehint: int) -> memoryview:
         return memoryview(self._target)[self._filled:]
@@ -112,7 +125,7 @@ class _MessageReceiver(asyncio.BufferedProtocol):
             if self._pending is None:
                 header = decode_header(bytes(self._header), device=self.name, max_payload=self.max_payload)
                 if header.data_length:
-                    self._pending, self._target, self._filled = header, bytearray(header.data_length), 0
+                    self._pending, self._target, self._filled = header, self._buffer(header.data_length), 0
                     if header.command == A_WRTE and self.credit_hook is not None:
                         credit = self.credit_hook(header)
                         if credit is not None and self.transport is not None:
@@ -161,6 +174,10 @@ class SocketTransport:
         self._receiver = receiver
         self.name = name
         self.closed = False
+
+    def recycle(self, buffer: bytearray) -> None:
+        """Take back a payload buffer whose stream is done with it, for the next payload of its size."""
+        self._receiver.recycle(buffer)
 
     @property
     def credit_hook(self) -> Callable[[Header], AdbMessage | None] | None:
