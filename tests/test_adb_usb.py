@@ -117,8 +117,7 @@ async def test_full_session_over_usb_endpoints(tmp_path: Path, no_release: None)
 async def test_usb_error_is_connection_lost(no_release: None) -> None:
     device = SimulatedAdbd("USB0001", known_keys=[KEY.public_blob()])
     transport, endpoints, task = await _usb_session(device)
-    await transport.send(_cnxn())
-    endpoints.fail_reads = True
+    endpoints.fail_reads = True  # unplugged: nothing was sent, so the next bulk read is the failing one
     with pytest.raises(ConnectionLost, match="USB error: .*disconnected"):
         await transport.recv()
     with pytest.raises(ConnectionLost):  # stays failed
