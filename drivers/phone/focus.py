@@ -80,7 +80,8 @@ class FocusCalibration:
 
     def diopters_for(self, focus_mm: float, *, device: str | None = None) -> float:
         """The focus to command (diopters) so the sharpest distance is focus_mm; FocusOutOfRange outside."""
-        if not (math.isfinite(focus_mm) and self.near_mm <= focus_mm <= self.far_mm):
+        slack = 1e-9 * self.far_mm  # rounding at the ends is not out of range
+        if not (math.isfinite(focus_mm) and self.near_mm - slack <= focus_mm <= self.far_mm + slack):
             raise FocusOutOfRange(device or self.source, "planning", float(focus_mm), self.near_mm, self.far_mm)
         measured = 1000.0 / self.distance_mm
         return float(np.interp(1000.0 / focus_mm, measured, self.diopters))
