@@ -12,8 +12,11 @@ import pytest
 import trimesh
 from PIL import Image
 
-from drivers.sim.phone import DEFAULT_OPTICS, SimulatedPhone
+from drivers.sim.phone import SimulatedPhone
 from drivers.sim.phone_render import PhoneRenderer, SubjectScene, circle_of_confusion_mm, empty_rig_picture, encode_jpeg
+from planner.rig import load_rig
+
+DEFAULT_OPTICS = load_rig().optics
 
 
 def test_circle_of_confusion_is_zero_at_focus_and_grows_away() -> None:

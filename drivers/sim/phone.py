@@ -38,14 +38,12 @@ from drivers.phone import protocol
 from drivers.phone.errors import AgentProtocolError
 from drivers.sim.adbd import SimulatedAdbd
 from drivers.sim.phone_render import PhoneRenderer, SubjectScene, empty_rig_picture, encode_jpeg
-from planner.rig import Optics
+from planner.rig import Optics, load_rig
 
 log = structlog.get_logger("drivers.sim.phone")
 
 PoseSource = Callable[[float], np.ndarray]
 _SCENES: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
-DEFAULT_OPTICS = Optics(focal_length_mm=6.0, f_number=1.8, hyperfocal_mm=5720.0, image_width_px=6144,
-                        image_height_px=8192, hfov_deg=47.66, exposure_s=0.002, iso=50)
 
 
 def _scene_for(subject: Any) -> SubjectScene:
@@ -78,7 +76,7 @@ class SimulatedPhone(SimulatedAdbd):
                          accept_new_keys=accept_new_keys, seed=seed)
         self.subject = subject
         self.pose = pose
-        self.optics = optics or DEFAULT_OPTICS
+        self.optics = optics or load_rig().optics  # the default rig's phones
         self.render_size = render_size
         self.min_focus_diopters = min_focus_diopters
         self.focus_calibration_quality = focus_calibration_quality
