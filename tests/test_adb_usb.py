@@ -51,6 +51,8 @@ class _BridgedEndpoints:
         self.sock = sock
         self.sock.settimeout(0.05)
         self.wMaxPacketSize = 512
+        self.zero_length_next = False
+        self.split_next = False
         self.writes: list[int] = []
         self.fail_reads = False
 
@@ -62,6 +64,13 @@ class _BridgedEndpoints:
     def read(self, size: int, timeout: int) -> bytes:
         if self.fail_reads:
             raise usb.core.USBError("No such device (it may have been disconnected)")
+        if self.zero_length_next:  # a ZLP, then the payload split over two transfers
+            self.zero_length_next = False
+            self.split_next = True
+            return b""
+        if self.split_next and size > 1:
+            self.split_next = False
+            size //= 2
         data = b""
         while len(data) < size:
             try:
@@ -106,6 +115,8 @@ async def test_full_session_over_usb_endpoints(tmp_path: Path, no_release: None)
     assert endpoints.writes[at - 1:at + 2] == [HEADER_SIZE, 1024, 0]
     await stream.close()
     assert await conn.shell("getprop ro.serialno") == b"USB0001\n"
+    endpoints.zero_length_next = True
+    assert await conn.shell("echo split") == b"split\n"
     async with await conn.sync() as sync:
         size, _ = await sync.pull("/sdcard/a.jpg", tmp_path / "a.jpg")
     assert size == len(data) and (tmp_path / "a.jpg").read_bytes() == data

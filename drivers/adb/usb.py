@@ -97,17 +97,22 @@ class UsbTransport:
         return cls(device, interface, ep_in, ep_out, name=name)
 
     def _read_exact(self, size: int) -> bytes:
+        """size bytes from bulk IN, across several transfers if the phone splits them; the
+        zero-length packet that ends a payload of whole packets is skipped."""
         import usb.core
 
-        while not self._stop.is_set():
+        parts: list[bytes] = []
+        have = 0
+        while have < size:
+            if self._stop.is_set():
+                raise ConnectionLost(self.name, "closed", "transport closed")
             try:
-                data = bytes(self.ep_in.read(size, timeout=self.READ_POLL_MS))
+                data = bytes(self.ep_in.read(size - have, timeout=self.READ_POLL_MS))
             except usb.core.USBTimeoutError:
                 continue
-            if len(data) != size:
-                raise ConnectionLost(self.name, "receiving", f"short bulk transfer: {len(data)} of {size} bytes")
-            return data
-        raise ConnectionLost(self.name, "closed", "transport closed")
+            parts.append(data)
+            have += len(data)
+        return b"".join(parts)
 
     def _read_loop(self) -> None:
         import usb.core
