@@ -145,3 +145,14 @@ def _cnxn() -> AdbMessage:
     message = connect_message(b"host::")
     assert message.command == A_CNXN
     return message
+
+
+async def test_open_names_missing_and_ambiguous_phones(monkeypatch: pytest.MonkeyPatch) -> None:
+    import drivers.adb.usb as adb_usb
+    from drivers.adb.errors import UsbDeviceNotFound
+
+    monkeypatch.setattr(adb_usb, "adb_devices", lambda: iter([("AAA", object()), ("BBB", object())]))
+    with pytest.raises(UsbDeviceNotFound, match="CCC .*no USB device with an ADB interface"):
+        await UsbTransport.open("CCC")
+    with pytest.raises(UsbDeviceNotFound, match=r"2 ADB devices attached; name one: \['AAA', 'BBB'\]"):
+        await UsbTransport.open()

@@ -81,7 +81,16 @@ class UsbTransport:
 
     @classmethod
     async def open(cls, serial: str | None = None) -> UsbTransport:
-        """Claim the ADB interface of the phone with this serial (the only phone when None)."""
+        """Claim the ADB interface of the phone with this serial (the only phone when None).
+
+        Enumeration and claiming block on control transfers, so they run off the event loop
+        (which keeps serving the beam drive meanwhile)."""
+        loop = asyncio.get_running_loop()
+        name, device, found = await loop.run_in_executor(None, cls._find_and_claim, serial)
+        return cls(device, found[0], found[1], found[2], name=name)
+
+    @staticmethod
+    def _find_and_claim(serial: str | None) -> tuple[str, Any, tuple[Any, Any, Any]]:
         import usb.util
 
         found = [(s, d) for s, d in adb_devices() if serial is None or s == serial]
@@ -92,9 +101,11 @@ class UsbTransport:
             raise UsbDeviceNotFound(serial or "usb", "searching",
                                     f"{len(found)} ADB devices attached; name one: {[s for s, _ in found]}")
         name, device = found[0]
-        interface, ep_in, ep_out = adb_interface(device)  # type: ignore[misc]
-        usb.util.claim_interface(device, interface.bInterfaceNumber)
-        return cls(device, interface, ep_in, ep_out, name=name)
+        endpoints = adb_interface(device)
+        if endpoints is None:  # unplugged between the two looks
+            raise UsbDeviceNotFound(name, "searching", "the ADB interface disappeared")
+        usb.util.claim_interface(device, endpoints[0].bInterfaceNumber)
+        return name, device, endpoints
 
     def _read_exact(self, size: int) -> bytes:
         """size bytes from bulk IN, across several transfers if the phone splits them; the
