@@ -39,3 +39,22 @@ def test_check_reports_the_typed_error(sim_phone_port: int, tmp_path: Path, caps
                  "--state-dir", str(tmp_path / "state"), "--out", str(tmp_path)])
     assert code == 1
     assert "FAILED: WrongPhone" in capsys.readouterr().err
+
+
+def test_check_a_phone_that_photographs_a_body(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    import numpy as np
+    from PIL import Image
+
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from daemon.cli import main; sys.exit(main())",
+                             "sim", "phone", "--port", "0", "--serial", "TBPSIM03", "--body-seed", "2"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(proc.stdout.readline().rsplit(":", 1)[1])
+        code = main(["phone", "check", "--tcp", f"127.0.0.1:{port}", "--camera", "cam3",
+                     "--state-dir", str(tmp_path / "state"), "--out", str(tmp_path)])
+        assert code == 0, capsys.readouterr()
+        image = np.asarray(Image.open(tmp_path / "cam3-check.jpg"))
+        assert image[image.shape[0] // 2, image.shape[1] // 2, 0] > 120  # the body fills the middle
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)

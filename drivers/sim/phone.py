@@ -266,11 +266,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="refuse new host keys (the phone user says no)")
     parser.add_argument("--file", action="append", default=[], metavar="PHONE_PATH=SIZE",
                         help="preload a file of SIZE random bytes (e.g. /sdcard/big.bin=20000000)")
+    parser.add_argument("--body-seed", type=int, default=None, metavar="N",
+                        help="photograph simulated adult N (drivers/sim/body.py) instead of an empty rig")
+    parser.add_argument("--camera", default=None,
+                        help="rig camera id whose pose the phone takes (default: the one with --serial)")
+    parser.add_argument("--angle", type=float, default=0.0, help="beam angle of that pose (deg)")
+
+
+def _standing_subject(args: argparse.Namespace) -> tuple[Any, PoseSource]:
+    """A simulated adult and the fixed pose of one rig camera at one beam angle (no motor here)."""
+    from drivers.sim.body import make_body
+    from planner.poses import rgb_poses
+
+    rig = load_rig()
+    ids = [p.id for p in rig.phones]
+    camera = args.camera or next((p.id for p in rig.phones if p.serial == args.serial), ids[0])
+    if camera not in ids:
+        raise SystemExit(f"--camera {camera!r}: the rig's cameras are {', '.join(ids)}")
+    camera_to_world = rgb_poses(rig, np.array([args.angle])).camera_to_world(ids.index(camera))
+    return make_body(seed=args.body_seed), lambda _time_s: camera_to_world
 
 
 async def serve(args: argparse.Namespace) -> int:
     """Run one simulated phone as a TCP adbd on 127.0.0.1:PORT until SIGINT/SIGTERM."""
-    phone = SimulatedPhone(args.serial, seed=args.seed, accept_new_keys=not args.refuse_keys)
+    subject, pose = None, None
+    if args.body_seed is not None:
+        subject, pose = _standing_subject(args)
+    phone = SimulatedPhone(args.serial, seed=args.seed, accept_new_keys=not args.refuse_keys, subject=subject,
+                           pose=pose)
+    if pose is not None:  # build the ray-casting scene now: in real time a first capture must not wait for it
+        phone._picture(pose(0.0), 0.0, 0)
     rng = np.random.default_rng(args.seed)
     for spec in args.file:
         path, _, size = spec.partition("=")
