@@ -114,8 +114,6 @@ class _FileSink:
 class SyncClient:
     """A sync session on one 'sync:' stream. Requests run one at a time."""
 
-    PUSH_BATCH = 1024 * 1024
-
     def __init__(self, stream: AdbStream, *, device: str) -> None:
         self.stream = stream
         self.device = device
@@ -198,8 +196,9 @@ class SyncClient:
         """SEND data to path (regular file, permission bits mode); returns when the device says OKAY."""
         await self.stream.write(request(b"SEND", f"{path},{statmod.S_IFREG | mode}"))
         view = memoryview(data)
-        for start in range(0, len(view), self.PUSH_BATCH):
-            await self.stream.write(data_chunks(view[start:start + self.PUSH_BATCH]))
+        batch = max(self.stream.mux.max_payload // (SYNC_DATA_MAX + 8), 1) * SYNC_DATA_MAX  # framed, one WRTE
+        for start in range(0, len(view), batch):
+            await self.stream.write(data_chunks(view[start:start + batch]))
         await self.stream.write(_ID_LEN.pack(b"DONE", mtime))
         ident, length = _ID_LEN.unpack(await self.stream.readexactly(8))
         if ident == b"FAIL":
