@@ -184,7 +184,8 @@ def test_flow_control_one_wrte_in_flight_and_bounded_read_window() -> None:
         conn = AdbConnection(StreamTransport(hr, hw, name="scripted"), None)
 
         async def device_side() -> None:
-            assert (await device.recv()).command == A_CNXN
+            cnxn = await device.recv()
+            assert (cnxn.command, cnxn.arg1) == (A_CNXN, 256 * 1024)  # the host's payload limit
             await device.send(connect_message(b"device::ro.product.model=x;features=", max_payload=4096))
             opened = await device.recv()
             assert opened.command == A_OPEN and opened.payload == b"exec:cat\0"

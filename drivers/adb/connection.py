@@ -46,6 +46,10 @@ class AdbConnection:
     HANDSHAKE_TIMEOUT_S = 10.0
     AUTH_ACCEPT_TIMEOUT_S = 30.0  # the phone user taps "Allow USB debugging" once per host key
     BANNER = b"host::features=cmd"
+    # Largest WRTE payload this host accepts. Every stream shares the link, so one payload holds
+    # back a focus or capture command queued behind it: 256 KiB is ~6 ms on USB 2.0 (1 MiB, the
+    # protocol's maximum, would be ~25 ms), and early credit keeps TCP pulls at full speed.
+    MAX_PAYLOAD = 256 * 1024
 
     def __init__(self, transport: AdbTransport, key: AdbKey | None, *, name: str | None = None) -> None:
         self.transport = transport
@@ -60,7 +64,7 @@ class AdbConnection:
         """CNXN, answer AUTH (signature first, then the public key), wait for the device's CNXN."""
         self.state = "authorizing"
         try:
-            await self.transport.send(connect_message(self.BANNER))
+            await self.transport.send(connect_message(self.BANNER, max_payload=self.MAX_PAYLOAD))
             banner = await self._authenticate()
         except AdbError:
             self.state = "lost"
@@ -113,7 +117,7 @@ class AdbConnection:
             raise AdbProtocolError(self.name, self.state, f"device protocol version 0x{version:08X} too old")
         kind, props = parse_banner(msg.payload)
         features = frozenset(f for f in props.pop("features", "").split(",") if f)
-        size = min(max_payload, MAX_PAYLOAD) if max_payload >= MAX_PAYLOAD_LEGACY else MAX_PAYLOAD_LEGACY
+        size = max(min(max_payload, self.MAX_PAYLOAD), MAX_PAYLOAD_LEGACY)  # both directions use the smaller
         return DeviceBanner(kind, props, features, min(version, A_VERSION), size, msg.payload)
 
     async def _run(self) -> None:
