@@ -40,19 +40,29 @@ def _without_wall_clock(manifest: dict) -> dict:
     return {k: v for k, v in manifest.items() if k not in ("created_utc", "ended_utc")}
 
 
-def test_tbp_scan_sim_is_the_same_scan_when_paced_at_real_time(tmp_path: Path) -> None:
-    """The CLI as fast as possible vs in-process with stretches paced at 1x and 40x real time."""
-    subject = tmp_path / "subject.ply"
-    capsule_subject().export(subject)
-    cli = subprocess.run(
-        [TBP, "scan", "--sim", "--seed", "2", "--subject", str(subject), "--no-panel",
-         "--plan-points", str(PLAN_POINTS), "--depth-decimation", "4", "--store", str(tmp_path / "a")],
-        capture_output=True, text=True, timeout=600,
-    )
+def test_tbp_scan_sim_with_the_rig_defaults_is_complete_and_reproducible(tmp_path: Path) -> None:
+    """The main scan: `tbp scan --sim` with every default (body, panel, 10,000 planning points),
+    then the same seed in-process with stretches paced at 1x and 40x real time: same scan."""
+    cli = subprocess.run([TBP, "scan", "--sim", "--store", str(tmp_path / "a")],
+                         capture_output=True, text=True, timeout=900)
     assert cli.returncode == 0, cli.stderr[-2000:]
     lines = cli.stdout.strip().splitlines()
     fast = Path(lines[-1])
-    assert fast.is_dir() and any("CAPTURING" in line for line in lines[:-1])
+    assert any("CAPTURING" in line for line in lines[:-1])
+    manifest = json.loads((fast / "manifest.json").read_text())
+    assert manifest["state"] == "complete" and manifest["in_progress"] is False
+    assert manifest["counts"]["verified"] == 336
+    for image in manifest["images"]:
+        data = (fast / image["file"]).read_bytes()
+        assert len(data) == image["size_bytes"]
+        assert abs(image["actual_angle_deg"] - image["planned_angle_deg"]) <= 0.2
+    qa = json.loads((fast / "qa.json").read_text())
+    assert qa["lens_late"] == 0 and qa["min_speed_ratio"] >= 0.999
+    assert qa["phase_s"]["total"] <= 100.0
+    plan = json.loads((fast / "plan.json").read_text())
+    assert plan["points"] == 10_000
+    aware, average = plan["methods"]["shape-aware"], plan["methods"]["average"]
+    assert aware["total_cost"] <= average["total_cost"]
 
     async def pace(controller, world) -> None:
         loop = asyncio.get_running_loop()
@@ -66,13 +76,10 @@ def test_tbp_scan_sim_is_the_same_scan_when_paced_at_real_time(tmp_path: Path) -
         loop.time_scale = None
 
     tasks: list[asyncio.Task] = []
-    paced = run_sim_scan(store=tmp_path / "b", seed=2, plan_points=PLAN_POINTS, depth_decimation=4,
-                         subject=load_subject_mesh(subject), panel=False,
+    paced = run_sim_scan(store=tmp_path / "b",
                          on_ready=lambda c, w: tasks.append(asyncio.create_task(pace(c, w)))).folder
-    a = json.loads((fast / "manifest.json").read_text())
-    b = json.loads((paced / "manifest.json").read_text())
-    assert a["state"] == "complete" and a["counts"]["verified"] == 336
-    assert _without_wall_clock(a) == _without_wall_clock(b)
+    again = json.loads((paced / "manifest.json").read_text())
+    assert _without_wall_clock(manifest) == _without_wall_clock(again)
     angles = [[c["exposure_angle_deg"] for c in json.loads((f / "captures.json").read_text())]
               for f in (fast, paced)]
     assert angles[0] == angles[1]
