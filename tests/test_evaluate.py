@@ -1,0 +1,62 @@
+"""tbp evaluate: the corpus evaluation is reproducible and its report names the paper's figures."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from daemon.cli import main
+from daemon.evaluation import StudyOptions, motion_blur, run_corpus
+from daemon.evaluation_report import markdown, write
+from planner.rig import load_rig
+
+SMALL = StudyOptions(points=1500, calibration_trials=1, sway_poses=1, shape=False)
+
+
+def _numbers(results: dict) -> list:
+    """Everything but timings."""
+    return [
+        {k: v for k, v in body.items() if k not in ("timing_s", "plan_timing_s")}
+        | {"methods": {n: {"total_cost": m["total_cost"], "in_focus_fraction": m["in_focus_fraction"]}
+                       for n, m in body["methods"].items()}}
+        for body in results["per_body"]
+    ]
+
+
+@pytest.fixture(scope="module")
+def corpus() -> dict:
+    return run_corpus(2, seed=3, jobs=1, options=SMALL)
+
+
+def test_the_same_seed_gives_the_same_numbers_whatever_the_job_count(corpus):
+    again = run_corpus(2, seed=3, jobs=2, options=SMALL)
+    assert _numbers(again) == _numbers(corpus)
+    other = run_corpus(1, seed=4, jobs=1, options=SMALL)
+    assert _numbers(other)[0]["seed"] != _numbers(corpus)[0]["seed"]
+
+
+def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside(corpus, tmp_path):
+    methods = corpus["summary"]["methods"]
+    aware = methods["shape-aware"]["in_focus_fraction"]["mean"]
+    for name in ("closest", "average", "fixed", "autofocus", "em"):
+        assert aware > methods[name]["in_focus_fraction"]["mean"], name
+        assert methods["shape-aware"]["total_cost"]["mean"] < methods[name]["total_cost"]["mean"], name
+    text = markdown(corpus)
+    assert "| shape-aware |" in text and "| 2986 |" in text and "84.9" in text
+    assert "calibration noise" in text and "postural sway" in text
+    paths = write(corpus, tmp_path / "out")
+    assert all(p.exists() and p.stat().st_size > 0 for p in paths)
+    assert json.loads((tmp_path / "out" / "results.json").read_text())["bodies"] == 2
+
+
+def test_motion_blur_of_every_capture_is_within_the_limit():
+    blur = motion_blur(load_rig())
+    assert len(blur["blur_px"]) == 48
+    assert max(blur["blur_px"]) == pytest.approx(6144 / 47.66 * 9 * 0.002, rel=1e-3)
+    assert min(blur["blur_px"]) == pytest.approx(6144 / 47.66 * 3 * 0.002, rel=1e-3)
+
+
+def test_cli_refuses_an_empty_corpus(capsys, tmp_path):
+    assert main(["evaluate", "--bodies", "0", "--out", str(tmp_path)]) == 2
+    assert "--bodies" in capsys.readouterr().err
