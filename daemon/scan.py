@@ -10,6 +10,7 @@ loop keeps serving heartbeats, the watchdog and the e-stop while they compute.
 from __future__ import annotations
 
 import asyncio
+import functools
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
@@ -429,6 +430,20 @@ class Scan:
             except StoreError as exc:
                 report.errors.append(f"{name}: {type(exc).__name__}: {exc}")
                 log.error("store_step_failed", step=name, error=str(exc))
+        if report.captured:
+            await self._write_qa_report(folder)
+
+    async def _write_qa_report(self, folder: Any) -> None:
+        """The HTML QA report, off the event loop. It is derived from files already safe on
+        disk, so a failure is logged and `tbp report` can regenerate it."""
+        from daemon.qa_report import generate_report
+
+        try:
+            page = await asyncio.get_running_loop().run_in_executor(
+                self.executor, functools.partial(generate_report, folder.path, rig_path=self.rig.path))
+            log.info("qa_report_written", path=str(page))
+        except Exception as exc:  # the scan's data is complete without the report
+            log.error("qa_report_failed", error=f"{type(exc).__name__}: {exc}")
 
     def _record_missing(self, records: Sequence[CaptureRecord]) -> None:
         assert self.folder is not None

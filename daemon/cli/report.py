@@ -1,0 +1,34 @@
+"""``tbp report SCAN_DIR``: (re)generate a scan folder's QA report."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "report",
+        help="write a scan's QA report (HTML with figures) into its folder",
+        description="Regenerate <SCAN_DIR>/report/index.html: sharp, blurred and unseen skin from "
+        "four sides, focus against angle per camera, the speed profile with capture marks, planned "
+        "vs actual angles, the resolution histogram, and every missing or failed image.",
+    )
+    parser.add_argument("scan_dir", type=Path, help="a scan folder")
+    parser.add_argument("--rig", type=Path, default=None, help="the rig file the scan was taken with")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.logs import configure_logging
+    from daemon.qa_report import generate_report
+    from daemon.scan_views import ScanFolderError
+
+    configure_logging(level="warning")
+    try:
+        print(generate_report(args.scan_dir, rig_path=args.rig))
+    except ScanFolderError as exc:
+        print(f"tbp report: {exc}", file=sys.stderr)
+        return 2
+    return 0

@@ -1,0 +1,210 @@
+"""The scan QA report: an offline HTML page with PNG figures, written into the scan folder.
+
+What an operator and a dermatologist check at a glance: which skin is sharp (green), blurred
+(red) or never seen (grey) in the images actually captured, seen from the front, back and both
+sides; each camera's focus against the angle for each planned method; the beam's speed with
+the capture marks; planned vs actual capture angles; the resolution of the skin in its best
+image; and every missing or failed image.
+"""
+
+from __future__ import annotations
+
+import html
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daemon.scan_views import ScanRecord, open_scan
+
+REPORT_DIR = "report"
+SAMPLES = 20_000
+GREEN, RED, GREY = "#2e9d4b", "#d43c2f", "#9a9a9a"
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, path: Path) -> str:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    _pyplot().close(fig)
+    return path.name
+
+
+def skin_status(scan: ScanRecord, samples: int = SAMPLES, seed: int = 0) -> dict[str, np.ndarray]:
+    """Surface samples of the scan's mesh and their state in the captured images.
+
+    Returns points (N, 3) mm, inward normals (N, 3), status (N,) int (2 sharp, 1 seen but blurred, 0 not seen) and
+    resolution (N,) mm/px in each point's best sharp-or-seen image (NaN if unseen).
+    """
+    from planner.cost import cost_table
+    from planner.optics import resolution_mm_per_px
+    from planner.sampling import sample_surface
+    from planner.visibility import RayScene, visible_pairs
+
+    rig = scan.rig
+    mesh = scan.mesh()
+    points = sample_surface(mesh, samples, seed=seed)
+    focus = scan.captured_focus_mm()
+    table = cost_table(visible_pairs(RayScene(mesh), scan.poses(), points, rig.optics), rig.cost, rig.optics)
+    captured = np.isfinite(focus)[table.vis.pose]
+    sharp_pair = table.pair_in_focus(np.nan_to_num(focus, nan=-1.0)) & captured
+    status = np.zeros(len(points), dtype=int)
+    status[table.vis.point[captured]] = 1
+    status[table.vis.point[sharp_pair]] = 2
+    resolution = np.full(len(points), np.inf)
+    per_pair = resolution_mm_per_px(table.vis.depth, rig.optics)
+    np.minimum.at(resolution, table.vis.point[captured], per_pair[captured])
+    resolution[np.isinf(resolution)] = np.nan
+    return {"points": points.points, "normals": points.normals, "status": status, "resolution": resolution}
+
+
+def _body_views(skin: dict[str, np.ndarray], out: Path) -> str:
+    """Orthographic point splats from four sides, nearest points drawn last."""
+    plt = _pyplot()
+    points, normals, status = skin["points"], skin["normals"], skin["status"]
+    colours = np.array([GREY, RED, GREEN])[status]
+    views = (("front", np.array([1.0, 0, 0])), ("left side", np.array([0, 1.0, 0])),
+             ("back", np.array([-1.0, 0, 0])), ("right side", np.array([0, -1.0, 0])))
+    fig, axes = plt.subplots(1, 4, figsize=(12, 6))
+    for ax, (name, towards) in zip(axes, views):
+        across = np.cross(np.array([0, 0, 1.0]), towards)
+        facing = np.flatnonzero(normals @ towards < 0)  # inward normals: outward faces the viewer
+        order = facing[np.argsort(points[facing] @ towards)]
+        ax.scatter(points[order] @ across, points[order, 2], c=colours[order], s=2.5, linewidths=0)
+        ax.set_title(name)
+        ax.set_aspect("equal")
+        ax.axis("off")
+    shares = [np.mean(status == k) for k in (2, 1, 0)]
+    fig.suptitle(f"sharp {100 * shares[0]:.1f} %   blurred {100 * shares[1]:.1f} %   "
+                 f"not seen {100 * shares[2]:.1f} %   (of the estimated skin surface)")
+    return _save(fig, out / "body.png")
+
+
+def _focus_by_angle(scan: ScanRecord, out: Path) -> str | None:
+    if not scan.plan:
+        return None
+    plt = _pyplot()
+    rig = scan.rig
+    angles = rig.capture.angles_deg
+    fig, axes = plt.subplots(rig.n_cameras, 1, figsize=(9, 1.6 * rig.n_cameras), sharex=True)
+    for c, ax in enumerate(np.atleast_1d(axes)):
+        for name, method in scan.plan["methods"].items():
+            focus = np.asarray(method["focus_mm"]).reshape(rig.n_angles, rig.n_cameras)[:, c]
+            ax.plot(angles, focus, ".-", ms=3, lw=1, label=name)
+        ax.set_ylabel(f"{rig.phones[c].id}\nmm", fontsize=8)
+    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=4)
+    np.atleast_1d(axes)[-1].set_xlabel("capture angle, deg")
+    fig.suptitle("focus distance of each camera against the angle")
+    return _save(fig, out / "focus.png")
+
+
+def _speed_profile(scan: ScanRecord, out: Path) -> str | None:
+    trace_path = scan.folder / "trace.npz"
+    if not trace_path.exists():
+        return None
+    plt = _pyplot()
+    trace = np.load(trace_path)
+    fig, ax = plt.subplots(figsize=(9, 3))
+    ax.plot(trace["angle_deg"], trace["speed_deg_s"], lw=0.8, color="#35608c")
+    actual = [i["actual_angle_deg"] for i in scan.images if i.get("actual_angle_deg") is not None]
+    for angle in sorted(set(np.round(actual, 1))):
+        ax.axvline(angle, color=GREEN, lw=0.3, alpha=0.6)
+    ax.set_xlabel("beam angle, deg")
+    ax.set_ylabel("speed, deg/s")
+    ax.set_title("beam speed with the capture marks")
+    return _save(fig, out / "speed.png")
+
+
+def _angle_errors(scan: ScanRecord, out: Path) -> str | None:
+    rows = [(i["planned_angle_deg"], i["actual_angle_deg"] - i["planned_angle_deg"])
+            for i in scan.images if i.get("actual_angle_deg") is not None]
+    if not rows:
+        return None
+    plt = _pyplot()
+    planned, error = np.array(rows).T
+    tolerance = scan.rig.capture.angle_tolerance_deg
+    fig, ax = plt.subplots(figsize=(9, 3))
+    ax.scatter(planned, error, s=6)
+    ax.axhline(tolerance, color=RED, ls="--", lw=1)
+    ax.axhline(-tolerance, color=RED, ls="--", lw=1)
+    ax.set_xlabel("planned angle, deg")
+    ax.set_ylabel("actual - planned, deg")
+    ax.set_title(f"exposure angle error (max {np.abs(error).max():.3f} deg, tolerance {tolerance} deg)")
+    return _save(fig, out / "angles.png")
+
+
+def _resolution_histogram(skin: dict[str, np.ndarray], out: Path) -> str:
+    plt = _pyplot()
+    resolution = skin["resolution"][np.isfinite(skin["resolution"])]
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.hist(resolution, bins=60, color="#35608c")
+    ax.axvline(0.075, color=RED, ls="--", lw=1, label="0.075 mm/px (1.5 mm lesion)")
+    ax.set_xlabel("mm per pixel in the best image")
+    ax.set_ylabel("skin samples")
+    ax.legend(fontsize=8)
+    return _save(fig, out / "resolution.png")
+
+
+def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None) -> Path:
+    """Write ``<scan_dir>/report/index.html`` and its figures; returns the HTML path.
+
+    Works on incomplete and aborted scans too (sections without data are left out).
+    """
+    started = time.perf_counter()
+    scan = open_scan(scan_dir, rig_path)
+    out = scan.folder / REPORT_DIR
+    out.mkdir(exist_ok=True)
+    figures: list[tuple[str, str | None]] = []
+    skin = None
+    if (scan.folder / "mesh.ply").exists() and np.isfinite(scan.captured_focus_mm()).any():
+        skin = skin_status(scan)
+        figures.append(("Skin in focus in the captured images", _body_views(skin, out)))
+    figures.append(("Focus plan", _focus_by_angle(scan, out)))
+    figures.append(("Speed profile", _speed_profile(scan, out)))
+    figures.append(("Planned vs actual capture angles", _angle_errors(scan, out)))
+    if skin is not None:
+        figures.append(("Resolution", _resolution_histogram(skin, out)))
+
+    manifest = scan.manifest
+    problems = [i for i in scan.images if i.get("status") != "verified"]
+    counts = ", ".join(f"{k} {v}" for k, v in manifest.get("counts", {}).items() if v)
+    parts = [
+        "<!doctype html><meta charset='utf-8'>",
+        f"<title>Scan {html.escape(str(manifest.get('scan_id')))}</title>",
+        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}img{max-width:100%}"
+        "td,th{padding:2px 8px;text-align:left}</style>",
+        f"<h1>Scan {html.escape(str(manifest.get('scan_id')))}: {html.escape(str(manifest.get('state')))}</h1>",
+        f"<p>Images: {html.escape(counts)}. {html.escape(str(manifest.get('reason') or ''))}</p>",
+    ]
+    if skin is not None:
+        share = np.mean(skin["status"] == 2)
+        parts.append(f"<p>Sharp skin in the captured images: <b>{100 * share:.1f} %</b> of the estimated surface.</p>")
+    for title, name in figures:
+        if name:
+            parts.append(f"<h2>{html.escape(title)}</h2><img src='{name}' alt='{html.escape(title)}'>")
+    parts.append("<h2>Missing or failed images</h2>")
+    if problems:
+        parts.append("<table><tr><th>camera</th><th>angle</th><th>status</th><th>error</th></tr>")
+        for image in problems:
+            parts.append(
+                f"<tr><td>{html.escape(str(image['camera_id']))}</td><td>{image['planned_angle_deg']:.1f}</td>"
+                f"<td>{html.escape(str(image['status']))}</td><td>{html.escape(str(image.get('error') or ''))}</td></tr>"
+            )
+        parts.append("</table>")
+    else:
+        parts.append("<p>None: every planned image is on disk and verified.</p>")
+    parts.append(f"<p><small>Report generated in {time.perf_counter() - started:.1f} s.</small></p>")
+    page = out / "index.html"
+    tmp = page.with_suffix(".tmp")
+    tmp.write_text("\n".join(parts))
+    tmp.replace(page)
+    return page
