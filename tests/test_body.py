@@ -91,7 +91,21 @@ def test_arms_lowered_25_to_30_degrees_from_vertical(average) -> None:
         upper_arm = average.joints[f"lowerarm01.{side}"] - average.joints[f"upperarm01.{side}"]
         assert 25.0 <= _angle_deg(upper_arm, DOWN) <= 30.0
         forearm = average.joints[f"wrist.{side}"] - average.joints[f"lowerarm01.{side}"]
-        assert _angle_deg(forearm, upper_arm) < 20.0  # elbows nearly straight
+        assert _angle_deg(forearm, DOWN) < 10.0  # forearms hang, hands relaxed
+        assert _angle_deg(forearm, upper_arm) < 35.0
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_every_adult_stays_clear_of_the_camera_ring(seed) -> None:
+    """The phones ride 450 mm from the axis: no skin of a standing adult within 80 mm of them."""
+    body = generate_body(seed=seed)
+    radius = np.hypot(body.mesh.vertices[:, 0], body.mesh.vertices[:, 1])
+    assert radius.max() <= 370.0
+    thigh = body.mesh.vertices[(body.mesh.vertices[:, 2] > body.joints["wrist.L"][2] - 50)
+                               & (body.mesh.vertices[:, 2] < body.joints["wrist.L"][2] + 50)]
+    hand_y = abs(body.joints["wrist.L"][1])
+    torso = thigh[np.abs(thigh[:, 1]) < hand_y - 80]
+    assert len(torso) and np.abs(torso[:, 1]).max() < hand_y - 80  # a gap between hand and thigh
 
 
 def test_arms_clear_of_the_torso(average) -> None:

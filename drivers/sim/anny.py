@@ -26,8 +26,10 @@ UP = np.array([0.0, 0.0, 1.0])
 
 ARM_ABDUCTION_DEG = 27.5
 """Angle between each upper arm and the vertical: arms lowered, clear of the torso."""
-ELBOW_FLEXION_DEG = 10.0
-"""A relaxed, nearly straight elbow (Anny's rest pose bends it about 45 deg forward)."""
+FOREARM_FROM_VERTICAL_DEG = 3.0
+"""Forearms hang nearly straight down (elbows bent about 25 deg), so the hands stay well inside
+the camera ring (450 mm from the axis) while keeping clear of the thighs: a patient is asked to
+hold the arms slightly away from the body with the hands relaxed, not to reach out."""
 ANKLE_SPACING_M = 0.20
 """Distance between the ankle centres: feet slightly apart."""
 
@@ -260,11 +262,10 @@ class _Poser:
 
 
 def stand(poser: _Poser) -> None:
-    """Standing anatomical pose: arms lowered, elbows nearly straight, feet slightly apart."""
+    """Standing anatomical pose: upper arms lowered, forearms hanging, feet slightly apart."""
     for side in ("L", "R"):
         poser.aim(f"upperarm01.{side}", f"lowerarm01.{side}", ARM_ABDUCTION_DEG, -UP)
-        upper = poser.joint(f"lowerarm01.{side}") - poser.joint(f"upperarm01.{side}")
-        poser.aim(f"lowerarm01.{side}", f"wrist.{side}", ELBOW_FLEXION_DEG, upper)
+        poser.aim(f"lowerarm01.{side}", f"wrist.{side}", FOREARM_FROM_VERTICAL_DEG, -UP)
     for side, sign in (("L", 1.0), ("R", -1.0)):
         for _ in range(2):  # the ankle is not straight below the hip; a second pass settles it
             hip, ankle = poser.joint(f"upperleg01.{side}"), poser.joint(f"foot.{side}")
