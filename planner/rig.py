@@ -280,6 +280,7 @@ class Tsdf:
     volume_radius_mm: float
     volume_height_mm: float
     floor_clearance_mm: float
+    camera_clearance_mm: float
 
 
 @dataclass(frozen=True)
@@ -429,6 +430,7 @@ _TSDF = {
     "volume_radius_mm": _num(100.0, 5000.0),
     "volume_height_mm": _num(100.0, 5000.0),
     "floor_clearance_mm": _num(0.0, 200.0),
+    "camera_clearance_mm": _num(0.0, 400.0, default=50.0, required=False),
 }
 _MOTOR = {
     "node_id": _int(1, 127),

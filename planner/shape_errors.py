@@ -61,6 +61,19 @@ class SubjectTouchesBoundary(ShapeEstimateError):
         )
 
 
+class SubjectTooCloseToCameras(ShapeEstimateError):
+    """Skin within the clearance of the ring the phones ride on: the beam must not start."""
+
+    def __init__(self, angle_deg: float, height_mm: float, radius_mm: float, ring_mm: float, clearance_mm: float) -> None:
+        self.angle_deg, self.height_mm, self.radius_mm = angle_deg, height_mm, radius_mm
+        self.ring_mm, self.clearance_mm = ring_mm, clearance_mm
+        super().__init__(
+            f"subject reaches {radius_mm:.0f} mm from the axis at azimuth {angle_deg:.0f} deg, height "
+            f"{height_mm:.0f} mm: within {clearance_mm:.0f} mm of the camera ring ({ring_mm:.0f} mm); "
+            f"ask the subject to stand on the marks with the arms closer to the body"
+        )
+
+
 class ImplausibleSubject(ShapeEstimateError):
     """The reconstructed subject is too small or too large to be a person."""
 

@@ -20,7 +20,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from planner.rig import Rig
-from planner.shape_errors import ImplausibleSubject, NoSubject, SubjectTouchesBoundary, TooFewFrames
+from planner.shape_errors import (
+    ImplausibleSubject,
+    NoSubject,
+    SubjectTooCloseToCameras,
+    SubjectTouchesBoundary,
+    TooFewFrames,
+)
 from planner.sweep import PosedDepth, select_by_spacing
 
 log = structlog.get_logger(__name__)
@@ -257,6 +263,12 @@ def _validate(subject: trimesh.Trimesh, rig: Rig) -> None:
         raise NoSubject(f"largest object is {height:.0f} mm tall and {extent:.0f} mm wide: clutter, not a person")
     margin = BOUNDARY_MARGIN_VOXELS * cfg.voxel_mm
     r = np.hypot(v[:, 0], v[:, 1])
+    if r.max() > rig.ring_radius_mm - cfg.camera_clearance_mm:
+        i = int(np.argmax(r))
+        raise SubjectTooCloseToCameras(
+            math.degrees(math.atan2(v[i, 1], v[i, 0])), float(v[i, 2]), float(r[i]), rig.ring_radius_mm,
+            cfg.camera_clearance_mm,
+        )
     if r.max() >= cfg.volume_radius_mm - margin:
         i = int(np.argmax(r))
         raise SubjectTouchesBoundary(

@@ -12,7 +12,13 @@ from hypothesis import strategies as st
 
 from drivers.sim.depth import simulate_sweep
 from planner.mesh_metrics import shape_metrics
-from planner.shape_errors import ImplausibleSubject, NoSubject, SubjectTouchesBoundary, TooFewFrames
+from planner.shape_errors import (
+    ImplausibleSubject,
+    NoSubject,
+    SubjectTooCloseToCameras,
+    SubjectTouchesBoundary,
+    TooFewFrames,
+)
 from planner.tsdf import MIN_FRAMES, close_openings, fuse
 from tests.depth_helpers import cylinder, small_rig, sphere
 
@@ -98,12 +104,24 @@ def test_a_small_object_is_no_subject():
 
 def test_subject_reaching_the_side_is_refused_with_where():
     arm = trimesh.creation.box(extents=[80.0, 600.0, 80.0]).apply_translation([0.0, 450.0, 1300.0])
+    no_clearance = dataclasses.replace(COARSE, tsdf=dataclasses.replace(COARSE.tsdf, camera_clearance_mm=0.0))
     with pytest.raises(SubjectTouchesBoundary) as err:
-        _fuse(trimesh.util.concatenate([cylinder(), arm]))
+        _fuse(trimesh.util.concatenate([cylinder(), arm]), rig=no_clearance)
     assert err.value.where == "side"
     assert err.value.angle_deg == pytest.approx(90.0, abs=10.0)
     assert err.value.height_mm == pytest.approx(1300.0, abs=60.0)
     assert "side" in str(err.value) and "azimuth" in str(err.value)
+
+
+def test_an_arm_reaching_towards_the_camera_ring_is_refused_before_capture():
+    arm = trimesh.creation.box(extents=[80.0, 300.0, 80.0]).apply_translation([0.0, -280.0, 1100.0])
+    with pytest.raises(SubjectTooCloseToCameras) as err:
+        _fuse(trimesh.util.concatenate([cylinder(), arm]))
+    clearance = COARSE.tsdf.camera_clearance_mm
+    assert err.value.radius_mm > COARSE.ring_radius_mm - clearance
+    assert err.value.angle_deg == pytest.approx(-90.0, abs=10.0)
+    assert err.value.height_mm == pytest.approx(1100.0, abs=60.0)
+    assert f"within {clearance:.0f} mm of the camera ring" in str(err.value)
 
 
 def test_subject_reaching_the_top_is_refused():
