@@ -45,7 +45,9 @@ def sweep(lo: np.ndarray, hi: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     # intervals touching at a point overlap there.
     order = np.argsort(coords, kind="stable")
     running = np.cumsum(np.concatenate([w, -w])[order])
-    k = int(np.argmax(running))
+    # The last coordinate closes every interval: no cell starts there. Excluding it also keeps
+    # a rounding residue (weights that are differences of costs) from electing it.
+    k = int(np.argmax(running[:-1]))
     left = coords[order[k]]
     right = coords[order[k + 1]]
     if np.isinf(right):

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner.interval_sweep import best_focus, best_focus_per_group, coverage
+from planner.interval_sweep import best_focus, best_focus_per_group, coverage, sweep
 
 
 def brute_force(lo: np.ndarray, hi: np.ndarray, w: np.ndarray | None) -> float:
@@ -90,3 +90,11 @@ def test_focus_is_midpoint_in_diopters() -> None:
 def test_bad_input_is_refused(lo, hi, w) -> None:
     with pytest.raises(ValueError):
         best_focus(np.array(lo), np.array(hi), None if w is None else np.array(w))
+
+
+def test_rounding_residue_in_the_weights_never_elects_the_last_end() -> None:
+    """Refinement gains are differences of costs: -1e-17 instead of 0 must not break the sweep."""
+    s, score = sweep(np.array([300.0]), np.array([400.0]), np.array([-1e-17]))
+    assert 300.0 <= s <= 400.0 and score <= 0.0
+    s, _ = sweep(np.array([300.0, 350.0]), np.array([400.0, np.inf]), np.array([-1e-17, -2e-17]))
+    assert np.isfinite(s)
