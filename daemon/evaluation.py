@@ -14,6 +14,7 @@ how many worker processes run the corpus.
 
 from __future__ import annotations
 
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -65,7 +66,6 @@ def evaluate_body(index: int, corpus_seed: int, options: StudyOptions, rig_path:
     from planner.poses import rgb_poses
     from planner.sampling import sample_surface
 
-    configure_logging(level="warning")
     rig = load_rig(rig_path) if rig_path else load_rig()
     seed = body_seed(corpus_seed, index)
     timings: dict[str, float] = {}
@@ -148,6 +148,11 @@ def evaluate_body(index: int, corpus_seed: int, options: StudyOptions, rig_path:
     return result
 
 
+def _quiet_worker() -> None:
+    """Worker processes log warnings and errors only (the planner logs every plan at info)."""
+    configure_logging(level="warning", stream=sys.stderr)
+
+
 def _spread(values: list[float]) -> dict[str, float]:
     array = np.asarray(values, dtype=float)
     return {"mean": float(array.mean()), "std": float(array.std()), "max": float(array.max()), "n": len(array)}
@@ -190,7 +195,7 @@ def run_corpus(
             if progress:
                 progress(len(results), bodies)
     else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_quiet_worker) as pool:
             futures = [pool.submit(evaluate_body, i, seed, options, rig_path) for i in range(bodies)]
             for future in futures:
                 results.append(future.result())
