@@ -14,7 +14,6 @@ import pytest
 from daemon.scan import ScanReport
 from daemon.simulation import run_sim_scan
 from daemon.states import ScanOutcome, ScanState
-from planner.plan import load_subject_mesh
 from planner.rig import DEFAULT_RIG_PATH
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject, wait_captured
 
