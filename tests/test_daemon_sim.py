@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +13,7 @@ import pytest
 from daemon.scan import ScanReport
 from daemon.simulation import run_sim_scan
 from daemon.states import ScanOutcome, ScanState
-from planner.rig import DEFAULT_RIG_PATH
+from planner.plan import load_subject_mesh
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject, wait_captured
 
 pytestmark = pytest.mark.slow
@@ -44,9 +43,7 @@ def _without_wall_clock(manifest: dict) -> dict:
 def test_tbp_scan_sim_with_the_rig_defaults_is_complete_and_reproducible(tmp_path: Path) -> None:
     """The main scan: `tbp scan --sim` with every default (body, panel, 10,000 planning points),
     then the same seed in-process with stretches paced at 1x and 40x real time: same scan."""
-    config = tmp_path / "calibration_data" / "rig.yaml"  # a fixed copy: the repo's may change meanwhile
-    shutil.copytree(Path(DEFAULT_RIG_PATH).parent, config.parent)
-    cli = subprocess.run([TBP, "scan", "--sim", "--config", str(config), "--store", str(tmp_path / "a")],
+    cli = subprocess.run([TBP, "scan", "--sim", "--store", str(tmp_path / "a")],
                          capture_output=True, text=True, timeout=900)
     assert cli.returncode == 0, cli.stderr[-2000:]
     lines = cli.stdout.strip().splitlines()
@@ -79,7 +76,7 @@ def test_tbp_scan_sim_with_the_rig_defaults_is_complete_and_reproducible(tmp_pat
         loop.time_scale = None
 
     tasks: list[asyncio.Task] = []
-    paced = run_sim_scan(store=tmp_path / "b", config=config,
+    paced = run_sim_scan(store=tmp_path / "b",
                          on_ready=lambda c, w: tasks.append(asyncio.create_task(pace(c, w)))).folder
     again = json.loads((paced / "manifest.json").read_text())
     assert _without_wall_clock(manifest) == _without_wall_clock(again)
