@@ -23,8 +23,8 @@ import structlog
 from daemon.beam import BeamTracker
 from daemon.clocksync import ClockSync, EncoderTrace, exposure_angle
 from daemon.errors import BeamTimeout, CaptureMissed
-from daemon.timeline import CaptureSchedule, MotionProfile, move_duration
 from planner.rig import Rig
+from planner.schedule import CaptureSchedule, MotionProfile, move_duration
 
 log = structlog.get_logger("daemon.capture")
 

@@ -7,7 +7,6 @@ both run exactly the same scan code against whatever hardware they were given.
 from __future__ import annotations
 
 import asyncio
-from concurrent.futures import Executor
 from typing import Any
 
 import structlog
@@ -16,7 +15,7 @@ from daemon.beam import BeamTracker
 from daemon.errors import ScanBusy
 from daemon.hardware import RigHardware
 from daemon.safety import SafetyMonitor
-from daemon.scan import Scan, ScanReport
+from daemon.scan import Scan, ScanReport, ScanSettings
 from daemon.states import ScanState, ScanStateMachine
 from daemon.store import ScanStore
 from planner.rig import Rig
@@ -44,17 +43,13 @@ class RigController:
         hardware: RigHardware,
         store: ScanStore,
         *,
-        executor: Executor | None = None,
-        seed: int = 0,
-        plan_points: int | None = None,
+        settings: ScanSettings = ScanSettings(),
         machine: ScanStateMachine | None = None,
     ) -> None:
         self.rig = rig
         self.hw = hardware
         self.store = store
-        self.executor = executor
-        self.seed = seed
-        self.plan_points = plan_points
+        self.settings = settings
         self.machine = machine or ScanStateMachine()
         self.safety = SafetyMonitor(self.machine, hardware.drive)
         self.tracker = BeamTracker(hardware.drive)
@@ -129,8 +124,7 @@ class RigController:
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
         self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, self.store,
-                            scan_id=scan_id, executor=self.executor, seed=self.seed,
-                            plan_points=self.plan_points)
+                            scan_id=scan_id, settings=self.settings)
         self.scan_task = asyncio.create_task(self._run_scan(self.current), name="scan")
         return self.scan_task
 

@@ -1,6 +1,6 @@
 """The rig's devices as the daemon sees them: one drive, the phones, the depth cameras, the panel.
 
-Real and simulated rigs fill the same structure (daemon/sim_rig.py builds the simulated one), so
+Real and simulated rigs fill the same structure (sim/rig.py builds the simulated one), so
 the scan and the service never know which they drive.
 """
 

@@ -22,16 +22,16 @@ import numpy as np
 import structlog
 
 from daemon.beam import BeamTracker
-from daemon.capture import CaptureRecord, CaptureRunner, TriggerLatency
+from daemon.capture import CaptureRecord, CaptureRunner
 from daemon.depth_sweep import DepthSweeper, SweepRecord
 from daemon.hardware import RigHardware
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
+from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.pulls import PullQueue
 from daemon.store import ImageStatus, ScanEnd, ScanFolder, ScanStore, StoreError
-from daemon.timeline import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 from planner.rig import Rig
+from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 
 log = structlog.get_logger("daemon.scan")
 
@@ -39,6 +39,23 @@ PLAN_METHOD = "shape-aware"
 """The planner's method whose focus the capture uses (EM + refinement)."""
 PLAN_METHODS = ("average", PLAN_METHOD)
 """Planned per scan: the capture's method and the seed's usual baseline for the QA report."""
+
+
+@dataclass(frozen=True)
+class ScanSettings:
+    """How the daemon runs every scan; handed as one object from the controller to each scan.
+
+    seed: seeds the planner's surface sampling (a seeded scan is reproducible).
+    plan_points: surface samples for planning (None: the rig file's ``planner.points``).
+    executor: where the compute steps run (None: the loop's default thread pool).
+    qa_report: ``(scan folder, rig_path=rig file) -> page`` writes the scan's QA report once the folder
+        is closed (None: no report; ``tbp report`` can write it later).
+    """
+
+    seed: int = 0
+    plan_points: int | None = None
+    executor: Executor | None = None
+    qa_report: Callable[..., Path] | None = None
 
 
 @dataclass
@@ -123,10 +140,8 @@ class Scan:
     """One scan on connected hardware.
 
     Args:
-        folder_store: where the scan folder goes.
-        executor: for the compute steps (None = the loop's default thread pool).
-        seed: seeds the planner's surface sampling (deterministic scans).
-        plan_points: surface samples for planning (None: rig.planner.points).
+        store: where the scan folder goes.
+        settings: seed, planning samples, compute executor, QA report writer.
     """
 
     ABORT_DECELERATION_FACTOR = 1.0
@@ -142,9 +157,7 @@ class Scan:
         store: ScanStore,
         *,
         scan_id: str | None = None,
-        executor: Executor | None = None,
-        seed: int = 0,
-        plan_points: int | None = None,
+        settings: ScanSettings = ScanSettings(),
     ) -> None:
         self.rig = rig
         self.hw = hardware
@@ -153,9 +166,7 @@ class Scan:
         self.tracker = tracker
         self.store = store
         self.scan_id = scan_id
-        self.executor = executor
-        self.seed = seed
-        self.plan_points = plan_points
+        self.settings = settings
         self.folder: ScanFolder | None = None
         self.report: ScanReport | None = None
         self.runner: CaptureRunner | None = None
@@ -299,14 +310,15 @@ class Scan:
         reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
         try:
             fused, report.compute_s["tsdf"] = await loop.run_in_executor(
-                self.executor, _timed, _reconstruct, sweep, rig)
+                self.settings.executor, _timed, _reconstruct, sweep, rig)
             self.folder.write_mesh(fused.mesh)
 
             # PLANNING
             self.machine.transition(ScanState.PLANNING, "subject mesh ready",
                                     vertices=len(fused.mesh.vertices))
             plan, report.compute_s["planning"] = await loop.run_in_executor(
-                self.executor, _timed, _plan, fused.mesh, rig, self.seed, self.plan_points)
+                self.settings.executor, _timed, _plan, fused.mesh, rig, self.settings.seed,
+                self.settings.plan_points)
             plan_json = plan.to_json()
             focus = self._reachable(np.asarray(plan.methods[PLAN_METHOD].focus_mm, dtype=float))
             self.folder.write_plan(plan_json, _plan_summary(plan_json))
@@ -430,17 +442,15 @@ class Scan:
             except StoreError as exc:
                 report.errors.append(f"{name}: {type(exc).__name__}: {exc}")
                 log.error("store_step_failed", step=name, error=str(exc))
-        if report.captured:
-            await self._write_qa_report(folder)
+        if report.captured and self.settings.qa_report is not None:
+            await self._write_qa_report(folder, self.settings.qa_report)
 
-    async def _write_qa_report(self, folder: Any) -> None:
+    async def _write_qa_report(self, folder: ScanFolder, write: Callable[..., Path]) -> None:
         """The HTML QA report, off the event loop. It is derived from files already safe on
         disk, so a failure is logged and `tbp report` can regenerate it."""
-        from daemon.qa_report import generate_report
-
         try:
             page = await asyncio.get_running_loop().run_in_executor(
-                self.executor, functools.partial(generate_report, folder.path, rig_path=self.rig.path))
+                self.settings.executor, functools.partial(write, folder.path, rig_path=self.rig.path))
             log.info("qa_report_written", path=str(page))
         except Exception as exc:  # the scan's data is complete without the report
             log.error("qa_report_failed", error=f"{type(exc).__name__}: {exc}")

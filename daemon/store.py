@@ -31,7 +31,7 @@ import re
 import secrets
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,7 @@ import numpy as np
 import structlog
 
 from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
+from daemon.utc import utc_now, utc_stamp
 from planner.rig import Rig
 
 FORMAT_VERSION = 1
@@ -283,7 +284,7 @@ class ScanFolder:
 
     def log_event(self, event: str, **fields: Any) -> None:
         """Append one line to events.jsonl (fsync'd): what happened, with wall-clock UTC."""
-        record = {"utc": datetime.now(UTC).isoformat(), "event": event, **_clean(fields)}
+        record = {"utc": utc_stamp(), "event": event, **_clean(fields)}
         line = (json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n").encode()
         self.writer.append_line(self.path / "events.jsonl", line)
         self.manifest.files.setdefault("events", "events.jsonl")
@@ -384,7 +385,7 @@ class ScanFolder:
         self.manifest.state = state
         self.manifest.reason = reason
         self.manifest.in_progress = False
-        self.manifest.ended_utc = datetime.now(UTC).isoformat()
+        self.manifest.ended_utc = utc_stamp()
         self.save()
         self.reserve_path.unlink(missing_ok=True)
         log.info("scan_stored", scan_id=self.scan_id, state=state.value, path=str(self.path),
@@ -408,7 +409,7 @@ class ScanStore:
         scan_id = scan_id or new_scan_id()
         if not _SCAN_ID.match(scan_id):
             raise StoreError(self.root, f"scan id {scan_id!r} must be 1-64 of [A-Za-z0-9_-]")
-        now = now or datetime.now(UTC)
+        now = now or utc_now()
         path = self.root / f"{now:%Y%m%d-%H%M%S}-{scan_id}"
         try:
             self.root.mkdir(parents=True, exist_ok=True)
@@ -494,7 +495,7 @@ class ScanStore:
             folder.manifest.state = ScanEnd.INCOMPLETE
             folder.manifest.reason = reason_here
             folder.manifest.in_progress = False
-            folder.manifest.ended_utc = datetime.now(UTC).isoformat()
+            folder.manifest.ended_utc = utc_stamp()
             folder.save()
             log.warning("scan_recovered", scan_id=folder.scan_id, path=str(path),
                         reason=reason_here, **folder.manifest.counts())

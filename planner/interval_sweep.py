@@ -39,7 +39,6 @@ def best_focus(
 
 def sweep(lo: np.ndarray, hi: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     """:func:`best_focus` without input checks, for inner loops that guarantee valid input."""
-    n = len(lo)
     coords = np.concatenate([lo, hi])
     # A stable sort keeps starts (first half) before ends at the same coordinate: closed
     # intervals touching at a point overlap there.

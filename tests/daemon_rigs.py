@@ -18,11 +18,11 @@ import trimesh
 
 from daemon.controller import RigController
 from daemon.hardware import RigHardware
-from daemon.scan import ScanReport
-from daemon.sim_rig import sim_depth_model
+from daemon.scan import ScanReport, ScanSettings
 from daemon.store import ScanStore
-from drivers.sim.clock import run_virtual
 from planner.rig import Rig, load_rig
+from sim.clock import run_virtual
+from sim.rig import sim_depth_model
 from tests.daemon_mocks import MockPhone
 
 RIG = load_rig()
@@ -81,8 +81,8 @@ def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: H
         if prepare is not None:
             prepare(world)
         with ThreadPoolExecutor(max_workers=1) as executor:
-            controller = RigController(rig, hardware, store_factory(store), executor=executor,
-                                       seed=seed, plan_points=PLAN_POINTS)
+            controller = RigController(rig, hardware, store_factory(store), settings=ScanSettings(
+                executor=executor, seed=seed, plan_points=PLAN_POINTS))
             await controller.start()
             side = asyncio.create_task(during(controller, world)) if during is not None else None
             try:

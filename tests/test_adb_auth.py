@@ -12,7 +12,12 @@ from pathlib import Path
 import pytest
 
 from drivers.adb.auth import (
-    BLOB_SIZE, AdbKey, decode_public_blob, encode_public_blob, parse_public_key_text, verify_token_signature,
+    BLOB_SIZE,
+    AdbKey,
+    decode_public_blob,
+    encode_public_blob,
+    parse_public_key_text,
+    verify_token_signature,
 )
 from drivers.adb.errors import KeyFileError
 

@@ -17,7 +17,7 @@ from drivers.adb.errors import AdbTimeout, AuthRefused, ConnectionLost, StreamRe
 from drivers.adb.message import A_CNXN, A_OKAY, A_OPEN, A_WRTE, AdbMessage, connect_message
 from drivers.adb.transport import StreamTransport, open_tcp
 from drivers.sim.adbd import SimulatedAdbd
-from drivers.sim.clock import run_virtual
+from sim.clock import run_virtual
 from tests.adb_links import SimLink, stream_pair
 
 KEY = AdbKey.generate("test@host")

@@ -10,8 +10,19 @@ from hypothesis import strategies as st
 
 from drivers.adb.errors import AdbProtocolError
 from drivers.adb.message import (
-    A_AUTH, A_CLSE, A_OKAY, A_OPEN, A_WRTE, COMMAND_NAMES, HEADER_SIZE, AdbMessage, checksum,
-    connect_message, decode, decode_header, parse_banner,
+    A_AUTH,
+    A_CLSE,
+    A_OKAY,
+    A_OPEN,
+    A_WRTE,
+    COMMAND_NAMES,
+    HEADER_SIZE,
+    AdbMessage,
+    checksum,
+    connect_message,
+    decode,
+    decode_header,
+    parse_banner,
 )
 from drivers.adb.sync import data_chunks, request
 

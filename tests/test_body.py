@@ -1,4 +1,4 @@
-"""Simulated subjects (drivers/sim/body.py): geometry, pose, phenotypes, seeds, sway, caches, files, CLI."""
+"""Simulated subjects (sim/body.py): geometry, pose, phenotypes, seeds, sway, caches, files, CLI."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.cli import main as tbp
-from drivers.sim import anny, body
-from drivers.sim.body import (
+from cli import main as tbp
+from sim import anny, body
+from sim.body import (
     ADULT_AGE,
     MAX_SWAY_DEG,
     Phenotype,
@@ -24,7 +24,7 @@ from drivers.sim.body import (
     save_body,
     seed_phenotype,
 )
-from drivers.sim.body_errors import BodyError, BodyFileError, BodyModelMissing, PhenotypeError
+from sim.body_errors import BodyError, BodyFileError, BodyModelMissing, PhenotypeError
 
 ADULT_SEEDS = range(6)
 DOWN = np.array([0.0, 0.0, -1.0])

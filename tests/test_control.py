@@ -1,4 +1,4 @@
-"""Control API over a real Unix socket (daemon/control.py, daemon/cli/control.py)."""
+"""Control API over a real Unix socket (daemon/control.py, cli/control.py)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from daemon.cli import main as tbp_main
-from daemon.control import (
-    CommandFailed,
-    ControlClient,
-    ControlServer,
-    DaemonUnavailable,
-    SocketInUse,
-)
+from cli import main as tbp_main
+from daemon.control import CommandFailed, ControlClient, ControlServer, DaemonUnavailable, SocketInUse
 from daemon.states import ScanState, ScanStateMachine
 
 
@@ -214,7 +208,7 @@ def test_cli_status_abort_reset(sock, capsys):
 
 
 def test_cli_formats_status_events_on_one_line():
-    from daemon.cli.control import _format
+    from cli.control import _format
 
     line = _format({"kind": "transition", "state": "FAULT", "previous": "CAPTURING",
                     "cause": "e-stop pressed", "time_s": 41.25, "scan_id": "abc123",

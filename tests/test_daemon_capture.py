@@ -10,9 +10,9 @@ import pytest
 from daemon.beam import BeamTracker
 from daemon.capture import CaptureRunner, TriggerLatency
 from daemon.phones import prepare_phones
-from daemon.timeline import compile_plan, phone_timings, rig_profile
-from drivers.sim.clock import run_virtual
 from planner.rig import load_rig
+from planner.schedule import compile_plan, phone_timings, rig_profile
+from sim.clock import run_virtual
 from tests.daemon_mocks import MockDrive, MockPhone
 
 RIG = load_rig()

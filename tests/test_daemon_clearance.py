@@ -7,7 +7,7 @@ import json
 import trimesh
 
 from daemon.scan import ScanOutcome
-from daemon.simulation import run_sim_scan
+from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
 

@@ -12,9 +12,10 @@ import pytest
 from daemon.control import CommandFailed, ControlClient
 from daemon.controller import RigController
 from daemon.notify import SystemdNotifier
+from daemon.scan import ScanSettings
 from daemon.service import RigService
 from daemon.store import ScanStore
-from drivers.sim.clock import run_virtual
+from sim.clock import run_virtual
 from tests.daemon_rigs import PLAN_POINTS, RIG, build_rig
 
 pytestmark = pytest.mark.slow
@@ -41,8 +42,8 @@ def test_service_recovers_then_scans_and_aborts_over_the_socket(tmp_path: Path) 
     async def main() -> None:
         hardware, _world = await build_rig(RIG, 0)
         with ThreadPoolExecutor(max_workers=1) as executor:
-            controller = RigController(RIG, hardware, ScanStore(store_root), executor=executor,
-                                       plan_points=PLAN_POINTS)
+            controller = RigController(RIG, hardware, ScanStore(store_root), settings=ScanSettings(
+                executor=executor, plan_points=PLAN_POINTS))
             service = RigService(controller, socket_path=sock, notifier=notes)
             await service.start()
             try:

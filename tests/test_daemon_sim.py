@@ -11,9 +11,8 @@ from pathlib import Path
 import pytest
 
 from daemon.scan import ScanReport
-from daemon.simulation import run_sim_scan
 from daemon.states import ScanOutcome, ScanState
-from planner.plan import load_subject_mesh
+from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject, wait_captured
 
 pytestmark = pytest.mark.slow

@@ -18,12 +18,7 @@ from hypothesis import strategies as st
 from drivers.depth.bag import BagPlayback
 from drivers.depth.base import DepthCamera
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
-from drivers.depth.realsense import (
-    DepthBackendMissing,
-    DepthCameraNotFound,
-    HostClockMap,
-    RealSenseCamera,
-)
+from drivers.depth.realsense import DepthBackendMissing, DepthCameraNotFound, HostClockMap, RealSenseCamera
 from planner.rig import load_rig
 from tests.depth_fake_realsense import FakeDevice, FakeRealSense, depth_value, intrinsics
 
@@ -210,7 +205,7 @@ async def test_missing_recording_is_named(world: FakeRealSense, tmp_path: Path) 
 
 def test_tbp_depth_list_check_and_play(world: FakeRealSense, tmp_path: Path,
                                        capsys: pytest.CaptureFixture[str]) -> None:
-    from daemon.cli import main
+    from cli import main
 
     for config in RIG.depth_cameras[:2]:
         world.devices.append(FakeDevice(config.serial, frames=10_000, period_s=0.01))
@@ -239,7 +234,7 @@ def test_tbp_depth_list_check_and_play(world: FakeRealSense, tmp_path: Path,
 def test_tbp_depth_without_pyrealsense2_says_how_to_install(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from daemon.cli import main
+    from cli import main
 
     monkeypatch.setitem(sys.modules, "pyrealsense2", None)
     assert main(["depth", "list"]) == 1

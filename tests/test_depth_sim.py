@@ -10,9 +10,9 @@ import pytest
 import trimesh
 
 from drivers.depth.base import DepthCamera, DepthFrame
-from drivers.sim.clock import run_virtual
 from drivers.sim.depth import DepthFaults, DepthRenderer, DepthScene, SimulatedDepthCamera, simulate_sweep
 from planner.poses import depth_camera_pose
+from sim.clock import run_virtual
 from tests.depth_helpers import look_minus_x, small_rig, sphere, wall
 
 RIG = small_rig(scale=4)

@@ -13,11 +13,11 @@ from hypothesis import strategies as st
 
 from drivers.depth.errors import DepthStreamStalled
 from drivers.depth.sweep import SweepCollector, collect_sweep
-from drivers.sim.clock import run_virtual
 from drivers.sim.depth import DepthFaults, SimulatedDepthCamera
 from planner.poses import depth_camera_pose
 from planner.shape_errors import BadTrace, FrameOutsideTrace, UnknownDepthCamera
 from planner.sweep import BeamTrace, observed, select_by_spacing, tag_frame, tag_frames
+from sim.clock import run_virtual
 from tests.depth_helpers import small_rig, sphere
 
 RIG = small_rig(scale=8)

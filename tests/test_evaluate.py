@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from daemon.cli import main
-from daemon.evaluation import StudyOptions, motion_blur, run_corpus
-from daemon.evaluation_report import markdown, write
+from analysis.evaluation import StudyOptions, motion_blur, run_corpus
+from analysis.evaluation_report import markdown, write
+from cli import main
 from planner.rig import load_rig
 
 SMALL = StudyOptions(points=1500, calibration_trials=1, sway_poses=1, shape=False)

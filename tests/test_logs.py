@@ -10,14 +10,7 @@ import os
 import pytest
 import structlog
 
-from daemon.logs import (
-    bind_scan,
-    bind_state,
-    bound_device,
-    configure_logging,
-    set_context_source,
-    under_journald,
-)
+from daemon.logs import bind_scan, bind_state, bound_device, configure_logging, set_context_source, under_journald
 from daemon.states import ScanState
 
 

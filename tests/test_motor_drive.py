@@ -1,6 +1,6 @@
 """BeamDrive against the simulated drive over the in-process loopback bus, in virtual time.
 
-Every scenario runs on drivers.sim.clock's virtual-time loop, so heartbeats, ramps and timeouts
+Every scenario runs on sim.clock's virtual-time loop, so heartbeats, ramps and timeouts
 take simulated seconds and the outcome never depends on machine load.
 """
 
@@ -33,9 +33,9 @@ from drivers.motor import (
     StateTransitionTimeout,
     emcy,
 )
-from drivers.sim.clock import run_virtual
 from drivers.sim.drive import SimulatedDrive
 from planner.rig import Motor, load_rig
+from sim.clock import run_virtual
 
 MOTOR = load_rig().motor
 S = Cia402State

@@ -10,7 +10,7 @@ import can
 import pytest
 
 from drivers.motor import CanBusError, CanPort, LoopbackCanBus, PythonCanPort
-from drivers.sim.clock import run_virtual
+from sim.clock import run_virtual
 
 
 def _frame(cob_id: int, data: bytes = b"") -> can.Message:

@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 from drivers.motor import LoopbackCanBus, SdoAbort, sdo
 from drivers.motor.port import LoopbackPort
 from drivers.motor.sdo import SdoClient
-from drivers.sim.clock import run_virtual
 from drivers.sim.drive import SimulatedDrive
 from planner.rig import load_rig
+from sim.clock import run_virtual
 
 MOTOR = load_rig().motor
 N = MOTOR.node_id

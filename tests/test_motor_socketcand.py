@@ -21,12 +21,7 @@ from hypothesis import strategies as st
 
 from drivers.motor import BeamDrive, Cia402State, LoopbackCanBus, PythonCanPort
 from drivers.sim.drive import SimulatedDrive
-from drivers.sim.socketcand import (
-    SocketcandProtocolError,
-    SocketcandServer,
-    format_frame,
-    parse_send,
-)
+from drivers.sim.socketcand import SocketcandProtocolError, SocketcandServer, format_frame, parse_send
 from planner.rig import load_rig
 
 MOTOR = load_rig().motor
@@ -192,7 +187,7 @@ async def test_client_going_away_leaves_the_bridge_serving(
 def test_sim_motor_options_leave_callers_common_options_alone() -> None:
     import argparse
 
-    from drivers.sim.drive import add_arguments
+    from sim.processes.motor import add_arguments
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--port", type=int, default=7)  # `tbp sim` may define it for every simulator
@@ -203,12 +198,12 @@ def test_sim_motor_options_leave_callers_common_options_alone() -> None:
 
 @contextlib.contextmanager
 def _served_drive(*options: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
-    """``drivers.sim.drive.serve`` (what ``tbp sim motor`` runs) in its own process; yields the
+    """``sim.processes.motor.serve`` (what ``tbp sim motor`` runs) in its own process; yields the
     process and the bridge's TCP port; SIGTERM (then kill) on the way out."""
     code = (
         "import argparse, asyncio, logging, structlog\n"
         "structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))\n"
-        "from drivers.sim.drive import add_arguments, serve\n"
+        "from sim.processes.motor import add_arguments, serve\n"
         "p = argparse.ArgumentParser(); add_arguments(p)\n"
         f"asyncio.run(serve(p.parse_args(['--port', '0', *{list(options)!r}])))\n"
     )
@@ -252,7 +247,7 @@ def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
 
 def test_tbp_motor_commissions_a_drive_served_by_another_process(capsys: pytest.CaptureFixture[str]) -> None:
     """``tbp motor`` against the simulated drive in its own process, through socketcand."""
-    from daemon.cli import main
+    from cli import main
 
     with _served_drive() as (_, tcp_port):
         bus = ["motor", "--interface", "socketcand", "--port", str(tcp_port)]
@@ -266,7 +261,7 @@ def test_tbp_motor_commissions_a_drive_served_by_another_process(capsys: pytest.
 
 
 def test_served_drive_injects_the_e_stop_it_was_told_to(capsys: pytest.CaptureFixture[str]) -> None:
-    from daemon.cli import main
+    from cli import main
 
     with _served_drive("--estop-after", "0") as (_, tcp_port):
         bus = ["motor", "--interface", "socketcand", "--port", str(tcp_port)]

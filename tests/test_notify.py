@@ -10,7 +10,7 @@ import uuid
 import pytest
 
 from daemon.notify import SystemdNotifier, run_watchdog, watchdog_period_s
-from drivers.sim.clock import run_virtual
+from sim.clock import run_virtual
 
 
 def _receiver(address: str) -> socket.socket:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon.cli import build_parser
+from cli import build_parser
 from drivers.panel import OperatorPanel, PanelEvent, StatusLed, open_serial
 
 TBP = Path(sys.executable).with_name("tbp")
@@ -55,11 +55,11 @@ async def test_tbp_sim_panel_serves_a_pty_that_the_driver_can_use() -> None:
 
 def test_sim_subcommands_take_their_simulators_options() -> None:
     args = build_parser().parse_args(["sim", "panel", "--noise", "0.1", "--seed", "3"])
-    assert (args.sim_module, args.noise, args.seed) == ("drivers.sim.panel", 0.1, 3)
+    assert (args.sim_module, args.noise, args.seed) == ("sim.processes.panel", 0.1, 3)
     args = build_parser().parse_args(["sim", "phone", "--port", "5999", "--seed", "2"])
-    assert (args.sim_module, args.port, args.seed) == ("drivers.sim.phone", 5999, 2)
+    assert (args.sim_module, args.port, args.seed) == ("sim.processes.phone", 5999, 2)
     args = build_parser().parse_args(["sim", "motor", "--port", "29999"])
-    assert (args.sim_module, args.port) == ("drivers.sim.drive", 29999)
+    assert (args.sim_module, args.port) == ("sim.processes.motor", 29999)
 
 
 def test_unknown_simulator_option_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
@@ -72,13 +72,13 @@ def test_unknown_simulator_option_is_refused(capsys: pytest.CaptureFixture[str])
 def test_missing_simulator_module_is_a_clear_error(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    import daemon.cli.sim as sim_cli
+    import cli.sim as sim_cli
 
     monkeypatch.setitem(sim_cli.SIMULATORS, "lidar", ("drivers.sim.no_such_lidar", "not here"))
     with pytest.raises(SystemExit):
         build_parser().parse_args(["sim", "lidar"])
     assert "drivers.sim.no_such_lidar cannot be imported" in capsys.readouterr().err
-    assert build_parser().parse_args(["sim", "panel"]).sim_module == "drivers.sim.panel"
+    assert build_parser().parse_args(["sim", "panel"]).sim_module == "sim.processes.panel"
 
 
 async def _tbp(*argv: str) -> asyncio.subprocess.Process:

@@ -16,11 +16,12 @@ import pytest
 
 from daemon.controller import RigController
 from daemon.errors import ScanBusy
+from daemon.scan import ScanSettings
 from daemon.service import RigService
 from daemon.store import ScanStore
 from drivers.panel import OperatorPanel, StatusLed
-from drivers.sim.clock import run_virtual
 from drivers.sim.panel import SimulatedPanel
+from sim.clock import run_virtual
 from tests.daemon_rigs import PLAN_POINTS, RIG, build_rig
 
 pytestmark = pytest.mark.slow
@@ -37,7 +38,7 @@ def run_service(tmp_path: Path, scenario: Scenario) -> None:
         sim = SimulatedPanel(dev_r, dev_w)
         sim_task = asyncio.create_task(sim.run())
         hardware.panel = OperatorPanel(host_r, host_w)
-        controller = RigController(RIG, hardware, ScanStore(tmp_path), plan_points=PLAN_POINTS)
+        controller = RigController(RIG, hardware, ScanStore(tmp_path), settings=ScanSettings(plan_points=PLAN_POINTS))
         service = RigService(controller)
         await service.start()
         try:

@@ -1,6 +1,6 @@
 """OperatorPanel against the simulated panel: over a socketpair in virtual time, over a real pty.
 
-The socketpair scenarios run on drivers.sim.clock's virtual-time loop, so heartbeat periods and
+The socketpair scenarios run on sim.clock's virtual-time loop, so heartbeat periods and
 timeouts are simulated seconds and the outcome never depends on machine load.
 """
 
@@ -30,8 +30,8 @@ from drivers.panel import (
     open_serial,
 )
 from drivers.panel.protocol import FROM_HOST, FROM_PANEL, Line, encode
-from drivers.sim.clock import run_virtual
 from drivers.sim.panel import SimulatedPanel
+from sim.clock import run_virtual
 
 Scenario = Callable[[OperatorPanel, SimulatedPanel], Awaitable[Any]]
 

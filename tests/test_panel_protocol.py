@@ -7,16 +7,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.panel import PanelProtocolError
-from drivers.panel.protocol import (
-    FROM_HOST,
-    FROM_PANEL,
-    MAX_LINE_BYTES,
-    Line,
-    crc8,
-    encode,
-    next_seq,
-    parse,
-)
+from drivers.panel.protocol import FROM_HOST, FROM_PANEL, MAX_LINE_BYTES, Line, crc8, encode, next_seq, parse
 
 GRAMMARS = {"panel": FROM_PANEL, "host": FROM_HOST}
 

@@ -17,13 +17,22 @@ from drivers.adb.auth import AdbKey
 from drivers.phone import protocol
 from drivers.phone.camera import PhoneCamera
 from drivers.phone.errors import (
-    AgentMissing, AgentProtocolError, AgentStartFailed, CaptureFailed, FocusOutOfRange, FocusTimeout, PhoneDisconnected,
-    PhoneUnauthorized, PullFailed, RequestTimeout, WrongPhone,
+    AgentMissing,
+    AgentProtocolError,
+    AgentStartFailed,
+    CaptureFailed,
+    FocusOutOfRange,
+    FocusTimeout,
+    PhoneDisconnected,
+    PhoneUnauthorized,
+    PullFailed,
+    RequestTimeout,
+    WrongPhone,
 )
 from drivers.phone.focus import load_focus_calibration
-from drivers.sim.clock import run_virtual
 from drivers.sim.phone import SimulatedPhone
 from planner.rig import load_rig
+from sim.clock import run_virtual
 from tests.adb_links import SimLink
 
 RIG = load_rig()

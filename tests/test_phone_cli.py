@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from daemon.cli import main
+from cli import main
 
 
 @pytest.fixture
 def sim_phone_port() -> int:
-    proc = subprocess.Popen([sys.executable, "-c", "import sys; from daemon.cli import main; sys.exit(main())",
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from cli import main; sys.exit(main())",
                              "sim", "phone", "--port", "0", "--serial", "TBPSIM03"], stdout=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()
@@ -45,7 +45,7 @@ def test_check_a_phone_that_photographs_a_body(tmp_path: Path, capsys: pytest.Ca
     import numpy as np
     from PIL import Image
 
-    proc = subprocess.Popen([sys.executable, "-c", "import sys; from daemon.cli import main; sys.exit(main())",
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from cli import main; sys.exit(main())",
                              "sim", "phone", "--port", "0", "--serial", "TBPSIM03", "--body-seed", "2"],
                             stdout=subprocess.PIPE, text=True)
     try:

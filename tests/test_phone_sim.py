@@ -68,7 +68,7 @@ def test_sensor_clock_inverse() -> None:
 
 
 def test_standalone_server_serves_until_sigterm() -> None:
-    code = ("import asyncio, argparse, sys; from drivers.sim.phone import add_arguments, serve; "
+    code = ("import asyncio, argparse, sys; from sim.processes.phone import add_arguments, serve; "
             "p = argparse.ArgumentParser(); add_arguments(p); "
             "sys.exit(asyncio.run(serve(p.parse_args(sys.argv[1:]))))")
     proc = subprocess.Popen([sys.executable, "-c", code, "--port", "0", "--serial", "STANDALONE1",

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from daemon.cli import main as tbp
+from cli import main as tbp
 from planner.focus_errors import BadFocusPlan, EmptyMesh, MeshLoadError, NothingVisible
 from planner.plan import METHODS, evaluate, load_subject_mesh, plan_focus
 from planner.poses import rgb_poses

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.cli import main
-from daemon.navigate import NavigationError, navigate
-from daemon.qa_report import generate_report
-from daemon.scan_views import ScanFolderError, open_scan
-from daemon.simulation import run_sim_scan
+from analysis.navigate import NavigationError, navigate
+from analysis.qa_report import generate_report
+from analysis.scan_views import ScanFolderError, open_scan
+from cli import main
 from planner.visibility import RayScene
+from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
 
@@ -22,7 +22,7 @@ from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 def scan_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     store = tmp_path_factory.mktemp("store")
     report = run_sim_scan(store=store, seed=1, plan_points=PLAN_POINTS, depth_decimation=4,
-                          subject=capsule_subject(), panel=False)
+                          subject=capsule_subject(), panel=False, qa_report=generate_report)
     return Path(report.folder)
 
 

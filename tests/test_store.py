@@ -16,14 +16,7 @@ import numpy as np
 import pytest
 
 from daemon.pulls import PullQueue
-from daemon.store import (
-    AtomicWriter,
-    ManifestError,
-    ScanEnd,
-    ScanStore,
-    StoreError,
-    StoreFull,
-)
+from daemon.store import AtomicWriter, ManifestError, ScanEnd, ScanStore, StoreError, StoreFull
 from planner.rig import load_rig
 
 NOW = datetime(2026, 11, 22, 9, 30, 0, tzinfo=UTC)
@@ -309,7 +302,7 @@ def test_without_reserve_a_full_disk_leaves_the_previous_manifest(tiny_tmpfs, ri
 
 
 def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
-    from daemon.cli import main as tbp_main
+    from cli import main as tbp_main
 
     store = ScanStore(tmp_path)
     folder = _planned(store, rig, "good")

@@ -1,4 +1,4 @@
-"""Dual-speed motion profile and the compiled capture schedule (daemon/timeline.py)."""
+"""Dual-speed motion profile and the compiled capture schedule (planner/schedule.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.timeline import (
+from planner.rig import Capture, Sector, load_rig
+from planner.schedule import (
     OutsideProfile,
     PhoneTiming,
     PlanInfeasible,
@@ -24,7 +25,6 @@ from daemon.timeline import (
     scan_rig_time,
     wrap_deg,
 )
-from planner.rig import Capture, Sector, load_rig
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.cli import main as tbp
+from cli import main as tbp
 from drivers.depth.base import DepthFrame
 from drivers.depth.recording import RecordingError, load_sweep, load_trace, read_recordings, save_sweep
 from drivers.sim.depth import simulate_sweep

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from drivers.sim.clock import VirtualTimeLoop, VirtualTimeStall, run_virtual
+from sim.clock import VirtualTimeLoop, VirtualTimeStall, run_virtual
 
 
 def test_sleep_advances_the_virtual_clock_exactly():

@@ -7,8 +7,16 @@ endpoints through pyusb (drivers/adb/usb.py, real hardware only).
 from drivers.adb.auth import AdbKey
 from drivers.adb.connection import AdbConnection, DeviceBanner
 from drivers.adb.errors import (
-    AdbError, AdbProtocolError, AdbTimeout, AuthRefused, ConnectionLost, KeyFileError, StreamClosed,
-    StreamRefused, SyncFail, UsbDeviceNotFound,
+    AdbError,
+    AdbProtocolError,
+    AdbTimeout,
+    AuthRefused,
+    ConnectionLost,
+    KeyFileError,
+    StreamClosed,
+    StreamRefused,
+    SyncFail,
+    UsbDeviceNotFound,
 )
 from drivers.adb.streams import AdbStream
 from drivers.adb.sync import SyncClient, SyncStat

@@ -18,8 +18,19 @@ import structlog
 from drivers.adb.auth import AdbKey
 from drivers.adb.errors import AdbError, AdbProtocolError, AdbTimeout, AuthRefused, ConnectionLost
 from drivers.adb.message import (
-    A_AUTH, A_CNXN, A_VERSION, A_VERSION_MIN, A_VERSION_SKIP_CHECKSUM, AUTH_RSAPUBLICKEY, AUTH_SIGNATURE,
-    AUTH_TOKEN, MAX_PAYLOAD, MAX_PAYLOAD_LEGACY, AdbMessage, connect_message, parse_banner,
+    A_AUTH,
+    A_CNXN,
+    A_VERSION,
+    A_VERSION_MIN,
+    A_VERSION_SKIP_CHECKSUM,
+    AUTH_RSAPUBLICKEY,
+    AUTH_SIGNATURE,
+    AUTH_TOKEN,
+    MAX_PAYLOAD,
+    MAX_PAYLOAD_LEGACY,
+    AdbMessage,
+    connect_message,
+    parse_banner,
 )
 from drivers.adb.streams import AdbStream, StreamMux
 from drivers.adb.sync import SyncClient

@@ -3,7 +3,7 @@
 ``BeamDrive`` is the device API; ``CanPort`` implementations carry its frames
 (``PythonCanPort`` for real buses, ``LoopbackCanBus`` in-process). The framing modules
 (``sdo``, ``pdo``, ``nmt``, ``emcy``) and the state tables (``cia402``) are pure and shared
-with the simulated drive in ``drivers.sim.drive``.
+with the simulated drive in ``drivers.sim.drive`` (``tbp sim motor``: ``sim.processes.motor``).
 """
 
 from drivers.motor.cia402 import Cia402State

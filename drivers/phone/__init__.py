@@ -2,10 +2,22 @@
 
 from drivers.phone.camera import CaptureDone, ClockSample, FocusDone, PhoneCamera, PhoneInfo
 from drivers.phone.errors import (
-    AgentError, AgentMissing, AgentProtocolError, AgentStartFailed, CaptureFailed, CaptureTimeout,
-    FocusCalibrationError, FocusFailed, FocusOutOfRange, FocusTimeout, PhoneDisconnected, PhoneError,
-    PhoneUnauthorized, PullFailed,
-    RequestTimeout, WrongPhone,
+    AgentError,
+    AgentMissing,
+    AgentProtocolError,
+    AgentStartFailed,
+    CaptureFailed,
+    CaptureTimeout,
+    FocusCalibrationError,
+    FocusFailed,
+    FocusOutOfRange,
+    FocusTimeout,
+    PhoneDisconnected,
+    PhoneError,
+    PhoneUnauthorized,
+    PullFailed,
+    RequestTimeout,
+    WrongPhone,
 )
 from drivers.phone.focus import FocusCalibration, load_focus_calibration
 

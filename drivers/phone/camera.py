@@ -27,8 +27,20 @@ from drivers.adb.streams import AdbStream
 from drivers.adb.transport import AdbTransport, StreamTransport
 from drivers.phone import protocol
 from drivers.phone.errors import (
-    AgentError, AgentMissing, AgentProtocolError, AgentStartFailed, CaptureFailed, CaptureTimeout, FocusFailed,
-    FocusOutOfRange, FocusTimeout, PhoneDisconnected, PhoneError, PhoneUnauthorized, PullFailed, RequestTimeout,
+    AgentError,
+    AgentMissing,
+    AgentProtocolError,
+    AgentStartFailed,
+    CaptureFailed,
+    CaptureTimeout,
+    FocusFailed,
+    FocusOutOfRange,
+    FocusTimeout,
+    PhoneDisconnected,
+    PhoneError,
+    PhoneUnauthorized,
+    PullFailed,
+    RequestTimeout,
     WrongPhone,
 )
 from drivers.phone.focus import FocusCalibration

@@ -23,13 +23,21 @@ from dataclasses import dataclass
 
 import structlog
 
-from drivers.adb.auth import (
-    BLOB_SIZE, TOKEN_SIZE, decode_public_blob, parse_public_key_text, verify_token_signature,
-)
+from drivers.adb.auth import BLOB_SIZE, TOKEN_SIZE, decode_public_blob, parse_public_key_text, verify_token_signature
 from drivers.adb.errors import AdbError, ConnectionLost
 from drivers.adb.message import (
-    A_AUTH, A_CNXN, A_VERSION, A_VERSION_MIN, A_VERSION_SKIP_CHECKSUM, AUTH_RSAPUBLICKEY, AUTH_SIGNATURE,
-    AUTH_TOKEN, MAX_PAYLOAD, MAX_PAYLOAD_LEGACY, AdbMessage, connect_message,
+    A_AUTH,
+    A_CNXN,
+    A_VERSION,
+    A_VERSION_MIN,
+    A_VERSION_SKIP_CHECKSUM,
+    AUTH_RSAPUBLICKEY,
+    AUTH_SIGNATURE,
+    AUTH_TOKEN,
+    MAX_PAYLOAD,
+    MAX_PAYLOAD_LEGACY,
+    AdbMessage,
+    connect_message,
 )
 from drivers.adb.streams import AdbStream, ServiceHandler, StreamMux
 from drivers.adb.sync import SYNC_DATA_MAX, data_chunks

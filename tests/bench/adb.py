@@ -1,6 +1,6 @@
 """ADB pull benchmark: a 20 MB file from the simulated phone over TCP loopback.
 
-The simulated phone runs in its own process (``drivers.sim.phone.serve``, as ``tbp sim phone``
+The simulated phone runs in its own process (``sim.processes.phone.serve``, as ``tbp sim phone``
 does) so the client under test has this process to itself. Measured, median of RUNS pulls each:
 
 * the project's client (AdbConnection + SyncClient.pull: sha256 and fsync'd atomic file
@@ -42,7 +42,7 @@ def _free_port() -> int:
 
 
 def _start_phone(port: int) -> subprocess.Popen:
-    code = ("import asyncio, argparse, sys; from drivers.sim.phone import add_arguments, serve; "
+    code = ("import asyncio, argparse, sys; from sim.processes.phone import add_arguments, serve; "
             "p = argparse.ArgumentParser(); add_arguments(p); "
             "sys.exit(asyncio.run(serve(p.parse_args(sys.argv[1:]))))")
     proc = subprocess.Popen([sys.executable, "-c", code, "--port", str(port), "--serial", "BENCH001",

@@ -26,7 +26,7 @@ BODIES = 5
 
 
 def run() -> None:
-    from drivers.sim import anny, body
+    from sim import anny, body
 
     previous = os.environ.get("TBP_CACHE_DIR")
     with tempfile.TemporaryDirectory(prefix="tbp-body-bench-") as cache:

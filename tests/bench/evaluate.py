@@ -16,7 +16,7 @@ GOAL_S = 600.0
 
 
 def run() -> None:
-    from daemon.evaluation import StudyOptions, run_corpus
+    from analysis.evaluation import StudyOptions, run_corpus
 
     bodies = int(os.environ.get("TBP_BENCH_BODIES", "4"))
     started = time.perf_counter()

@@ -1,12 +1,12 @@
 """Beam motor benchmark: position update rate and latency from the simulated drive to BeamDrive.
 
-On the virtual-time loop (drivers.sim.clock): samples per simulated second and the CPU a
+On the virtual-time loop (sim.clock): samples per simulated second and the CPU a
 100 s simulated rotation costs. Then two paths, each in real time on a standard asyncio loop
 while the beam rotates at 20 deg/s:
 
 * loopback: the simulated drive and the driver share the in-process LoopbackCanBus;
 * socketcand: the simulated drive runs in its own process behind the socketcand bridge
-  (``drivers.sim.drive.serve``) and the driver connects with python-can's socketcand interface.
+  (``sim.processes.motor.serve``) and the driver connects with python-can's socketcand interface.
 
 Rate = BeamSamples per wall-clock second; latency = the driver's reception time minus the
 simulated drive's send time stamped on the frame (same monotonic clock in both processes).
@@ -142,7 +142,7 @@ def _serve_in_subprocess(tcp_port: int) -> subprocess.Popen:
     code = (
         "import argparse, asyncio, logging, structlog\n"
         "structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))\n"
-        "from drivers.sim.drive import add_arguments, serve\n"
+        "from sim.processes.motor import add_arguments, serve\n"
         "p = argparse.ArgumentParser(); add_arguments(p)\n"
         f"asyncio.run(serve(p.parse_args(['--port', '{tcp_port}'])))\n"
     )
@@ -178,7 +178,7 @@ def run() -> None:
     # python-can's socketcand client warns whenever a TCP read ends mid-frame (it then waits for
     # the rest): normal for a stream, noise here.
     logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
-    from drivers.sim.clock import run_virtual
+    from sim.clock import run_virtual
 
     virtual = [run_virtual(_virtual()) for _ in range(RUNS)]
     print(

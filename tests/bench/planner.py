@@ -31,9 +31,9 @@ PAPER_RATIOS = {"average": 84.9 / 68.5, "closest": 84.9 / 31.6}
 
 
 def _body(seed: int):
-    """A simulated adult (drivers/sim/body.py) or, before it exists, the planner's stand-in."""
+    """A simulated adult (sim/body.py) or, before it exists, the planner's stand-in."""
     try:
-        from drivers.sim.body import make_body
+        from sim.body import make_body
     except ImportError:
         from tests.planner_standin import standin_body
 
@@ -155,11 +155,11 @@ def _quality() -> None:
 
 def _robustness() -> None:
     """SPEC 6: plan on noisy poses or the unswayed body, evaluate on the true poses / swayed body."""
-    from drivers.sim.body import make_body
     from planner.plan import evaluate, plan_focus
     from planner.pose_noise import perturb_poses
     from planner.poses import rgb_poses
     from planner.rig import load_rig
+    from sim.body import make_body
 
     rig = load_rig()
     true_poses = rgb_poses(rig)

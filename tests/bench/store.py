@@ -19,8 +19,8 @@ import numpy as np
 
 from daemon.atomic import sha256_of
 from daemon.store import ScanEnd, ScanStore
-from daemon.timeline import compile_plan, phone_timings
 from planner.rig import load_rig
+from planner.schedule import compile_plan, phone_timings
 
 REPEATS = 5
 

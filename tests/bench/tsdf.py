@@ -30,9 +30,9 @@ GOAL_FOCUS_LOSS_POINTS = 1.0
 
 
 def _body(seed: int):
-    """A simulated adult (drivers/sim/body.py) or, before it exists, the planner's stand-in."""
+    """A simulated adult (sim/body.py) or, before it exists, the planner's stand-in."""
     try:
-        from drivers.sim.body import make_body
+        from sim.body import make_body
     except ImportError:
         from tests.planner_standin import standin_body
 

@@ -60,11 +60,11 @@ def body_seed(corpus_seed: int, index: int) -> int:
 
 def evaluate_body(index: int, corpus_seed: int, options: StudyOptions, rig_path: str | None = None) -> dict[str, Any]:
     """All numbers for body ``index`` of the corpus (a plain dict, JSON-ready)."""
-    from drivers.sim.body import make_body
     from planner.plan import evaluate, plan_focus
     from planner.pose_noise import perturb_poses
     from planner.poses import rgb_poses
     from planner.sampling import sample_surface
+    from sim.body import make_body
 
     rig = load_rig(rig_path) if rig_path else load_rig()
     seed = body_seed(corpus_seed, index)
@@ -160,7 +160,7 @@ def _spread(values: list[float]) -> dict[str, float]:
 
 def motion_blur(rig: Rig) -> dict[str, Any]:
     """Motion blur (px) of every capture of the rig's dual-speed profile, by angle index."""
-    from daemon.timeline import rig_profile
+    from planner.schedule import rig_profile
 
     profile = rig_profile(rig)
     angles = rig.capture.angles_deg

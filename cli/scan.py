@@ -43,14 +43,15 @@ def run(args: argparse.Namespace) -> int:
 
     configure_logging(level="info" if args.verbose else "warning", stream=sys.stderr)
     if args.sim:
-        from daemon.simulation import run_sim_scan
+        from analysis.qa_report import generate_report
         from planner.plan import load_subject_mesh
+        from sim.run import run_sim_scan
 
         report = run_sim_scan(
             config=args.config, store=args.store, seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
             subject=load_subject_mesh(args.subject) if args.subject else None,
-            panel=not args.no_panel,
+            panel=not args.no_panel, qa_report=generate_report,
         )
         _summary(report)
         print(report.folder, flush=True)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.scan_views import ScanRecord, open_scan
+from analysis.scan_views import ScanRecord, open_scan
 
 REPORT_DIR = "report"
 SAMPLES = 20_000

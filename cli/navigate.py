@@ -28,9 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from analysis.navigate import NavigationError, navigate
+    from analysis.scan_views import ScanFolderError
     from daemon.logs import configure_logging
-    from daemon.navigate import NavigationError, navigate
-    from daemon.scan_views import ScanFolderError
 
     configure_logging(level="warning")
     try:

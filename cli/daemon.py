@@ -47,14 +47,15 @@ def run(args: argparse.Namespace) -> int:
         print("tbp daemon: real hardware wiring is not configured on this machine; use --sim",
               file=sys.stderr)
         return 2
-    from daemon.simulation import sim_service
-    from drivers.sim.clock import VirtualTimeLoop
-
     import asyncio
+
+    from analysis.qa_report import generate_report
+    from sim.clock import VirtualTimeLoop
+    from sim.run import sim_service
 
     with asyncio.Runner(loop_factory=lambda: VirtualTimeLoop(time_scale=args.time_scale)) as runner:
         return runner.run(sim_service(
             config=args.config, store=args.store, socket_path=socket_path, seed=args.seed,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
-            subject_path=args.subject, panel=not args.no_panel,
+            subject_path=args.subject, panel=not args.no_panel, qa_report=generate_report,
         ))

@@ -21,9 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from analysis.qa_report import generate_report
+    from analysis.scan_views import ScanFolderError
     from daemon.logs import configure_logging
-    from daemon.qa_report import generate_report
-    from daemon.scan_views import ScanFolderError
 
     configure_logging(level="warning")
     try:

@@ -1,4 +1,4 @@
-"""Write an evaluation (``daemon.evaluation.run_corpus``) as report.md, results.json and PNG figures."""
+"""Write an evaluation (``analysis.evaluation.run_corpus``) as report.md, results.json and PNG figures."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from daemon.evaluation import METHOD_ORDER, PAPER
+from analysis.evaluation import METHOD_ORDER, PAPER
 
 
 def _pct(stat: dict[str, float]) -> str:

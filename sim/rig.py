@@ -3,7 +3,7 @@
 The beam drive talks CANopen over an in-process loopback bus, the seven phones are adbds on
 socketpair links, the three depth cameras ray-cast the simulated subject at the drive's
 physical angle, and the panel speaks its line protocol over a stream pair. Every link delivers
-immediately, so the whole rig runs on the virtual-time loop (drivers/sim/clock.py) and a seed
+immediately, so the whole rig runs on the virtual-time loop (sim/clock.py) and a seed
 fixes the scan.
 """
 
@@ -24,7 +24,7 @@ from daemon.hardware import RigHardware
 from planner.poses import rgb_poses
 from planner.rig import DepthCameraModel, Rig
 
-log = structlog.get_logger("daemon.sim_rig")
+log = structlog.get_logger("sim.rig")
 
 
 @dataclass(frozen=True)
@@ -86,8 +86,8 @@ def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> Dep
 
 
 def default_subject(seed: int) -> Any:
-    """The simulated subject for a seed: an adult body from drivers/sim/body.py."""
-    from drivers.sim.body import make_body
+    """The simulated subject for a seed: an adult body from sim/body.py."""
+    from sim.body import make_body
 
     return make_body(seed=seed)
 

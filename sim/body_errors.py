@@ -1,4 +1,4 @@
-"""Errors of the simulated subjects (drivers/sim/body.py): one tree, rooted at BodyError."""
+"""Errors of the simulated subjects (sim/body.py): one tree, rooted at BodyError."""
 
 from __future__ import annotations
 

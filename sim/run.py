@@ -16,13 +16,13 @@ from typing import Any, TextIO
 import structlog
 
 from daemon.controller import RigController
-from daemon.scan import ScanReport
-from daemon.sim_rig import SimOptions, build_sim_rig
+from daemon.scan import ScanReport, ScanSettings
 from daemon.states import StatusEvent
 from daemon.store import ScanStore
 from planner.rig import DEFAULT_RIG_PATH, load_rig
+from sim.rig import SimOptions, build_sim_rig
 
-log = structlog.get_logger("daemon.simulation")
+log = structlog.get_logger("sim.run")
 
 
 def sim_scan_id(seed: int) -> str:
@@ -48,6 +48,7 @@ def progress_printer(out: TextIO) -> Callable[[StatusEvent], None]:
 async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
                    plan_points: int | None = None, depth_decimation: int = 2,
                    out: TextIO | None = None, subject: Any | None = None, panel: bool = True,
+                   qa_report: Callable[..., Path] | None = None,
                    on_ready: Callable[[RigController, Any], None] | None = None) -> ScanReport:
     """Build the simulated rig, run one scan, close everything; returns the scan's report.
 
@@ -58,8 +59,9 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
-        controller = RigController(rig, hardware, scans, executor=executor, seed=seed,
-                                   plan_points=plan_points)
+        controller = RigController(rig, hardware, scans,
+                                   settings=ScanSettings(seed=seed, plan_points=plan_points,
+                                                         executor=executor, qa_report=qa_report))
         printer = asyncio.create_task(_print_events(controller, out)) if out is not None else None
         try:
             await controller.start()
@@ -82,7 +84,7 @@ async def _print_events(controller: RigController, out: TextIO) -> None:
 
 def run_sim_scan(*, time_scale: float | None = None, **kwargs: Any) -> ScanReport:
     """:func:`sim_scan` on a fresh virtual-time loop (``time_scale`` None = as fast as possible)."""
-    from drivers.sim.clock import run_virtual
+    from sim.clock import run_virtual
 
     return run_virtual(sim_scan(**kwargs), time_scale=time_scale)
 
@@ -90,7 +92,7 @@ def run_sim_scan(*, time_scale: float | None = None, **kwargs: Any) -> ScanRepor
 async def sim_service(*, config: Path | None, store: Path, socket_path: Path | None, seed: int = 0,
                       plan_points: int | None = None, depth_decimation: int = 2,
                       group: str | None = None, subject_path: Path | None = None,
-                      panel: bool = True) -> int:
+                      panel: bool = True, qa_report: Callable[..., Path] | None = None) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM."""
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
@@ -105,8 +107,9 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
-        controller = RigController(rig, hardware, ScanStore(store), executor=executor, seed=seed,
-                                   plan_points=plan_points)
+        controller = RigController(rig, hardware, ScanStore(store),
+                                   settings=ScanSettings(seed=seed, plan_points=plan_points,
+                                                         executor=executor, qa_report=qa_report))
         service = RigService(controller, socket_path=socket_path, group=group,
                              notifier=SystemdNotifier.from_env())
         return await service.run(stop)

@@ -22,9 +22,9 @@ import numpy as np
 import structlog
 import trimesh
 
-from drivers.sim import anny
-from drivers.sim.anny import ANKLE_SPACING_M, ARM_ABDUCTION_DEG
-from drivers.sim.body_errors import BodyError, BodyFileError, PhenotypeError
+from sim import anny
+from sim.anny import ANKLE_SPACING_M, ARM_ABDUCTION_DEG
+from sim.body_errors import BodyError, BodyFileError, PhenotypeError
 
 __all__ = [
     "ADULT_AGE",

@@ -31,8 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.sim.body import Phenotype, generate_body, save_body
-    from drivers.sim.body_errors import BodyError
+    from sim.body import Phenotype, generate_body, save_body
+    from sim.body_errors import BodyError
 
     try:
         phenotype = Phenotype.parse(args.phenotype) if args.phenotype is not None else None

@@ -1,6 +1,6 @@
 """``tbp sim motor|phone|panel``: run one simulated device as a standalone process.
 
-Each simulator module (drivers.sim.drive, drivers.sim.phone, drivers.sim.panel) owns its options
+Each simulator process module (sim.processes.motor, .phone, .panel) owns its options
 (``add_arguments``) and its server (``serve``); this command only dispatches. A simulator module
 is imported when its sub-command is parsed, so ``tbp --help`` stays fast and one simulator that
 cannot be imported never breaks the others.
@@ -14,10 +14,10 @@ from types import ModuleType
 from typing import Any
 
 SIMULATORS = {
-    "motor": ("drivers.sim.drive",
+    "motor": ("sim.processes.motor",
               "CiA 402 beam drive on a socketcand bridge at 127.0.0.1:--port"),
-    "phone": ("drivers.sim.phone", "one phone's adbd with the capture agent at 127.0.0.1:--port"),
-    "panel": ("drivers.sim.panel", "the operator panel on a new pty (prints its path)"),
+    "phone": ("sim.processes.phone", "one phone's adbd with the capture agent at 127.0.0.1:--port"),
+    "panel": ("sim.processes.panel", "the operator panel on a new pty (prints its path)"),
 }
 
 

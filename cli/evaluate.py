@@ -29,8 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.evaluation import StudyOptions, run_corpus
-    from daemon.evaluation_report import write
+    from analysis.evaluation import StudyOptions, run_corpus
+    from analysis.evaluation_report import write
     from daemon.logs import configure_logging
 
     configure_logging(level="warning")

@@ -6,7 +6,7 @@ body-models preprocesses the MakeHuman targets once into ``~/.cache/body-models`
 written atomically so concurrent processes cannot corrupt it); later loads take a few seconds.
 
 Model frame (what Anny outputs): metres, +z up, the subject's front looks toward -y, the
-subject's left is +x, pelvis at the origin. ``drivers/sim/body.py`` turns it into the rig frame.
+subject's left is +x, pelvis at the origin. ``sim/body.py`` turns it into the rig frame.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.body_errors import BodyModelMissing
+from sim.body_errors import BodyModelMissing
 
 FRONT = np.array([0.0, -1.0, 0.0])
 UP = np.array([0.0, 0.0, 1.0])
@@ -99,7 +99,6 @@ class OuterSkin:
 def _face_parts(folder: Path) -> np.ndarray:
     """(Q, 3) uint8 segmentation colour of each of Anny's quads (Anny's own UV body-part map)."""
     import PIL.Image
-    import yaml
     from body_models._cache import get_cache_dir
     from body_models.anny import _io
 

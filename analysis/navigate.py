@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.scan_views import open_scan
+from analysis.scan_views import open_scan
 
 
 class NavigationError(ValueError):

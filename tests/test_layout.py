@@ -1,0 +1,191 @@
+"""The layout is the architecture: imports only go downward, and only the clock owners read
+the wall clock.
+
+Layers, lowest first (a package may import itself and what its row allows, nothing else):
+
+- ``planner``: pure computation (rig file, poses, optics, visibility, focus, TSDF, capture
+  schedule);
+- ``drivers``: real devices, on top of ``planner``'s rig description;
+- ``drivers.sim``: device twins, impersonating ``drivers``' devices at their protocols;
+- ``daemon``: the scan runtime, on ``drivers`` and ``planner``, never a simulator;
+- ``sim``: the simulated world (virtual clock, bodies, the simulated rig, device processes);
+- ``analysis``: evaluation, QA report, navigation, on scan folders and the simulated world;
+- ``cli``: the ``tbp`` command, on everything.
+
+Every ``import`` counts, also those inside functions (they are imports all the same).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+ALLOWED: dict[str, frozenset[str]] = {
+    "planner": frozenset({"planner"}),
+    "drivers": frozenset({"drivers", "planner"}),
+    "drivers.sim": frozenset({"drivers.sim", "drivers", "planner"}),
+    "daemon": frozenset({"daemon", "drivers", "planner"}),
+    "sim": frozenset({"sim", "daemon", "drivers.sim", "drivers", "planner"}),
+    "analysis": frozenset({"analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
+    "cli": frozenset({"cli", "analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
+}
+"""Importer layer -> the layers it may import."""
+
+WALL_CLOCK = {
+    ("time", "time"), ("time", "time_ns"), ("time", "monotonic"), ("time", "monotonic_ns"),
+    ("time", "sleep"), ("datetime", "now"), ("datetime", "utcnow"), ("date", "today"),
+}
+"""Calls that read (or wait on) the machine's clock. ``time.perf_counter`` is allowed: it
+times compute for reports and never decides when anything happens."""
+
+CLOCK_OWNERS = {
+    "sim/clock.py",  # the virtual-time loop paces itself against the real clock
+    "daemon/utc.py",  # calendar time for the records a scan folder keeps
+}
+
+
+def layer_of(module: str) -> str | None:
+    """The layer of a dotted module name (``drivers.sim`` before ``drivers``), None if not ours."""
+    for layer in sorted(ALLOWED, key=len, reverse=True):
+        if module == layer or module.startswith(layer + "."):
+            return layer
+    return None
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def source_files() -> list[Path]:
+    return sorted(p for layer in ("planner", "drivers", "daemon", "sim", "analysis", "cli")
+                  for p in (ROOT / layer).rglob("*.py"))
+
+
+def imported_modules(tree: ast.AST, package: str) -> list[tuple[int, str]]:
+    """(line, absolute module) of every import in a module of ``package``."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            found.append((node.lineno, module))
+            # ``from drivers import sim`` imports the subpackage drivers.sim
+            found += [(node.lineno, f"{module}.{alias.name}") for alias in node.names
+                      if layer_of(f"{module}.{alias.name}") != layer_of(module)]
+    return found
+
+
+def violations(path: Path) -> list[str]:
+    name = module_name(path)
+    importer = layer_of(name)
+    assert importer is not None, name
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    tree = ast.parse(path.read_text(), str(path))
+    bad = []
+    for line, module in imported_modules(tree, package):
+        target = layer_of(module)
+        if target is not None and target not in ALLOWED[importer]:
+            bad.append(f"{path.relative_to(ROOT)}:{line}: {importer} must not import {module} ({target})")
+    return bad
+
+
+def wall_clock_calls(path: Path) -> list[str]:
+    if str(path.relative_to(ROOT)) in CLOCK_OWNERS:
+        return []
+    tree = ast.parse(path.read_text(), str(path))
+    bad = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            if (node.value.id, node.attr) in WALL_CLOCK:
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value.id}.{node.attr}")
+        elif isinstance(node, ast.ImportFrom) and node.module in ("time", "datetime"):
+            names = {alias.name for alias in node.names}
+            if node.module == "time" and names & {n for m, n in WALL_CLOCK if m == "time"}:
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: from time import {sorted(names)}")
+    return bad
+
+
+def test_every_import_points_down_the_layers() -> None:
+    bad = [v for path in source_files() for v in violations(path)]
+    assert bad == [], "\n".join(bad)
+
+
+def test_only_the_clock_owners_read_the_wall_clock() -> None:
+    bad = [v for path in source_files() for v in wall_clock_calls(path)]
+    assert bad == [], "\n".join(bad)
+
+
+@pytest.mark.parametrize("importer, module, allowed", [
+    ("daemon/scan.py", "sim.body", False),
+    ("daemon/scan.py", "drivers.sim.phone", False),
+    ("daemon/scan.py", "drivers.motor.drive", True),
+    ("planner/plan.py", "daemon.store", False),
+    ("drivers/adb/usb.py", "drivers.sim.adbd", False),
+    ("drivers/sim/phone.py", "sim.body", False),
+    ("sim/rig.py", "drivers.sim.drive", True),
+    ("analysis/navigate.py", "cli", False),
+    ("cli/scan.py", "analysis.qa_report", True),
+])
+def test_the_rule_itself(importer: str, module: str, allowed: bool) -> None:
+    """The checker catches a forbidden arrow (so an empty violation list means something)."""
+    package = module_name(ROOT / importer).rpartition(".")[0]
+    tree = ast.parse(f"def f():\n    import {module}\n")
+    importer_layer = layer_of(package)
+    assert importer_layer is not None
+    targets = [layer_of(m) for _, m in imported_modules(tree, package)]
+    assert all((t in ALLOWED[importer_layer]) == allowed for t in targets if t is not None)
+
+
+def test_the_clock_rule_itself(tmp_path: Path) -> None:
+    tree = ast.parse("import time\nasync def f():\n    time.sleep(1)\n")
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+             and isinstance(n.value, ast.Name) and (n.value.id, n.attr) in WALL_CLOCK]
+    assert len(calls) == 1
+
+
+def test_no_import_cycles_between_modules() -> None:
+    """Module-level imports between our modules form no cycle (function-level ones may defer)."""
+    graph: dict[str, set[str]] = {}
+    for path in source_files():
+        name = module_name(path)
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        tree = ast.parse(path.read_text(), str(path))
+        top = ast.Module(body=[n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))],
+                         type_ignores=[])
+        graph[name] = {m for _, m in imported_modules(top, package) if layer_of(m) is not None}
+    known = set(graph)
+    for name in graph:
+        # ``from pkg import sub`` depends on pkg.sub; a module's own parent packages are already
+        # importing when it runs (re-exports in an ``__init__`` are not a cycle).
+        targets = {m if m in known else m.rpartition(".")[0] for m in graph[name]} & known
+        graph[name] = {t for t in targets if t != name and not name.startswith(t + ".")}
+    state: dict[str, int] = {}
+    cycle: list[str] = []
+
+    def visit(node: str, stack: list[str]) -> bool:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle.extend(stack[stack.index(nxt):] + [node, nxt] if nxt in stack else [node, nxt])
+                return True
+            if nxt not in state and visit(nxt, stack + [node]):
+                return True
+        state[node] = 2
+        return False
+
+    for name in sorted(graph):
+        if name not in state and visit(name, []):
+            break
+    assert not cycle, " -> ".join(cycle)
