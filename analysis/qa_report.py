@@ -10,6 +10,7 @@ image; and every missing or failed image.
 from __future__ import annotations
 
 import html
+import io
 import time
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from analysis.scan_views import ScanRecord, open_scan
+from daemon.manifest import ImageStatus
 
 REPORT_DIR = "report"
 SAMPLES = 20_000
@@ -32,11 +34,19 @@ def _pyplot() -> Any:
     return plt
 
 
-def _save(fig: Any, path: Path) -> str:
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    _pyplot().close(fig)
-    return path.name
+class _Figures:
+    """Writes the report's files into the scan folder through the store (atomically)."""
+
+    def __init__(self, scan: ScanRecord) -> None:
+        self.folder = scan.folder
+
+    def save(self, fig: Any, name: str) -> str:
+        fig.tight_layout()
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format="png", dpi=100)
+        _pyplot().close(fig)
+        self.folder.write_derived(f"{REPORT_DIR}/{name}", buffer.getvalue())
+        return name
 
 
 def skin_status(scan: ScanRecord, samples: int = SAMPLES, seed: int = 0) -> dict[str, np.ndarray]:
@@ -67,7 +77,7 @@ def skin_status(scan: ScanRecord, samples: int = SAMPLES, seed: int = 0) -> dict
     return {"points": points.points, "normals": points.normals, "status": status, "resolution": resolution}
 
 
-def _body_views(skin: dict[str, np.ndarray], out: Path) -> str:
+def _body_views(skin: dict[str, np.ndarray], out: _Figures) -> str:
     """Orthographic point splats from four sides, nearest points drawn last."""
     plt = _pyplot()
     points, normals, status = skin["points"], skin["normals"], skin["status"]
@@ -86,10 +96,10 @@ def _body_views(skin: dict[str, np.ndarray], out: Path) -> str:
     shares = [np.mean(status == k) for k in (2, 1, 0)]
     fig.suptitle(f"sharp {100 * shares[0]:.1f} %   blurred {100 * shares[1]:.1f} %   "
                  f"not seen {100 * shares[2]:.1f} %   (of the estimated skin surface)")
-    return _save(fig, out / "body.png")
+    return out.save(fig, "body.png")
 
 
-def _focus_by_angle(scan: ScanRecord, out: Path) -> str | None:
+def _focus_by_angle(scan: ScanRecord, out: _Figures) -> str | None:
     if not scan.plan:
         return None
     plt = _pyplot()
@@ -104,29 +114,28 @@ def _focus_by_angle(scan: ScanRecord, out: Path) -> str | None:
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=4)
     np.atleast_1d(axes)[-1].set_xlabel("capture angle, deg")
     fig.suptitle("focus distance of each camera against the angle")
-    return _save(fig, out / "focus.png")
+    return out.save(fig, "focus.png")
 
 
-def _speed_profile(scan: ScanRecord, out: Path) -> str | None:
-    trace_path = scan.folder / "trace.npz"
-    if not trace_path.exists():
+def _speed_profile(scan: ScanRecord, out: _Figures) -> str | None:
+    trace = scan.folder.read_trace()
+    if trace is None:
         return None
     plt = _pyplot()
-    trace = np.load(trace_path)
     fig, ax = plt.subplots(figsize=(9, 3))
     ax.plot(trace["angle_deg"], trace["speed_deg_s"], lw=0.8, color="#35608c")
-    actual = [i["actual_angle_deg"] for i in scan.images if i.get("actual_angle_deg") is not None]
+    actual = [i.actual_angle_deg for i in scan.images if i.actual_angle_deg is not None]
     for angle in sorted(set(np.round(actual, 1))):
         ax.axvline(angle, color=GREEN, lw=0.3, alpha=0.6)
     ax.set_xlabel("beam angle, deg")
     ax.set_ylabel("speed, deg/s")
     ax.set_title("beam speed with the capture marks")
-    return _save(fig, out / "speed.png")
+    return out.save(fig, "speed.png")
 
 
-def _angle_errors(scan: ScanRecord, out: Path) -> str | None:
-    rows = [(i["planned_angle_deg"], i["actual_angle_deg"] - i["planned_angle_deg"])
-            for i in scan.images if i.get("actual_angle_deg") is not None]
+def _angle_errors(scan: ScanRecord, out: _Figures) -> str | None:
+    rows = [(i.planned_angle_deg, i.actual_angle_deg - i.planned_angle_deg)
+            for i in scan.images if i.actual_angle_deg is not None]
     if not rows:
         return None
     plt = _pyplot()
@@ -139,10 +148,10 @@ def _angle_errors(scan: ScanRecord, out: Path) -> str | None:
     ax.set_xlabel("planned angle, deg")
     ax.set_ylabel("actual - planned, deg")
     ax.set_title(f"exposure angle error (max {np.abs(error).max():.3f} deg, tolerance {tolerance} deg)")
-    return _save(fig, out / "angles.png")
+    return out.save(fig, "angles.png")
 
 
-def _resolution_histogram(skin: dict[str, np.ndarray], out: Path) -> str:
+def _resolution_histogram(skin: dict[str, np.ndarray], out: _Figures) -> str:
     plt = _pyplot()
     resolution = skin["resolution"][np.isfinite(skin["resolution"])]
     fig, ax = plt.subplots(figsize=(6, 3))
@@ -151,7 +160,7 @@ def _resolution_histogram(skin: dict[str, np.ndarray], out: Path) -> str:
     ax.set_xlabel("mm per pixel in the best image")
     ax.set_ylabel("skin samples")
     ax.legend(fontsize=8)
-    return _save(fig, out / "resolution.png")
+    return out.save(fig, "resolution.png")
 
 
 def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None) -> Path:
@@ -161,11 +170,10 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
     """
     started = time.perf_counter()
     scan = open_scan(scan_dir, rig_path)
-    out = scan.folder / REPORT_DIR
-    out.mkdir(exist_ok=True)
+    out = _Figures(scan)
     figures: list[tuple[str, str | None]] = []
     skin = None
-    if (scan.folder / "mesh.ply").exists() and np.isfinite(scan.captured_focus_mm()).any():
+    if "mesh" in scan.manifest.files and np.isfinite(scan.captured_focus_mm()).any():
         skin = skin_status(scan)
         figures.append(("Skin in focus in the captured images", _body_views(skin, out)))
     figures.append(("Focus plan", _focus_by_angle(scan, out)))
@@ -175,15 +183,15 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
         figures.append(("Resolution", _resolution_histogram(skin, out)))
 
     manifest = scan.manifest
-    problems = [i for i in scan.images if i.get("status") != "verified"]
-    counts = ", ".join(f"{k} {v}" for k, v in manifest.get("counts", {}).items() if v)
+    problems = [i for i in scan.images if i.status is not ImageStatus.VERIFIED]
+    counts = ", ".join(f"{k} {v}" for k, v in manifest.counts().items() if v)
     parts = [
         "<!doctype html><meta charset='utf-8'>",
-        f"<title>Scan {html.escape(str(manifest.get('scan_id')))}</title>",
+        f"<title>Scan {html.escape(manifest.scan_id)}</title>",
         "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}img{max-width:100%}"
         "td,th{padding:2px 8px;text-align:left}</style>",
-        f"<h1>Scan {html.escape(str(manifest.get('scan_id')))}: {html.escape(str(manifest.get('state')))}</h1>",
-        f"<p>Images: {html.escape(counts)}. {html.escape(str(manifest.get('reason') or ''))}</p>",
+        f"<h1>Scan {html.escape(manifest.scan_id)}: {html.escape(manifest.state.value)}</h1>",
+        f"<p>Images: {html.escape(counts)}. {html.escape(manifest.reason or '')}</p>",
     ]
     if skin is not None:
         share = np.mean(skin["status"] == 2)
@@ -196,15 +204,11 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
         parts.append("<table><tr><th>camera</th><th>angle</th><th>status</th><th>error</th></tr>")
         for image in problems:
             parts.append(
-                f"<tr><td>{html.escape(str(image['camera_id']))}</td><td>{image['planned_angle_deg']:.1f}</td>"
-                f"<td>{html.escape(str(image['status']))}</td><td>{html.escape(str(image.get('error') or ''))}</td></tr>"
+                f"<tr><td>{html.escape(image.camera_id)}</td><td>{image.planned_angle_deg:.1f}</td>"
+                f"<td>{html.escape(image.status.value)}</td><td>{html.escape(image.error or '')}</td></tr>"
             )
         parts.append("</table>")
     else:
         parts.append("<p>None: every planned image is on disk and verified.</p>")
     parts.append(f"<p><small>Report generated in {time.perf_counter() - started:.1f} s.</small></p>")
-    page = out / "index.html"
-    tmp = page.with_suffix(".tmp")
-    tmp.write_text("\n".join(parts))
-    tmp.replace(page)
-    return page
+    return scan.folder.write_derived(f"{REPORT_DIR}/index.html", "\n".join(parts).encode())

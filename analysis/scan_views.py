@@ -1,54 +1,50 @@
 """What a finished scan shows: its capture poses at the actual exposure angles, and which skin
-each image holds sharp. Shared by the QA report and image navigation."""
+each image holds sharp. Shared by the QA report and image navigation; the scan folder is read
+through the store's typed manifest (daemon/store.py)."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from daemon.manifest import MANIFEST, ImageRecord, ImageStatus, Manifest
+from daemon.store import ScanFileError, ScanFolder, read_folder
 from planner.poses import Poses, rgb_poses
 from planner.rig import Rig, load_rig
 
 
-class ScanFolderError(ValueError):
-    """A scan folder lacks a file the question needs, or the file is unreadable."""
-
-    def __init__(self, folder: Path, name: str, problem: str) -> None:
-        self.folder, self.name, self.problem = str(folder), name, problem
-        super().__init__(f"{folder}: {name}: {problem}")
-
-
 @dataclass(frozen=True)
 class ScanRecord:
-    """A scan folder's manifest, plan, mesh and rig, loaded for reading."""
+    """A scan folder with its plan and the rig it was taken with, loaded for reading."""
 
-    folder: Path
-    manifest: dict[str, Any]
+    folder: ScanFolder
     plan: dict[str, Any] | None
     rig: Rig
 
     @property
-    def images(self) -> list[dict[str, Any]]:
-        return self.manifest.get("images", [])
+    def path(self) -> Path:
+        return self.folder.path
+
+    @property
+    def manifest(self) -> Manifest:
+        return self.folder.manifest
+
+    @property
+    def images(self) -> list[ImageRecord]:
+        return self.folder.manifest.images
 
     def mesh(self) -> Any:
-        import trimesh
-
-        path = self.folder / "mesh.ply"
-        if not path.exists():
-            raise ScanFolderError(self.folder, "mesh.ply", "missing (the scan ended before the depth sweep)")
-        return trimesh.load(path, force="mesh", process=False)
+        return self.folder.read_mesh()
 
     def captured_focus_mm(self) -> np.ndarray:
         """(P,) focus actually used per pose (angle-major); NaN where no verified image exists."""
         focus = np.full(self.rig.n_poses, np.nan)
         for image in self.images:
-            if image.get("status") == "verified" and image.get("focus_mm") is not None:
-                focus[self.rig.pose_index(image["angle_index"], image["camera_index"])] = image["focus_mm"]
+            if image.status is ImageStatus.VERIFIED:
+                focus[self.rig.pose_index(image.angle_index, image.camera_index)] = image.focus_mm
         return focus
 
     def poses(self) -> Poses:
@@ -56,8 +52,8 @@ class ScanRecord:
         rig = self.rig
         angles = np.tile(rig.capture.angles_deg[:, None], (1, rig.n_cameras))
         for image in self.images:
-            if image.get("actual_angle_deg") is not None:
-                angles[image["angle_index"], image["camera_index"]] = image["actual_angle_deg"]
+            if image.actual_angle_deg is not None:
+                angles[image.angle_index, image.camera_index] = image.actual_angle_deg
         per_camera = [rgb_poses(rig, angles[:, c]) for c in range(rig.n_cameras)]
         pose_of = np.arange(rig.n_poses)
         cam = pose_of % rig.n_cameras
@@ -69,37 +65,24 @@ class ScanRecord:
         return Poses(pick("centres"), pick("forward"), pick("right"), pick("down"),
                      pose_of // rig.n_cameras, cam)
 
-    def image_at(self, pose: int) -> dict[str, Any] | None:
+    def image_at(self, pose: int) -> ImageRecord | None:
         angle, camera = divmod(pose, self.rig.n_cameras)
-        for image in self.images:
-            if image["angle_index"] == angle and image["camera_index"] == camera:
-                return image
-        return None
-
-
-def _read_json(folder: Path, name: str, required: bool) -> dict[str, Any] | None:
-    path = folder / name
-    if not path.exists():
-        if required:
-            raise ScanFolderError(folder, name, "missing; is this a scan folder?")
-        return None
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ScanFolderError(folder, name, f"unreadable: {exc}") from exc
+        return self.folder.find_image(camera, angle)
 
 
 def open_scan(folder: Path | str, rig_path: Path | str | None = None) -> ScanRecord:
-    """Load a scan folder; the rig file defaults to the installed one (its digest is checked)."""
-    folder = Path(folder)
-    manifest = _read_json(folder, "manifest.json", required=True)
-    assert manifest is not None
+    """Load a scan folder; the rig file defaults to the installed one (its digest is checked).
+
+    Raises the store's errors: ManifestError (not a scan folder), ScanFileError (a file it
+    lists is missing or unreadable, or the rig file is not the one the scan was taken with).
+    """
+    scan = read_folder(folder)
     rig = load_rig(rig_path) if rig_path else load_rig()
-    recorded = manifest.get("rig_digest")
+    recorded = scan.manifest.rig_digest
     if recorded and rig.digest and recorded != rig.digest:
-        raise ScanFolderError(
-            folder, "manifest.json",
+        raise ScanFileError(
+            scan.path / MANIFEST,
             f"scanned with rig file digest {recorded[:12]}, but {rig.path} has {rig.digest[:12]}; "
             "pass the rig file the scan was taken with (--rig)",
         )
-    return ScanRecord(folder, manifest, _read_json(folder, "plan.json", required=False), rig)
+    return ScanRecord(scan, scan.read_plan(), rig)

@@ -39,7 +39,10 @@ def _format(message: dict[str, Any]) -> str:
         return f"[{message.get('time_s', 0.0):10.3f}] {head}{scan}: {message.get('cause', '')} {data}".rstrip()
     lines = []
     for key, value in message.items():
-        text = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
+        if key == "fault_causes":
+            text = "; ".join(cause["text"] for cause in value) or "none"
+        else:
+            text = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
         lines.append(f"{key}: {text}")
     return "\n".join(lines)
 

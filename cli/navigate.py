@@ -29,14 +29,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.navigate import NavigationError, navigate
-    from analysis.scan_views import ScanFolderError
+    from daemon.atomic import StoreError
     from daemon.logs import configure_logging
 
     configure_logging(level="warning")
     try:
         answer = navigate(args.scan_dir, point=args.point, vertex=args.vertex, count=args.count,
                           rig_path=args.rig)
-    except (NavigationError, ScanFolderError) as exc:
+    except (NavigationError, StoreError) as exc:
         print(f"tbp navigate: {exc}", file=sys.stderr)
         return 2
     if args.json:

@@ -22,13 +22,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.qa_report import generate_report
-    from analysis.scan_views import ScanFolderError
+    from daemon.atomic import StoreError
     from daemon.logs import configure_logging
 
     configure_logging(level="warning")
     try:
         print(generate_report(args.scan_dir, rig_path=args.rig))
-    except ScanFolderError as exc:
+    except StoreError as exc:  # not a scan folder, a file missing or unreadable, another rig
         print(f"tbp report: {exc}", file=sys.stderr)
         return 2
     return 0

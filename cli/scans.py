@@ -29,7 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from daemon.store import ManifestError, ScanStore
+    from daemon.manifest import ManifestError
+    from daemon.store import ScanStore
 
     root = args.store or Path(os.environ.get("TBP_STORE", str(DEFAULT_STORE)))
     store = ScanStore(root)

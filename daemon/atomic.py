@@ -14,8 +14,10 @@ import os
 import shutil
 from pathlib import Path
 
+from daemon.errors import DaemonError
 
-class StoreError(OSError):
+
+class StoreError(DaemonError):
     """Base of the store's errors; names the path involved."""
 
     def __init__(self, path: Path | str, message: str) -> None:

@@ -9,21 +9,17 @@ from __future__ import annotations
 
 import asyncio
 import math
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
 
 from daemon.errors import BeamTimeout
 
+if TYPE_CHECKING:
+    from drivers.motor.samples import BeamSample
+
 log = structlog.get_logger("daemon.beam")
-
-
-class _Sample(Protocol):
-    time_s: float
-    angle_deg: float
-    speed_deg_s: float
-    statusword: int
 
 
 class BeamTracker:
@@ -36,11 +32,11 @@ class BeamTracker:
     def __init__(self, drive: Any, *, name: str = "beam") -> None:
         self.drive = drive
         self.name = name
-        self.latest: _Sample | None = None
+        self.latest: BeamSample | None = None
         self._times: list[float] = []
         self._angles: list[float] = []
         self._speeds: list[float] = []
-        self._waiters: list[tuple[float, int, asyncio.Future[_Sample]]] = []
+        self._waiters: list[tuple[float, int, asyncio.Future[BeamSample]]] = []
         self._task: asyncio.Task[None] | None = None
         self._new_sample = asyncio.Event()
 
@@ -70,7 +66,7 @@ class BeamTracker:
             if self._waiters:
                 self._resolve(sample)
 
-    def _resolve(self, sample: _Sample) -> None:
+    def _resolve(self, sample: BeamSample) -> None:
         keep = []
         for angle, direction, future in self._waiters:
             if future.done():
@@ -123,18 +119,18 @@ class BeamTracker:
             return math.inf
         return sample.time_s + delta / sample.speed_deg_s
 
-    async def next_sample(self) -> _Sample:
+    async def next_sample(self) -> BeamSample:
         self._new_sample.clear()
         await self._new_sample.wait()
         assert self.latest is not None
         return self.latest
 
-    async def wait_angle(self, angle_deg: float, timeout_s: float, *, direction: int = 1) -> _Sample:
+    async def wait_angle(self, angle_deg: float, timeout_s: float, *, direction: int = 1) -> BeamSample:
         """Wait for the first sample at or past ``angle_deg`` in ``direction`` (+1 or -1)."""
         sample = self.latest
         if sample is not None and (sample.angle_deg - angle_deg) * direction >= 0:
             return sample
-        future: asyncio.Future[_Sample] = asyncio.get_running_loop().create_future()
+        future: asyncio.Future[BeamSample] = asyncio.get_running_loop().create_future()
         self._waiters.append((angle_deg, direction, future))
         try:
             return await asyncio.wait_for(future, timeout_s)

@@ -18,12 +18,17 @@ import math
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from daemon.errors import DaemonError
 
-class ClockSyncError(ValueError):
+if TYPE_CHECKING:
+    from drivers.phone.camera import ClockSample
+
+
+class ClockSyncError(DaemonError):
     """Base of the clock mapping errors."""
 
 
@@ -45,14 +50,6 @@ class OutsideTrace(ClockSyncError):
         super().__init__(
             f"host time {time_s:.6f} s is {why} the encoder trace [{start_s:.6f}, {end_s:.6f}] s"
         )
-
-
-class ClockSampleLike(Protocol):
-    """drivers.phone ClockSample: host loop seconds around one device clock reading (ns)."""
-
-    host_send_s: float
-    device_ns: int
-    host_recv_s: float
 
 
 @dataclass(frozen=True)
@@ -98,7 +95,7 @@ class ClockSync:
         self._samples: deque[tuple[float, int, float]] = deque(maxlen=self.WINDOW)
         self._fit: ClockFit | None = None
 
-    def add(self, sample: ClockSampleLike) -> None:
+    def add(self, sample: ClockSample) -> None:
         send, recv = float(sample.host_send_s), float(sample.host_recv_s)
         if not (math.isfinite(send) and math.isfinite(recv)) or recv < send:
             raise BadSample(
@@ -107,7 +104,7 @@ class ClockSync:
         self._samples.append((send, int(sample.device_ns), recv))
         self._fit = None
 
-    def extend(self, samples: Iterable[ClockSampleLike]) -> None:
+    def extend(self, samples: Iterable[ClockSample]) -> None:
         for s in samples:
             self.add(s)
 

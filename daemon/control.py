@@ -28,6 +28,8 @@ from typing import Any, Protocol
 
 import structlog
 
+from daemon.errors import DaemonError
+
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
 SOCKET_ENV = "TBP_CONTROL_SOCKET"
 GROUP_ENV = "TBP_CONTROL_GROUP"
@@ -46,7 +48,7 @@ def default_group() -> str | None:
     return os.environ.get(GROUP_ENV) or None
 
 
-class ControlError(RuntimeError):
+class ControlError(DaemonError):
     """Base of the control API's errors."""
 
 

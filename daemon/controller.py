@@ -13,6 +13,7 @@ import structlog
 
 from daemon.beam import BeamTracker
 from daemon.errors import ScanBusy
+from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
 from daemon.safety import SafetyMonitor
 from daemon.scan import Scan, ScanReport, ScanSettings
@@ -75,8 +76,8 @@ class RigController:
                 await drive.enable()
                 await drive.stop(self.STOP_DECELERATION_DEG_S2)
         except Exception as exc:  # a drive left faulted (e.g. by a killed daemon) latches FAULT
-            await self.safety.trip(getattr(drive, "name", "beam"),
-                                   f"at start-up: {type(exc).__name__}: {exc}")
+            await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, getattr(drive, "name", "beam"),
+                                                       exc, "at start-up"))
         results = await asyncio.gather(
             *(self._connect_phone(i, p) for i, p in enumerate(self.hw.phones)), return_exceptions=True
         )
@@ -97,7 +98,7 @@ class RigController:
     async def close(self) -> list[str]:
         """Stop the beam, stop watching, close every device; returns close failures."""
         if self.scan_task is not None and not self.scan_task.done():
-            self.abort("daemon stopping")
+            self.abort(AbortCause(AbortSource.DAEMON_STOPPING, "daemon", "stopping"))
             await asyncio.gather(self.scan_task, return_exceptions=True)
         await self.safety.stop()
         failures: list[str] = []
@@ -120,7 +121,7 @@ class RigController:
             raise ScanBusy(self.machine.state.value, "a scan is already running")
         if self.safety.latched or self.machine.state is not ScanState.IDLE:
             raise ScanBusy(self.machine.state.value,
-                           "fault latched: reset first (" + "; ".join(self.safety.causes) + ")")
+                           "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
         self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, self.store,
@@ -141,16 +142,16 @@ class RigController:
         self.last_report = report
         return report
 
-    def abort(self, cause: str) -> bool:
+    def abort(self, cause: AbortCause) -> bool:
         """Abort the running scan (stop button, control API); False when none runs."""
         if not self.busy or self.current is None:
             return False
         self.current.abort(cause)
         return True
 
-    async def trip(self, source: str, detail: str) -> None:
+    async def trip(self, cause: FaultCause) -> None:
         """A safety trip (e-stop, panel lost): quick stop, latched FAULT."""
-        await self.safety.trip(source, detail)
+        await self.safety.trip(cause)
 
     async def reset(self, cause: str = "operator reset") -> None:
         """Clear a latched fault: drive fault reset and re-enable; refused while the e-stop is held."""
@@ -178,9 +179,9 @@ class RigController:
                 if abs(sample.speed_deg_s) < self.STANDSTILL_DEG_S:
                     return
 
-    def _cancel_scan(self, cause: str) -> None:
+    def _cancel_scan(self, cause: FaultCause) -> None:
         if self.current is not None and self.busy:
-            self.current.cancel_for_fault(cause)
+            self.current.cancel_for_fault()
 
     async def _panel_fault(self) -> None:
         await self.hw.panel.set_status(_led("FAULT"))
@@ -194,7 +195,7 @@ class RigController:
             if light is not None:
                 await self.hw.panel.set_light(light)
         except Exception as exc:  # the trip records it as a fault cause
-            await self.safety.trip("panel", f"set_status({led}) failed: {type(exc).__name__}: {exc}")
+            await self.safety.trip(FaultCause.of_error(FaultSource.PANEL, "panel", exc, f"set_status({led}) failed"))
 
     # ------------------------------------------------------------------ status
 
@@ -204,7 +205,7 @@ class RigController:
         return {
             "state": self.machine.state.value,
             "scan_id": self.machine.scan_id,
-            "fault_causes": list(self.safety.causes),
+            "fault_causes": [cause.as_dict() for cause in self.safety.causes],
             "beam_angle_deg": None if latest is None else latest.angle_deg,
             "beam_speed_deg_s": None if latest is None else latest.speed_deg_s,
             "phones_failed": [e for e in self.phone_errors if e],

@@ -1,5 +1,9 @@
-"""The daemon's exception tree: scan sequencing, capture and safety errors.
+"""The daemon's exception tree: every error the daemon raises derives from :class:`DaemonError`.
 
+Here: scan sequencing, capture and safety errors. Elsewhere in the daemon, under the same root:
+the scan store's ``StoreError`` (daemon/atomic.py: ``StoreFull``, ``StoreWriteError``,
+``ManifestError``, ``ScanFileError``, ``ImagePullFailed``, ``VerifyFailed``), the control API's
+``ControlError`` (daemon/control.py) and ``ClockSyncError`` (daemon/clocksync.py).
 Driver errors (``DriveError``, ``PhoneError``, ``AdbError``...) keep their own trees; the daemon
 wraps them only where it adds the scan state, and always keeps the original as ``__cause__``.
 """
@@ -7,6 +11,8 @@ wraps them only where it adds the scan state, and always keeps the original as `
 from __future__ import annotations
 
 from collections.abc import Sequence
+
+from daemon.faults import Cause, FaultCause
 
 
 class DaemonError(Exception):
@@ -16,7 +22,7 @@ class DaemonError(Exception):
 class IllegalTransition(DaemonError):
     """The scan state machine was asked for a transition its table does not allow."""
 
-    def __init__(self, current: str, requested: str, cause: str) -> None:
+    def __init__(self, current: str, requested: str, cause: str | Cause) -> None:
         self.current = current
         self.requested = requested
         self.cause = cause
@@ -37,27 +43,9 @@ class ScanBusy(DaemonError):
 class FaultLatched(DaemonError):
     """The rig is in a latched FAULT; only an explicit reset clears it."""
 
-    def __init__(self, causes: Sequence[str]) -> None:
+    def __init__(self, causes: Sequence[FaultCause]) -> None:
         self.causes = list(causes)
-        super().__init__("rig fault latched (reset required): " + "; ".join(self.causes))
-
-
-class ScanAborted(DaemonError):
-    """The operator (stop button or control API) aborted the scan; captured data is kept."""
-
-    def __init__(self, state: str, cause: str) -> None:
-        self.state = state
-        self.cause = cause
-        super().__init__(f"scan aborted in state {state}: {cause}")
-
-
-class SafetyTrip(DaemonError):
-    """A safety source (e-stop, drive fault, lost heartbeat, panel lost) tripped during a scan."""
-
-    def __init__(self, source: str, detail: str) -> None:
-        self.source = source
-        self.detail = detail
-        super().__init__(f"safety trip from {source}: {detail}")
+        super().__init__("rig fault latched (reset required): " + "; ".join(map(str, self.causes)))
 
 
 class BeamTimeout(DaemonError):

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import structlog
 
-from daemon.store import ImageStatus, ScanFolder, StoreError, StoreFull
+from daemon.atomic import StoreError, StoreFull
+from daemon.manifest import ImageStatus
+from daemon.store import ScanFolder
 
 PullFn = Callable[[str, Path], Awaitable[tuple[int, str]]]
 _CHUNK = 1 << 20
@@ -31,7 +33,7 @@ _CHUNK = 1 << 20
 log = structlog.get_logger(__name__)
 
 
-class PullFailed(StoreError):
+class ImagePullFailed(StoreError):
     """An image could not be pulled and verified after every retry."""
 
     def __init__(self, path: Path | str, camera_id: str, angle_index: int, attempts: int,
@@ -78,7 +80,7 @@ class PullQueue:
     def __init__(self, folder: ScanFolder, *, workers: int = 2) -> None:
         self.folder = folder
         self.n_workers = workers
-        self.failures: list[PullFailed] = []
+        self.failures: list[ImagePullFailed] = []
         self.fatal: StoreError | None = None
         self._queue: asyncio.Queue[PullJob] = asyncio.Queue()
         self._tasks: list[asyncio.Task[None]] = []
@@ -166,7 +168,7 @@ class PullQueue:
             if attempt <= self.RETRIES:
                 await asyncio.sleep(self.RETRY_DELAY_S)
         dest.unlink(missing_ok=True)  # a file that failed verification is not an image
-        failure = PullFailed(dest, image.camera_id, job.angle_index, self.RETRIES + 1, cause)
+        failure = ImagePullFailed(dest, image.camera_id, job.angle_index, self.RETRIES + 1, cause)
         self.failures.append(failure)
         folder.record_failure(job.camera_index, job.angle_index, str(failure))
 

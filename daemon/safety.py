@@ -15,6 +15,7 @@ from typing import Any
 import structlog
 
 from daemon.errors import FaultLatched
+from daemon.faults import FaultCause, FaultSource
 from daemon.states import ScanState, ScanStateMachine
 
 log = structlog.get_logger("daemon.safety")
@@ -39,10 +40,10 @@ class SafetyMonitor:
         self.machine = machine
         self.drive = drive
         self.tripped = asyncio.Event()
-        self.causes: list[str] = []
+        self.causes: list[FaultCause] = []
         self.expect_samples = False
         self._handlers: list[tuple[str, Handler]] = []
-        self._listeners: list[Callable[[str], None]] = []
+        self._listeners: list[Callable[[FaultCause], None]] = []
         self._watch: asyncio.Task[None] | None = None
         self._handled = asyncio.Event()
         self._handled.set()
@@ -51,7 +52,7 @@ class SafetyMonitor:
         """A shutdown action, run on every trip in registration order (concurrently)."""
         self._handlers.append((name, handler))
 
-    def on_trip(self, listener: Callable[[str], None]) -> None:
+    def on_trip(self, listener: Callable[[FaultCause], None]) -> None:
         """Called synchronously with the cause as soon as a trip happens (cancel the scan)."""
         self._listeners.append(listener)
 
@@ -64,16 +65,16 @@ class SafetyMonitor:
         if self.latched:
             raise FaultLatched(self.causes)
 
-    async def trip(self, source: str, detail: str) -> None:
+    async def trip(self, cause: FaultCause) -> None:
         """Latch a fault and run every shutdown handler; a second trip only adds its cause."""
-        cause = f"{source}: {detail}"
         first = not self.latched
         if first:
             self._handled.clear()
         self.causes.append(cause)
         self.tripped.set()
         self.machine.transition(ScanState.FAULT, cause)
-        log.error("safety_trip", source=source, detail=detail, first=first)
+        log.error("safety_trip", source=cause.source.value, device=cause.device,
+                  detail=cause.detail, first=first)
         if not first:
             return
         for listener in self._listeners:
@@ -83,7 +84,7 @@ class SafetyMonitor:
         )
         for (name, _), result in zip(self._handlers, results):
             if isinstance(result, BaseException):
-                failure = f"shutdown handler {name} failed: {type(result).__name__}: {result}"
+                failure = FaultCause.of_error(FaultSource.SHUTDOWN, name, result, "shutdown handler failed")
                 self.causes.append(failure)
                 self.machine.transition(ScanState.FAULT, failure)
         self._handled.set()
@@ -125,16 +126,17 @@ class SafetyMonitor:
             await asyncio.sleep(self.POLL_S)
             if self.latched:
                 continue
+            device = getattr(self.drive, "name", "beam")
             fault = getattr(self.drive, "fault", None)
             if fault is not None:
-                await self.trip(getattr(self.drive, "name", "beam"), f"{type(fault).__name__}: {fault}")
+                await self.trip(FaultCause.of_error(FaultSource.DRIVE_FAULT, device, fault))
                 continue
             latest = getattr(self.drive, "latest", None)
             if self.expect_samples and latest is not None:
                 age = loop.time() - latest.time_s
                 if age > self.STALE_SAMPLE_S:
-                    await self.trip(
-                        getattr(self.drive, "name", "beam"),
+                    await self.trip(FaultCause(
+                        FaultSource.ENCODER_STALLED, device,
                         f"encoder stream stalled: last sample {age:.3f} s ago at "
                         f"{latest.angle_deg:.3f} deg (limit {self.STALE_SAMPLE_S:g} s)",
-                    )
+                    ))

@@ -21,15 +21,18 @@ from typing import Any
 import numpy as np
 import structlog
 
+from daemon.atomic import StoreError
 from daemon.beam import BeamTracker
 from daemon.capture import CaptureRecord, CaptureRunner
 from daemon.depth_sweep import DepthSweeper, SweepRecord
+from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
 from daemon.hardware import RigHardware
+from daemon.manifest import ImageStatus, ScanEnd
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import ImageStatus, ScanEnd, ScanFolder, ScanStore, StoreError
+from daemon.store import ScanFolder, ScanStore
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 
@@ -65,7 +68,7 @@ class ScanReport:
     scan_id: str
     folder: Path
     outcome: ScanOutcome
-    reason: str | None = None
+    causes: list[Cause] = field(default_factory=list)
     captured: int = 0
     missing: int = 0
     retaken: int = 0
@@ -78,6 +81,11 @@ class ScanReport:
     errors: list[str] = field(default_factory=list)
 
     @property
+    def reason(self) -> str | None:
+        """The causes in words (None for a completed scan)."""
+        return "; ".join(map(str, self.causes)) or None
+
+    @property
     def sweep_to_capture_s(self) -> float:
         """End of the depth sweep to the start of the capture rotation: rig time + compute time."""
         return self.phase_s.get("sweep_to_capture", 0.0) + sum(self.compute_s.values())
@@ -85,7 +93,8 @@ class ScanReport:
     def as_dict(self) -> dict[str, Any]:
         return {
             "scan_id": self.scan_id, "folder": str(self.folder), "outcome": self.outcome.value,
-            "reason": self.reason, "captured": self.captured, "missing": self.missing,
+            "reason": self.reason, "causes": [c.as_dict() for c in self.causes],
+            "captured": self.captured, "missing": self.missing,
             "retaken": self.retaken, "lens_late": self.lens_late,
             "focus_clipped": self.focus_clipped,
             "max_abs_angle_error_deg": self.max_abs_angle_error_deg,
@@ -172,7 +181,7 @@ class Scan:
         self.runner: CaptureRunner | None = None
         self.schedule: CaptureSchedule | None = None
         self.prep: PhonePrep | None = None
-        self._abort_cause: str | None = None
+        self._abort_cause: AbortCause | None = None
         self._body: asyncio.Task[None] | None = None
         self._marks: dict[str, float] = {}
         self.pulls: PullQueue | None = None
@@ -181,14 +190,14 @@ class Scan:
 
     # ------------------------------------------------------------------ control
 
-    def abort(self, cause: str) -> None:
+    def abort(self, cause: AbortCause) -> None:
         """Stop the scan: the beam decelerates, the folder keeps what was captured."""
         if self._abort_cause is None:
             self._abort_cause = cause
         if self._body is not None and not self._body.done():
             self._body.cancel()
 
-    def cancel_for_fault(self, cause: str) -> None:
+    def cancel_for_fault(self) -> None:
         """Called by the safety monitor on a trip: stop the sequence (the latch stops the beam)."""
         if self._body is not None and not self._body.done():
             self._body.cancel()
@@ -220,42 +229,52 @@ class Scan:
         return self.report
 
     async def _finish(self, error: BaseException | None) -> None:
+        """Close the scan on one explicit path per outcome; every step is a legal transition
+        (an illegal one raises :class:`IllegalTransition`).
+
+        completed: CAPTURING or RETAKING -> STORING -> IDLE.
+        aborted (operator, store, a scan step's error): the active state -> ABORTING (beam
+            decelerates) -> STORING -> IDLE.
+        faulted (the safety latch, before or while closing): FAULT stays latched, the folder
+            is stored all the same, and only the operator's reset leaves FAULT.
+        """
         assert self.folder is not None and self.report is not None
         report = self.report
         self.safety.expect_samples = False
         if self._body is not None and not self._body.done():
             self._body.cancel()
             await asyncio.gather(self._body, return_exceptions=True)
-        if error is not None and _is_drive_error(error) and not self.safety.latched:
-            await self.safety.trip(getattr(self.hw.drive, "name", "beam"),
-                                   f"{type(error).__name__}: {error}")
+        if error is not None:
+            report.errors.append(f"{type(error).__name__}: {error}")
+            if _is_drive_error(error) and not self.safety.latched:
+                await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self._drive_name, error))
+        if not self.safety.latched and (self._abort_cause is not None or error is not None):
+            cause = self._abort_cause or _error_cause(error)
+            report.outcome, report.causes = ScanOutcome.ABORTED, [cause]
+            self.machine.transition(ScanState.ABORTING, cause)
+            await self._stop_beam()  # a drive that cannot stop latches FAULT
         if self.safety.latched:
             await self.safety.settled()
-            report.outcome = ScanOutcome.FAULTED
-            report.reason = "; ".join(self.safety.causes)
-        elif self._abort_cause is not None or error is not None:
-            report.outcome = ScanOutcome.ABORTED
-            report.reason = self._abort_cause or f"{type(error).__name__}: {error}"
-            if error is not None:
-                report.errors.append(f"{type(error).__name__}: {error}")
-            if self.machine.allowed(ScanState.ABORTING):
-                self.machine.transition(ScanState.ABORTING, report.reason)
-            await self._stop_beam()
-        if self.machine.allowed(ScanState.STORING):
+            report.outcome, report.causes = ScanOutcome.FAULTED, list(self.safety.causes)
+        else:
             self.machine.transition(ScanState.STORING, "storing the scan")
         await self._store(report)
-        if self.machine.allowed(ScanState.IDLE):
+        if self.machine.state is not ScanState.FAULT:  # a trip while storing keeps FAULT latched
             self.machine.transition(ScanState.IDLE, f"scan {report.outcome.value.lower()}",
                                     captured=report.captured, missing=report.missing)
         self.machine.scan_id = None
+
+    @property
+    def _drive_name(self) -> str:
+        return getattr(self.hw.drive, "name", "beam")
 
     async def _stop_beam(self) -> None:
         decel = self.rig.capture.acceleration_deg_s2 * self.ABORT_DECELERATION_FACTOR
         try:
             await self.hw.drive.stop(decel)
         except Exception as exc:  # a drive that cannot stop is a rig fault
-            await self.safety.trip(getattr(self.hw.drive, "name", "beam"),
-                                   f"controlled stop failed: {type(exc).__name__}: {exc}")
+            await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self._drive_name, exc,
+                                                       "controlled stop failed"))
 
     def _mark(self, name: str) -> None:
         self._marks[name] = asyncio.get_running_loop().time()
@@ -385,7 +404,7 @@ class Scan:
         if self.pulls.fatal is not None and self.store_error is None:
             # The disk is full: images stay safe on the phones, the rotation stops now.
             self.store_error = self.pulls.fatal
-            self.abort(f"store: {type(self.pulls.fatal).__name__}: {self.pulls.fatal}")
+            self.abort(AbortCause.of_error(AbortSource.STORE, "store", self.pulls.fatal))
         try:
             # The pull's verification rewrites the manifest; one rewrite per image, not two.
             self.folder.update_image(
@@ -400,7 +419,7 @@ class Scan:
                               expected_size=record.size_bytes)
         except StoreError as exc:  # the disk cannot take the scan: stop the rotation, keep the rest
             self.store_error = exc
-            self.abort(f"store: {type(exc).__name__}: {exc}")
+            self.abort(AbortCause.of_error(AbortSource.STORE, "store", exc))
 
     # ------------------------------------------------------------------ storing
 
@@ -429,12 +448,12 @@ class Scan:
         steps: list[tuple[str, Callable[[], Any]]] = [
             ("missing", lambda: self._record_missing(records)),
             ("trace", lambda: folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2])),
-            ("captures", lambda: _write_json(folder, "captures", "captures.json",
-                                             [r.as_dict() for r in records])),
-            ("qa", lambda: _write_json(folder, "qa", "qa.json", report.as_dict())),
+            ("captures", lambda: folder.write_json("captures", "captures.json",
+                                                   [r.as_dict() for r in records], save=False)),
+            ("qa", lambda: folder.write_json("qa", "qa.json", report.as_dict(), save=False)),
             ("events", lambda: folder.log_event("scan_ended", outcome=report.outcome.value,
                                                 reason=report.reason)),
-            ("manifest", lambda: folder.finish(_END[report.outcome], report.reason)),
+            ("manifest", lambda: folder.finish(_END[report.outcome], report.causes)),
         ]
         for name, step in steps:
             try:
@@ -491,6 +510,13 @@ class Scan:
             report.phase_s["depth_sweep"] = m["sweep_end"] - m["prepared"]
 
 
+def _error_cause(error: BaseException | None) -> AbortCause:
+    """Why a scan step's error aborted the scan: the store (disk full), or the step itself."""
+    if isinstance(error, StoreError):
+        return AbortCause.of_error(AbortSource.STORE, "store", error)
+    return AbortCause.of_error(AbortSource.SCAN_ERROR, "scan", error)
+
+
 def _is_drive_error(error: BaseException) -> bool:
     from drivers.motor.errors import DriveError
 
@@ -499,13 +525,6 @@ def _is_drive_error(error: BaseException) -> bool:
 
 _END = {ScanOutcome.COMPLETED: ScanEnd.COMPLETE, ScanOutcome.ABORTED: ScanEnd.ABORTED,
         ScanOutcome.FAULTED: ScanEnd.FAULT}
-
-
-def _write_json(folder: ScanFolder, key: str, name: str, value: Any) -> None:
-    from daemon.store import _json_bytes
-
-    folder.writer.write(folder.path / name, _json_bytes(value))
-    folder.manifest.files[key] = name
 
 
 def _plan_summary(plan_json: dict[str, Any]) -> dict[str, Any]:

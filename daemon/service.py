@@ -17,6 +17,7 @@ import structlog
 
 from daemon.controller import RigController
 from daemon.errors import ScanBusy
+from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.notify import SystemdNotifier, run_watchdog
 from daemon.store import new_scan_id
 
@@ -138,11 +139,12 @@ class RigService:
                 except ScanBusy as exc:
                     log.warning("panel_start_refused", reason=str(exc))
             elif event is PanelEvent.STOP_PRESSED:
-                ctl.abort("stop button")
+                ctl.abort(AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button"))
             elif event is PanelEvent.ESTOP_PRESSED:
-                await ctl.trip("panel", "e-stop pressed")
+                await ctl.trip(FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed"))
             elif event is PanelEvent.HEARTBEAT_LOST:
-                await ctl.trip("panel", "panel heartbeat lost (e-stop state unknown)")
+                await ctl.trip(FaultCause(FaultSource.PANEL_LOST, "panel",
+                                          "panel heartbeat lost (e-stop state unknown)"))
 
     # ------------------------------------------------------------------ control API handler
 
@@ -158,7 +160,7 @@ class RigService:
         return {"scan_id": scan_id, "state": self.controller.machine.state.value}
 
     def abort(self) -> dict[str, Any]:
-        return {"aborted": self.controller.abort("control API abort"),
+        return {"aborted": self.controller.abort(AbortCause(AbortSource.CONTROL_API, "control API", "abort")),
                 "state": self.controller.machine.state.value}
 
     async def reset(self) -> dict[str, Any]:

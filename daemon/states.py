@@ -18,6 +18,7 @@ from typing import Any
 import structlog
 
 from daemon.errors import IllegalTransition
+from daemon.faults import Cause, FaultCause
 
 log = structlog.get_logger("daemon.states")
 
@@ -72,7 +73,7 @@ class StatusEvent:
         kind: "transition" or "progress".
         state: the state after the event.
         previous: the state before a transition (same as ``state`` for progress).
-        cause: why, in words.
+        cause: why: in words, or a typed :class:`Cause` (every FAULT, every abort).
         time_s: event-loop clock, s.
         scan_id: the scan the event belongs to, or None outside a scan.
         data: extra key-value facts (counts, angles); JSON-serialisable.
@@ -81,17 +82,21 @@ class StatusEvent:
     kind: str
     state: ScanState
     previous: ScanState
-    cause: str
+    cause: str | Cause
     time_s: float
     scan_id: str | None = None
     data: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
+        """JSON-able; ``cause`` is the text, ``source`` and ``device`` are set for typed causes."""
+        typed = self.cause if isinstance(self.cause, Cause) else None
         return {
             "kind": self.kind,
             "state": self.state.value,
             "previous": self.previous.value,
-            "cause": self.cause,
+            "cause": str(self.cause),
+            "source": None if typed is None else typed.source.value,
+            "device": None if typed is None else typed.device,
             "time_s": self.time_s,
             "scan_id": self.scan_id,
             "data": dict(self.data),
@@ -111,7 +116,7 @@ class ScanStateMachine:
         self.name = name
         self.state = ScanState.IDLE
         self.scan_id: str | None = None
-        self.fault_causes: list[str] = []
+        self.fault_causes: list[FaultCause] = []
         self.history: list[StatusEvent] = []
         self._subscribers: set[asyncio.Queue[StatusEvent]] = set()
         self._changed = asyncio.Event()
@@ -125,13 +130,16 @@ class ScanStateMachine:
             self.state is ScanState.FAULT and to is ScanState.IDLE
         )
 
-    def transition(self, to: ScanState, cause: str, **data: Any) -> StatusEvent:
+    def transition(self, to: ScanState, cause: str | Cause, **data: Any) -> StatusEvent:
         """Move to ``to``; raises :class:`IllegalTransition` if the table forbids it.
 
         A request for the current state is refused too, except FAULT -> FAULT, which only
-        adds the new cause to the latched ones (every fault handler reports).
+        adds the new cause to the latched ones (every fault handler reports). FAULT takes a
+        :class:`FaultCause` and nothing else.
         """
         if to is ScanState.FAULT:
+            if not isinstance(cause, FaultCause):
+                raise TypeError(f"FAULT needs a FaultCause, got {type(cause).__name__}: {cause!r}")
             self.fault_causes.append(cause)
             if self.state is ScanState.FAULT:
                 return self._emit("progress", ScanState.FAULT, cause, data)
@@ -170,7 +178,7 @@ class ScanStateMachine:
             await self._changed.wait()
         return self.state
 
-    def _emit(self, kind: str, to: ScanState, cause: str, data: dict[str, Any]) -> StatusEvent:
+    def _emit(self, kind: str, to: ScanState, cause: str | Cause, data: dict[str, Any]) -> StatusEvent:
         try:
             now = asyncio.get_running_loop().time()
         except RuntimeError:
@@ -178,9 +186,9 @@ class ScanStateMachine:
         event = StatusEvent(kind, to, self.state, cause, now, self.scan_id, data)
         if kind == "transition":
             log.info("scan_transition", rig=self.name, previous=self.state.value,
-                     state=to.value, cause=cause, scan_id=self.scan_id, **data)
+                     state=to.value, cause=str(cause), scan_id=self.scan_id, **data)
         else:
-            log.debug("scan_progress", rig=self.name, state=to.value, cause=cause, **data)
+            log.debug("scan_progress", rig=self.name, state=to.value, cause=str(cause), **data)
         self.state = to
         self.history.append(event)
         if len(self.history) > 4 * self.QUEUE_SIZE:

@@ -10,6 +10,9 @@ Layout of ``<root>/<YYYYmmdd-HHMMSS>-<scan id>/``::
     events.jsonl      the scan's event log (one JSON object a line, fsync'd per line)
     images/           <camera id>-a<angle index><suffix>, pulled from the phones
 
+This module is the only reader and writer of a scan folder: the daemon writes it through
+:class:`ScanFolder`; reports, navigation and the CLI read it with :func:`read_folder`.
+
 Every file is written atomically (daemon/atomic.py: temp file in the same folder, fsync,
 rename, fsync of the folder), so a reader sees the previous or the new version, never a
 torn one. The manifest
@@ -20,8 +23,6 @@ is identified only by an opaque scan id: no patient data is written here.
 
 from __future__ import annotations
 
-import dataclasses
-import enum
 import hashlib
 import io
 import json
@@ -30,7 +31,6 @@ import os
 import re
 import secrets
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -39,11 +39,12 @@ import numpy as np
 import structlog
 
 from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
+from daemon.faults import Cause
+from daemon.manifest import (MANIFEST, ImageRecord, ImageStatus, Manifest, ManifestError, ManifestRenderer,
+                             ScanEnd, json_bytes, json_safe)
 from daemon.utc import utc_now, utc_stamp
 from planner.rig import Rig
 
-FORMAT_VERSION = 1
-MANIFEST = "manifest.json"
 RESERVE = ".reserve"
 _SCAN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 _FOLDER = re.compile(r"^\d{8}-\d{6}-(?P<scan_id>[A-Za-z0-9][A-Za-z0-9_-]{0,63})$")
@@ -51,144 +52,13 @@ _FOLDER = re.compile(r"^\d{8}-\d{6}-(?P<scan_id>[A-Za-z0-9][A-Za-z0-9_-]{0,63})$
 log = structlog.get_logger(__name__)
 
 
-class ManifestError(StoreError):
-    """A manifest is unreadable or not a manifest of this format."""
-
-
-class ScanEnd(str, enum.Enum):
-    """The manifest's state. INCOMPLETE from the start until the scan ends."""
-
-    COMPLETE = "complete"
-    INCOMPLETE = "incomplete"
-    ABORTED = "aborted"
-    FAULT = "fault"
-
-
-class ImageStatus(str, enum.Enum):
-    PLANNED = "planned"
-    CAPTURED = "captured"
-    PULLED = "pulled"
-    VERIFIED = "verified"
-    FAILED = "failed"
-    MISSING = "missing"
+class ScanFileError(StoreError):
+    """A file of a scan folder that a reader needs is missing or unreadable."""
 
 
 def new_scan_id() -> str:
     """An opaque scan id (12 hex digits): the only identity of a subject in the store."""
     return secrets.token_hex(6)
-
-
-def _clean(value: Any) -> Any:
-    """JSON-safe: non-finite floats become null, numpy scalars become Python numbers."""
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, enum.Enum):
-        return value.value
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def _json_bytes(value: Any) -> bytes:
-    return (json.dumps(_clean(value), indent=1, allow_nan=False) + "\n").encode()
-
-
-class _ManifestRenderer:
-    """manifest.json bytes: indented JSON with one image record a line (readable, diffable).
-
-    Image lines are cached by the record's field values, so rewriting the manifest after
-    each image re-serialises only the records that changed (about 1 ms instead of 12 ms).
-    """
-
-    def __init__(self) -> None:
-        self._lines: dict[int, tuple[tuple[Any, ...], str]] = {}
-
-    def render(self, manifest: Manifest) -> bytes:
-        head = {f.name: getattr(manifest, f.name) for f in dataclasses.fields(manifest)
-                if f.name != "images"}
-        head["counts"] = manifest.counts()
-        head_text = json.dumps(_clean(head), indent=1, allow_nan=False)
-        lines = []
-        for n, image in enumerate(manifest.images):
-            values = tuple(vars(image).values())
-            cached = self._lines.get(n)
-            if cached is None or cached[0] != values:
-                cached = (values, json.dumps(_clean(vars(image)), allow_nan=False))
-                self._lines[n] = cached
-            lines.append(cached[1])
-        body = ",\n  ".join(lines)
-        return f'{head_text[:-2]},\n "images": [\n  {body}\n ]\n}}\n'.encode()
-
-
-@dataclass
-class ImageRecord:
-    """One planned image (pose) and what became of it. Times: sensor ns, host loop s."""
-
-    camera_id: str
-    camera_index: int
-    angle_index: int
-    planned_angle_deg: float
-    focus_mm: float
-    focus_diopters: float
-    status: ImageStatus = ImageStatus.PLANNED
-    actual_angle_deg: float | None = None
-    sensor_timestamp_ns: int | None = None
-    host_time_s: float | None = None
-    phone_path: str | None = None
-    file: str | None = None
-    size_bytes: int | None = None
-    sha256: str | None = None
-    attempts: int = 0
-    error: str | None = None
-
-
-@dataclass
-class Manifest:
-    """manifest.json as a dataclass (see the module docstring)."""
-
-    scan_id: str
-    created_utc: str
-    rig_digest: str
-    calibration_digest: str
-    cameras: list[str]
-    format_version: int = FORMAT_VERSION
-    state: ScanEnd = ScanEnd.INCOMPLETE
-    in_progress: bool = True
-    reason: str | None = None
-    ended_utc: str | None = None
-    plan_summary: dict[str, Any] = field(default_factory=dict)
-    files: dict[str, str] = field(default_factory=dict)
-    images: list[ImageRecord] = field(default_factory=list)
-
-    def counts(self) -> dict[str, int]:
-        out = {s.value: 0 for s in ImageStatus}
-        for image in self.images:
-            out[image.status.value] += 1
-        return out
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any], path: Path) -> Manifest:
-        if data.get("format_version") != FORMAT_VERSION:
-            raise ManifestError(path, f"format_version {data.get('format_version')!r}; "
-                                      f"this daemon reads {FORMAT_VERSION}")
-        try:
-            images = [
-                ImageRecord(**{**i, "status": ImageStatus(i["status"])}) for i in data["images"]
-            ]
-            names = {f.name for f in dataclasses.fields(cls)} - {"images", "state"}
-            return cls(
-                **{k: data[k] for k in names if k in data},
-                state=ScanEnd(data["state"]),
-                images=images,
-            )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ManifestError(path, f"not a valid manifest: {exc}") from exc
 
 
 def calibration_digest(rig: Rig) -> str:
@@ -209,7 +79,7 @@ class ScanFolder:
         self.manifest = manifest
         self.writer = writer
         self._index = {(i.camera_index, i.angle_index): i for i in manifest.images}
-        self._renderer = _ManifestRenderer()
+        self._renderer = ManifestRenderer()
 
     @property
     def scan_id(self) -> str:
@@ -252,8 +122,8 @@ class ScanFolder:
 
     def write_plan(self, plan: dict[str, Any], summary: dict[str, Any]) -> Path:
         """plan.json (the whole plan, JSON-able) and its summary into the manifest."""
-        self.manifest.plan_summary = _clean(summary)
-        return self._write_file("plan", "plan.json", _json_bytes(plan))
+        self.manifest.plan_summary = json_safe(summary)
+        return self._write_file("plan", "plan.json", json_bytes(plan))
 
     def write_mesh(self, mesh: Any) -> Path:
         """mesh.ply from PLY bytes or any object with ``export(file_type="ply") -> bytes``."""
@@ -271,12 +141,23 @@ class ScanFolder:
         return self._write_file("trace", "trace.npz", buffer.getvalue())
 
     def write_depth_sweep(self, metadata: dict[str, Any]) -> Path:
-        return self._write_file("depth_sweep", "depth_sweep.json", _json_bytes(metadata))
+        return self._write_file("depth_sweep", "depth_sweep.json", json_bytes(metadata))
+
+    def write_derived(self, relative: str, data: bytes) -> Path:
+        """A file derived from the scan's data (the QA report under ``report/``): written
+        atomically, not listed in the manifest (it can always be regenerated)."""
+        path = self.path / relative
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise_for(path.parent, exc, 0)
+        self.writer.write(path, data)
+        return path
 
     def write_json(self, key: str, name: str, value: Any, *, save: bool = True) -> Path:
         """Any other JSON file of the scan (captures, QA report), listed in the manifest as key."""
         path = self.path / name
-        self.writer.write(path, _json_bytes(value))
+        self.writer.write(path, json_bytes(value))
         self.manifest.files[key] = name
         if save:
             self.save()
@@ -284,7 +165,7 @@ class ScanFolder:
 
     def log_event(self, event: str, **fields: Any) -> None:
         """Append one line to events.jsonl (fsync'd): what happened, with wall-clock UTC."""
-        record = {"utc": utc_stamp(), "event": event, **_clean(fields)}
+        record = {"utc": utc_stamp(), "event": event, **json_safe(fields)}
         line = (json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n").encode()
         self.writer.append_line(self.path / "events.jsonl", line)
         self.manifest.files.setdefault("events", "events.jsonl")
@@ -307,11 +188,15 @@ class ScanFolder:
         self.save()
 
     def image(self, camera_index: int, angle_index: int) -> ImageRecord:
-        try:
-            return self._index[(camera_index, angle_index)]
-        except KeyError:
+        found = self.find_image(camera_index, angle_index)
+        if found is None:
             raise StoreError(self.path, f"no planned image for camera {camera_index} at angle "
-                                        f"index {angle_index}") from None
+                                        f"index {angle_index}")
+        return found
+
+    def find_image(self, camera_index: int, angle_index: int) -> ImageRecord | None:
+        """The planned image of a camera at a capture angle, None if the scan has none."""
+        return self._index.get((camera_index, angle_index))
 
     def image_dest(self, camera_index: int, angle_index: int, phone_path: str) -> Path:
         """Where an image from the phone goes: images/<camera id>-a<NN><suffix of phone_path>."""
@@ -374,16 +259,68 @@ class ScanFolder:
                 problems.append(f"{who}: {image.file} does not match its SHA-256")
         return problems
 
+    # ------------------------------------------------------------------ reading
+
+    def listed(self, key: str) -> Path | None:
+        """The path of the file the manifest lists as ``key`` (None if not listed).
+
+        Raises ScanFileError if it is listed but not on disk.
+        """
+        name = self.manifest.files.get(key)
+        if name is None:
+            return None
+        path = self.path / name
+        if not path.is_file():
+            raise ScanFileError(path, f"listed in the manifest as {key!r} but missing")
+        return path
+
+    def read_plan(self) -> dict[str, Any] | None:
+        """plan.json as written by :meth:`write_plan` (None if the scan ended before planning)."""
+        path = self.listed("plan")
+        if path is None:
+            return None
+        try:
+            return json.loads(path.read_bytes())
+        except (OSError, ValueError) as exc:
+            raise ScanFileError(path, f"unreadable: {exc}") from exc
+
+    def read_trace(self) -> dict[str, np.ndarray] | None:
+        """trace.npz: (N,) ``time_s``, ``angle_deg`` and ``speed_deg_s`` (None if not written)."""
+        path = self.listed("trace")
+        if path is None:
+            return None
+        try:
+            with np.load(path) as data:
+                return {name: data[name] for name in data.files}
+        except (OSError, ValueError) as exc:
+            raise ScanFileError(path, f"unreadable: {exc}") from exc
+
+    def read_mesh(self) -> Any:
+        """mesh.ply as a ``trimesh.Trimesh`` (mm); ScanFileError if the scan has none."""
+        import trimesh
+
+        path = self.listed("mesh")
+        if path is None:
+            raise ScanFileError(self.path / "mesh.ply", "missing (the scan ended before the depth sweep)")
+        try:
+            return trimesh.load(path, force="mesh", process=False)
+        except (OSError, ValueError) as exc:
+            raise ScanFileError(path, f"unreadable: {exc}") from exc
+
     # ------------------------------------------------------------------ end
 
-    def finish(self, state: ScanEnd, reason: str | None = None) -> None:
-        """End the scan: planned images become missing; the manifest leaves 'in progress'."""
+    def finish(self, state: ScanEnd, causes: Sequence[Cause] = ()) -> None:
+        """End the scan: planned images become missing; the manifest leaves 'in progress'.
+
+        ``causes``: why it ended early (none for a complete scan); ``reason`` is their text.
+        """
         for image in self.manifest.images:
             if image.status is ImageStatus.PLANNED:
                 image.status = ImageStatus.MISSING
                 image.error = image.error or f"not captured: scan ended {state.value}"
         self.manifest.state = state
-        self.manifest.reason = reason
+        self.manifest.causes = list(causes)
+        self.manifest.reason = "; ".join(map(str, causes)) or None
         self.manifest.in_progress = False
         self.manifest.ended_utc = utc_stamp()
         self.save()
@@ -451,12 +388,7 @@ class ScanStore:
         return sorted(p for p in self.root.iterdir() if p.is_dir() and _FOLDER.match(p.name))
 
     def open(self, path: Path | str) -> ScanFolder:
-        path = Path(path)
-        try:
-            data = json.loads((path / MANIFEST).read_bytes())
-        except (OSError, ValueError) as exc:
-            raise ManifestError(path / MANIFEST, f"unreadable: {exc}") from exc
-        return ScanFolder(path, Manifest.from_dict(data, path / MANIFEST), self.writer)
+        return read_folder(path, writer=self.writer)
 
     def recover(self, reason: str = "the daemon stopped while the scan was in progress"
                 ) -> list[ScanFolder]:
@@ -501,6 +433,19 @@ class ScanStore:
                         reason=reason_here, **folder.manifest.counts())
             recovered.append(folder)
         return recovered
+
+
+def read_folder(path: Path | str, *, writer: AtomicWriter | None = None) -> ScanFolder:
+    """The scan folder at ``path`` with its typed manifest; ManifestError if it has none."""
+    path = Path(path)
+    manifest = path / MANIFEST
+    if not manifest.is_file():
+        raise ManifestError(manifest, "missing: not a scan folder")
+    try:
+        data = json.loads(manifest.read_bytes())
+    except (OSError, ValueError) as exc:
+        raise ManifestError(manifest, f"unreadable: {exc}") from exc
+    return ScanFolder(path, Manifest.from_dict(data, manifest), writer or AtomicWriter())
 
 
 def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:

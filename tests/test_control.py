@@ -13,6 +13,7 @@ import pytest
 
 from cli import main as tbp_main
 from daemon.control import CommandFailed, ControlClient, ControlServer, DaemonUnavailable, SocketInUse
+from daemon.faults import FaultCause, FaultSource
 from daemon.states import ScanState, ScanStateMachine
 
 
@@ -28,7 +29,7 @@ class FakeDaemon:
         self.scans: list[dict] = []
 
     def status(self) -> dict:
-        return {"state": self.machine.state.value, "faults": list(self.machine.fault_causes)}
+        return {"state": self.machine.state.value, "faults": [c.as_dict() for c in self.machine.fault_causes]}
 
     async def scan(self, **args) -> dict:
         if self.machine.state is not ScanState.IDLE:
@@ -79,11 +80,12 @@ async def test_subscription_streams_events_as_they_happen(sock):
         assert first["state"] == "IDLE"
         daemon.machine.transition(ScanState.PREPARING, "start pressed")
         daemon.machine.progress("captured", images=12)
-        daemon.machine.transition(ScanState.FAULT, "e-stop pressed")
+        daemon.machine.transition(ScanState.FAULT, FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed"))
         events = [await asyncio.wait_for(anext(stream), 5.0) for _ in range(3)]
         assert [e["state"] for e in events] == ["PREPARING", "PREPARING", "FAULT"]
         assert events[1]["kind"] == "progress" and events[1]["data"] == {"images": 12}
-        assert events[2]["cause"] == "e-stop pressed"
+        assert events[2]["cause"] == "panel: e-stop pressed"
+        assert (events[2]["source"], events[2]["device"]) == ("estop", "panel")
         await stream.aclose()
         for _ in range(100):  # the server notices the hang-up and unsubscribes
             if not daemon.machine._subscribers:
@@ -217,6 +219,10 @@ def test_cli_formats_status_events_on_one_line():
     progress = _format({"kind": "progress", "state": "CAPTURING", "previous": "CAPTURING",
                         "cause": "captured", "time_s": 3.0, "scan_id": None, "data": {}})
     assert progress == "[     3.000] CAPTURING: captured"
+    status = _format({"state": "FAULT", "fault_causes": [
+        FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed").as_dict(),
+        FaultCause(FaultSource.DRIVE_FAULT, "beam", "EMCY 0x5441").as_dict()]})
+    assert status == "state: FAULT\nfault_causes: panel: e-stop pressed; beam: EMCY 0x5441"
 
 
 def test_cli_status_follow_streams_until_the_daemon_goes(sock, capsys):
@@ -246,7 +252,8 @@ def test_cli_status_follow_streams_until_the_daemon_goes(sock, capsys):
                 break
             time.sleep(0.01)
         loop.call_soon_threadsafe(daemon.machine.transition, ScanState.PREPARING, "start pressed")
-        loop.call_soon_threadsafe(daemon.machine.transition, ScanState.FAULT, "drive fault 0x2310")
+        loop.call_soon_threadsafe(daemon.machine.transition, ScanState.FAULT,
+                                  FaultCause(FaultSource.DRIVE_FAULT, "beam", "drive fault 0x2310"))
         out = ""
         for _ in range(1000):
             out += capsys.readouterr().out
@@ -260,6 +267,6 @@ def test_cli_status_follow_streams_until_the_daemon_goes(sock, capsys):
         loop.close()
     events = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     assert [e["state"] for e in events] == ["IDLE", "PREPARING", "FAULT"]
-    assert events[2]["cause"] == "drive fault 0x2310"
+    assert events[2]["cause"] == "beam: drive fault 0x2310" and events[2]["source"] == "drive_fault"
     assert result == [2]  # then the daemon went away: unreachable
     assert "closed the subscription" in capsys.readouterr().err

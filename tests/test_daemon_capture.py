@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 
 import numpy as np
 import pytest
@@ -88,4 +87,3 @@ def test_latency_estimate_converges() -> None:
     assert est.value_s == pytest.approx(0.05)
     est.update(0.06)
     assert 0.05 < est.value_s < 0.06
-    assert asyncio.iscoroutinefunction(CaptureRunner.run)

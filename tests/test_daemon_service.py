@@ -11,6 +11,7 @@ import pytest
 
 from daemon.control import CommandFailed, ControlClient
 from daemon.controller import RigController
+from daemon.faults import FaultSource
 from daemon.notify import SystemdNotifier
 from daemon.scan import ScanSettings
 from daemon.service import RigService
@@ -98,7 +99,8 @@ def test_health_follows_the_drive_heartbeat(tmp_path: Path) -> None:
             await asyncio.sleep(1.0)
             assert not service.healthy()
             assert controller.machine.state.value == "FAULT"
-            assert any("HeartbeatLost" in c for c in controller.safety.causes)
+            assert any(c.source is FaultSource.DRIVE_FAULT and "HeartbeatLost" in c.detail
+                       for c in controller.safety.causes)
         finally:
             await service.stop()
 

@@ -16,6 +16,7 @@ import pytest
 
 from daemon.controller import RigController
 from daemon.errors import ScanBusy
+from daemon.faults import FaultCause, FaultSource
 from daemon.scan import ScanSettings
 from daemon.service import RigService
 from daemon.store import ScanStore
@@ -67,7 +68,7 @@ def test_start_button_scans_and_estop_trips_until_released_and_reset(tmp_path: P
         sim.press_estop()
         await until(lambda: controller.machine.state.value == "FAULT")
         await until(lambda: sim.led is StatusLed.FAULT)
-        assert any("e-stop" in cause for cause in controller.safety.causes)
+        assert FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed") in controller.safety.causes
         await until(lambda: not controller.busy)
         with pytest.raises(ScanBusy, match="e-stop still pressed"):
             await controller.reset()
@@ -85,6 +86,6 @@ def test_lost_panel_trips_the_rig(tmp_path: Path) -> None:
         await until(lambda: sim.led is StatusLed.IDLE)
         sim.stop_heartbeats()
         await until(lambda: controller.machine.state.value == "FAULT")
-        assert any("heartbeat" in cause for cause in controller.safety.causes)
+        assert [c.source for c in controller.safety.causes] == [FaultSource.PANEL_LOST]
 
     run_service(tmp_path, scenario)

@@ -11,8 +11,9 @@ import pytest
 
 from analysis.navigate import NavigationError, navigate
 from analysis.qa_report import generate_report
-from analysis.scan_views import ScanFolderError, open_scan
+from analysis.scan_views import open_scan
 from cli import main
+from daemon.manifest import ManifestError
 from planner.visibility import RayScene
 from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
@@ -74,7 +75,7 @@ def test_navigation_refuses_what_is_not_a_point_on_the_body(scan_dir, tmp_path, 
         navigate(scan_dir, point="1,2")
     with pytest.raises(NavigationError, match="vertices 0.."):
         navigate(scan_dir, vertex=10**9)
-    with pytest.raises(ScanFolderError, match="manifest.json"):
+    with pytest.raises(ManifestError, match="manifest.json"):
         generate_report(tmp_path)
     assert main(["navigate", str(tmp_path), "--vertex", "0"]) == 2
     assert "manifest.json" in capsys.readouterr().err

@@ -15,8 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from daemon.atomic import AtomicWriter, StoreError, StoreFull
+from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
+from daemon.manifest import ManifestError, ScanEnd
 from daemon.pulls import PullQueue
-from daemon.store import AtomicWriter, ManifestError, ScanEnd, ScanStore, StoreError, StoreFull
+from daemon.store import ScanStore
 from planner.rig import load_rig
 
 NOW = datetime(2026, 11, 22, 9, 30, 0, tzinfo=UTC)
@@ -132,7 +135,7 @@ def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
                       sha256=hashlib.sha256(b"abc").hexdigest())
     (live.path / ".manifest.json.tmp").write_bytes(b"{torn")
     done = store.create(rig, scan_id="done", now=NOW)
-    done.finish(ScanEnd.ABORTED, "stop pressed")
+    done.finish(ScanEnd.ABORTED, [AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button")])
     (tmp_path / "20261122-093001-nomanifest").mkdir()
 
     recovered = store.recover("killed by test")
@@ -146,6 +149,10 @@ def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
     assert statuses[(2, 0)]["status"] == "missing"
     assert not list(live.path.glob(".*.tmp"))
     assert _manifest(done)["state"] == "aborted"
+    assert _manifest(done)["reason"] == "panel: stop button"
+    assert _manifest(done)["causes"] == [{"source": "stop_button", "device": "panel",
+                                          "detail": "stop button", "text": "panel: stop button"}]
+    assert store.open(done.path).manifest.causes == [AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button")]
     assert "no manifest" in _manifest(store.open(tmp_path / "20261122-093001-nomanifest"))["reason"]
     assert store.recover() == []
 
@@ -286,7 +293,7 @@ def test_real_enospc_on_a_tiny_tmpfs(tiny_tmpfs, rig):
     folder.record_capture(1, 0, sensor_timestamp_ns=6, host_time_s=1.1, actual_angle_deg=-40.0,
                           phone_path="/q.jpg", size_bytes=1)
     assert not folder.reserve_path.exists()
-    folder.finish(ScanEnd.FAULT, "disk full")
+    folder.finish(ScanEnd.FAULT, [FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed")])
     m = _manifest(folder)
     assert m["state"] == "fault"
     assert [i["status"] for i in m["images"][:2]] == ["captured", "captured"]

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from daemon.atomic import sha256_of
-from daemon.store import ScanEnd, ScanStore
+from daemon.manifest import ScanEnd
+from daemon.store import ScanStore
 from planner.rig import load_rig
 from planner.schedule import compile_plan, phone_timings
 
