@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -17,7 +19,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "a random adult.",
     )
     parser.add_argument("--out", required=True, type=Path, help="output mesh (.ply: binary PLY; .stl, .obj...)")
-    parser.add_argument("--seed", type=int, default=0, help="random adult and sway axes (default 0)")
+    options.seed(parser, "random adult and sway axes")
     parser.add_argument(
         "--phenotype", default=None, metavar="G,A,M,W,H,P",
         help="Anny gender (0 male..1 female), age (2/3 young adult..1 old), muscle, weight, height, "

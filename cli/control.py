@@ -10,6 +10,8 @@ import json
 import sys
 from typing import Any
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     for name, help_text in (
@@ -18,9 +20,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ("reset", "clear a latched FAULT (after the cause is fixed)"),
     ):
         parser = subparsers.add_parser(name, help=help_text, description=help_text)
-        parser.add_argument("--socket", metavar="PATH", default=None,
-                            help="control socket (default $TBP_CONTROL_SOCKET or "
-                                 "/run/tbp-rig/control.sock)")
+        options.socket(parser)
         parser.add_argument("--json", action="store_true", help="print raw JSON lines")
         if name == "status":
             parser.add_argument("--follow", "-f", action="store_true",

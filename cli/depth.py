@@ -13,6 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -21,8 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="List connected RealSense devices, stream the rig's depth cameras for a few "
         "seconds, or replay a .bag recording, through the drivers the daemon uses.",
     )
-    parser.add_argument("--rig", type=Path, default=None,
-                        help="rig file (default: calibration_data/rig.yaml)")
+    options.rig(parser)
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("list", help="connected RealSense devices")
     check = actions.add_parser("check", help="stream each rig camera and report")

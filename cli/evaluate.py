@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -17,13 +19,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the same numbers whatever --jobs is.",
     )
     parser.add_argument("--bodies", type=int, required=True, help="number of simulated adults")
-    parser.add_argument("--seed", type=int, default=0, help="corpus seed (bodies, samples, noise)")
+    options.seed(parser, "corpus seed (bodies, samples, noise)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-    parser.add_argument("--points", type=int, default=10_000, help="surface samples per body")
+    options.plan_points(parser, 10_000)
     parser.add_argument("--calibration-trials", type=int, default=30, help="calibration-noise trials per body")
     parser.add_argument("--sway-poses", type=int, default=10, help="swayed poses per body")
     parser.add_argument("--no-shape", action="store_true", help="skip the TSDF shape-error study")
-    parser.add_argument("--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)")
+    options.rig(parser)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.set_defaults(func=run)
 
@@ -34,12 +36,12 @@ def run(args: argparse.Namespace) -> int:
     from daemon.logs import configure_logging
 
     configure_logging(level="warning")
-    if args.bodies < 1 or args.jobs < 1 or args.points < 100:
+    if args.bodies < 1 or args.jobs < 1 or args.plan_points < 100:
         print(f"tbp evaluate: --bodies and --jobs must be >= 1 and --points >= 100 "
-              f"(got {args.bodies}, {args.jobs}, {args.points})", file=sys.stderr)
+              f"(got {args.bodies}, {args.jobs}, {args.plan_points})", file=sys.stderr)
         return 2
     options = StudyOptions(
-        points=args.points,
+        points=args.plan_points,
         calibration_trials=args.calibration_trials,
         sway_poses=args.sway_poses,
         shape=not args.no_shape,

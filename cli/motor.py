@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
+
+from cli import options
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,9 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--host", default="127.0.0.1", help="socketcand host")
     parser.add_argument("--port", type=int, default=29536, help="socketcand TCP port")
-    parser.add_argument(
-        "--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)"
-    )
+    options.rig(parser)
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("status", help="connect and report")
     actions.add_parser("enable", help="check the drive reaches OPERATION ENABLED")

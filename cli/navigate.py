@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -22,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     where.add_argument("--point", help="X,Y,Z in mm")
     where.add_argument("--vertex", type=int, help="vertex index of the scan's mesh.ply")
     parser.add_argument("--count", type=int, default=5, help="the best image and this many minus one runners-up")
-    parser.add_argument("--rig", type=Path, default=None, help="the rig file the scan was taken with")
+    options.rig(parser, "the rig file the scan was taken with (default: calibration_data/rig.yaml)")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.set_defaults(func=run)
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -25,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     link.add_argument("--usb", metavar="SERIAL", help="the phone with this serial on USB")
     link.add_argument("--tcp", metavar="HOST[:PORT]", help="a phone in wireless debugging (port 5555)")
     check.add_argument("--camera", help="rig camera id (default: the rig phone with the --usb serial)")
-    check.add_argument("--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)")
+    options.rig(check)
     check.add_argument("--state-dir", type=Path, default=Path("/var/lib/tbp-rig"),
                        help="folder of the host's ADB key (adbkey, adbkey.pub); created if missing")
     check.add_argument("--agent-jar", type=Path, default=None, help="capture agent jar to push when needed")

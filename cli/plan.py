@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cli import options
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -24,9 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "and optionally writes the plan as JSON (pose order: angle-major).",
     )
     parser.add_argument("--mesh", required=True, type=Path, help="subject mesh in mm (PLY, OBJ, STL...)")
-    parser.add_argument("--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)")
-    parser.add_argument("--points", type=int, default=None, help="surface samples (default: the rig's)")
-    parser.add_argument("--seed", type=int, default=0, help="sampling seed")
+    options.rig(parser)
+    options.plan_points(parser)
+    options.seed(parser, "surface sampling seed")
     parser.add_argument("--json", dest="json_out", type=Path, default=None, help="write the plan here")
     parser.add_argument(
         "--fresh", type=int, default=0, metavar="N",
@@ -77,8 +79,8 @@ def run(args: argparse.Namespace) -> int:
     from planner.plan import evaluate, load_subject_mesh, plan_focus
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
-    if args.points is not None and args.points <= 0:
-        print(f"tbp plan: --points must be positive, got {args.points}", file=sys.stderr)
+    if args.plan_points is not None and args.plan_points <= 0:
+        print(f"tbp plan: --plan-points must be positive, got {args.plan_points}", file=sys.stderr)
         return 2
     queries = [_parse_point(v) for v in args.view]
     if None in queries:
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         rig = load_rig(args.rig or DEFAULT_RIG_PATH)
         mesh = load_subject_mesh(args.mesh)
         result = plan_focus(
-            mesh, rig, points=args.points, seed=args.seed, backend=args.backend, mesh_name=str(args.mesh)
+            mesh, rig, points=args.plan_points, seed=args.seed, backend=args.backend, mesh_name=str(args.mesh)
         )
     except (RigConfigError, FocusPlanError) as exc:
         print(f"tbp plan: {exc}", file=sys.stderr)

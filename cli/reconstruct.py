@@ -9,6 +9,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cli import options
+
 if TYPE_CHECKING:
     from planner.rig import Rig
     from planner.sweep import Sweep
@@ -33,10 +35,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--trace", type=Path,
         help="beam trace JSON for --bag: time_s (seconds from each recording's first frame), angle_deg",
     )
-    parser.add_argument("--seed", type=int, default=0, help="depth noise seed of the simulated sweep")
+    options.seed(parser, "depth noise seed of the simulated sweep")
     parser.add_argument("--no-noise", action="store_true", help="simulate without depth noise")
     parser.add_argument("--true-body", type=Path, help="true body mesh for metrics (default: --sim-body)")
-    parser.add_argument("--rig", type=Path, default=None, help="rig file (default: calibration_data/rig.yaml)")
+    options.rig(parser)
     parser.add_argument("--save-frames", type=Path, help="also write the simulated sweep to this folder")
     parser.add_argument("--out", type=Path, help="write the mesh here (.ply, .obj, .stl)")
     parser.add_argument("--json", dest="json_out", type=Path, help="write timings and metrics as JSON here")

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -16,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "vs actual angles, the resolution histogram, and every missing or failed image.",
     )
     parser.add_argument("scan_dir", type=Path, help="a scan folder")
-    parser.add_argument("--rig", type=Path, default=None, help="the rig file the scan was taken with")
+    options.rig(parser, "the rig file the scan was taken with (default: calibration_data/rig.yaml)")
     parser.set_defaults(func=run)
 
 

@@ -14,41 +14,37 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cli import options
+
 DEFAULT_STORE = Path("scans")
 
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser("scan", help="run one complete scan (simulated with --sim)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sim", action="store_true", help="simulated hardware, in this process")
-    parser.add_argument("--time-scale", type=float, default=None, metavar="X",
-                        help="with --sim: run at X times real time (default: as fast as possible)")
-    parser.add_argument("--store", type=Path, default=DEFAULT_STORE, help="scan store folder (--sim)")
-    parser.add_argument("--seed", type=int, default=0, help="simulated subject and noise seed (--sim)")
-    parser.add_argument("--config", type=Path, default=None, help="rig file (default calibration_data/rig.yaml)")
-    parser.add_argument("--plan-points", type=int, default=None, metavar="N",
-                        help="surface samples for planning (default: the rig file's planner.points)")
-    parser.add_argument("--depth-decimation", type=int, default=2, metavar="N",
-                        help="simulated depth cameras render at 1/N resolution (--sim)")
-    parser.add_argument("--subject", type=Path, default=None, metavar="MESH",
-                        help="with --sim: the subject's mesh file (default: a body for --seed)")
-    parser.add_argument("--no-panel", action="store_true", help="with --sim: a rig without a panel")
-    parser.add_argument("--socket", type=Path, default=None, help="control socket of the running daemon")
-    parser.add_argument("--verbose", action="store_true", help="log at info level to stderr")
+    options.simulated_rig(parser)
+    options.time_scale(parser, None)
+    options.store(parser, DEFAULT_STORE)
+    options.rig(parser)
+    options.plan_points(parser)
+    options.socket(parser)
+    options.log_level(parser, "warning")
+    parser.add_argument("--verbose", action="store_const", dest="log_level", const="info",
+                        help="the same as --log-level info")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from daemon.logs import configure_logging
 
-    configure_logging(level="info" if args.verbose else "warning", stream=sys.stderr)
+    configure_logging(level=args.log_level, stream=sys.stderr)
     if args.sim:
         from analysis.qa_report import generate_report
         from planner.plan import load_subject_mesh
         from sim.run import run_sim_scan
 
         report = run_sim_scan(
-            config=args.config, store=args.store, seed=args.seed, time_scale=args.time_scale,
+            config=args.rig, store=args.store, seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
             subject=load_subject_mesh(args.subject) if args.subject else None,
             panel=not args.no_panel, qa_report=generate_report,

@@ -7,10 +7,8 @@ manifest is unreadable.
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
 
-DEFAULT_STORE = Path("/srv/tbp-rig/scans")
+from cli import options
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,8 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "scans", help="list the scans in the store (state, image counts); --check re-verifies",
         description=__doc__,
     )
-    parser.add_argument("--store", type=Path, default=None,
-                        help=f"scan store folder (default $TBP_STORE or {DEFAULT_STORE})")
+    options.store(parser)
     parser.add_argument("--check", action="store_true",
                         help="re-read every verified image and compare size and SHA-256")
     parser.add_argument("--json", action="store_true", help="one JSON object a scan")
@@ -32,8 +29,7 @@ def run(args: argparse.Namespace) -> int:
     from daemon.manifest import ManifestError
     from daemon.store import ScanStore
 
-    root = args.store or Path(os.environ.get("TBP_STORE", str(DEFAULT_STORE)))
-    store = ScanStore(root)
+    store = ScanStore(options.store_root(args))
     status = 0
     for path in store.folders():
         try:

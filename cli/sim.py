@@ -13,6 +13,8 @@ import importlib
 from types import ModuleType
 from typing import Any
 
+from cli import options
+
 SIMULATORS = {
     "motor": ("sim.processes.motor",
               "CiA 402 beam drive on a socketcand bridge at 127.0.0.1:--port"),
@@ -61,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     for name, (module, help_text) in SIMULATORS.items():
         devices.add_parser(name, help=help_text, description=help_text, module=module)
-    parser.add_argument("--log-level", default="warning", help="debug, info, warning or error")
+    options.log_level(parser, "warning")
     parser.set_defaults(func=run)
 
 

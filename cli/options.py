@@ -1,0 +1,68 @@
+"""Options several sub-commands take, each defined once: its spelling, type, default and help.
+
+Where two commands used to spell one thing differently, the first spelling is the option and
+the others stay as aliases (``--rig`` / ``--config``, ``--plan-points`` / ``--points``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+INSTALLED_STORE = Path("/srv/tbp-rig/scans")
+"""The rig PC's scan store (systemd/tbp-rig.tmpfiles)."""
+STORE_ENV = "TBP_STORE"
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def rig(parser: argparse.ArgumentParser, help: str = "rig file (default: calibration_data/rig.yaml)") -> None:
+    parser.add_argument("--rig", "--config", dest="rig", type=Path, default=None, metavar="FILE", help=help)
+
+
+def store(parser: argparse.ArgumentParser, default: Path | None = None) -> None:
+    """``--store DIR``; without a default, $TBP_STORE or the installed store (see :func:`store_root`)."""
+    where = default if default is not None else f"${STORE_ENV} or {INSTALLED_STORE}"
+    parser.add_argument("--store", type=Path, default=default, metavar="DIR",
+                        help=f"scan store folder (default {where})")
+
+
+def store_root(args: argparse.Namespace) -> Path:
+    """The scan store an invocation means: --store, else $TBP_STORE, else the installed store."""
+    return args.store or Path(os.environ.get(STORE_ENV, str(INSTALLED_STORE)))
+
+
+def seed(parser: argparse.ArgumentParser, help: str) -> None:
+    parser.add_argument("--seed", type=int, default=0, metavar="S", help=f"{help} (default 0)")
+
+
+def plan_points(parser: argparse.ArgumentParser, default: int | None = None) -> None:
+    shown = "the rig file's planner.points" if default is None else str(default)
+    parser.add_argument("--plan-points", "--points", dest="plan_points", type=int, default=default,
+                        metavar="N", help=f"surface samples for planning (default: {shown})")
+
+
+def log_level(parser: argparse.ArgumentParser, default: str) -> None:
+    parser.add_argument("--log-level", default=default, choices=LOG_LEVELS, help=f"(default {default})")
+
+
+def socket(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--socket", type=Path, default=None, metavar="PATH",
+                        help="control socket (default $TBP_CONTROL_SOCKET or /run/tbp-rig/control.sock)")
+
+
+def time_scale(parser: argparse.ArgumentParser, default: float | None) -> None:
+    shown = "as fast as possible" if default is None else f"{default:g}"
+    parser.add_argument("--time-scale", type=float, default=default, metavar="X",
+                        help=f"with --sim: virtual time runs at X times real time (default: {shown})")
+
+
+def simulated_rig(parser: argparse.ArgumentParser) -> None:
+    """``--sim`` and the simulated world's options (``tbp scan`` and ``tbp daemon``)."""
+    parser.add_argument("--sim", action="store_true", help="simulated hardware, in this process")
+    seed(parser, "simulated subject and noise seed (--sim)")
+    parser.add_argument("--depth-decimation", type=int, default=2, metavar="N",
+                        help="with --sim: simulated depth cameras render at 1/N resolution (default 2)")
+    parser.add_argument("--subject", type=Path, default=None, metavar="MESH",
+                        help="with --sim: the subject's mesh file (default: a body for --seed)")
+    parser.add_argument("--no-panel", action="store_true", help="with --sim: a rig without a panel")
