@@ -129,30 +129,15 @@ def parse_sdo(data: bytes, *, from_client: bool) -> SdoMessage:
     expedited = bool(command & 0x02)
     size_indicated = bool(command & 0x01)
     length = 4 - ((command >> 2) & 0x03) if size_indicated else 4
-    if from_client and specifier == 1:
-        return SdoMessage(
-            SdoKind.DOWNLOAD,
-            index,
-            subindex,
-            raw[:length] if expedited else b"",
-            size_indicated=size_indicated,
-            expedited=expedited,
-            raw=raw,
-        )
+    carries_data = (from_client and specifier == 1) or (not from_client and specifier == 2)
+    if carries_data:  # an initiate download request or an initiate upload reply
+        kind = SdoKind.DOWNLOAD if from_client else SdoKind.UPLOAD_REPLY
+        return SdoMessage(kind, index, subindex, raw[:length] if expedited else b"",
+                          size_indicated=size_indicated, expedited=expedited, raw=raw)
     if from_client and specifier == 2:
         return SdoMessage(SdoKind.UPLOAD, index, subindex, raw=raw)
     if not from_client and specifier == 3:
         return SdoMessage(SdoKind.DOWNLOAD_REPLY, index, subindex, raw=raw)
-    if not from_client and specifier == 2:
-        return SdoMessage(
-            SdoKind.UPLOAD_REPLY,
-            index,
-            subindex,
-            raw[:length] if expedited else b"",
-            size_indicated=size_indicated,
-            expedited=expedited,
-            raw=raw,
-        )
     raise ValueError(f"unsupported SDO command byte 0x{command:02X}")
 
 
