@@ -1,27 +1,25 @@
 """Mock-tier devices for the daemon's unit tests: instant to build, analytic, recording calls.
 
-They follow the agreed driver interfaces (BeamDrive, PhoneCamera) closely enough to exercise the
-capture executor alone; the end-to-end tests use the protocol-level simulators instead.
+They follow the driver interfaces (BeamDrive, PhoneCamera) closely enough to exercise the
+capture executor alone, and answer with the drivers' own result and error types; the end-to-end
+tests use the protocol-level simulators instead.
 """
 
 from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from drivers.motor.samples import BeamSample
+from drivers.phone.camera import CaptureDone, ClockSample, FocusDone
+from drivers.phone.errors import PhoneDisconnected
 from drivers.sim.trapezoid import hold, position_move, velocity_ramp
 
-
-@dataclass(frozen=True)
-class Sample:
-    time_s: float
-    angle_deg: float
-    speed_deg_s: float
-    statusword: int = 0x27
+OPERATION_ENABLED = 0x27
+"""Statusword of a drive in OPERATION ENABLED (CiA 402)."""
 
 
 class MockDrive:
@@ -35,9 +33,9 @@ class MockDrive:
         self.trajectory = hold(0.0, 0.0)
         self.offset = 0.0
         self.fault: Exception | None = None
-        self.latest: Sample | None = None
+        self.latest: BeamSample | None = None
         self.calls: list[tuple[str, tuple[float, ...]]] = []
-        self._queues: list[asyncio.Queue[Sample]] = []
+        self._queues: list[asyncio.Queue[BeamSample]] = []
         self._task: asyncio.Task[None] | None = None
 
     def _now(self) -> float:
@@ -89,8 +87,8 @@ class MockDrive:
         if self._task is not None:
             self._task.cancel()
 
-    async def samples(self) -> AsyncIterator[Sample]:
-        queue: asyncio.Queue[Sample] = asyncio.Queue()
+    async def samples(self) -> AsyncIterator[BeamSample]:
+        queue: asyncio.Queue[BeamSample] = asyncio.Queue()
         self._queues.append(queue)
         while True:
             yield await queue.get()
@@ -100,36 +98,9 @@ class MockDrive:
         while True:
             await asyncio.sleep(period)
             p, v = self._state()
-            self.latest = Sample(self._now(), p, v)
+            self.latest = BeamSample(self._now(), p, v, OPERATION_ENABLED)
             for q in self._queues:
                 q.put_nowait(self.latest)
-
-
-@dataclass(frozen=True)
-class FocusDone:
-    diopters: float
-    focus_mm: float
-    lens_stationary_at_ns: int
-
-
-@dataclass(frozen=True)
-class CaptureDone:
-    sensor_timestamp_ns: int
-    exposure_s: float
-    focus_diopters: float
-    path: str
-    size_bytes: int
-
-
-@dataclass(frozen=True)
-class ClockSample:
-    host_send_s: float
-    device_ns: int
-    host_recv_s: float
-
-
-class PhoneGone(ConnectionError):
-    """The mock phone's link dropped (a disconnect, as the real driver's PhoneDisconnected)."""
 
 
 class MockPhone:
@@ -157,11 +128,11 @@ class MockPhone:
             self.connected = False
             self.fail_after = None
         if not self.connected:
-            raise PhoneGone(f"{self.serial}: link lost")
+            raise PhoneDisconnected(self.serial, "ready", "link lost")
 
     async def connect(self) -> None:
         if not self.reconnectable:
-            raise PhoneGone(f"{self.serial}: refused")
+            raise PhoneDisconnected(self.serial, "connecting", "connection refused")
         self.connected = True
 
     async def set_focus_mm(self, focus_mm: float) -> FocusDone:

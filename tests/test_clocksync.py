@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -18,13 +16,7 @@ from daemon.clocksync import (
     OutsideTrace,
     exposure_angle,
 )
-
-
-@dataclass(frozen=True)
-class Sample:
-    host_send_s: float
-    device_ns: int
-    host_recv_s: float
+from drivers.phone.camera import ClockSample
 
 
 def _phone(offset_s: float, drift_ppm: float):
@@ -47,7 +39,7 @@ def _pings(device_ns, seed: int, n: int, base_s: float, jitter_s: float, start_s
     for _ in range(n):
         d1 = base_s + rng.exponential(jitter_s)
         d2 = base_s + rng.exponential(jitter_s)
-        out.append(Sample(t, device_ns(t + d1), t + d1 + d2))
+        out.append(ClockSample(t, device_ns(t + d1), t + d1 + d2))
         t += 0.5 + rng.uniform(0, 0.1)
     return out
 
@@ -74,7 +66,7 @@ def test_recovers_offset_and_drift_under_jitter(offset, drift, jitter, seed):
 
 def test_single_sample_assumes_no_drift():
     sync = ClockSync()
-    sync.add(Sample(10.0, 5_000_000_000, 10.002))
+    sync.add(ClockSample(10.0, 5_000_000_000, 10.002))
     assert sync.to_host(6_000_000_000) == pytest.approx(11.001)
     assert sync.fit.uncertainty_s == pytest.approx(0.001)
 
@@ -84,9 +76,9 @@ def test_no_sample_and_bad_samples_are_refused():
     with pytest.raises(NotSynchronised, match="cam1"):
         sync.fit
     with pytest.raises(BadSample, match="received at 9.0"):
-        sync.add(Sample(10.0, 1, 9.0))
+        sync.add(ClockSample(10.0, 1, 9.0))
     with pytest.raises(BadSample):
-        sync.add(Sample(float("nan"), 1, 9.0))
+        sync.add(ClockSample(float("nan"), 1, 9.0))
 
 
 def test_exposure_angle_interpolates_the_encoder_trace():
@@ -104,7 +96,7 @@ def test_exposure_angle_interpolates_the_encoder_trace():
 def test_exposure_outside_or_in_a_gap_of_the_trace_is_refused():
     device_ns, _ = _phone(0.0, 0.0)
     sync = ClockSync()
-    sync.add(Sample(0.0, 0, 0.0))
+    sync.add(ClockSample(0.0, 0, 0.0))
     t = np.r_[np.arange(0.0, 5.0, 0.01), np.arange(6.0, 8.0, 0.01)]
     trace = EncoderTrace(t, 3.0 * t)
     with pytest.raises(OutsideTrace, match="outside the encoder trace") as info:

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import asyncio
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.depth.base import DepthFrame
 from drivers.depth.errors import DepthStreamStalled
+from drivers.motor.samples import BeamSample
 from drivers.depth.sweep import SweepCollector, collect_sweep
 from drivers.sim.depth import DepthFaults, SimulatedDepthCamera
 from planner.poses import depth_camera_pose
@@ -24,24 +25,13 @@ RIG = small_rig(scale=8)
 MODEL = RIG.depth_camera_model
 
 
-@dataclass(frozen=True)
-class Frame:
-    camera_id: str
-    frame_number: int
-    timestamp_s: float
-    depth: np.ndarray
-    depth_unit_mm: float = 1.0
-    intrinsics: np.ndarray = field(default_factory=lambda: MODEL.intrinsic_matrix)
+def _frame(t: float, camera_id: str = "depth0", n: int = 0, depth: np.ndarray | None = None) -> DepthFrame:
+    depth = np.ones((4, 4), dtype=np.uint16) if depth is None else depth
+    return DepthFrame(camera_id, n, t, 0.0, depth, 1.0, MODEL.intrinsic_matrix)
 
 
-@dataclass(frozen=True)
-class Sample:
-    time_s: float
-    angle_deg: float
-
-
-def _frame(t: float, camera_id: str = "depth0", n: int = 0) -> Frame:
-    return Frame(camera_id, n, t, np.ones((4, 4), dtype=np.uint16))
+def _sample(time_s: float, angle_deg: float) -> BeamSample:
+    return BeamSample(time_s, angle_deg, 0.0, 0x27)
 
 
 @settings(max_examples=50, deadline=None)
@@ -103,14 +93,14 @@ def test_bad_traces_are_refused(times, angles, problem):
 
 
 def test_trace_from_motor_samples_sorts_and_drops_duplicate_times():
-    trace = BeamTrace.from_samples([Sample(1.0, 10.0), Sample(0.0, 0.0), Sample(1.0, 10.0)])
+    trace = BeamTrace.from_samples([_sample(1.0, 10.0), _sample(0.0, 0.0), _sample(1.0, 10.0)])
     assert list(trace.time_s) == [0.0, 1.0]
 
 
 def test_selection_keeps_frames_a_fixed_angle_apart_and_skips_empty_ones():
     trace = BeamTrace(np.array([0.0, 10.0]), np.array([0.0, 100.0]))
     frames = [_frame(k * 0.1, "depth0", k) for k in range(40)]
-    empty = Frame("depth0", 99, 0.05, np.zeros((4, 4), dtype=np.uint16))
+    empty = _frame(0.05, "depth0", 99, np.zeros((4, 4), dtype=np.uint16))
     posed = tag_frames(frames + [empty], trace, RIG).frames
     kept = select_by_spacing(posed, 3.0)
     assert [f.frame_number for f in kept] == list(range(0, 40, 3))
@@ -133,7 +123,7 @@ def _sweep_parts(duration: float, speed: float = 30.0):
         k = 10
         while True:
             await asyncio.sleep(max(0.0, k * 0.01 - loop.time()))
-            yield Sample(loop.time(), angle(loop.time()))
+            yield _sample(loop.time(), angle(loop.time()))
             k += 1
 
     async def motion() -> None:
