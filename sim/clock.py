@@ -32,6 +32,15 @@ class VirtualTimeStall(RuntimeError):
     """Every task waits, no timer is scheduled and no real I/O arrived within the idle limit."""
 
 
+class TasksLeftPending(RuntimeError):
+    """The main coroutine returned while tasks it started were still pending (a leak: a
+    device stream, a watchdog or a worker nobody stopped)."""
+
+    def __init__(self, names: list[str]) -> None:
+        self.names = names
+        super().__init__(f"{len(names)} task(s) still pending when the run ended: {', '.join(names)}")
+
+
 class _PacedSelector:
     """Wraps the loop's selector: polls real I/O, then advances virtual time instead of sleeping."""
 
@@ -121,11 +130,38 @@ def run_virtual(
     idle_real_timeout: float | None = None,
     debug: bool | None = None,
 ) -> T:
-    """Run a coroutine to completion on a fresh :class:`VirtualTimeLoop` (like ``asyncio.run``)."""
+    """Run a coroutine to completion on a fresh :class:`VirtualTimeLoop` (like ``asyncio.run``).
+
+    Raises :class:`TasksLeftPending`, naming them, if the coroutine returns while tasks it
+    started are still pending (they are cancelled first, as ``asyncio.run`` would).
+    """
     with asyncio.Runner(
         debug=debug,
         loop_factory=lambda: VirtualTimeLoop(
             time_scale=time_scale, idle_real_timeout=idle_real_timeout
         ),
     ) as runner:
-        return runner.run(coro)
+        return runner.run(_no_task_left(coro))
+
+
+async def _no_task_left(coro: Coroutine[Any, Any, T]) -> T:
+    result = await coro
+    await asyncio.sleep(0)  # callbacks of tasks that have just finished run
+    this = asyncio.current_task()
+    pending = sorted((t for t in asyncio.all_tasks() if t is not this and not t.done()),
+                     key=lambda t: t.get_name())
+    if pending:
+        names = [f"{t.get_name()} ({_what(t)})" for t in pending]
+        for task in pending:
+            task.cancel()
+        await asyncio.gather(*pending, return_exceptions=True)
+        raise TasksLeftPending(names)
+    return result
+
+
+def _what(task: asyncio.Task[Any]) -> str:
+    """What a task runs: the coroutine's name, or the closing of an async generator that was
+    dropped without ``aclose()`` (``async for ... break`` without ``contextlib.aclosing``)."""
+    coro = task.get_coro()
+    name = getattr(coro, "__qualname__", None)
+    return name if name else f"{type(coro).__name__}: an async generator closed by the garbage collector"

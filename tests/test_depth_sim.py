@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 
 import numpy as np
@@ -101,10 +102,11 @@ def _camera(faults: DepthFaults | None = None, angle=lambda t: 10.0 * t) -> Simu
 async def _take(camera: SimulatedDepthCamera, count: int) -> list[DepthFrame]:
     await camera.start()
     frames = []
-    async for frame in camera.frames():
-        frames.append(frame)
-        if len(frames) == count:
-            break
+    async with contextlib.aclosing(camera.frames()) as stream:
+        async for frame in stream:
+            frames.append(frame)
+            if len(frames) == count:
+                break
     await camera.stop()
     return frames
 
@@ -140,12 +142,13 @@ def test_drop_next_skips_the_following_frames():
     async def main() -> list[int]:
         await camera.start()
         numbers = []
-        async for frame in camera.frames():
-            numbers.append(frame.frame_number)
-            if len(numbers) == 1:
-                camera.drop_next(3)
-            if len(numbers) == 3:
-                break
+        async with contextlib.aclosing(camera.frames()) as stream:
+            async for frame in stream:
+                numbers.append(frame.frame_number)
+                if len(numbers) == 1:
+                    camera.drop_next(3)
+                if len(numbers) == 3:
+                    break
         return numbers
 
     assert run_virtual(main()) == [0, 4, 5]

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from sim.clock import VirtualTimeLoop, VirtualTimeStall, run_virtual
+from sim.clock import TasksLeftPending, VirtualTimeLoop, VirtualTimeStall, run_virtual
 
 
 def test_sleep_advances_the_virtual_clock_exactly():
@@ -118,3 +118,19 @@ def test_a_deadlocked_simulation_is_reported_instead_of_hanging():
 def test_time_scale_must_be_positive():
     with pytest.raises(ValueError, match="time_scale"):
         VirtualTimeLoop(time_scale=0.0)
+
+
+def test_a_task_left_pending_fails_the_run_naming_it():
+    async def leaky() -> None:
+        asyncio.create_task(asyncio.Event().wait(), name="forgotten-watch")
+        await asyncio.sleep(1.0)
+
+    with pytest.raises(TasksLeftPending, match="forgotten-watch"):
+        run_virtual(leaky())
+
+    async def tidy() -> str:
+        task = asyncio.create_task(asyncio.sleep(5.0), name="finished")
+        await task
+        return "done"
+
+    assert run_virtual(tidy()) == "done"

@@ -127,10 +127,12 @@ class SimulatedPhone(SimulatedAdbd):
             await stream.write(f"{protocol.READY_PREFIX} {socket_name} {protocol.PROTOCOL_VERSION}\n".encode())
             stdin = asyncio.create_task(stream.read_all())  # the agent ignores stdin
             crashed = asyncio.create_task(self._agent_crashed.wait())
-            await asyncio.wait({stdin, crashed}, return_when=asyncio.FIRST_COMPLETED)
-            for task in (stdin, crashed):
-                task.cancel()
-            await asyncio.gather(stdin, crashed, return_exceptions=True)
+            try:
+                await asyncio.wait({stdin, crashed}, return_when=asyncio.FIRST_COMPLETED)
+            finally:  # also when adbd closes the stream's task: the waits must not outlive it
+                for task in (stdin, crashed):
+                    task.cancel()
+                await asyncio.gather(stdin, crashed, return_exceptions=True)
         finally:
             self.listeners.pop(socket_name, None)
             self.agent_running = False
