@@ -243,6 +243,29 @@ def test_every_commandable_state_is_reachable(start: S, goal: S) -> None:
     steps = cia402.path(start, goal)
     state = start
     for next_state, controlword in steps:
-        assert cia402.TRANSITIONS[(state, next_state)] == controlword
+        assert CIA402_CONTROLWORDS[(state, next_state)] == controlword
         state = next_state
     assert state is goal
+
+
+CIA402_CONTROLWORDS = {
+    (S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON): 0x06,  # 2 shutdown
+    (S.READY_TO_SWITCH_ON, S.SWITCHED_ON): 0x07,  # 3 switch on
+    (S.SWITCHED_ON, S.OPERATION_ENABLED): 0x0F,  # 4 enable operation
+    (S.OPERATION_ENABLED, S.SWITCHED_ON): 0x07,  # 5 disable operation
+    (S.SWITCHED_ON, S.READY_TO_SWITCH_ON): 0x06,  # 6 shutdown
+    (S.READY_TO_SWITCH_ON, S.SWITCH_ON_DISABLED): 0x00,  # 7 disable voltage
+    (S.OPERATION_ENABLED, S.READY_TO_SWITCH_ON): 0x06,  # 8 shutdown
+    (S.OPERATION_ENABLED, S.SWITCH_ON_DISABLED): 0x00,  # 9 disable voltage
+    (S.SWITCHED_ON, S.SWITCH_ON_DISABLED): 0x00,  # 10 disable voltage
+    (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE): 0x02,  # 11 quick stop
+    (S.QUICK_STOP_ACTIVE, S.SWITCH_ON_DISABLED): 0x00,  # 12 disable voltage
+    (S.FAULT, S.SWITCH_ON_DISABLED): 0x80,  # 15 fault reset
+    (S.QUICK_STOP_ACTIVE, S.OPERATION_ENABLED): 0x0F,  # 16 enable operation
+}
+"""CiA 402's host-commanded transitions and their controlwords, written out from the profile
+(not read back from the table under test)."""
+
+
+def test_the_transition_table_is_the_profiles() -> None:
+    assert cia402.TRANSITIONS == CIA402_CONTROLWORDS
