@@ -133,7 +133,9 @@ def run_virtual(
     """Run a coroutine to completion on a fresh :class:`VirtualTimeLoop` (like ``asyncio.run``).
 
     Raises :class:`TasksLeftPending`, naming them, if the coroutine returns while tasks it
-    started are still pending (they are cancelled first, as ``asyncio.run`` would).
+    started are still pending (they are cancelled first, as ``asyncio.run`` would). A task
+    nothing refers to any more may be collected before that check; asyncio then logs "Task
+    was destroyed but it is pending".
     """
     with asyncio.Runner(
         debug=debug,

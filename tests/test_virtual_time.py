@@ -121,8 +121,10 @@ def test_time_scale_must_be_positive():
 
 
 def test_a_task_left_pending_fails_the_run_naming_it():
+    device_tasks: list[asyncio.Task[object]] = []  # held, as a driver holds its reader task
+
     async def leaky() -> None:
-        asyncio.create_task(asyncio.Event().wait(), name="forgotten-watch")
+        device_tasks.append(asyncio.create_task(asyncio.Event().wait(), name="forgotten-watch"))
         await asyncio.sleep(1.0)
 
     with pytest.raises(TasksLeftPending, match="forgotten-watch"):
