@@ -4,8 +4,17 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+import os
+
 import pytest
 import structlog
+from hypothesis import settings
+
+# Property tests draw the same examples on every run (a CI run never fails on a draw the last
+# one did not make); HYPOTHESIS_PROFILE=explore draws new ones when hunting for bugs.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 @pytest.fixture(autouse=True)
