@@ -1,9 +1,11 @@
-"""``tbp depth``: commission the RealSense depth cameras (list, check streaming, play a recording).
+"""``tbp depth``: commission the RealSense depth cameras (list, check streaming, record, play).
 
 ``check`` streams each rig camera for a few seconds through the same driver the daemon uses
 and prints what matters for the sweep: frame rate, depth unit, intrinsics, timestamp domain,
 dropped frames and the share of pixels without depth. Not while the daemon runs (it holds the
-cameras).
+cameras). ``record --sim`` writes a sweep recording of the simulated depth cameras (one ``.db3``
+and one ``.beam.json`` per camera) that the daemon can play back in place of the cameras;
+``play`` replays a recording through the playback driver.
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ from cli import options
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "depth",
-        help="commission the RealSense depth cameras: list, check, play",
+        help="commission the RealSense depth cameras: list, check, record, play",
         description="List connected RealSense devices, stream the rig's depth cameras for a few "
-        "seconds, or replay a .bag recording, through the drivers the daemon uses.",
+        "seconds, record a simulated sweep, or replay a recording, through the drivers the daemon uses.",
     )
     options.rig(parser)
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -30,7 +32,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.add_argument("--camera", action="append", default=None, metavar="ID",
                        help="only this camera id (repeatable; default: all in the rig file)")
     check.add_argument("--seconds", type=float, default=3.0, help="how long each (default 3)")
-    play = actions.add_parser("play", help="replay a .bag recording as fast as it can be read")
+    record = actions.add_parser(
+        "record", help="record a depth sweep of the simulated cameras (.db3 + .beam.json per camera)",
+        description="Render the depth sweep the daemon runs (the beam from depth_sweep.start_deg to "
+        "end_deg on its trapezoid) with the simulated depth cameras and write one RealSense recording "
+        "per camera, OUT/CAMERA.db3, with its beam angles in OUT/CAMERA.beam.json. Prints the folder last.")
+    record.add_argument("--sim", action="store_true", required=True,
+                        help="record the simulated cameras (recording the rig's own cameras is not built)")
+    record.add_argument("--out", type=Path, required=True, help="folder for the recordings (created)")
+    body = record.add_mutually_exclusive_group(required=True)
+    body.add_argument("--body-seed", type=int, metavar="N", help="simulated adult N (sim/body.py), as "
+                      "tbp sim phone --body-seed N")
+    body.add_argument("--body", type=Path, metavar="FILE", help="subject mesh (mm, feet on z = 0)")
+    record.add_argument("--camera", action="append", default=None, metavar="ID",
+                        help="only this camera id (repeatable; default: all in the rig file)")
+    record.add_argument("--fps", type=float, default=None, help="frame rate (default: the rig's camera model)")
+    record.add_argument("--decimation", type=int, default=1,
+                        help="record at 1/N of the rig's resolution, intrinsics scaled alike (default 1)")
+    record.add_argument("--seed", type=int, default=0, help="depth noise seed (default 0)")
+    record.add_argument("--no-noise", action="store_true", help="record without depth noise")
+    play = actions.add_parser("play", help="replay a recording (.db3, or .bag) as fast as it can be read")
     play.add_argument("path", type=Path)
     play.add_argument("--camera-id", default="bag", help="id the frames carry")
     parser.set_defaults(func=run)
@@ -41,11 +62,14 @@ def run(args: argparse.Namespace) -> int:
 
     from daemon.logs import configure_logging
     from drivers.depth.errors import DepthCameraError
+    from planner.rig import RigConfigError
 
     configure_logging(level="warning", stream=sys.stderr)
     try:
+        if args.action == "record":
+            return _record(args)
         return asyncio.run(_ACTIONS[args.action](args))
-    except DepthCameraError as exc:
+    except (DepthCameraError, RigConfigError) as exc:
         print(f"tbp depth: {exc}", file=sys.stderr)
         return 1
 
@@ -87,11 +111,68 @@ async def _check(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
+def _record(args: argparse.Namespace) -> int:
+    """Render and write one sweep recording per rig depth camera; prints the folder last."""
+    import trimesh
+
+    from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
+    from drivers.depth.recorder import DepthRecorder
+    from drivers.sim.depth import DepthScene, record_sweep_frames
+    from planner.rig import DEFAULT_RIG_PATH, load_rig
+    from sim.rig import sim_depth_model
+
+    rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+    unknown = sorted(set(args.camera or ()) - {c.id for c in rig.depth_cameras})
+    if unknown:
+        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+        return 2
+    if args.decimation < 1 or (args.fps is not None and not 0 < args.fps <= 90):
+        print(f"tbp depth: --decimation {args.decimation} must be >= 1 and --fps {args.fps} in (0, 90]",
+              file=sys.stderr)
+        return 2
+    model = sim_depth_model(rig.depth_camera_model, args.decimation, args.fps or rig.depth_camera_model.fps)
+    if args.body is not None:
+        subject, body = trimesh.load(args.body, force="mesh"), {"body": str(args.body)}
+    else:
+        from sim.body import make_body
+
+        subject, body = make_body(seed=args.body_seed), {"body_seed": args.body_seed}
+    scene = DepthScene(subject)
+    sweep = rig.depth_sweep
+    for i, camera in enumerate(rig.depth_cameras):
+        if args.camera is not None and camera.id not in args.camera:
+            continue
+        path = args.out / f"{camera.id}.db3"
+        rows = []
+        with DepthRecorder(path, camera_id=camera.id, width=model.width_px, height=model.height_px,
+                           intrinsics=model.intrinsic_matrix, depth_unit_mm=model.depth_unit_mm,
+                           fps=model.fps, serial=camera.serial) as recorder:
+            for frame in record_sweep_frames(scene, rig, camera, model, seed=args.seed * 100 + i,
+                                             noise=not args.no_noise):
+                recorder.write(frame.frame_number, frame.device_ms, frame.depth)
+                rows.append((frame.frame_number, frame.device_ms, frame.beam_angle_deg))
+        source = {"simulated": True, **body, "noise_seed": None if args.no_noise else args.seed * 100 + i,
+                  "rig_digest": rig.digest, "fps": model.fps, "decimation": args.decimation,
+                  "depth_sweep": {"start_deg": sweep.start_deg, "end_deg": sweep.end_deg,
+                                  "speed_deg_s": sweep.speed_deg_s}}
+        write_beam_angles(beam_angles_path(path), camera.id, path, rows, source)
+        print(f"{camera.id}: {path}, {len(rows)} frames {model.width_px}x{model.height_px} at {model.fps:g} fps, "
+              f"beam {rows[0][2]:.1f} .. {rows[-1][2]:.1f} deg", flush=True)
+    print(args.out, flush=True)
+    return 0
+
+
 async def _play(args: argparse.Namespace) -> int:
     from drivers.depth.bag import BagPlayback
 
     bag = BagPlayback(args.path, camera_id=args.camera_id)
-    print(_report(args.camera_id, str(args.path), await _stream(bag, None), bag), flush=True)
+    frames = await _stream(bag, None)
+    print(_report(args.camera_id, str(args.path), frames, bag), flush=True)
+    angles = [f.beam_angle_deg for f in frames if f.beam_angle_deg is not None]
+    if angles:
+        print(f"{args.camera_id}: recorded beam angles {angles[0]:.1f} .. {angles[-1]:.1f} deg", flush=True)
+    else:
+        print(f"{args.camera_id}: no beam-angle file: the daemon tags its frames with the live encoder", flush=True)
     return 0
 
 

@@ -1,6 +1,7 @@
-"""A fake ``pyrealsense2`` at its API boundary, for the RealSense and bag playback driver tests.
+"""A fake ``pyrealsense2`` at its API boundary, for the live RealSense driver tests (no camera here;
+recordings are played back with the real pyrealsense2, tests/test_depth_playback.py).
 
-``FakeRealSense`` holds scripted devices and recordings; ``module()`` builds the module object a
+``FakeRealSense`` holds scripted devices; ``module()`` builds the module object a
 test injects as ``sys.modules["pyrealsense2"]``. Streaming runs on a thread, as librealsense's
 does, calling the pipeline's frame callback; timestamps come from a device clock that runs from
 an arbitrary origin.
@@ -41,13 +42,6 @@ class timestamp_domain(enum.Enum):  # noqa: N801
     global_time = 2
 
 
-class playback_status(enum.Enum):  # noqa: N801
-    unknown = 0
-    playing = 1
-    paused = 2
-    stopped = 3
-
-
 @dataclass
 class intrinsics:  # noqa: N801
     width: int
@@ -60,7 +54,7 @@ class intrinsics:  # noqa: N801
 
 @dataclass
 class FakeDevice:
-    """A scripted camera (or the device behind a recording).
+    """A scripted camera.
 
     frames: how many frames it delivers; stop_after: it goes silent after this many;
     period_s: real time between frames; device_ms0: its clock's reading at the first frame;
@@ -82,10 +76,8 @@ class FakeDevice:
     start_delay_s: float = 0.0
     stopped: threading.Event = field(default_factory=threading.Event)
     # what the driver asked for
-    real_time: bool | None = None
     configured: list[tuple[Any, ...]] = field(default_factory=list)
     delivered: int = 0
-    status_callback: Callable[[playback_status], None] | None = None
 
     def get_info(self, info: camera_info) -> str:
         return {camera_info.serial_number: self.serial, camera_info.product_line: "D400",
@@ -97,14 +89,6 @@ class FakeDevice:
     def get_depth_scale(self) -> float:
         return self.depth_scale
 
-    def as_playback(self) -> FakeDevice:
-        return self
-
-    def set_real_time(self, real_time: bool) -> None:
-        self.real_time = real_time
-
-    def set_status_changed_callback(self, callback: Callable[[playback_status], None]) -> None:
-        self.status_callback = callback
 
 
 class FakeDepthFrame:
@@ -162,16 +146,15 @@ def depth_value(frame_number: int) -> int:
 
 
 class FakeRealSense:
-    """The scripted world behind the fake module: connected devices and recordings on disk."""
+    """The scripted world behind the fake module: connected devices."""
 
     def __init__(self) -> None:
         self.devices: list[FakeDevice] = []
-        self.files: dict[str, FakeDevice] = {}
 
     def module(self) -> types.ModuleType:
         world = self
         rs = types.ModuleType("pyrealsense2")
-        for enum_type in (stream, format, camera_info, timestamp_domain, playback_status, intrinsics):
+        for enum_type in (stream, format, camera_info, timestamp_domain, intrinsics):
             setattr(rs, enum_type.__name__, enum_type)
 
         class context:  # noqa: N801
@@ -181,15 +164,10 @@ class FakeRealSense:
         class config:  # noqa: N801
             def __init__(self) -> None:
                 self.serial: str | None = None
-                self.file: str | None = None
                 self.streams: list[tuple[Any, ...]] = []
 
             def enable_device(self, serial: str) -> None:
                 self.serial = serial
-
-            def enable_device_from_file(self, path: str, repeat_playback: bool = True) -> None:
-                self.file = path
-                self.repeat = repeat_playback
 
             def enable_stream(self, *args: Any) -> None:
                 self.streams.append(args)
@@ -221,8 +199,7 @@ class FakeRealSense:
                 self._thread: threading.Thread | None = None
 
             def start(self, cfg: config, callback: Callable[[Any], None]) -> pipeline_profile:
-                device = (world.files[cfg.file] if cfg.file is not None
-                          else next(d for d in world.devices if d.serial == cfg.serial))
+                device = next(d for d in world.devices if d.serial == cfg.serial)
                 time.sleep(device.start_delay_s)  # opening the USB device takes a while
                 if device.fail_start:
                     raise RuntimeError(device.fail_start)
@@ -253,8 +230,6 @@ class FakeRealSense:
                     buffer[...] = 0  # the next use of the buffer overwrites the frame
                     device.delivered += 1
                     time.sleep(device.period_s)
-                if device.status_callback is not None:
-                    device.status_callback(playback_status.stopped)
 
             def stop(self) -> None:
                 self._stop.set()

@@ -1,4 +1,4 @@
-"""RealSense and bag playback drivers against a fake pyrealsense2 injected at its API boundary.
+"""The live RealSense driver against a fake pyrealsense2 injected at its API boundary (no camera here).
 
 Streaming runs on the fake's own thread, as librealsense's does, so these tests use the real
 event loop; they wait for frames, never for a wall-clock duration.
@@ -15,7 +15,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.depth.bag import BagPlayback
 from drivers.depth.base import DepthCamera
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from drivers.depth.realsense import DepthBackendMissing, DepthCameraNotFound, HostClockMap, RealSenseCamera
@@ -105,7 +104,7 @@ async def test_camera_that_stops_streaming_is_a_stall(world: FakeRealSense) -> N
 
 async def test_start_failure_and_wrong_pixel_format_are_typed(world: FakeRealSense) -> None:
     world.devices.append(FakeDevice(CAMERA.serial, fail_start="Couldn't resolve requests"))
-    with pytest.raises(DepthCameraError, match="pipeline start failed: Couldn't resolve requests"):
+    with pytest.raises(DepthCameraError, match="start failed: Couldn't resolve requests"):
         await RealSenseCamera(CAMERA).start()
     world.devices[0] = FakeDevice(CAMERA.serial, dtype=np.float32)
     camera = RealSenseCamera(CAMERA)
@@ -122,7 +121,7 @@ async def test_slow_start_times_out_and_the_late_pipeline_is_released(world: Fak
     world.devices.append(device)
     camera = RealSenseCamera(CAMERA)
     camera.START_TIMEOUT_S = 0.05
-    with pytest.raises(DepthCameraError, match="pipeline did not start within 0.05 s"):
+    with pytest.raises(DepthCameraError, match="did not start streaming within 0.05 s"):
         await camera.start()
     loop = asyncio.get_running_loop()
     assert await loop.run_in_executor(None, device.stopped.wait, 10.0)
@@ -167,43 +166,10 @@ def test_host_clock_map_forgets_old_offsets_and_device_resets() -> None:
     assert clock.host_time(10.0, 103.0) == pytest.approx(103.0)  # device clock went back: reset
 
 
-# ---------------------------------------------------------------------- bag playback
-
-
-async def test_bag_playback_delivers_every_frame_at_the_consumers_pace(
-    world: FakeRealSense, tmp_path: Path
-) -> None:
-    path = tmp_path / "sweep.bag"
-    path.write_bytes(b"ROSBAG")
-    device = FakeDevice("bag", frames=40, period_s=0.0, device_period_ms=33.3, size=(48, 64),
-                        intrinsics=intrinsics(64, 48, 32.0, 24.0, 50.0, 50.0))
-    world.files[str(path)] = device
-    bag = BagPlayback(path, camera_id="depth1")
-    await bag.start()
-    frames = []
-    try:
-        async for frame in bag.frames():  # ends by itself at the end of the file
-            frames.append(frame)
-            await asyncio.sleep(0.002)  # slower than the reader: back-pressure, no drops
-    finally:
-        await bag.stop()
-    assert device.real_time is False and bag.dropped_frames == 0
-    assert [f.frame_number for f in frames] == list(range(40))
-    assert all((f.depth == depth_value(f.frame_number)).all() for f in frames)
-    assert frames[0].depth.shape == (48, 64) and frames[0].camera_id == "depth1"
-    gaps = np.diff([f.timestamp_s for f in frames])
-    np.testing.assert_allclose(gaps, 0.0333, atol=1e-9)  # the recording's spacing, kept
-
-
-async def test_missing_recording_is_named(world: FakeRealSense, tmp_path: Path) -> None:
-    with pytest.raises(DepthCameraError, match="no recording at .*absent.bag"):
-        await BagPlayback(tmp_path / "absent.bag", camera_id="depth0").start()
-
-
 # ---------------------------------------------------------------------- tbp depth
 
 
-def test_tbp_depth_list_check_and_play(world: FakeRealSense, tmp_path: Path,
+def test_tbp_depth_list_and_check(world: FakeRealSense,
                                        capsys: pytest.CaptureFixture[str]) -> None:
     from cli import main
 
@@ -222,13 +188,6 @@ def test_tbp_depth_list_check_and_play(world: FakeRealSense, tmp_path: Path,
     assert main(["depth", "check", "--camera", RIG.depth_cameras[1].id, "--seconds", "0.2"]) == 0
     assert main(["depth", "check", "--camera", "depth9"]) == 2
 
-    path = tmp_path / "rec.bag"
-    path.write_bytes(b"ROSBAG")
-    world.files[str(path)] = FakeDevice("bag", frames=12, period_s=0.0, device_period_ms=100.0,
-                                        size=(48, 64))
-    capsys.readouterr()
-    assert main(["depth", "play", str(path), "--camera-id", "depth1"]) == 0
-    assert capsys.readouterr().out.startswith(f"depth1 ({path}): 12 frames, 10.0 fps, 64x48")
 
 
 def test_tbp_depth_without_pyrealsense2_says_how_to_install(

@@ -1,55 +1,93 @@
-"""Playback of RealSense ``.bag`` recordings through the DepthCamera interface.
+"""Playback of RealSense recordings (``.db3``, legacy ``.bag``) through the DepthCamera interface.
 
-The recording is replayed with real time off: librealsense reads the next frame only when the
-previous one has been handed over, and the hand-over waits for room in the frame queue, so a
-slow consumer (fusion) loses no frame and a fast one is not held to the recording's pace.
-Frame times keep the recording's own spacing: the device timestamps are moved onto the
-event-loop clock by one offset taken at the first frame. ``frames()`` ends at the end of the file.
+The file is opened as a playback device and its depth sensor streamed directly (a pipeline's
+frame syncer holds frames back, which stalls a playback with real time off after two frames).
+With real time off librealsense reads the next frame only when the previous one has been handed
+over, and the hand-over waits for room in the frame queue, so a slow consumer (fusion) loses no
+frame and a fast one is not held to the recording's pace. Frame times keep the recording's own
+spacing: the device timestamps are moved onto the event-loop clock by one offset taken at the
+first frame. ``frames()`` ends at the end of the file.
+
+A sweep recording has a beam-angle file beside it (``drivers.depth.beam_angles``): every frame
+then carries the angle it was recorded at in ``DepthFrame.beam_angle_deg``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from drivers.depth.errors import DepthCameraError
-from drivers.depth.realsense import END_OF_STREAM, RawFrame, RealSenseStream
+from drivers.depth.beam_angles import BeamAngles, beam_angles_path, read_beam_angles
+from drivers.depth.errors import RecordingUnreadable
+from drivers.depth.realsense import END_OF_STREAM, Opened, RawFrame, RealSenseStream
 
 
 class BagPlayback(RealSenseStream):
-    """Depth frames from a ``.bag`` file, as fast as the consumer takes them (``realtime=False``).
+    """Depth frames from a RealSense recording, replayed from its start at every ``start()``.
 
     Args:
-        path: the recording.
+        path: the recording (``.db3``; ``.bag`` from SDKs before 2.58 plays too).
         camera_id: the rig camera the recording stands in for (names frames and errors).
-        realtime: replay at the recorded pace instead (frames a slow consumer misses are dropped).
+        realtime: replay at the recorded pace (frames a slow consumer misses are dropped) instead
+            of as fast as the consumer takes them. Default (None): at the recorded pace only when
+            the recording has no beam-angle file, since its frames must then be tagged with the
+            live encoder and so arrive in step with the beam.
     """
 
     HAND_OVER_POLL_S = 0.5  # how often a waiting hand-over checks whether the stream was stopped
 
-    def __init__(self, path: Path | str, *, camera_id: str, realtime: bool = False) -> None:
+    def __init__(self, path: Path | str, *, camera_id: str, realtime: bool | None = None) -> None:
         super().__init__(camera_id)
         self.path = Path(path)
-        self.realtime = realtime
+        self.requested_realtime = realtime
+        self.realtime = bool(realtime)
+        self.beam_angles: BeamAngles | None = None
         self._offset_s: float | None = None
         self._ended: list[asyncio.Task[None]] = []
 
-    def _configure(self, rs: ModuleType) -> tuple[Any, Any]:
+    def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
         if not self.path.is_file():
-            raise DepthCameraError(self.id, f"no recording at {self.path}")
-        config = rs.config()
-        config.enable_device_from_file(str(self.path), False)  # no repeat: the file ends
-        config.enable_stream(rs.stream.depth)
+            raise RecordingUnreadable(self.id, self.path, "no recording at this path")
+        angles_file = beam_angles_path(self.path)
+        self.beam_angles = read_beam_angles(angles_file, self.id) if angles_file.is_file() else None
+        self.realtime = self.beam_angles is None if self.requested_realtime is None else self.requested_realtime
         self._offset_s = None
-        return rs.pipeline(), config
-
-    def _started(self, profile: Any) -> None:
-        playback = profile.get_device().as_playback()
+        context = rs.context()
+        try:
+            playback = context.load_device(str(self.path))
+        except RuntimeError as exc:
+            raise RecordingUnreadable(self.id, self.path, f"not a RealSense recording: {exc}") from exc
         playback.set_real_time(self.realtime)
         playback.set_status_changed_callback(self._on_status)
+        sensor = playback.first_depth_sensor()
+        profiles = [p for p in sensor.get_stream_profiles()
+                    if p.stream_type() == rs.stream.depth and p.format() == rs.format.z16]
+        if not profiles:
+            raise RecordingUnreadable(self.id, self.path, "the recording holds no Z16 depth stream")
+        sensor.open(profiles[0])
+        sensor.start(on_frame)
+
+        def close() -> None:
+            # The playback object lives until here (dropping it drops its end-of-file callback).
+            # Pausing first lets the SDK's reader thread finish its queued reads: a playback device
+            # destroyed with a read still queued aborts the process (librealsense 2.59,
+            # "pure virtual method called" on the reader thread).
+            playback.pause()
+            sensor.stop()
+            sensor.close()
+            playback.set_status_changed_callback(lambda _status: None)
+            context.unload_device(str(self.path))
+
+        return Opened(sensor, profiles[0], close)
+
+    def _recorded_angle(self, frame_number: int, device_ms: float) -> float | None:
+        if self.beam_angles is None:
+            return None
+        return self.beam_angles.angle_of(beam_angles_path(self.path), frame_number, device_ms)
 
     def _host_time(self, device_ms: float, arrival_s: float) -> float:
         if self._offset_s is None:

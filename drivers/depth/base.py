@@ -20,6 +20,9 @@ class DepthFrame:
     timestamp_s: host event-loop clock when the frame arrived.
     device_timestamp_ms: the camera's own clock (for diagnostics, not for tagging).
     intrinsics: (3, 3) pinhole K in pixels for this image.
+    beam_angle_deg: the beam angle recorded with the frame when it is played back from a sweep
+        recording (the sweep poses it there); None for a live camera, whose frame the sweep tags
+        with the live encoder's angle at ``timestamp_s``.
     """
 
     camera_id: str
@@ -29,6 +32,7 @@ class DepthFrame:
     depth: np.ndarray
     depth_unit_mm: float
     intrinsics: np.ndarray
+    beam_angle_deg: float | None = None
 
     def depth_mm(self) -> np.ndarray:
         """(H, W) float32 depth in mm, 0 where there is no measurement."""
@@ -37,7 +41,10 @@ class DepthFrame:
 
 @runtime_checkable
 class DepthCamera(Protocol):
-    """A streaming depth camera: start it, iterate frames, stop it."""
+    """A streaming depth camera: start it, iterate frames, stop it.
+
+    A live camera's ``frames()`` ends only after ``stop()``; a recording's also ends at its end.
+    """
 
     id: str
 

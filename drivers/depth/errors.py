@@ -22,3 +22,11 @@ class DepthStreamStalled(DepthCameraError):
         else:
             problem = f"no frame for {waited_s:.2f} s after {frames} frames"
         super().__init__(camera_id, problem)
+
+
+class RecordingUnreadable(DepthCameraError):
+    """A depth recording or its beam-angle file is missing, malformed or does not match."""
+
+    def __init__(self, camera_id: str, path: object, problem: str) -> None:
+        self.path = str(path)
+        super().__init__(camera_id, f"{path}: {problem}")

@@ -14,9 +14,10 @@ import asyncio
 import importlib
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import structlog
@@ -29,7 +30,16 @@ log = structlog.get_logger(__name__)
 
 INSTALL_HINT = "pip install tbp-rig[realsense] (or: pip install pyrealsense2)"
 END_OF_STREAM = object()
-RawFrame = tuple[int, float, str, np.ndarray]  # frame number, device ms, timestamp domain, depth
+
+
+class RawFrame(NamedTuple):
+    """A depth frame copied out of the SDK, not yet stamped on the loop clock."""
+
+    number: int
+    device_ms: float
+    domain: str
+    depth: np.ndarray  # (H, W) uint16 depth units
+    beam_angle_deg: float | None  # recorded with the frame (a sweep recording), else None
 
 
 class DepthBackendMissing(DepthCameraError):
@@ -93,10 +103,20 @@ class HostClockMap:
         return device_s + self._offsets[0][1]
 
 
-class RealSenseStream(ABC):
-    """A pyrealsense2 pipeline streaming depth frames into asyncio.
+@dataclass(frozen=True)
+class Opened:
+    """A source streaming into the frame callback: its depth sensor (depth scale), the depth stream
+    profile (intrinsics) and how to stop it and release the device or file (blocking)."""
 
-    Subclasses say which device or file to open (:meth:`_configure`) and how frames reach the
+    depth_sensor: Any
+    depth_profile: Any
+    close: Callable[[], None]
+
+
+class RealSenseStream(ABC):
+    """A pyrealsense2 depth stream (live camera or recording) feeding frames into asyncio.
+
+    Subclasses say which device or file to open (:meth:`_open`) and how frames reach the
     loop. ``FRAME_TIMEOUT_S``: no frame for this long -> DepthStreamStalled from ``frames()``.
     """
 
@@ -111,10 +131,11 @@ class RealSenseStream(ABC):
         self.intrinsics: np.ndarray | None = None
         self.timestamp_domain: str | None = None
         self.dropped_frames = 0
-        self._pipeline: Any = None
+        self._close_source: Callable[[], None] | None = None
         self._queue: asyncio.Queue[Any] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping = False
+        self._failure: BaseException | None = None
         self._early: list[RawFrame] = []
         self._log = log.bind(camera=camera_id)
 
@@ -122,32 +143,29 @@ class RealSenseStream(ABC):
 
     async def start(self) -> None:
         """Open the device (or file) and start streaming; blocking SDK calls run in the executor."""
-        if self._pipeline is not None:
+        if self._close_source is not None:
             raise DepthCameraError(self.id, "start() while already streaming")
         rs = import_pyrealsense2(self.id)
         loop = self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue(self.QUEUE_FRAMES)
         self._stopping = False
+        self._failure = None
         self._early = []
         self.depth_unit_mm = self.intrinsics = None
-        pipeline, config = self._configure(rs)
-        starting = loop.run_in_executor(None, pipeline.start, config, self._on_frame)
+        starting = loop.run_in_executor(None, self._open, rs, self._on_frame)
         try:
             async with asyncio.timeout(self.START_TIMEOUT_S):
-                profile = await asyncio.shield(starting)
+                opened = await asyncio.shield(starting)
         except TimeoutError:
             self._stopping = True  # frames of a late start are ignored, and the device released
-            starting.add_done_callback(lambda job: self._release_late_start(loop, pipeline, job))
-            raise DepthCameraError(self.id, f"pipeline did not start within {self.START_TIMEOUT_S} s") from None
+            starting.add_done_callback(lambda job: self._release_late_start(loop, job))
+            raise DepthCameraError(self.id, f"did not start streaming within {self.START_TIMEOUT_S} s") from None
         except RuntimeError as exc:  # pyrealsense2 raises rs.error, a RuntimeError
-            raise DepthCameraError(self.id, f"pipeline start failed: {exc}") from exc
-        self._pipeline = pipeline
+            raise DepthCameraError(self.id, f"start failed: {exc}") from exc
+        self._close_source = opened.close
         try:
-            device = profile.get_device()
-            self.depth_unit_mm = float(device.first_depth_sensor().get_depth_scale()) * 1000.0
-            video = profile.get_stream(rs.stream.depth).as_video_stream_profile()
-            self.intrinsics = intrinsics_matrix(video.get_intrinsics())
-            self._started(profile)
+            self.depth_unit_mm = float(opened.depth_sensor.get_depth_scale()) * 1000.0
+            self.intrinsics = intrinsics_matrix(opened.depth_profile.as_video_stream_profile().get_intrinsics())
         except RuntimeError as exc:
             await self.stop()
             raise DepthCameraError(self.id, f"cannot read the stream's scale/intrinsics: {exc}") from exc
@@ -171,6 +189,8 @@ class RealSenseStream(ABC):
                 raise DepthStreamStalled(self.id, count, self.FRAME_TIMEOUT_S) from None
             if item is END_OF_STREAM:
                 return
+            if isinstance(item, DepthCameraError):
+                raise item
             if isinstance(item, BaseException):
                 raise DepthCameraError(self.id, f"frame handling failed: {item}") from item
             count += 1
@@ -178,39 +198,34 @@ class RealSenseStream(ABC):
 
     async def stop(self) -> None:
         """Stop streaming and release the device (idempotent); a waiting frames() then ends."""
-        pipeline, self._pipeline = self._pipeline, None
+        close, self._close_source = self._close_source, None
         self._stopping = True
-        if pipeline is not None:
+        if close is not None:
             self._discard_queued()  # a callback blocked on a full queue must return for stop()
             loop = asyncio.get_running_loop()
             try:
                 async with asyncio.timeout(self.STOP_TIMEOUT_S):
-                    await loop.run_in_executor(None, pipeline.stop)
+                    await loop.run_in_executor(None, close)
             except TimeoutError:
-                raise DepthCameraError(self.id, f"pipeline did not stop within {self.STOP_TIMEOUT_S} s") from None
+                raise DepthCameraError(self.id, f"did not stop within {self.STOP_TIMEOUT_S} s") from None
             except RuntimeError as exc:
-                raise DepthCameraError(self.id, f"pipeline stop failed: {exc}") from exc
+                raise DepthCameraError(self.id, f"stop failed: {exc}") from exc
             self._log.info("realsense_stopped", dropped_frames=self.dropped_frames)
         if self._queue is not None:
             self._discard_queued()
             self._queue.put_nowait(END_OF_STREAM)
 
-    def _release_late_start(
-        self, loop: asyncio.AbstractEventLoop, pipeline: Any, job: asyncio.Future[Any]
-    ) -> None:
-        """A start that gave up waiting still owns the device once the SDK call returns: stop it."""
+    def _release_late_start(self, loop: asyncio.AbstractEventLoop, job: asyncio.Future[Opened]) -> None:
+        """A start that gave up waiting still owns the device once the SDK call returns: close it."""
         if not job.cancelled() and job.exception() is None:
             self._log.warning("realsense_late_start_stopped")
-            loop.run_in_executor(None, pipeline.stop)
+            loop.run_in_executor(None, job.result().close)
 
     # ------------------------------------------------------------------ subclass hooks
 
     @abstractmethod
-    def _configure(self, rs: ModuleType) -> tuple[Any, Any]:
-        """(rs.pipeline, rs.config) for this source."""
-
-    def _started(self, profile: Any) -> None:
-        """Called on the loop once the pipeline runs (playback settings, for instance)."""
+    def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
+        """Blocking (runs in the executor): open the source and stream its depth frames into on_frame."""
 
     def _hand_over(self, loop: asyncio.AbstractEventLoop, raw: RawFrame) -> None:
         """From the SDK thread: give a converted frame to the loop without blocking (live)."""
@@ -225,7 +240,7 @@ class RealSenseStream(ABC):
     def _on_frame(self, frame: Any) -> None:
         """librealsense's callback thread: copy the depth image out, hand it to the loop."""
         loop = self._loop
-        if self._stopping or loop is None:
+        if self._stopping or loop is None or self._failure is not None:
             return
         try:
             raw = self._convert(frame)
@@ -250,8 +265,13 @@ class RealSenseStream(ABC):
             raise ValueError(f"expected {width}x{height} Z16 depth, got {data.dtype} x {data.size}")
         depth = data.reshape(height, width).copy()  # the SDK recycles the frame's buffer
         domain = frame.get_frame_timestamp_domain()
-        return (int(frame.get_frame_number()), float(frame.get_timestamp()),
-                getattr(domain, "name", str(domain)), depth)
+        number, device_ms = int(frame.get_frame_number()), float(frame.get_timestamp())
+        return RawFrame(number, device_ms, getattr(domain, "name", str(domain)), depth,
+                        self._recorded_angle(number, device_ms))
+
+    def _recorded_angle(self, frame_number: int, device_ms: float) -> float | None:
+        """The beam angle recorded with this frame (SDK thread); a live camera has none."""
+        return None
 
     def _arrived(self, raw: RawFrame) -> None:
         """On the loop: stamp the frame on the host clock and queue it."""
@@ -269,20 +289,22 @@ class RealSenseStream(ABC):
         queue.put_nowait(frame)
 
     def _frame(self, raw: RawFrame, depth_unit_mm: float, intrinsics: np.ndarray) -> DepthFrame:
-        number, device_ms, domain, depth = raw
-        self.timestamp_domain = domain
+        self.timestamp_domain = raw.domain
         return DepthFrame(
             camera_id=self.id,
-            frame_number=number,
-            timestamp_s=self._host_time(device_ms, asyncio.get_running_loop().time()),
-            device_timestamp_ms=device_ms,
-            depth=depth,
+            frame_number=raw.number,
+            timestamp_s=self._host_time(raw.device_ms, asyncio.get_running_loop().time()),
+            device_timestamp_ms=raw.device_ms,
+            depth=raw.depth,
             depth_unit_mm=depth_unit_mm,
             intrinsics=intrinsics,
+            beam_angle_deg=raw.beam_angle_deg,
         )
 
     def _failed(self, exc: BaseException) -> None:
-        if self._queue is not None and not self._stopping:
+        """On the loop: the first failure replaces whatever is queued; frames() raises it."""
+        if self._queue is not None and not self._stopping and self._failure is None:
+            self._failure = exc
             self._discard_queued()
             self._queue.put_nowait(exc)
 
@@ -307,7 +329,7 @@ class RealSenseCamera(RealSenseStream):
         self.fps = fps
         self._clock = HostClockMap()
 
-    def _configure(self, rs: ModuleType) -> tuple[Any, Any]:
+    def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
         context = rs.context()
         serials = [d.get_info(rs.camera_info.serial_number) for d in context.query_devices()]
         if self.serial not in serials:
@@ -317,7 +339,10 @@ class RealSenseCamera(RealSenseStream):
         config.enable_stream(rs.stream.depth, self.WIDTH_PX, self.HEIGHT_PX, rs.format.z16,
                              int(round(self.fps)))
         self._clock = HostClockMap()
-        return rs.pipeline(context), config
+        pipeline = rs.pipeline(context)
+        profile = pipeline.start(config, on_frame)
+        return Opened(profile.get_device().first_depth_sensor(), profile.get_stream(rs.stream.depth),
+                      pipeline.stop)
 
     def _host_time(self, device_ms: float, arrival_s: float) -> float:
         return self._clock.host_time(device_ms, arrival_s)

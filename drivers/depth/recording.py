@@ -37,7 +37,8 @@ class RecordingError(ShapeEstimateError):
         super().__init__(f"{path}: {problem}")
 
 
-def _atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
+def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
+    """Write path through ``NAME.tmp``, fsync and rename: the path never holds a half-written file."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as fh:
         write(fh)
@@ -53,7 +54,7 @@ def save_sweep(sweep: Sweep, folder: Path | str) -> Path:
     entries = []
     for i, f in enumerate(sweep.frames):
         name = f"{i:05d}_{f.camera_id}_{f.frame_number:06d}.npz"
-        _atomic_write(folder / name, lambda fh, d=f.depth: np.savez_compressed(fh, depth=d))
+        atomic_write(folder / name, lambda fh, d=f.depth: np.savez_compressed(fh, depth=d))
         entries.append(
             {
                 "file": name,
@@ -72,7 +73,7 @@ def save_sweep(sweep: Sweep, folder: Path | str) -> Path:
         "frames": entries,
     }
     path = folder / INDEX
-    _atomic_write(path, lambda fh: fh.write(json.dumps(index, indent=1).encode()))
+    atomic_write(path, lambda fh: fh.write(json.dumps(index, indent=1).encode()))
     return path
 
 

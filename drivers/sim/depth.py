@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,6 +24,7 @@ import structlog
 import trimesh
 
 from drivers.depth.base import DepthFrame
+from drivers.sim.trapezoid import Trajectory, position_move
 from planner.poses import depth_camera_pose
 from planner.rig import DepthCamera as DepthCameraConfig
 from planner.rig import DepthCameraModel, Rig
@@ -275,3 +276,43 @@ def simulate_sweep(
                 )
             )
     return Sweep(tuple(frames), trace)
+
+
+@dataclass(frozen=True)
+class RecordedFrame:
+    """One frame of a simulated sweep recording: depth (H, W) uint16 in depth units, taken at
+    ``device_ms`` on the camera's clock with the beam at ``beam_angle_deg``."""
+
+    frame_number: int
+    device_ms: float
+    beam_angle_deg: float
+    depth: np.ndarray
+
+
+def sweep_trajectory(rig: Rig) -> Trajectory:
+    """The beam during the daemon's depth sweep (deg, s from the move's start): at rest at start_deg,
+    then a trapezoid at ``depth_sweep.speed_deg_s`` and the motor's maximum acceleration to end_deg."""
+    s, a = rig.depth_sweep, rig.motor.max_acceleration_deg_s2
+    return position_move(0.0, s.start_deg, 0.0, s.end_deg, s.speed_deg_s, a, a)
+
+
+def record_sweep_frames(
+    scene: DepthScene,
+    rig: Rig,
+    camera: DepthCameraConfig,
+    model: DepthCameraModel,
+    *,
+    seed: int = 0,
+    noise: bool = True,
+) -> Iterator[RecordedFrame]:
+    """The frames one depth camera streams at ``model.fps`` through the sweep (:func:`sweep_trajectory`),
+    from the move's start to the end at rest; frame k is taken k / fps after the start."""
+    trajectory = sweep_trajectory(rig)
+    renderer = DepthRenderer(scene, model)
+    rng = np.random.default_rng(seed) if noise else None
+    count = int(math.floor(trajectory.end_time * model.fps + 1e-9)) + 1
+    for k in range(count):
+        t = k / model.fps
+        angle, _speed = trajectory.at(t)
+        depth = renderer.render(depth_camera_pose(camera, math.radians(angle)), rng)
+        yield RecordedFrame(k, 1000.0 * t, float(angle), depth)
