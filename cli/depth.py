@@ -115,9 +115,8 @@ def _record(args: argparse.Namespace) -> int:
     """Render and write one sweep recording per rig depth camera; prints the folder last."""
     import trimesh
 
-    from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
-    from drivers.depth.recorder import DepthRecorder
-    from drivers.sim.depth import DepthScene, record_sweep_frames
+    from drivers.depth.beam_angles import beam_angles_path, read_beam_angles
+    from drivers.sim.depth import DepthScene, record_sweep
     from planner.rig import DEFAULT_RIG_PATH, load_rig
     from sim.rig import sim_depth_model
 
@@ -137,27 +136,14 @@ def _record(args: argparse.Namespace) -> int:
         from sim.body import make_body
 
         subject, body = make_body(seed=args.body_seed), {"body_seed": args.body_seed}
-    scene = DepthScene(subject)
-    sweep = rig.depth_sweep
-    for i, camera in enumerate(rig.depth_cameras):
-        if args.camera is not None and camera.id not in args.camera:
-            continue
-        path = args.out / f"{camera.id}.db3"
-        rows = []
-        with DepthRecorder(path, camera_id=camera.id, width=model.width_px, height=model.height_px,
-                           intrinsics=model.intrinsic_matrix, depth_unit_mm=model.depth_unit_mm,
-                           fps=model.fps, serial=camera.serial) as recorder:
-            for frame in record_sweep_frames(scene, rig, camera, model, seed=args.seed * 100 + i,
-                                             noise=not args.no_noise):
-                recorder.write(frame.frame_number, frame.device_ms, frame.depth)
-                rows.append((frame.frame_number, frame.device_ms, frame.beam_angle_deg))
-        source = {"simulated": True, **body, "noise_seed": None if args.no_noise else args.seed * 100 + i,
-                  "rig_digest": rig.digest, "fps": model.fps, "decimation": args.decimation,
-                  "depth_sweep": {"start_deg": sweep.start_deg, "end_deg": sweep.end_deg,
-                                  "speed_deg_s": sweep.speed_deg_s}}
-        write_beam_angles(beam_angles_path(path), camera.id, path, rows, source)
-        print(f"{camera.id}: {path}, {len(rows)} frames {model.width_px}x{model.height_px} at {model.fps:g} fps, "
-              f"beam {rows[0][2]:.1f} .. {rows[-1][2]:.1f} deg", flush=True)
+    paths = record_sweep(DepthScene(subject), rig, model, args.out, seed=args.seed, noise=not args.no_noise,
+                         camera_ids=args.camera, source={**body, "decimation": args.decimation})
+    for path in paths:
+        angles = read_beam_angles(beam_angles_path(path), path.stem)
+        first, last = min(angles.frames), max(angles.frames)
+        print(f"{path.stem}: {path}, {len(angles.frames)} frames {model.width_px}x{model.height_px} at "
+              f"{model.fps:g} fps, beam {angles.frames[first][1]:.1f} .. {angles.frames[last][1]:.1f} deg",
+              flush=True)
     print(args.out, flush=True)
     return 0
 

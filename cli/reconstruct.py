@@ -28,12 +28,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     source.add_argument("--frames", type=Path, help="recorded sweep folder (sweep.json + .npz frames)")
     source.add_argument("--sim-body", type=Path, help="simulate the sweep of this body mesh (mm)")
     source.add_argument(
-        "--bag", action="append", metavar="CAMERA=FILE.bag",
-        help="RealSense recording of one rig depth camera (repeat per camera; needs pyrealsense2 and --trace)",
+        "--bag", action="append", metavar="CAMERA=FILE.db3",
+        help="RealSense recording of one rig depth camera (repeat per camera; needs pyrealsense2); posed at "
+        "its recorded beam angles (FILE.beam.json beside it, as tbp depth record writes) or with --trace",
     )
     parser.add_argument(
         "--trace", type=Path,
-        help="beam trace JSON for --bag: time_s (seconds from each recording's first frame), angle_deg",
+        help="beam trace JSON for --bag recordings without beam angles: time_s (seconds from each "
+        "recording's first frame), angle_deg",
     )
     options.seed(parser, "depth noise seed of the simulated sweep")
     parser.add_argument("--no-noise", action="store_true", help="simulate without depth noise")
@@ -96,19 +98,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _read_bags(args: argparse.Namespace, rig: Rig) -> Sweep:
-    """The sweep from ``--bag CAMERA=FILE`` recordings tagged with ``--trace``."""
+    """The sweep from ``--bag CAMERA=FILE`` recordings at their recorded angles or tagged with ``--trace``."""
     import asyncio
 
     from drivers.depth.bag import BagPlayback
     from drivers.depth.recording import load_trace, read_recordings
     from planner.tsdf import FRAME_SPACING_DEG
 
-    if args.trace is None:
-        raise ValueError("--bag needs --trace (the beam angle over the recording's time)")
     cameras = []
     for item in args.bag:
         camera_id, sep, path = item.partition("=")
         if not sep or not camera_id or not path:
-            raise ValueError(f"--bag {item!r}: expected CAMERA=FILE.bag, e.g. depth0=front.bag")
-        cameras.append(BagPlayback(path, camera_id=camera_id))
-    return asyncio.run(read_recordings(cameras, load_trace(args.trace), rig, FRAME_SPACING_DEG))
+            raise ValueError(f"--bag {item!r}: expected CAMERA=FILE.db3, e.g. depth0=sweep/depth0.db3")
+        cameras.append(BagPlayback(path, camera_id=camera_id, realtime=False))
+    trace = load_trace(args.trace) if args.trace is not None else None
+    return asyncio.run(read_recordings(cameras, trace, rig, FRAME_SPACING_DEG))

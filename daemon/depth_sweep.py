@@ -1,10 +1,13 @@
 """The depth sweep: rotate the beam over ``rig.depth_sweep`` while every depth camera streams.
 
-Frames are thinned on the fly to one per ``SPACING_DEG`` of beam rotation per camera (the TSDF's
-own frame spacing: 30 fps frames a fraction of a degree apart add little to the fusion but a
-whole sweep of them would hold about 1 GB), then tagged with the beam angle from the encoder
-trace recorded during the move. A camera that stops delivering ends the sweep with
-``DepthStreamStalled``.
+Every camera is started before the beam moves (a camera that fails to start stops the ones
+already streaming, and the beam never moves). Frames are thinned on the fly to one per
+``SPACING_DEG`` of beam rotation per camera (the TSDF's own frame spacing), then posed: a live
+frame at the beam angle the encoder trace recorded at the frame's time, a frame played back from
+a sweep recording at the angle it was recorded at (``DepthFrame.beam_angle_deg``), so a recording
+replays as the sweep it was whatever its playback pace. A camera silent for ``FRAME_TIMEOUT_S``
+ends the sweep with ``DepthStreamStalled``; a recording that ends before the beam does is done.
+Whatever ends the sweep, every camera is stopped before ``run()`` returns or raises.
 """
 
 from __future__ import annotations
@@ -20,9 +23,9 @@ import structlog
 from daemon.beam import BeamTracker
 from daemon.errors import SweepFailed
 from drivers.depth.base import DepthCamera, DepthFrame
-from drivers.depth.errors import DepthStreamStalled
+from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from planner.rig import Rig
-from planner.sweep import BeamTrace, Sweep, tag_frames
+from planner.sweep import AngleSpacing, BeamTrace, PosedDepth, Sweep, pose_frame, tag_frame
 from planner.tsdf import FRAME_SPACING_DEG
 
 log = structlog.get_logger("daemon.depth_sweep")
@@ -30,11 +33,13 @@ log = structlog.get_logger("daemon.depth_sweep")
 
 @dataclass(frozen=True)
 class SweepRecord:
-    """The sweep's frames (tagged) and its encoder trace (N, 3) [time_s, angle_deg, speed_deg_s]."""
+    """The sweep's posed frames, its encoder trace (N, 3) [time_s, angle_deg, speed_deg_s], the frames
+    each camera delivered, and per camera where its angles came from ("encoder" or "recording")."""
 
     sweep: Sweep
     trace: np.ndarray
     frames_seen: dict[str, int]
+    angle_source: dict[str, str]
     started_s: float
     ended_s: float
 
@@ -44,7 +49,8 @@ class DepthSweeper:
 
     SPACING_DEG = FRAME_SPACING_DEG
     MIN_FRAMES_PER_CAMERA = 8
-    STOP_TIMEOUT_S = 2.0
+    STOP_TIMEOUT_S = 6.0
+    """Longer than a RealSense stream's own stop timeout, so its typed error arrives first."""
     FRAME_TIMEOUT_S = 1.0
     """A camera silent this long during the sweep has stalled."""
 
@@ -53,68 +59,106 @@ class DepthSweeper:
         self.drive = drive
         self.tracker = tracker
         self.cameras = list(cameras)
+        self._kept: list[DepthFrame] = []
+        self._seen: dict[str, int] = {}
+        self._spacing = AngleSpacing(self.SPACING_DEG)
 
     async def run(self) -> SweepRecord:
+        """Stream, move, stop the cameras, pose the frames. Raises the first failure (a camera that
+        does not start or stalls, the drive's error, SweepFailed for too few frames), every camera
+        stopped; a camera that also fails to stop is named in the error's notes."""
         loop = asyncio.get_running_loop()
         sweep = self.rig.depth_sweep
-        kept: list[DepthFrame] = []
-        seen = {c.id: 0 for c in self.cameras}
+        self._kept, self._seen = [], {c.id: 0 for c in self.cameras}
+        self._spacing = AngleSpacing(self.SPACING_DEG)
         mark = self.tracker.mark()
         started = loop.time()
-        for camera in self.cameras:
-            await camera.start()
-        collectors = [
-            asyncio.create_task(self._collect(c, kept, seen), name=f"sweep-{c.id}") for c in self.cameras
-        ]
-        motion = asyncio.create_task(self.drive.move_to(
-            sweep.end_deg, sweep.speed_deg_s, self.rig.motor.max_acceleration_deg_s2))
+        tasks: list[asyncio.Task[Any]] = []
         try:
+            for camera in self.cameras:
+                await camera.start()
+            tasks = [asyncio.create_task(self._collect(c), name=f"sweep-{c.id}") for c in self.cameras]
+            motion = asyncio.create_task(self.drive.move_to(
+                sweep.end_deg, sweep.speed_deg_s, self.rig.motor.max_acceleration_deg_s2), name="sweep-motion")
+            tasks.append(motion)
+            pending: set[asyncio.Task[Any]] = set(tasks)
             while not motion.done():
-                done, _ = await asyncio.wait({motion, *collectors}, return_when=asyncio.FIRST_COMPLETED)
+                done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
                 for task in done:
                     task.result()  # a stalled camera or a drive error ends the sweep here
-        finally:
-            if not motion.done():
-                motion.cancel()
-                await asyncio.gather(motion, return_exceptions=True)
-            for task in collectors:
-                task.cancel()
-            await asyncio.gather(*collectors, return_exceptions=True)
-            for camera in self.cameras:
-                async with asyncio.timeout(self.STOP_TIMEOUT_S):
-                    await camera.stop()
+        except BaseException as error:
+            await self._wind_down(tasks, error)
+            raise
+        await self._wind_down(tasks, None)
         ended = loop.time()
         trace = self.tracker.trace(mark)
-        beam_trace = BeamTrace.from_samples(_Row(t, a) for t, a, _ in trace)
-        inside = [f for f in kept if beam_trace.covers(f.timestamp_s)]
-        counts = {c.id: sum(1 for f in inside if f.camera_id == c.id) for c in self.cameras}
-        for camera_id, n in counts.items():
-            if n < self.MIN_FRAMES_PER_CAMERA:
-                raise SweepFailed(camera_id, n, self.MIN_FRAMES_PER_CAMERA)
-        log.info("depth_sweep_done", frames=len(inside), seen=seen, duration_s=ended - started)
-        return SweepRecord(tag_frames(inside, beam_trace, self.rig), trace, seen, started, ended)
+        record = self._pose(trace, started, ended)
+        log.info("depth_sweep_done", frames=len(record.sweep.frames), seen=self._seen,
+                 angle_source=record.angle_source, duration_s=ended - started)
+        return record
 
-    async def _collect(self, camera: DepthCamera, kept: list[DepthFrame], seen: dict[str, int]) -> None:
-        last_angle: float | None = None
+    async def _collect(self, camera: DepthCamera) -> None:
         stream = camera.frames().__aiter__()
         while True:
             try:
                 async with asyncio.timeout(self.FRAME_TIMEOUT_S):
                     frame = await stream.__anext__()
             except TimeoutError:
-                raise DepthStreamStalled(camera.id, seen[camera.id], self.FRAME_TIMEOUT_S) from None
-            except StopAsyncIteration:
-                raise DepthStreamStalled(camera.id, seen[camera.id], None) from None
-            seen[camera.id] += 1
-            angle = self.tracker.angle_deg
+                raise DepthStreamStalled(camera.id, self._seen[camera.id], self.FRAME_TIMEOUT_S) from None
+            except StopAsyncIteration:  # only a recording ends by itself
+                log.info("depth_sweep_recording_ended", camera=camera.id, frames=self._seen[camera.id])
+                return
+            self._seen[camera.id] += 1
+            angle = frame.beam_angle_deg if frame.beam_angle_deg is not None else self.tracker.angle_deg
             if angle is None or not np.any(frame.depth):
                 continue
-            if last_angle is None or abs(angle - last_angle) >= self.SPACING_DEG:
-                kept.append(frame)
-                last_angle = angle
+            if self._spacing.keep(camera.id, angle):
+                self._kept.append(frame)
 
+    async def _wind_down(self, tasks: list[asyncio.Task[Any]], error: BaseException | None) -> None:
+        """Cancel what still runs and stop every camera (idempotent stops), even those never started."""
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        failures: list[DepthCameraError] = []
+        for camera in self.cameras:
+            try:
+                async with asyncio.timeout(self.STOP_TIMEOUT_S):
+                    await camera.stop()
+            except TimeoutError:
+                failures.append(DepthCameraError(camera.id, f"did not stop within {self.STOP_TIMEOUT_S} s"))
+            except DepthCameraError as exc:
+                failures.append(exc)
+        if not failures:
+            return
+        if error is None:
+            first, *rest = failures
+            for failure in rest:
+                first.add_note(f"also: {failure}")
+            raise first
+        for failure in failures:  # the sweep's own error stays the one raised
+            error.add_note(f"while stopping the depth cameras: {failure}")
+            log.error("depth_sweep_stop_failed", camera=failure.camera_id, error=str(failure))
 
-@dataclass(frozen=True)
-class _Row:
-    time_s: float
-    angle_deg: float
+    def _pose(self, trace: np.ndarray, started: float, ended: float) -> SweepRecord:
+        beam = BeamTrace.from_columns(trace[:, 0], trace[:, 1])
+        posed: list[PosedDepth] = []
+        source: dict[str, str] = {c.id: "encoder" for c in self.cameras}
+        outside = 0
+        for frame in self._kept:
+            if frame.beam_angle_deg is not None:
+                posed.append(pose_frame(frame, frame.beam_angle_deg, self.rig))
+                source[frame.camera_id] = "recording"
+            elif beam.covers(frame.timestamp_s):
+                posed.append(tag_frame(frame, beam, self.rig))
+            else:
+                outside += 1  # streamed before the first or after the last encoder sample
+        posed.sort(key=lambda f: (f.camera_id, f.timestamp_s))
+        sweep = Sweep(tuple(posed), beam)
+        counts = sweep.per_camera()
+        for camera in self.cameras:
+            if counts.get(camera.id, 0) < self.MIN_FRAMES_PER_CAMERA:
+                raise SweepFailed(camera.id, counts.get(camera.id, 0), self.MIN_FRAMES_PER_CAMERA)
+        if outside:
+            log.info("depth_sweep_frames_outside_trace", frames=outside)
+        return SweepRecord(sweep, trace, dict(self._seen), source, started, ended)

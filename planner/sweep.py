@@ -1,10 +1,10 @@
 """Depth sweep geometry: tag depth frames with the beam angle and the camera pose at that angle.
 
-The beam angle of a frame is interpolated in the motor's position trace (event-loop time, beam
-angle) at the frame's host timestamp; the frame's camera-to-world pose is the beam rotation applied
-to the depth camera's extrinsics from the rig file. Pure computation: frames are any objects with
-the ``DepthFrame`` attributes (camera_id, frame_number, timestamp_s, depth, depth_unit_mm,
-intrinsics).
+The beam angle of a live frame is interpolated in the motor's position trace (event-loop time,
+beam angle) at the frame's host timestamp; a frame played back from a sweep recording brings the
+angle it was recorded at. The frame's camera-to-world pose is the beam rotation applied to the
+depth camera's extrinsics from the rig file. Pure computation: frames are any objects with the
+``DepthFrame`` attributes (camera_id, frame_number, timestamp_s, depth, depth_unit_mm, intrinsics).
 """
 
 from __future__ import annotations
@@ -55,7 +55,13 @@ class BeamTrace:
     @classmethod
     def from_samples(cls, samples: Iterable[object]) -> BeamTrace:
         """From motor samples with ``time_s`` and ``angle_deg`` (e.g. BeamSample), duplicates in time dropped."""
-        pairs = sorted({float(s.time_s): float(s.angle_deg) for s in samples}.items())  # type: ignore[attr-defined]
+        rows = [(float(s.time_s), float(s.angle_deg)) for s in samples]  # type: ignore[attr-defined]
+        return cls.from_columns([r[0] for r in rows], [r[1] for r in rows])
+
+    @classmethod
+    def from_columns(cls, time_s: Iterable[float], angle_deg: Iterable[float]) -> BeamTrace:
+        """From (N,) times and (N,) angles in any order; a repeated time keeps its last angle."""
+        pairs = sorted(dict(zip(map(float, time_s), map(float, angle_deg), strict=True)).items())
         return cls(np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]))
 
     @property
@@ -121,12 +127,22 @@ def tag_frame(frame: FrameLike, trace: BeamTrace, rig: Rig) -> PosedDepth:
     Raises FrameOutsideTrace when the frame's timestamp is not covered by the trace, and
     UnknownDepthCamera when the rig has no camera of that id.
     """
+    if frame.camera_id not in {c.id for c in rig.depth_cameras}:
+        raise UnknownDepthCamera(frame.camera_id, sorted(c.id for c in rig.depth_cameras))
+    if not trace.covers(frame.timestamp_s):
+        raise FrameOutsideTrace(frame.camera_id, frame.frame_number, frame.timestamp_s, trace.start_s, trace.end_s)
+    return pose_frame(frame, float(trace.angle_at(frame.timestamp_s)), rig)
+
+
+def pose_frame(frame: FrameLike, angle_deg: float, rig: Rig) -> PosedDepth:
+    """The frame posed at beam angle ``angle_deg`` (a recorded angle, or one read off the trace).
+
+    Raises UnknownDepthCamera when the rig has no camera of that id.
+    """
     cameras = {c.id: c for c in rig.depth_cameras}
     if frame.camera_id not in cameras:
         raise UnknownDepthCamera(frame.camera_id, sorted(cameras))
-    if not trace.covers(frame.timestamp_s):
-        raise FrameOutsideTrace(frame.camera_id, frame.frame_number, frame.timestamp_s, trace.start_s, trace.end_s)
-    angle = float(trace.angle_at(frame.timestamp_s))
+    angle = float(angle_deg)
     return PosedDepth(
         camera_id=frame.camera_id,
         frame_number=frame.frame_number,
@@ -144,22 +160,33 @@ def tag_frames(frames: Sequence[FrameLike], trace: BeamTrace, rig: Rig) -> Sweep
     return Sweep(tuple(tag_frame(f, trace, rig) for f in frames), trace)
 
 
-def select_by_spacing(frames: Sequence[PosedDepth], spacing_deg: float) -> list[PosedDepth]:
-    """Per camera, keep frames at least spacing_deg of beam rotation apart (first frame kept).
+class AngleSpacing:
+    """Per camera, keeps a frame only when the beam turned at least ``spacing_deg`` since the camera's
+    last kept frame (the first is kept; 0 keeps every frame).
 
     Consecutive 30 fps frames a fraction of a degree apart add little to the fusion but cost
-    integration time; empty frames are skipped so a later frame can take their place.
+    integration time and memory (a whole sweep of three cameras would hold about 1 GB).
     """
-    kept: list[PosedDepth] = []
-    last: dict[str, float] = {}
-    for f in sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s)):
-        if f.valid_pixels == 0:
-            continue
-        prev = last.get(f.camera_id)
-        if prev is None or abs(f.beam_angle_deg - prev) >= spacing_deg - 1e-9:
-            kept.append(f)
-            last[f.camera_id] = f.beam_angle_deg
-    return kept
+
+    def __init__(self, spacing_deg: float) -> None:
+        self.spacing_deg = spacing_deg
+        self._last: dict[str, float] = {}
+
+    def keep(self, camera_id: str, angle_deg: float) -> bool:
+        """Whether to keep this camera's frame at this beam angle (and remember it if kept)."""
+        last = self._last.get(camera_id)
+        if last is not None and abs(angle_deg - last) < self.spacing_deg - 1e-9:
+            return False
+        self._last[camera_id] = angle_deg
+        return True
+
+
+def select_by_spacing(frames: Sequence[PosedDepth], spacing_deg: float) -> list[PosedDepth]:
+    """Per camera, keep frames at least spacing_deg of beam rotation apart (:class:`AngleSpacing`);
+    empty frames are skipped so a later frame can take their place."""
+    spacing = AngleSpacing(spacing_deg)
+    return [f for f in sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s))
+            if f.valid_pixels and spacing.keep(f.camera_id, f.beam_angle_deg)]
 
 
 def observed(points: np.ndarray, frames: Sequence[PosedDepth], tolerance_mm: float = 10.0) -> np.ndarray:

@@ -196,3 +196,53 @@ def test_tbp_depth_record_sim_writes_the_sweep_each_camera_saw(tmp_path: Path,
     played = capsys.readouterr().out.splitlines()
     assert played[0].startswith(f"depth2 ({out / 'depth2.db3'}): {len(expected)} frames, 4.0 fps, 160x90")
     assert played[1] == "depth2: recorded beam angles -227.0 .. -47.0 deg"
+
+
+async def test_the_daemons_sweep_poses_a_played_back_recording_at_its_recorded_angles(tmp_path: Path) -> None:
+    """BagPlayback as the daemon's DepthCamera: real pyrealsense2 threads, a mock beam on the real loop."""
+    import dataclasses
+    import math
+
+    import trimesh
+
+    from daemon.beam import BeamTracker
+    from daemon.depth_sweep import DepthSweeper
+    from drivers.sim.depth import DepthScene, record_sweep, record_sweep_frames
+    from planner.poses import depth_camera_pose
+    from planner.rig import load_rig
+    from sim.rig import sim_depth_model
+    from tests.daemon_mocks import MockDrive
+
+    rig = load_rig()
+    rig = dataclasses.replace(rig, depth_sweep=dataclasses.replace(rig.depth_sweep, end_deg=rig.depth_sweep.start_deg + 45))
+    model = sim_depth_model(rig.depth_camera_model, 8, 10.0)
+    scene = DepthScene(trimesh.creation.capsule(height=1400.0, radius=170.0, count=[16, 16]).apply_translation([0, 0, 870]))
+    paths = record_sweep(scene, rig, model, tmp_path, seed=2)
+    recorded = {c.id: {f.frame_number: f for f in record_sweep_frames(scene, rig, c, model, seed=200 + i)}
+                for i, c in enumerate(rig.depth_cameras)}
+
+    class Sweeper(DepthSweeper):
+        SPACING_DEG = 2.0  # keeps every 10 fps frame of the cruise (3 deg apart)
+
+    drive = MockDrive(max_accel=rig.motor.max_acceleration_deg_s2)
+    await drive.connect()
+    await drive.set_zero(rig.depth_sweep.start_deg)
+    tracker = BeamTracker(drive)
+    await tracker.start()
+    cameras = [BagPlayback(p, camera_id=p.stem) for p in paths]
+    try:
+        record = await Sweeper(rig, drive, tracker, cameras).run()
+    finally:
+        await tracker.stop()
+        await drive.close()
+    assert record.angle_source == {c.id: "recording" for c in rig.depth_cameras}
+    assert record.trace[-1, 1] == pytest.approx(rig.depth_sweep.end_deg)  # the beam swept meanwhile
+    for camera in rig.depth_cameras:
+        posed = [f for f in record.sweep.frames if f.camera_id == camera.id]
+        assert len(posed) >= 14 and record.frames_seen[camera.id] == len(recorded[camera.id])
+        for f in posed:
+            truth = recorded[camera.id][f.frame_number]
+            assert f.beam_angle_deg == truth.beam_angle_deg
+            np.testing.assert_array_equal(f.depth, truth.depth)
+            np.testing.assert_allclose(f.camera_to_world, depth_camera_pose(camera, math.radians(truth.beam_angle_deg)))
+    assert all(c._close_source is None for c in cameras)  # stopped, files released

@@ -1,8 +1,10 @@
-"""Depth sweep: beam-angle tagging from the motor trace, refusals, frame selection, the async recorder."""
+"""Depth sweep: beam-angle tagging from the motor trace, refusals, frame selection, and the daemon's
+sweep (daemon/depth_sweep.py) with simulated cameras and recordings on a mock beam, in virtual time."""
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 
 import numpy as np
@@ -10,15 +12,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from daemon.beam import BeamTracker
+from daemon.depth_sweep import DepthSweeper, SweepRecord
+from daemon.errors import SweepFailed
 from drivers.depth.base import DepthFrame
-from drivers.depth.errors import DepthStreamStalled
+from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from drivers.motor.samples import BeamSample
-from drivers.depth.sweep import SweepCollector, collect_sweep
 from drivers.sim.depth import DepthFaults, SimulatedDepthCamera
 from planner.poses import depth_camera_pose
 from planner.shape_errors import BadTrace, FrameOutsideTrace, UnknownDepthCamera
 from planner.sweep import BeamTrace, observed, select_by_spacing, tag_frame, tag_frames
 from sim.clock import run_virtual
+from tests.daemon_mocks import MockDrive
 from tests.depth_helpers import small_rig, sphere
 
 RIG = small_rig(scale=8)
@@ -106,116 +111,186 @@ def test_selection_keeps_frames_a_fixed_angle_apart_and_skips_empty_ones():
     assert [f.frame_number for f in kept] == list(range(0, 40, 3))
 
 
-def _sim_camera(index: int, angle, faults: DepthFaults | None = None) -> SimulatedDepthCamera:
-    return SimulatedDepthCamera(RIG.depth_cameras[index], MODEL, sphere(), angle, seed=index, faults=faults)
+# ---------------------------------------------------------------------- the daemon's sweep
+
+SHORT = dataclasses.replace(RIG, depth_sweep=dataclasses.replace(RIG.depth_sweep, end_deg=RIG.depth_sweep.start_deg + 60.0))
 
 
-def _sweep_parts(duration: float, speed: float = 30.0):
-    """A simulated beam: samples at 100 Hz from t=0.1 s and a motion that ends at the duration."""
-    loop_start: list[float] = []
-
-    def angle(t: float) -> float:
-        return speed * t
-
-    async def samples():
-        loop = asyncio.get_running_loop()
-        loop_start.append(loop.time())
-        k = 10
-        while True:
-            await asyncio.sleep(max(0.0, k * 0.01 - loop.time()))
-            yield _sample(loop.time(), angle(loop.time()))
-            k += 1
-
-    async def motion() -> None:
-        await asyncio.sleep(duration)
-
-    return angle, samples, motion
+SWEEP_MODEL = dataclasses.replace(MODEL, fps=10.0)  # 3 deg between frames at 30 deg/s
 
 
-def test_collect_sweep_tags_every_frame_inside_the_trace():
-    angle, samples, motion = _sweep_parts(1.0)
-    cameras = [_sim_camera(i, angle) for i in range(3)]
-    sweep = run_virtual(collect_sweep(cameras, motion(), samples(), RIG, spacing_deg=0.0))
-    per_camera = sweep.per_camera()
-    # 30 fps for 1 s; frames before the first beam sample (t < 0.1 s) are left out
-    assert all(27 <= n <= 28 for n in per_camera.values()), per_camera
-    for f in sweep.frames:
-        assert f.beam_angle_deg == pytest.approx(angle(f.timestamp_s), abs=1e-6)
-        assert sweep.trace.covers(f.timestamp_s)
+class Sweeper(DepthSweeper):
+    SPACING_DEG = 2.0
+    FRAME_TIMEOUT_S = 0.2
 
 
-def test_frames_are_thinned_to_the_spacing_as_they_arrive():
-    angle, samples, motion = _sweep_parts(2.0)
-    collector = SweepCollector([_sim_camera(0, angle), _sim_camera(2, angle)], RIG, spacing_deg=6.0)
-    sweep = run_virtual(collector.run(motion(), samples()))
-    assert collector.received["depth0"] >= 59
-    for camera_id in ("depth0", "depth2"):
-        angles = [f.beam_angle_deg for f in sweep.frames if f.camera_id == camera_id]
-        assert len(angles) == 10, angles  # 3 .. 57 deg in 6 deg steps
-        assert np.all(np.diff(angles) >= 6.0 - 1e-6)
+class Recording:
+    """A finite DepthCamera (a sweep recording played back): frames with recorded angles, then the end."""
+
+    def __init__(self, camera_id: str, angles: list[float], *, fail_stop: bool = False) -> None:
+        self.id, self.angles, self.fail_stop = camera_id, angles, fail_stop
+        self.started = self.stopped = 0
+
+    async def start(self) -> None:
+        self.started += 1
+
+    async def stop(self) -> None:
+        self.stopped += 1
+        if self.fail_stop:
+            raise DepthCameraError(self.id, "did not stop within 5.0 s")
+
+    async def frames(self):
+        for k, angle in enumerate(self.angles):
+            await asyncio.sleep(0.01)
+            yield DepthFrame(self.id, k, -1000.0 + k, 0.0, np.full((4, 4), 900, np.uint16), 1.0, MODEL.intrinsic_matrix,
+                             beam_angle_deg=angle)
 
 
-def test_a_stalled_camera_stops_the_sweep_with_a_typed_error():
-    angle, samples, motion = _sweep_parts(5.0)
-    stalled = _sim_camera(1, angle, DepthFaults(stop_after_frame=4))
-    cameras = [_sim_camera(0, angle), stalled]
+def _beam() -> MockDrive:
+    return MockDrive(max_accel=RIG.motor.max_acceleration_deg_s2)
 
-    class Collector(SweepCollector):
-        FRAME_TIMEOUT_S = 0.2
+
+def _true_angle(drive: MockDrive):
+    return lambda t: drive.trajectory.at(t)[0] + drive.offset
+
+
+def _sim_camera(index: int, drive: MockDrive, faults: DepthFaults | None = None, rig=SHORT) -> SimulatedDepthCamera:
+    return SimulatedDepthCamera(rig.depth_cameras[index], SWEEP_MODEL, sphere(), _true_angle(drive), seed=index,
+                                faults=faults)
+
+
+async def _sweep(drive: MockDrive, cameras, *, rig=SHORT, sweeper=Sweeper) -> SweepRecord:
+    await drive.connect()
+    await drive.set_zero(rig.depth_sweep.start_deg)
+    tracker = BeamTracker(drive)
+    await tracker.start()
+    try:
+        return await sweeper(rig, drive, tracker, cameras).run()
+    finally:
+        await tracker.stop()
+        await drive.close()
+
+
+def _moves(drive: MockDrive) -> list[tuple[float, ...]]:
+    return [args for name, args in drive.calls if name == "move_to"]
+
+
+def test_every_frame_is_posed_at_the_encoder_angle_of_its_time():
+    drive = _beam()
+    cameras = [_sim_camera(i, drive) for i in range(3)]
+    record = run_virtual(_sweep(drive, cameras))
+    s = SHORT.depth_sweep
+    assert _moves(drive) == [(s.end_deg, s.speed_deg_s, SHORT.motor.max_acceleration_deg_s2)]
+    assert record.angle_source == {"depth0": "encoder", "depth1": "encoder", "depth2": "encoder"}
+    truth = _true_angle(drive)
+    for camera in SHORT.depth_cameras:
+        frames = [f for f in record.sweep.frames if f.camera_id == camera.id]
+        angles = np.array([f.beam_angle_deg for f in frames])
+        assert np.all(np.diff(angles) >= 2.0 - 1e-6)  # thinned to the spacing
+        assert np.all(np.diff(angles) <= 3.0 + 0.05)  # no 10 fps frame of the cruise left out
+        assert angles[0] < s.start_deg + 1.0 and angles[-1] > s.end_deg - 3.0
+        for f in frames:
+            assert f.beam_angle_deg == pytest.approx(truth(f.timestamp_s), abs=0.02)
+            np.testing.assert_allclose(f.camera_to_world, depth_camera_pose(camera, math.radians(f.beam_angle_deg)))
+    assert record.trace[-1, 1] == pytest.approx(s.end_deg)
+    assert all(c._t0 is None for c in cameras)  # stopped
+    assert record.frames_seen["depth0"] >= 25  # 10 fps for 2.5 s
+
+
+def test_a_camera_that_fails_to_start_stops_the_one_already_streaming_and_the_beam_never_moves():
+    drive = _beam()
+
+    class Unplugged(SimulatedDepthCamera):
+        async def start(self) -> None:
+            raise DepthCameraError(self.id, "no RealSense device with serial '000000000002'")
+
+    cameras = [_sim_camera(0, drive), Unplugged(SHORT.depth_cameras[1], SWEEP_MODEL, sphere(), _true_angle(drive)),
+               _sim_camera(2, drive)]
+    with pytest.raises(DepthCameraError, match="depth1: no RealSense device"):
+        run_virtual(_sweep(drive, cameras))
+    assert cameras[0]._t0 is None  # was streaming, now stopped
+    assert cameras[2]._t0 is None  # never started
+    assert _moves(drive) == []
+
+
+def test_a_camera_stalling_mid_sweep_ends_it_with_a_typed_error_and_every_camera_stopped():
+    drive = _beam()
+    cameras = [_sim_camera(0, drive), _sim_camera(1, drive, DepthFaults(stop_after_frame=14)), _sim_camera(2, drive)]
+    ended: list[float] = []
+
+    async def main() -> None:
+        try:
+            await _sweep(drive, cameras)
+        finally:
+            ended.append(asyncio.get_running_loop().time())
 
     with pytest.raises(DepthStreamStalled) as err:
-        run_virtual(Collector(cameras, RIG).run(motion(), samples()))
-    assert err.value.camera_id == "depth1" and err.value.frames == 5
+        run_virtual(main())
+    assert err.value.camera_id == "depth1" and err.value.frames == 15
     assert "depth1" in str(err.value) and "0.20 s" in str(err.value)
+    assert ended[0] < 15 / 10 + 0.2 + 0.1  # right after the stall, long before the beam arrives
+    assert all(c._t0 is None for c in cameras)
 
 
-def test_dropped_frames_leave_gaps_but_the_sweep_completes():
-    angle, samples, motion = _sweep_parts(1.0)
-    cameras = [_sim_camera(0, angle, DepthFaults(drop_frames=set(range(10, 20)))), _sim_camera(1, angle)]
-    sweep = run_virtual(collect_sweep(cameras, motion(), samples(), RIG, spacing_deg=0.0))
-    counts = sweep.per_camera()
-    assert counts["depth1"] - counts["depth0"] == 10
-    numbers = [f.frame_number for f in sweep.frames if f.camera_id == "depth0"]
-    assert not set(range(10, 20)) & set(numbers)
+def test_a_drive_error_ends_the_sweep_with_every_camera_stopped():
+    class FaultyDrive(MockDrive):
+        async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+            await asyncio.sleep(0.3)
+            raise RuntimeError("drive fault 0x7500")
+
+    drive = FaultyDrive()
+    cameras = [_sim_camera(0, drive), _sim_camera(2, drive)]
+    with pytest.raises(RuntimeError, match="drive fault 0x7500"):
+        run_virtual(_sweep(drive, cameras))
+    assert all(c._t0 is None for c in cameras)
 
 
-def test_a_failing_motion_stops_the_cameras_and_raises():
-    angle, samples, _ = _sweep_parts(1.0)
-    cameras = [_sim_camera(0, angle)]
+def test_a_camera_with_too_few_usable_frames_fails_the_sweep():
+    drive = _beam()
+    cameras = [_sim_camera(0, drive), _sim_camera(1, drive, DepthFaults(empty_frames=set(range(4, 10_000))))]
+    with pytest.raises(SweepFailed) as err:
+        run_virtual(_sweep(drive, cameras))
+    assert err.value.camera == "depth1" and 1 <= err.value.frames <= 4 and err.value.needed == 8
+    assert "depth1" in str(err.value) and "needed 8" in str(err.value)
 
-    async def motion() -> None:
-        await asyncio.sleep(0.3)
-        raise RuntimeError("drive fault")
 
-    with pytest.raises(RuntimeError, match="drive fault"):
-        run_virtual(collect_sweep(cameras, motion(), samples(), RIG))
-    assert cameras[0]._t0 is None
+def test_a_recording_is_posed_at_its_recorded_angles_and_may_end_before_the_beam():
+    drive = _beam()
+    recorded = [-227.0 + 0.5 * k for k in range(100)]  # 50 deg, faster than the beam
+    recording = Recording("depth2", recorded)
+    record = run_virtual(_sweep(drive, [recording, _sim_camera(0, drive)]))
+    assert record.angle_source == {"depth2": "recording", "depth0": "encoder"}
+    posed = [f for f in record.sweep.frames if f.camera_id == "depth2"]
+    assert [f.beam_angle_deg for f in posed] == recorded[::4]  # one per 2 deg, not the encoder's angle
+    for f in posed:
+        np.testing.assert_allclose(f.camera_to_world,
+                                   depth_camera_pose(SHORT.depth_cameras[2], math.radians(f.beam_angle_deg)))
+    assert recording.started == 1 and recording.stopped == 1
+    assert record.frames_seen["depth2"] == 100
+
+
+def test_a_camera_that_fails_to_stop_is_named_once_the_others_are_stopped():
+    drive = _beam()
+    stuck = Recording("depth1", [-227.0 + 2.0 * k for k in range(20)], fail_stop=True)
+    camera = _sim_camera(0, drive)
+    with pytest.raises(DepthCameraError, match="depth1: did not stop within 5.0 s"):
+        run_virtual(_sweep(drive, [stuck, camera]))
+    assert camera._t0 is None
+
+    drive = _beam()
+    stuck = Recording("depth1", [-227.0 + 2.0 * k for k in range(20)], fail_stop=True)
+    stalled = _sim_camera(0, drive, DepthFaults(stop_after_frame=3))
+    with pytest.raises(DepthStreamStalled) as err:  # the sweep's own error stays the one raised
+        run_virtual(_sweep(drive, [stuck, stalled]))
+    assert any("depth1: did not stop" in note for note in err.value.__notes__)
 
 
 def test_observed_counts_only_points_a_frame_measured():
-    angle, samples, motion = _sweep_parts(1.0)
-    sweep = run_virtual(collect_sweep([_sim_camera(2, angle)], motion(), samples(), RIG))
+    drive = _beam()
+    record = run_virtual(_sweep(drive, [_sim_camera(2, drive)]))
     ball = sphere()
     on_surface = ball.vertices[::50]
-    seen = observed(on_surface, sweep.frames)
+    seen = observed(on_surface, record.sweep.frames)
     assert 0.1 < seen.mean() < 0.9
     inside = (on_surface - [0, 0, 1000.0]) * 0.5 + [0, 0, 1000.0]
-    assert not observed(inside, sweep.frames).any()
-
-
-def test_a_camera_that_fails_to_start_never_moves_the_beam():
-    angle, samples, _ = _sweep_parts(1.0)
-    moved: list[bool] = []
-
-    async def motion() -> None:
-        moved.append(True)
-
-    class Broken(SimulatedDepthCamera):
-        async def start(self) -> None:
-            raise DepthStreamStalled(self.id, 0, None)
-
-    cameras = [_sim_camera(0, angle), Broken(RIG.depth_cameras[1], MODEL, sphere(), angle)]
-    with pytest.raises(DepthStreamStalled, match="depth1"):
-        run_virtual(collect_sweep(cameras, motion(), samples(), RIG))
-    assert moved == []
-    assert cameras[0]._t0 is None
+    assert not observed(inside, record.sweep.frames).any()

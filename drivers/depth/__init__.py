@@ -1,1 +1,1 @@
-"""Depth cameras: the frame type, the camera protocol and the sweep that tags frames with beam angles."""
+"""Depth cameras: the frame type and camera protocol, live RealSense cameras, recordings (playback, recorder, beam-angle files, npz sweep folders)."""

@@ -5,8 +5,9 @@ camera id, frame number, timestamp, beam angle, depth unit, intrinsics (3x3) and
 pose (4x4, mm). Each ``.npz`` holds ``depth``: (H, W) uint16 in depth units. Files are written
 to a temporary name and renamed, so a folder never holds a half-written frame.
 
-Recordings from the cameras themselves (RealSense ``.bag`` files) are read through the
-DepthCamera interface with a beam trace JSON (:func:`read_recordings`, :func:`load_trace`).
+Recordings from the cameras themselves (RealSense ``.db3``/``.bag`` files) are read through the
+DepthCamera interface, posed at their recorded beam angles or tagged with a beam trace JSON
+(:func:`read_recordings`, :func:`load_trace`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 from drivers.depth.base import DepthCamera
 from planner.rig import Rig
 from planner.shape_errors import ShapeEstimateError
-from planner.sweep import BeamTrace, PosedDepth, Sweep, tag_frame
+from planner.sweep import AngleSpacing, BeamTrace, PosedDepth, Sweep, pose_frame
 
 FORMAT = "tbp-depth-sweep/1"
 INDEX = "sweep.json"
@@ -115,31 +116,43 @@ def load_sweep(folder: Path | str) -> Sweep:
     return Sweep(tuple(frames), trace)
 
 
-async def read_recordings(cameras: Sequence[DepthCamera], trace: BeamTrace, rig: Rig, spacing_deg: float) -> Sweep:
-    """A sweep from finite recordings (e.g. ``BagPlayback``) and a beam trace on the recordings' time.
+async def read_recordings(cameras: Sequence[DepthCamera], trace: BeamTrace | None, rig: Rig,
+                          spacing_deg: float) -> Sweep:
+    """A sweep from finite recordings (e.g. ``BagPlayback``), read one camera after the other.
 
-    trace.time_s counts seconds from each recording's first frame, so every camera's frames are
-    tagged on the same axis. Frames are thinned to one per spacing_deg of beam angle per camera as
-    they are read (a whole 30 fps recording would not fit in memory comfortably); frames outside
-    the trace are skipped.
+    A frame with a recorded beam angle (a sweep recording) is posed there; any other frame is
+    tagged in ``trace``, whose time_s counts seconds from each recording's first frame, so every
+    camera's frames are tagged on the same axis (frames outside the trace are skipped). Frames are
+    thinned to one per spacing_deg of beam angle per camera as they are read (a whole 30 fps
+    recording would not fit in memory comfortably). RecordingError when a frame has no angle and
+    there is no trace. The returned sweep's trace is ``trace``, or the recorded angles over time.
     """
     frames = []
+    spacing = AngleSpacing(spacing_deg)
+    recorded: list[tuple[float, float]] = []
     for camera in cameras:
         await camera.start()
         try:
             first: float | None = None
-            last_angle: float | None = None
             async for frame in camera.frames():
                 first = frame.timestamp_s if first is None else first
                 t = frame.timestamp_s - first
-                if not trace.covers(t):
+                if frame.beam_angle_deg is not None:
+                    angle = frame.beam_angle_deg
+                    recorded.append((t, angle))
+                elif trace is None:
+                    raise RecordingError(camera.id, f"frame {frame.frame_number} has no recorded beam angle "
+                                                    "and no beam trace was given")
+                elif trace.covers(t):
+                    angle = float(trace.angle_at(t))
+                else:
                     continue
-                angle = float(trace.angle_at(t))
-                if last_angle is None or abs(angle - last_angle) >= spacing_deg - 1e-9:
-                    frames.append(tag_frame(dataclasses.replace(frame, timestamp_s=t), trace, rig))
-                    last_angle = angle
+                if spacing.keep(camera.id, angle):
+                    frames.append(pose_frame(dataclasses.replace(frame, timestamp_s=t), angle, rig))
         finally:
             await camera.stop()
+    if trace is None:
+        trace = BeamTrace.from_columns([r[0] for r in recorded], [r[1] for r in recorded])
     return Sweep(tuple(frames), trace)
 
 

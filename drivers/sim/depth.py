@@ -15,9 +15,12 @@ Error model (active stereo, D415 class):
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import structlog
@@ -316,3 +319,42 @@ def record_sweep_frames(
         angle, _speed = trajectory.at(t)
         depth = renderer.render(depth_camera_pose(camera, math.radians(angle)), rng)
         yield RecordedFrame(k, 1000.0 * t, float(angle), depth)
+
+
+def record_sweep(
+    scene: DepthScene,
+    rig: Rig,
+    model: DepthCameraModel,
+    folder: Path,
+    *,
+    seed: int = 0,
+    noise: bool = True,
+    camera_ids: Sequence[str] | None = None,
+    source: dict[str, Any] | None = None,
+) -> list[Path]:
+    """Record the sweep of every rig depth camera (or those in camera_ids) into ``folder``:
+    ``CAMERA.db3`` (RealSense recording, pyrealsense2's recorder) and ``CAMERA.beam.json`` (the
+    beam angle of each frame). Camera i's noise seed is ``seed * 100 + i``; source: provenance
+    stored in each beam-angle file. Returns the recordings' paths in rig order."""
+    from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
+    from drivers.depth.recorder import DepthRecorder
+
+    paths = []
+    for i, camera in enumerate(rig.depth_cameras):
+        if camera_ids is not None and camera.id not in camera_ids:
+            continue
+        path = Path(folder) / f"{camera.id}.db3"
+        rows = []
+        with DepthRecorder(path, camera_id=camera.id, width=model.width_px, height=model.height_px,
+                           intrinsics=model.intrinsic_matrix, depth_unit_mm=model.depth_unit_mm,
+                           fps=model.fps, serial=camera.serial) as recorder:
+            for frame in record_sweep_frames(scene, rig, camera, model, seed=seed * 100 + i, noise=noise):
+                recorder.write(frame.frame_number, frame.device_ms, frame.depth)
+                rows.append((frame.frame_number, frame.device_ms, frame.beam_angle_deg))
+        provenance = {**(source or {}), "simulated": True, "noise_seed": seed * 100 + i if noise else None,
+                      "rig_digest": rig.digest, "fps": model.fps, "width_px": model.width_px,
+                      "height_px": model.height_px, "depth_sweep": dataclasses.asdict(rig.depth_sweep)}
+        write_beam_angles(beam_angles_path(path), camera.id, path, rows, provenance)
+        paths.append(path)
+        log.info("depth_sim.recorded", camera=camera.id, path=str(path), frames=len(rows))
+    return paths
