@@ -92,11 +92,12 @@ def default_subject(seed: int) -> Any:
     return make_body(seed=seed)
 
 
-def phone_pose_source(rig: Rig, camera_index: int, beam_angle_deg: Callable[[], float]) -> Callable[[float], np.ndarray]:
-    """time -> (4, 4) camera-to-world pose of one phone at the beam's physical angle."""
+def phone_pose_source(rig: Rig, camera_index: int,
+                      beam_angle_deg: Callable[[float], float]) -> Callable[[float], np.ndarray]:
+    """time -> (4, 4) camera-to-world pose of one phone at the beam's angle at that time (deg)."""
 
-    def pose(_time_s: float) -> np.ndarray:
-        poses = rgb_poses(rig, np.array([beam_angle_deg()]))
+    def pose(time_s: float) -> np.ndarray:
+        poses = rgb_poses(rig, np.array([beam_angle_deg(time_s)]))
         return poses.camera_to_world(camera_index)
 
     return pose

@@ -1,16 +1,22 @@
-"""``tbp sim phone``: one simulated phone's adbd with the capture agent on 127.0.0.1:PORT."""
+"""``tbp sim phone``: one simulated phone's adbd with the capture agent on 127.0.0.1:PORT.
+
+With ``--body-seed N`` the phone photographs simulated adult N from one rig camera's pose: at a
+fixed beam angle (``--angle``), or, with ``--follow-beam HOST:PORT``, at the angle the drive of
+``tbp sim motor`` reports on its socketcand bridge at the moment of each exposure
+(``sim.processes.beam_follower``), so its images match the angle they were taken at.
+"""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
 import signal
-from typing import Any
+from pathlib import Path
 
 import numpy as np
 
-from drivers.sim.phone import PoseSource, SimulatedPhone
-from planner.rig import load_rig
+from drivers.sim.phone import SimulatedPhone
+from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,30 +32,51 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="photograph simulated adult N (sim/body.py) instead of an empty rig")
     parser.add_argument("--camera", default=None,
                         help="rig camera id whose pose the phone takes (default: the one with --serial)")
-    parser.add_argument("--angle", type=float, default=0.0, help="beam angle of that pose (deg)")
+    parser.add_argument("--angle", type=float, default=0.0,
+                        help="beam angle of that pose (deg); with --follow-beam, until the drive reports one")
+    parser.add_argument("--follow-beam", type=_bridge_address, default=None, metavar="HOST:PORT",
+                        help="pose the camera at the beam angle the drive reports on this socketcand bridge "
+                        "(tbp sim motor's; needs --body-seed)")
+    parser.add_argument("--rig", type=Path, default=None,
+                        help="rig file: camera poses, drive node id and gearing (default: calibration_data/rig.yaml)")
 
 
-def _standing_subject(args: argparse.Namespace) -> tuple[Any, PoseSource]:
-    """A simulated adult and the fixed pose of one rig camera at one beam angle (no motor here)."""
-    from planner.poses import rgb_poses
-    from sim.body import make_body
+def _bridge_address(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:29536")
+    return host, int(port)
 
-    rig = load_rig()
+
+def _camera_index(rig: Rig, args: argparse.Namespace) -> int:
     ids = [p.id for p in rig.phones]
     camera = args.camera or next((p.id for p in rig.phones if p.serial == args.serial), ids[0])
     if camera not in ids:
         raise SystemExit(f"--camera {camera!r}: the rig's cameras are {', '.join(ids)}")
-    camera_to_world = rgb_poses(rig, np.array([args.angle])).camera_to_world(ids.index(camera))
-    return make_body(seed=args.body_seed), lambda _time_s: camera_to_world
+    return ids.index(camera)
 
 
 async def serve(args: argparse.Namespace) -> int:
     """Run one simulated phone as a TCP adbd on 127.0.0.1:PORT until SIGINT/SIGTERM."""
-    subject, pose = None, None
+    from sim.processes.beam_follower import BeamFollower
+    from sim.rig import phone_pose_source
+
+    if args.follow_beam is not None and args.body_seed is None:
+        raise SystemExit("--follow-beam needs --body-seed: an empty rig looks the same at every angle")
+    rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+    subject, pose, follower = None, None, None
     if args.body_seed is not None:
-        subject, pose = _standing_subject(args)
+        from sim.body import make_body
+
+        index = _camera_index(rig, args)
+        subject = make_body(seed=args.body_seed)
+        if args.follow_beam is not None:
+            follower = BeamFollower(rig.motor, *args.follow_beam, fallback_deg=args.angle)
+            pose = phone_pose_source(rig, index, follower.angle_at)
+        else:
+            pose = phone_pose_source(rig, index, lambda _time_s: args.angle)
     phone = SimulatedPhone(args.serial, seed=args.seed, accept_new_keys=not args.refuse_keys, subject=subject,
-                           pose=pose)
+                           pose=pose, optics=rig.optics)
     if pose is not None:  # build the ray-casting scene now: in real time a first capture must not wait for it
         phone._picture(pose(0.0), 0.0, 0)
     rng = np.random.default_rng(args.seed)
@@ -59,6 +86,10 @@ async def serve(args: argparse.Namespace) -> int:
     server = await asyncio.start_server(phone.accept, "127.0.0.1", args.port)
     port = server.sockets[0].getsockname()[1]
     print(f"simulated phone {args.serial} (adbd) on 127.0.0.1:{port}", flush=True)
+    if follower is not None:
+        follower.start()
+        host, bridge_port = args.follow_beam
+        print(f"following the beam's position on socketcand {host}:{bridge_port}", flush=True)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -67,4 +98,6 @@ async def serve(args: argparse.Namespace) -> int:
         await stop.wait()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
+    if follower is not None:
+        await follower.stop()
     return 0
