@@ -48,6 +48,7 @@ class BagPlayback(RealSenseStream):
         self.beam_angles: BeamAngles | None = None
         self._offset_s: float | None = None
         self._ended: list[asyncio.Task[None]] = []
+        self._playing = 0  # which start() the SDK's status callbacks belong to
 
     def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
         if not self.path.is_file():
@@ -62,7 +63,9 @@ class BagPlayback(RealSenseStream):
         except RuntimeError as exc:
             raise RecordingUnreadable(self.id, self.path, f"not a RealSense recording: {exc}") from exc
         playback.set_real_time(self.realtime)
-        playback.set_status_changed_callback(self._on_status)
+        self._playing += 1
+        playing = self._playing
+        playback.set_status_changed_callback(lambda status: self._on_status(status, playing))
         sensor = playback.first_depth_sensor()
         profiles = [p for p in sensor.get_stream_profiles()
                     if p.stream_type() == rs.stream.depth and p.format() == rs.format.z16]
@@ -120,11 +123,18 @@ class BagPlayback(RealSenseStream):
             return
         await self._queue.put(self._frame(raw, self.depth_unit_mm, self.intrinsics))
 
-    def _on_status(self, status: Any) -> None:
-        """SDK thread: the file reached its end -> frames() ends after the frames already queued."""
+    def _on_status(self, status: Any, playing: int) -> None:
+        """SDK thread: the file reached its end -> frames() ends after the frames already queued.
+
+        The SDK also reports "stopped" when stop() stops the sensor; that report may reach the loop
+        after the next start(), so it carries the start it belongs to and a stale one is ignored.
+        """
         loop = self._loop
         if loop is not None and getattr(status, "name", str(status)).endswith("stopped"):
-            loop.call_soon_threadsafe(self._end_of_file)
+            try:
+                loop.call_soon_threadsafe(self._end_of_file, playing)
+            except RuntimeError:  # the loop is closed: nobody reads this playback any more
+                pass
 
     async def stop(self) -> None:
         """Stop playback and release the file (idempotent)."""
@@ -133,6 +143,6 @@ class BagPlayback(RealSenseStream):
         self._ended.clear()
         await super().stop()
 
-    def _end_of_file(self) -> None:
-        if self._queue is not None and not self._stopping:
+    def _end_of_file(self, playing: int) -> None:
+        if self._queue is not None and not self._stopping and playing == self._playing:
             self._ended.append(asyncio.get_running_loop().create_task(self._queue.put(END_OF_STREAM)))

@@ -229,7 +229,10 @@ class RealSenseStream(ABC):
 
     def _hand_over(self, loop: asyncio.AbstractEventLoop, raw: RawFrame) -> None:
         """From the SDK thread: give a converted frame to the loop without blocking (live)."""
-        loop.call_soon_threadsafe(self._arrived, raw)
+        try:
+            loop.call_soon_threadsafe(self._arrived, raw)
+        except RuntimeError:  # the loop is closed: an exception must not escape into the SDK's thread
+            pass
 
     @abstractmethod
     def _host_time(self, device_ms: float, arrival_s: float) -> float:
@@ -245,7 +248,10 @@ class RealSenseStream(ABC):
         try:
             raw = self._convert(frame)
         except Exception as exc:  # reaches frames() as a typed error, not a dead callback
-            loop.call_soon_threadsafe(self._failed, exc)
+            try:
+                loop.call_soon_threadsafe(self._failed, exc)
+            except RuntimeError:  # the loop is closed
+                pass
             return
         if raw is not None:
             self._hand_over(loop, raw)
