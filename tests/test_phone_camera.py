@@ -282,6 +282,21 @@ def test_pull_faults(tmp_path: Path) -> None:
     run(scenario)
 
 
+def test_an_image_larger_than_the_limit_is_a_pull_failure_not_a_lost_phone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(PhoneCamera, "MAX_IMAGE_BYTES", 1_000_000)
+
+    async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
+        await camera.connect()
+        sim.fs.write("/sdcard/DCIM/tbp/huge.jpg", bytes(3_000_000))
+        with pytest.raises(PullFailed, match="huge.jpg: larger than the 1000000-byte image limit"):
+            await camera.pull("/sdcard/DCIM/tbp/huge.jpg", tmp_path / "huge.jpg")
+        assert list(tmp_path.iterdir()) == []
+        assert camera.state == "ready" and (await camera.capture()).size_bytes > 0
+
+    run(scenario)
+
+
 def test_close_ends_a_request_in_flight_at_once() -> None:
     async def scenario(camera: PhoneCamera, sim: SimulatedPhone) -> None:
         await camera.connect()

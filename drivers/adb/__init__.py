@@ -8,6 +8,7 @@ from drivers.adb.auth import AdbKey
 from drivers.adb.connection import AdbConnection, DeviceBanner
 from drivers.adb.errors import (
     AdbError,
+    AdbLimitExceeded,
     AdbProtocolError,
     AdbTimeout,
     AuthRefused,
@@ -24,7 +25,7 @@ from drivers.adb.transport import AdbTransport, SocketTransport, StreamTransport
 from drivers.adb.usb import UsbTransport
 
 __all__ = [
-    "AdbConnection", "AdbError", "AdbKey", "AdbProtocolError", "AdbStream", "AdbTimeout", "AdbTransport",
+    "AdbConnection", "AdbError", "AdbKey", "AdbLimitExceeded", "AdbProtocolError", "AdbStream", "AdbTimeout", "AdbTransport",
     "AuthRefused", "ConnectionLost", "DeviceBanner", "KeyFileError", "StreamClosed", "StreamRefused",
     "SocketTransport", "StreamTransport", "SyncClient", "SyncFail", "SyncStat", "UsbDeviceNotFound", "UsbTransport",
     "open_tcp",

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import structlog
 
-from drivers.adb.auth import AdbKey
+from drivers.adb.auth import TOKEN_SIZE, AdbKey
 from drivers.adb.errors import AdbError, AdbProtocolError, AdbTimeout, AuthRefused, ConnectionLost
 from drivers.adb.message import (
     A_AUTH,
@@ -61,6 +61,9 @@ class AdbConnection:
     # back a focus or capture command queued behind it: 256 KiB is ~6 ms on USB 2.0 (1 MiB, the
     # protocol's maximum, would be ~25 ms), and early credit keeps TCP pulls at full speed.
     MAX_PAYLOAD = 256 * 1024
+    # Largest shell/exec output kept: the host runs short commands (getprop, ls); a device that
+    # keeps writing is cut off here instead of filling the host's memory.
+    MAX_COMMAND_OUTPUT = 1024 * 1024
 
     def __init__(self, transport: AdbTransport, key: AdbKey | None, *, name: str | None = None) -> None:
         self.transport = transport
@@ -111,6 +114,9 @@ class AdbConnection:
                 raise AdbProtocolError(self.name, self.state, f"unexpected {msg.name}({msg.arg0}) during handshake")
             if self.key is None:
                 raise AuthRefused(self.name, self.state, "device wants AUTH and no host key was given")
+            if len(msg.payload) != TOKEN_SIZE:
+                raise AdbProtocolError(self.name, self.state,
+                                       f"AUTH token of {len(msg.payload)} bytes, expected {TOKEN_SIZE}")
             if not sent_signature:
                 await self.transport.send(AdbMessage(A_AUTH, AUTH_SIGNATURE, 0, self.key.sign(msg.payload)))
                 sent_signature = True
@@ -148,18 +154,21 @@ class AdbConnection:
         self._check_online()
         return await self.mux.open(service)
 
-    async def shell(self, command: str) -> bytes:
-        """Run a command through 'shell:' and return its output (stdout and stderr, as the phone sends it)."""
-        return await self._run_command(f"shell:{command}")
+    async def shell(self, command: str, *, max_bytes: int | None = None) -> bytes:
+        """Run a command through 'shell:' and return its output (stdout and stderr, as the phone sends it).
 
-    async def exec(self, command: str) -> bytes:
-        """Run a command through 'exec:' (raw, binary-safe stdout)."""
-        return await self._run_command(f"exec:{command}")
+        At most ``max_bytes`` (default MAX_COMMAND_OUTPUT) are kept; more raises AdbLimitExceeded.
+        """
+        return await self._run_command(f"shell:{command}", max_bytes)
 
-    async def _run_command(self, service: str) -> bytes:
+    async def exec(self, command: str, *, max_bytes: int | None = None) -> bytes:
+        """Run a command through 'exec:' (raw, binary-safe stdout), bounded like :meth:`shell`."""
+        return await self._run_command(f"exec:{command}", max_bytes)
+
+    async def _run_command(self, service: str, max_bytes: int | None) -> bytes:
         stream = await self.open(service)
         try:
-            return await stream.read_all()
+            return await stream.read_all(self.MAX_COMMAND_OUTPUT if max_bytes is None else max_bytes)
         finally:
             await stream.close()
 

@@ -23,7 +23,8 @@ class AdbError(Exception):
 
 
 class AdbProtocolError(AdbError):
-    """A malformed message: bad magic, checksum, length, or a command out of sequence."""
+    """A malformed message: bad magic, checksum, length, a command out of sequence, a WRTE beyond
+    the stream's flow-control window, or an AUTH token of the wrong length."""
 
 
 class ConnectionLost(AdbError):
@@ -49,6 +50,20 @@ class StreamRefused(AdbError):
     def __init__(self, device: str, state: str, service: str) -> None:
         self.service = service
         super().__init__(device, state, f"service {service!r} refused")
+
+
+class AdbLimitExceeded(AdbError):
+    """The device sent more than a configured limit allows (command output, a file, a listing).
+
+    The stream it arrived on is closed; the connection stays up. Attributes: what (the stream or
+    path), limit (the configured bound) and unit.
+    """
+
+    def __init__(self, device: str, state: str, what: str, limit: int, unit: str = "bytes") -> None:
+        self.what = what
+        self.limit = limit
+        self.unit = unit
+        super().__init__(device, state, f"{what}: more than the limit of {limit} {unit}")
 
 
 class StreamClosed(AdbError):

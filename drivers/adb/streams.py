@@ -5,6 +5,9 @@ Flow control follows adbd: a writer sends one WRTE and waits for the peer's OKAY
 next. A reader answers OKAY at once while its consumer has nothing else queued (so the sender
 prepares the next payload while this one is consumed), otherwise only when the consumer takes
 a payload: a slow consumer throttles the sender with at most READ_WINDOW payloads buffered.
+The window is enforced, not trusted: each stream counts the WRTEs its peer may still send (one
+when it opens, one more per OKAY sent), and a WRTE beyond that is an AdbProtocolError that ends
+the link, so a device ignoring flow control cannot fill the host's memory.
 """
 
 from __future__ import annotations
@@ -16,7 +19,15 @@ from collections.abc import Awaitable, Callable
 
 import structlog
 
-from drivers.adb.errors import AdbError, AdbProtocolError, AdbTimeout, ConnectionLost, StreamClosed, StreamRefused
+from drivers.adb.errors import (
+    AdbError,
+    AdbLimitExceeded,
+    AdbProtocolError,
+    AdbTimeout,
+    ConnectionLost,
+    StreamClosed,
+    StreamRefused,
+)
 from drivers.adb.message import A_CLSE, A_OKAY, A_OPEN, A_WRTE, MAX_PAYLOAD_LEGACY, AdbMessage, Header
 from drivers.adb.transport import AdbTransport
 
@@ -45,6 +56,7 @@ class AdbStream:
         self._error: AdbError | None = None
         self._okay_owed = False
         self._credit_given = False
+        self._peer_credit = 0  # WRTEs the peer may send before our next OKAY
         self.bytes_read = 0
         self.bytes_written = 0
 
@@ -117,7 +129,7 @@ class AdbStream:
         payload = self._payloads.popleft()
         if self._okay_owed and len(self._payloads) < self.mux.READ_WINDOW and self.state == "open":
             self._okay_owed = False
-            await self.mux.send(AdbMessage(A_OKAY, self.local_id, self.remote_id))
+            await self.mux.grant(self)
         self.bytes_read += len(payload)
         return payload
 
@@ -168,10 +180,18 @@ class AdbStream:
                 raise AdbProtocolError(self.mux.name, self.state,
                                        f"line on {self.service!r} longer than {limit} bytes")
 
-    async def read_all(self) -> bytes:
-        """Everything until the peer closes the stream."""
+    async def read_all(self, limit: int) -> bytes:
+        """Everything until the peer closes the stream, at most ``limit`` bytes.
+
+        Raises AdbLimitExceeded (after closing the stream) when the peer sends more.
+        """
         parts = []
+        size = 0
         while data := await self.read():
+            size += len(data)
+            if size > limit:
+                await self.close()
+                raise AdbLimitExceeded(self.mux.name, "open", f"output of {self.service!r}", limit)
             parts.append(data)
         return b"".join(parts)
 
@@ -237,7 +257,13 @@ class StreamMux:
                 stream._credit_given or len(stream._payloads) >= self.READ_WINDOW or self.lost is not None:
             return None
         stream._credit_given = True
+        stream._peer_credit += 1
         return AdbMessage(A_OKAY, stream.local_id, stream.remote_id)
+
+    async def grant(self, stream: AdbStream) -> None:
+        """OKAY: the peer may send this stream one more WRTE."""
+        stream._peer_credit += 1
+        await self.send(AdbMessage(A_OKAY, stream.local_id, stream.remote_id))
 
     async def send(self, message: AdbMessage) -> None:
         if self.lost is not None:
@@ -300,16 +326,22 @@ class StreamMux:
             if stream.state == "opening":
                 stream.remote_id = msg.arg0
                 stream.state = "open"
+                stream._peer_credit = 1  # an open stream may carry one WRTE each way
                 stream._opened.set_result(None)
             else:
                 stream._ready.set()
         elif msg.command == A_WRTE:
+            if stream._peer_credit <= 0:
+                raise AdbProtocolError(self.name, "online",
+                                       f"WRTE on {stream.service!r} beyond its flow-control window "
+                                       f"({len(stream._payloads)} payloads unread, no OKAY outstanding)")
+            stream._peer_credit -= 1
             stream._payloads.append(msg.payload)
             stream._arrived.set()
             if stream._credit_given:
                 stream._credit_given = False
             elif len(stream._payloads) <= self.READ_WINDOW:
-                await self.send(AdbMessage(A_OKAY, stream.local_id, stream.remote_id))
+                await self.grant(stream)
             else:
                 stream._okay_owed = True
         else:
@@ -326,7 +358,7 @@ class StreamMux:
         stream.state = "open"
         stream._opened.set_result(None)
         self.streams[stream.local_id] = stream
-        await self.send(AdbMessage(A_OKAY, stream.local_id, stream.remote_id))
+        await self.grant(stream)
         task = asyncio.create_task(self._serve(handler, stream), name=f"adb-{self.name}-{service[:24]}")
         self._handlers.add(task)
         task.add_done_callback(self._handlers.discard)

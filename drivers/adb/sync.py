@@ -3,6 +3,11 @@
 Requests are a 4-byte id, a u32 LE length and a path. File data moves as DATA chunks of at
 most 64 KiB; the sender packs many chunks into each WRTE so one OKAY round trip carries up to
 the link's max payload (1 MiB), which is what makes a 20 MB pull take a fraction of a second.
+
+Every size the device sends is bounded before it is read: a pulled file by ``max_bytes``
+(default MAX_PULL_BYTES), a listing by MAX_LIST_ENTRIES names of at most MAX_PATH bytes, a FAIL
+reason by MAX_FAIL_MESSAGE. Past a bound the session ends with AdbLimitExceeded (the stream is
+closed: the rest of the answer would be misread), the connection stays up.
 """
 
 from __future__ import annotations
@@ -16,12 +21,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from drivers.adb.errors import AdbError, SyncFail
+from drivers.adb.errors import AdbError, AdbLimitExceeded, SyncFail
 from drivers.adb.streams import AdbStream
 
 SYNC_DATA_MAX = 64 * 1024
 WRITEBACK_BYTES = 4 * 1024 * 1024
 MAX_PATH = 1024
+MAX_PULL_BYTES = 64 * 1024 * 1024  # a whole file (phone images are ~25 MB); callers may pass their own bound
+MAX_LIST_ENTRIES = 100_000
+MAX_FAIL_MESSAGE = 4096
 _U32 = struct.Struct("<I")
 _ID_LEN = struct.Struct("<4sI")
 _STAT = struct.Struct("<4sIII")
@@ -127,7 +135,14 @@ class SyncClient:
     def _fail(self, path: str, reason: str) -> SyncFail:
         return SyncFail(self.device, "sync", path, reason)
 
-    async def _fail_message(self, path: str, length: int) -> SyncFail:
+    async def _too_much(self, what: str, limit: int, unit: str = "bytes") -> AdbLimitExceeded:
+        """End the session (its stream is mid-answer) and name the bound the device broke."""
+        await self.stream.close()
+        return AdbLimitExceeded(self.device, "sync", what, limit, unit)
+
+    async def _fail_message(self, path: str, length: int) -> SyncFail | AdbLimitExceeded:
+        if length > MAX_FAIL_MESSAGE:
+            return await self._too_much(f"FAIL reason for {path!r} ({length} bytes)", MAX_FAIL_MESSAGE)
         return self._fail(path, (await self.stream.readexactly(length)).decode("utf-8", "replace"))
 
     async def stat(self, path: str) -> SyncStat:
@@ -146,11 +161,18 @@ class SyncClient:
                 return entries
             if ident != b"DENT":
                 raise self._fail(path, f"answer {ident!r} to LIST")
+            if namelen > MAX_PATH:
+                raise await self._too_much(f"name in the listing of {path!r} ({namelen} bytes)", MAX_PATH)
+            if len(entries) >= MAX_LIST_ENTRIES:
+                raise await self._too_much(f"listing of {path!r}", MAX_LIST_ENTRIES, "entries")
             name = (await self.stream.readexactly(namelen)).decode("utf-8", "replace")
             entries.append(DirEntry(name, mode, size, mtime))
 
-    async def _receive(self, path: str, sink: Callable[[memoryview], object]) -> int:
-        """RECV path, feeding each chunk to sink (a view valid until the next read); returns the byte count."""
+    async def _receive(self, path: str, sink: Callable[[memoryview], object], max_bytes: int) -> int:
+        """RECV path, feeding each chunk to sink (a view valid until the next read); returns the byte count.
+
+        AdbLimitExceeded once the file passes max_bytes (nothing past the bound is read).
+        """
         await self.stream.write(request(b"RECV", path))
         total = 0
         while True:
@@ -158,6 +180,8 @@ class SyncClient:
             if ident == b"DATA":
                 if length > SYNC_DATA_MAX:
                     raise self._fail(path, f"DATA chunk of {length} bytes > {SYNC_DATA_MAX}")
+                if total + length > max_bytes:
+                    raise await self._too_much(f"file {path!r}", max_bytes)
                 sink(await self.stream.readview(length))
                 total += length
             elif ident == b"DONE":
@@ -167,22 +191,23 @@ class SyncClient:
             else:
                 raise self._fail(path, f"answer {ident!r} to RECV after {total} bytes")
 
-    async def pull_bytes(self, path: str) -> bytes:
-        """The whole file in memory."""
+    async def pull_bytes(self, path: str, *, max_bytes: int = MAX_PULL_BYTES) -> bytes:
+        """The whole file in memory (at most max_bytes, else AdbLimitExceeded)."""
         parts: list[bytes] = []
-        await self._receive(path, lambda view: parts.append(bytes(view)))
+        await self._receive(path, lambda view: parts.append(bytes(view)), max_bytes)
         return b"".join(parts)
 
-    async def pull(self, path: str, dest: Path) -> tuple[int, str]:
+    async def pull(self, path: str, dest: Path, *, max_bytes: int = MAX_PULL_BYTES) -> tuple[int, str]:
         """Pull to dest atomically (dest.part, fsync, rename); returns (size, sha256 hex).
 
-        On any failure the partial file is removed and dest is untouched.
+        A file larger than max_bytes raises AdbLimitExceeded. On any failure the partial file is
+        removed and dest is untouched.
         """
         dest = Path(dest)
         part = dest.with_name(dest.name + ".part")
         sink = _FileSink(os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
         try:
-            size = await self._receive(path, sink)
+            size = await self._receive(path, sink, max_bytes)
             sink.finish()
         except BaseException:
             os.close(sink.fd)

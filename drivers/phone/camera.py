@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import os
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,7 @@ import structlog
 
 from drivers.adb.auth import AdbKey
 from drivers.adb.connection import AdbConnection
-from drivers.adb.errors import AdbError, AuthRefused, ConnectionLost, SyncFail
+from drivers.adb.errors import AdbError, AdbLimitExceeded, AuthRefused, ConnectionLost, SyncFail
 from drivers.adb.streams import AdbStream
 from drivers.adb.transport import AdbTransport, StreamTransport
 from drivers.phone import protocol
@@ -100,6 +101,10 @@ class PhoneCamera:
     FOCUS_TIMEOUT_S = 2.0
     CAPTURE_TIMEOUT_S = 3.0
     AGENT_JAR_ENV = "TBP_CAPTURE_AGENT_JAR"
+    # Largest image pulled: a 50 MP JPEG at the highest quality is ~25 MB; a phone sending more
+    # is refused (PullFailed) before the file fills the scan store or the host's memory.
+    MAX_IMAGE_BYTES = 64 * 1024 * 1024
+    AGENT_OUTPUT_LINES = 5  # last lines of a failed agent start quoted in AgentStartFailed
 
     def __init__(self, transport_factory: TransportFactory, phone: Phone, focus_table: FocusCalibration, *,
                  key: AdbKey, agent_jar: Path | None = None) -> None:
@@ -198,7 +203,7 @@ class PhoneCamera:
         command = (f"CLASSPATH={protocol.AGENT_PATH} app_process / {protocol.AGENT_CLASS} "
                    f"socket={protocol.SOCKET_NAME} version={protocol.PROTOCOL_VERSION}")
         self._agent_shell = shell = await adb.open(f"shell:{command}")
-        output: list[str] = []
+        output: deque[str] = deque(maxlen=self.AGENT_OUTPUT_LINES)
         try:
             async with asyncio.timeout(self.AGENT_START_TIMEOUT_S):
                 while True:
@@ -210,7 +215,7 @@ class PhoneCamera:
                     output.append(line.rstrip())
         except TimeoutError:
             output.append(f"(no READY line within {self.AGENT_START_TIMEOUT_S:g} s)")
-        raise AgentStartFailed(self.serial, "connecting", "agent output: " + " | ".join(output[-5:]))
+        raise AgentStartFailed(self.serial, "connecting", "agent output: " + " | ".join(output))
 
     # ---------------------------------------------------------------- requests
     async def _read_answers(self, stream: AdbStream) -> None:
@@ -296,14 +301,17 @@ class PhoneCamera:
         await self._request("delete", self.REQUEST_TIMEOUT_S, path=phone_path)
 
     async def pull(self, phone_path: str, dest: Path) -> tuple[int, str]:
-        """Copy a file from the phone to dest atomically; (size in bytes, sha256 hex)."""
+        """Copy a file (at most MAX_IMAGE_BYTES) from the phone to dest atomically; (size in bytes, sha256 hex)."""
         if self.adb is None or not self.adb.online:
             raise PhoneDisconnected(self.serial, self.state, f"cannot pull {phone_path}: not connected")
         try:
             async with await self.adb.sync() as sync:
-                return await sync.pull(phone_path, Path(dest))
+                return await sync.pull(phone_path, Path(dest), max_bytes=self.MAX_IMAGE_BYTES)
         except SyncFail as exc:
             raise PullFailed(self.serial, self.state, f"{phone_path}: {exc.reason}") from exc
+        except AdbLimitExceeded as exc:
+            raise PullFailed(self.serial, self.state,
+                             f"{phone_path}: larger than the {exc.limit}-byte image limit") from exc
         except AdbError as exc:
             raise PhoneDisconnected(self.serial, self.state, f"pull of {phone_path}: {exc}") from exc
 

@@ -125,7 +125,7 @@ class SimulatedPhone(SimulatedAdbd):
         log.info("sim_phone_agent_started", serial=self.serial, socket=socket_name)
         try:
             await stream.write(f"{protocol.READY_PREFIX} {socket_name} {protocol.PROTOCOL_VERSION}\n".encode())
-            stdin = asyncio.create_task(stream.read_all())  # the agent ignores stdin
+            stdin = asyncio.create_task(_discard(stream))  # the agent ignores stdin
             crashed = asyncio.create_task(self._agent_crashed.wait())
             try:
                 await asyncio.wait({stdin, crashed}, return_when=asyncio.FIRST_COMPLETED)
@@ -254,3 +254,9 @@ class SimulatedPhone(SimulatedAdbd):
             self._renderer = PhoneRenderer(_scene_for(self.subject), self.optics, width, height)
         focus_mm = 1000.0 / focus_diopters if focus_diopters > 0 else 1e7
         return encode_jpeg(self._renderer.render(pose, focus_mm))
+
+
+async def _discard(stream: AdbStream) -> None:
+    """Read and drop everything until the peer closes the stream."""
+    while await stream.read():
+        pass
