@@ -16,7 +16,7 @@ import usb.util
 from drivers.adb.auth import AdbKey
 from drivers.adb.connection import AdbConnection
 from drivers.adb.errors import ConnectionLost
-from drivers.adb.message import A_CNXN, HEADER_SIZE, AdbMessage, connect_message
+from drivers.adb.message import A_CNXN, A_WRTE, HEADER_SIZE, AdbMessage, connect_message
 from drivers.adb.usb import UsbTransport, adb_interface
 from drivers.sim.adbd import SimulatedAdbd
 
@@ -156,3 +156,37 @@ async def test_open_names_missing_and_ambiguous_phones(monkeypatch: pytest.Monke
         await UsbTransport.open("CCC")
     with pytest.raises(UsbDeviceNotFound, match=r"2 ADB devices attached; name one: \['AAA', 'BBB'\]"):
         await UsbTransport.open()
+
+
+class _FloodingEndpoint:
+    """A bulk IN endpoint of a phone that sends WRTE after WRTE, as fast as it is read."""
+
+    wMaxPacketSize = 512
+
+    def __init__(self) -> None:
+        self.message = AdbMessage(A_WRTE, 1, 1, bytes(4096)).encode()
+        self.pos = 0
+        self.messages_read = 0
+
+    def read(self, size: int, timeout: int) -> bytes:
+        out = bytearray()
+        while len(out) < size:
+            take = min(size - len(out), len(self.message) - self.pos)
+            out += self.message[self.pos:self.pos + take]
+            self.pos += take
+            if self.pos == len(self.message):
+                self.pos = 0
+                self.messages_read += 1
+        return bytes(out)
+
+
+async def test_a_flooding_phone_queues_at_most_queue_high_messages(no_release: None) -> None:
+    flood = _FloodingEndpoint()
+    transport = UsbTransport(object(), SimpleNamespace(bInterfaceNumber=1), flood, flood, name="FLOOD")
+    await asyncio.sleep(0.3)  # nobody calls recv(): the reader thread must stop reading ahead
+    assert transport._messages.qsize() <= UsbTransport.QUEUE_HIGH
+    assert flood.messages_read <= UsbTransport.QUEUE_HIGH + 1
+    assert (await transport.recv()).command == A_WRTE
+    await asyncio.sleep(0.05)
+    assert transport._messages.qsize() <= UsbTransport.QUEUE_HIGH  # one slot freed, one more read
+    await transport.close()

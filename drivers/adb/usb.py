@@ -63,6 +63,7 @@ class UsbTransport:
 
     READ_POLL_MS = 200     # the reader thread checks for close() this often
     WRITE_TIMEOUT_MS = 5000
+    QUEUE_HIGH = 8         # messages read ahead of recv(); the reader thread waits beyond this
 
     def __init__(self, device: Any, interface: Any, ep_in: Any, ep_out: Any, *, name: str) -> None:
         self.device = device
@@ -76,6 +77,7 @@ class UsbTransport:
         self._messages: asyncio.Queue[AdbMessage | AdbError] = asyncio.Queue()
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"adb-usb-out-{name}")
         self._stop = threading.Event()
+        self._slots = threading.Semaphore(self.QUEUE_HIGH)  # bounds what a flooding phone can queue
         self._reader = threading.Thread(target=self._read_loop, name=f"adb-usb-in-{name}", daemon=True)
         self._reader.start()
 
@@ -129,6 +131,8 @@ class UsbTransport:
         import usb.core
 
         while not self._stop.is_set():
+            if not self._slots.acquire(timeout=self.READ_POLL_MS / 1000):
+                continue
             try:
                 header = decode_header(self._read_exact(HEADER_SIZE), device=self.name,
                                        max_payload=self.max_payload)
@@ -167,6 +171,7 @@ class UsbTransport:
         if isinstance(item, AdbError):
             self._messages.put_nowait(item)  # every later recv() fails the same way
             raise item
+        self._slots.release()
         return item
 
     async def close(self) -> None:
