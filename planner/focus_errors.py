@@ -40,6 +40,36 @@ class NothingVisible(FocusPlanError):
         )
 
 
+class SubjectOutsideRing(FocusPlanError):
+    """A mesh vertex is not finite or lies beyond the camera ring: not a subject inside this rig
+    (a stray vertex, or a mesh in other units than mm)."""
+
+    def __init__(self, mesh: str, vertex: int, position_mm: tuple[float, float, float], ring_radius_mm: float) -> None:
+        self.mesh = mesh
+        self.vertex = vertex
+        self.position_mm = position_mm
+        self.ring_radius_mm = ring_radius_mm
+        where = ", ".join(f"{v:.6g}" for v in position_mm)
+        super().__init__(
+            f"mesh {mesh}: vertex {vertex} at ({where}) mm lies outside the camera ring (radius "
+            f"{ring_radius_mm:g} mm around the rotation axis); the subject must stand inside the ring, in mm"
+        )
+
+
+class PlanTooLarge(FocusPlanError):
+    """Planning this many samples for this many poses would need more memory than the budget."""
+
+    def __init__(self, points: int, poses: int, need_bytes: int, budget_bytes: int) -> None:
+        self.points = points
+        self.poses = poses
+        self.need_bytes = need_bytes
+        self.budget_bytes = budget_bytes
+        super().__init__(
+            f"{points} samples x {poses} poses need about {need_bytes / 1024**3:.1f} GiB to plan, more than "
+            f"the {budget_bytes / 1024**3:g} GiB budget"
+        )
+
+
 class InvertedMesh(FocusPlanError):
     """The mesh's triangles wind inward (negative volume), so no surface faces the cameras."""
 

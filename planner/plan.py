@@ -21,11 +21,19 @@ import trimesh
 from planner.baselines import autofocus, average_focus, closest_focus, fixed_focus
 from planner.cost import CostTable, cost_table
 from planner.em import expectation_minimisation
-from planner.focus_errors import BadFocusPlan, EmptyMesh, InvertedMesh, MeshLoadError, NothingVisible
+from planner.focus_errors import (
+    BadFocusPlan,
+    EmptyMesh,
+    InvertedMesh,
+    MeshLoadError,
+    NothingVisible,
+    PlanTooLarge,
+    SubjectOutsideRing,
+)
 from planner.optics import resolution_mm_per_px
 from planner.poses import Poses, rgb_poses
 from planner.refine import refine_focus
-from planner.rig import Rig
+from planner.rig import PLAN_MEMORY_BUDGET_BYTES, Rig, planning_memory_bytes
 from planner.sampling import SurfaceSamples, sample_surface
 from planner.visibility import RayScene, visible_pairs
 
@@ -149,15 +157,32 @@ def _samples(
     has no surface or is wound inside out."""
     if len(mesh.faces) == 0:
         raise EmptyMesh(name, 0, 0.0)
+    check_inside_ring(mesh, rig, name)
     volume = signed_volume_mm3(mesh)
     if volume < 0:
         raise InvertedMesh(name, volume)
     if isinstance(points, SurfaceSamples):
         return points
+    count = rig.planner.points if points is None else int(points)
+    need = planning_memory_bytes(count, rig.n_poses)
+    if need > PLAN_MEMORY_BUDGET_BYTES:
+        raise PlanTooLarge(count, rig.n_poses, need, PLAN_MEMORY_BUDGET_BYTES)
     try:
-        return sample_surface(mesh, rig.planner.points if points is None else int(points), seed=seed)
+        return sample_surface(mesh, count, seed=seed)
     except EmptyMesh as exc:
         raise EmptyMesh(name, exc.faces, exc.area_mm2) from exc
+
+
+def check_inside_ring(mesh: trimesh.Trimesh, rig: Rig, name: str) -> None:
+    """SubjectOutsideRing naming the first vertex that is not finite or lies beyond the camera ring
+    (distance from the rotation axis, mm); the planner's numbers mean nothing for such a mesh."""
+    v = np.asarray(mesh.vertices, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        radial = np.hypot(v[:, 0], v[:, 1])
+        bad = np.flatnonzero(~np.isfinite(v).all(axis=1) | ~(radial < rig.ring_radius_mm))
+    if len(bad):
+        i = int(bad[0])
+        raise SubjectOutsideRing(name, i, tuple(float(c) for c in v[i]), rig.ring_radius_mm)
 
 
 def check_focus(focus_mm: np.ndarray, n_poses: int) -> np.ndarray:

@@ -2,13 +2,18 @@
 
 Every field is checked against its allowed range and unknown keys are refused, so a typo in
 a clinic's rig file stops the daemon with a message naming the file, the key and the range
-instead of producing a silently wrong scan.
+instead of producing a silently wrong scan. Hostile files are bounded too: the file size, the
+length of every string, ids (they name files in the scan folder) to a safe pattern, the planning
+sample count to a memory budget, and an offending value is quoted in at most a few dozen
+characters (a YAML alias bomb or a 400-digit number is described, never expanded).
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
+import re
+import reprlib
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -18,6 +23,75 @@ import yaml
 
 CALIBRATION_DIR = Path(__file__).resolve().parent.parent / "calibration_data"
 DEFAULT_RIG_PATH = CALIBRATION_DIR / "rig.yaml"
+MAX_FILE_BYTES = 1024 * 1024  # the default rig is 6 KB
+MAX_STRING = 256
+MAX_FLOW_NESTING = 32  # [ ] and { } levels; the YAML scanner is quadratic in this depth
+# Camera ids and sector names become file and folder names in a scan: letters, digits, '_', '-'
+# and '.', starting with a letter or digit (so never '..', '/', or a hidden file).
+ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,31}")
+# Planning memory: the visibility and cost tables take about this many bytes per (pose, sample)
+# candidate (measured: 336 poses x 200k samples peaked at 1.26 GiB, 4.9 KiB a sample); the rig's
+# planner.points is refused when the estimate passes the budget.
+PLAN_BYTES_PER_POSE_SAMPLE = 16
+PLAN_MEMORY_BUDGET_BYTES = 4 * 1024**3
+
+
+def planning_memory_bytes(points: int, poses: int) -> int:
+    """Estimated peak memory (bytes) of planning ``points`` samples for ``poses`` camera poses."""
+    return int(points) * int(poses) * PLAN_BYTES_PER_POSE_SAMPLE
+
+
+class _ShortRepr(reprlib.Repr):
+    """repr() bounded in length and depth; huge integers are described by their size."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.maxlevel, self.maxlist, self.maxtuple, self.maxdict = 2, 4, 4, 4
+        self.maxstring, self.maxother = 40, 40
+
+    def repr_int(self, x: int, level: int) -> str:
+        if x.bit_length() > 64:  # str() of a huge int is slow, and refused past 4300 digits
+            return f"<integer of about {int(x.bit_length() * math.log10(2)) + 1} digits>"
+        return repr(x)
+
+
+_SHORT = _ShortRepr()
+
+
+def show(value: Any) -> str:
+    """A short, bounded rendering of a value from a file, for error messages."""
+    return _SHORT.repr(value)
+
+
+_FLOW_SYNTAX = re.compile(rb"[\[\]{}'\"#\n]")
+
+
+def flow_nesting(text: bytes) -> int:
+    """Deepest nesting of YAML flow collections ([ ] and { }) outside quotes and comments."""
+    depth = deepest = 0
+    quote: bytes | None = None
+    comment = False
+    for match in _FLOW_SYNTAX.finditer(text):
+        char = match.group()
+        if comment:
+            comment = char != b"\n"
+        elif quote is not None:
+            quote = None if char == quote else quote
+        elif char in (b"'", b'"'):
+            quote = char
+        elif char == b"#":
+            comment = True
+        elif char in (b"[", b"{"):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in (b"]", b"}"):
+            depth -= 1
+    return deepest
+
+
+def _key_name(key: Any) -> str:
+    """A mapping key as written in the file (bounded like :func:`show` when it is not a short string)."""
+    return key if isinstance(key, str) and len(key) <= 40 else show(key)
 
 
 class RigConfigError(ValueError):
@@ -37,10 +111,13 @@ class _Field:
     high: float | None = None
     default: Any = None
     required: bool = True
+    pattern: re.Pattern[str] | None = None
 
     def allowed(self) -> str:
+        if self.kind is str and self.pattern is ID_PATTERN:
+            return "an id of 1 to 32 letters, digits, '_', '-' or '.', starting with a letter or digit"
         if self.kind is str:
-            return "a non-empty string"
+            return f"a non-empty string of at most {MAX_STRING} characters"
         if self.kind is bool:
             return "true or false"
         lo = "-inf" if self.low is None else f"{self.low:g}"
@@ -61,6 +138,10 @@ def _str(**kw: Any) -> _Field:
     return _Field(str, **kw)
 
 
+def _id(**kw: Any) -> _Field:
+    return _Field(str, pattern=ID_PATTERN, **kw)
+
+
 class _Reader:
     """Validates one mapping of the rig file against a field table."""
 
@@ -72,22 +153,22 @@ class _Reader:
 
     def mapping(self, value: Any, key: str) -> dict[str, Any]:
         if not isinstance(value, dict):
-            raise self.error(key, f"expected a mapping, got {type(value).__name__} {value!r}")
+            raise self.error(key, f"expected a mapping, got {type(value).__name__} {show(value)}")
         return value
 
     def sequence(self, value: Any, key: str, min_len: int, max_len: int) -> list[Any]:
         if not isinstance(value, list):
-            raise self.error(key, f"expected a list, got {type(value).__name__} {value!r}")
+            raise self.error(key, f"expected a list, got {type(value).__name__} {show(value)}")
         if not min_len <= len(value) <= max_len:
             raise self.error(key, f"has {len(value)} entries, allowed {min_len} to {max_len}")
         return value
 
     def section(self, raw: Any, key: str, table: dict[str, _Field]) -> dict[str, Any]:
         raw = self.mapping(raw, key)
-        unknown = sorted(set(raw) - set(table))
+        unknown = sorted((k for k in raw if k not in table), key=str)
         if unknown:
             raise self.error(
-                f"{key}.{unknown[0]}", f"unknown key; allowed keys: {', '.join(sorted(table))}"
+                f"{key}.{_key_name(unknown[0])}", f"unknown key; allowed keys: {', '.join(sorted(table))}"
             )
         out: dict[str, Any] = {}
         for name, spec in table.items():
@@ -103,25 +184,28 @@ class _Reader:
     def value(self, value: Any, key: str, spec: _Field) -> Any:
         if spec.kind is list:
             return value
+        refused = self.error(key, f"got {show(value)}; expected {spec.allowed()}")
         if spec.kind is str:
-            if not isinstance(value, str) or not value:
-                raise self.error(key, f"got {value!r}; expected {spec.allowed()}")
+            if not isinstance(value, str) or not 0 < len(value) <= MAX_STRING:
+                raise refused
+            if spec.pattern is not None and not spec.pattern.fullmatch(value):
+                raise refused
             return value
         if spec.kind is bool:
             if not isinstance(value, bool):
-                raise self.error(key, f"got {value!r}; expected {spec.allowed()}")
+                raise refused
             return value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.error(key, f"got {value!r}; expected {spec.allowed()}")
-        if spec.kind is int and not float(value).is_integer():
-            raise self.error(key, f"got {value!r}; expected {spec.allowed()}")
-        number = spec.kind(value)
-        if not math.isfinite(number) or (
-            (spec.low is not None and number < spec.low)
-            or (spec.high is not None and number > spec.high)
-        ):
-            raise self.error(key, f"got {value!r}; expected {spec.allowed()}")
-        return number
+            raise refused
+        # Compared before any conversion: an int and a float compare exactly, while float() of a
+        # 400-digit integer overflows.
+        if isinstance(value, float) and not math.isfinite(value):
+            raise refused
+        if (spec.low is not None and value < spec.low) or (spec.high is not None and value > spec.high):
+            raise refused
+        if spec.kind is int and isinstance(value, float) and not value.is_integer():
+            raise refused
+        return spec.kind(value)
 
 
 # ---------------------------------------------------------------------------- dataclasses
@@ -357,14 +441,14 @@ _OPTICS = {
     "iso": _int(25, 25_600),
 }
 _PHONE = {
-    "id": _str(),
+    "id": _id(),
     "serial": _str(),
     "height_mm": _num(0.0, 2600.0),
     "tilt_deg": _num(-60.0, 60.0),
     "focus_calibration": _str(),
 }
 _SECTOR = {
-    "name": _str(),
+    "name": _id(),
     "start_deg": _num(-360.0, 720.0),
     "end_deg": _num(-360.0, 720.0),
     "speed_deg_s": _num(0.1, 90.0),
@@ -395,7 +479,7 @@ _PLANNER = {
     "refine_max_sweeps": _int(0, 10_000),
 }
 _DEPTH_CAMERA = {
-    "id": _str(),
+    "id": _id(),
     "serial": _str(),
     "radius_mm": _num(100.0, 5000.0),
     "angle_offset_deg": _num(-360.0, 360.0),
@@ -471,7 +555,7 @@ def _unique(reader: _Reader, key: str, items: list[Any], attr: str) -> None:
     for i, item in enumerate(items):
         value = getattr(item, attr)
         if value in seen:
-            raise reader.error(f"{key}[{i}].{attr}", f"duplicate value {value!r}; must be unique")
+            raise reader.error(f"{key}[{i}].{attr}", f"duplicate value {show(value)}; must be unique")
         seen.add(value)
 
 
@@ -528,13 +612,21 @@ def load_rig(path: Path | str = DEFAULT_RIG_PATH) -> Rig:
     """
     path = Path(path)
     try:
-        text = path.read_bytes()
+        with open(path, "rb") as f:
+            text = f.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
         raise RigConfigError(path, "<file>", f"cannot read: {exc.strerror or exc}") from exc
+    if len(text) > MAX_FILE_BYTES:
+        raise RigConfigError(path, "<file>", f"larger than {MAX_FILE_BYTES} bytes: not a rig file")
+    if flow_nesting(text) > MAX_FLOW_NESTING:
+        raise RigConfigError(path, "<file>", f"lists or mappings nested more than {MAX_FLOW_NESTING} deep: "
+                                             "not a rig file")
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise RigConfigError(path, "<file>", f"not valid YAML: {exc}") from exc
+    except (ValueError, RecursionError) as exc:  # e.g. a 5000-digit number, nesting thousands deep
+        raise RigConfigError(path, "<file>", f"not a rig file: {type(exc).__name__}: {str(exc)[:200]}") from exc
     return rig_from_mapping(raw, path, hashlib.sha256(text).hexdigest())
 
 
@@ -542,9 +634,9 @@ def rig_from_mapping(raw: Any, path: Path | str = "<memory>", digest: str = "") 
     """Validate an already-parsed rig mapping (see :func:`load_rig`)."""
     reader = _Reader(path)
     raw = reader.mapping(raw, "<top>")
-    unknown = sorted(set(raw) - _TOP)
+    unknown = sorted((k for k in raw if k not in _TOP), key=str)
     if unknown:
-        raise reader.error(unknown[0], f"unknown section; allowed: {', '.join(sorted(_TOP))}")
+        raise reader.error(_key_name(unknown[0]), f"unknown section; allowed: {', '.join(sorted(_TOP))}")
     for name in sorted(_TOP - set(raw)):
         raise reader.error(name, "missing section")
 
@@ -580,15 +672,30 @@ def rig_from_mapping(raw: Any, path: Path | str = "<memory>", digest: str = "") 
             f"got {motor.heartbeat_timeout_ms}; must exceed host_heartbeat_ms {motor.host_heartbeat_ms}",
         )
 
+    capture = _capture(reader, raw["capture"], optics)
+    cost = _build(Cost, reader.section(raw["cost"], "cost", _COST))
+    if cost.w_area + cost.w_axis + cost.w_focus <= 0:
+        raise reader.error("cost", "w_area, w_axis and w_focus are all 0: at least one weight must be positive")
+    planner = _build(PlannerSettings, reader.section(raw["planner"], "planner", _PLANNER))
+    poses = len(phones) * len(capture.angles_deg)
+    need = planning_memory_bytes(planner.points, poses)
+    if need > PLAN_MEMORY_BUDGET_BYTES:
+        most = PLAN_MEMORY_BUDGET_BYTES // (poses * PLAN_BYTES_PER_POSE_SAMPLE)
+        raise reader.error(
+            "planner.points",
+            f"got {planner.points}: planning {poses} poses needs about {need / 1024**3:.1f} GiB, more than "
+            f"the {PLAN_MEMORY_BUDGET_BYTES / 1024**3:g} GiB budget; allowed at most {most} points",
+        )
+
     return Rig(
         path=str(path),
         digest=digest,
         optics=optics,
         ring_radius_mm=ring["radius_mm"],
         phones=phones,
-        capture=_capture(reader, raw["capture"], optics),
-        cost=_build(Cost, reader.section(raw["cost"], "cost", _COST)),
-        planner=_build(PlannerSettings, reader.section(raw["planner"], "planner", _PLANNER)),
+        capture=capture,
+        cost=cost,
+        planner=planner,
         depth_cameras=depth_cameras,
         depth_camera_model=model,
         depth_sweep=sweep,

@@ -11,8 +11,11 @@ from __future__ import annotations
 
 import asyncio
 import os
+import subprocess
+import sys
 import threading
 from collections.abc import Coroutine
+from pathlib import Path
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -63,3 +66,25 @@ async def within_rss(coro: Coroutine[Any, Any, T], limit_bytes: int = HOSTILE_RS
     if peak > limit_bytes:
         raise RssExceeded(f"RSS grew by {peak / 2**20:.0f} MiB, limit {limit_bytes / 2**20:.0f} MiB")
     return result, peak
+
+
+def run_bounded(setup: str, hostile: str, *, growth_bytes: int = HOSTILE_RSS_LIMIT,
+                timeout_s: float = 120.0) -> subprocess.CompletedProcess[str]:
+    """Run Python ``setup`` then ``hostile`` in a fresh interpreter whose address space may grow by
+    at most growth_bytes after setup (RLIMIT_AS), for hostile input a thread cannot interrupt
+    (a repr() or a parser in C). The child's rc, stdout and stderr come back; MemoryError means the
+    bound was hit."""
+    code = "\n".join([
+        "import resource",
+        setup,
+        "def _vm():",
+        "    for line in open('/proc/self/status'):",
+        "        if line.startswith('VmSize:'):",
+        "            return int(line.split()[1]) * 1024",
+        f"_limit = _vm() + {int(growth_bytes)}",
+        "resource.setrlimit(resource.RLIMIT_AS, (_limit, _limit))",
+        hostile,
+    ])
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout_s,
+                          env=env, cwd=str(Path(__file__).resolve().parent.parent))
