@@ -24,6 +24,7 @@ import structlog
 
 from drivers.depth.base import DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
+from drivers.noise import NoiseLog
 from planner.rig import DepthCamera as DepthCameraConfig
 
 log = structlog.get_logger(__name__)
@@ -124,6 +125,7 @@ class RealSenseStream(ABC):
     START_TIMEOUT_S = 15.0
     STOP_TIMEOUT_S = 5.0
     QUEUE_FRAMES = 16  # frames held for a slow consumer; a live camera drops the oldest beyond
+    DROPPED_LOG_PERIOD_S = 10.0  # dropped frames are logged at most once a period, with a count
 
     def __init__(self, camera_id: str) -> None:
         self.id = camera_id
@@ -138,6 +140,7 @@ class RealSenseStream(ABC):
         self._failure: BaseException | None = None
         self._early: list[RawFrame] = []
         self._log = log.bind(camera=camera_id)
+        self._dropped_log = NoiseLog(self._log, "realsense_frame_dropped", self.DROPPED_LOG_PERIOD_S)
 
     # ------------------------------------------------------------------ DepthCamera protocol
 
@@ -210,6 +213,7 @@ class RealSenseStream(ABC):
                 raise DepthCameraError(self.id, f"did not stop within {self.STOP_TIMEOUT_S} s") from None
             except RuntimeError as exc:
                 raise DepthCameraError(self.id, f"stop failed: {exc}") from exc
+            self._dropped_log.flush()
             self._log.info("realsense_stopped", dropped_frames=self.dropped_frames)
         if self._queue is not None:
             self._discard_queued()
@@ -286,12 +290,15 @@ class RealSenseStream(ABC):
             return
         if self.depth_unit_mm is None or self.intrinsics is None:
             self._early.append(raw)  # came before start() read the scale and intrinsics
+            if len(self._early) > self.QUEUE_FRAMES:  # as many as the queue would hold
+                self._early.pop(0)
+                self.dropped_frames += 1
             return
         frame = self._frame(raw, self.depth_unit_mm, self.intrinsics)
         if queue.full():
             queue.get_nowait()
             self.dropped_frames += 1
-            self._log.warning("realsense_frame_dropped", dropped_frames=self.dropped_frames)
+            self._dropped_log.report(dropped_frames=self.dropped_frames)
         queue.put_nowait(frame)
 
     def _frame(self, raw: RawFrame, depth_unit_mm: float, intrinsics: np.ndarray) -> DepthFrame:

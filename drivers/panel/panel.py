@@ -7,7 +7,9 @@ panel's, turns button and e-stop lines into :class:`PanelEvent` values for every
 waits for the panel to acknowledge each command.
 
 A single bad line (noise on the cable) is dropped and counted; if only bad lines arrive the
-heartbeat stops counting and the loss error carries the count and the last parse error.
+heartbeat stops counting and the loss error carries the count and the last parse error. Bad lines
+are logged through :class:`~drivers.noise.NoiseLog`: at most one record per BAD_LINE_LOG_PERIOD_S,
+each with the number of bad lines it stands for, so a noisy cable cannot flood the journal.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 
 import structlog
 
+from drivers.noise import NoiseLog
 from drivers.panel import protocol
 from drivers.panel.errors import (
     PanelCommandRefused,
@@ -89,6 +92,7 @@ class OperatorPanel:
     BYE_TIMEOUT_S = 0.2
     REOPEN_PERIOD_S = 1.0
     READ_CHUNK = 256
+    BAD_LINE_LOG_PERIOD_S = 10.0
 
     def __init__(
         self,
@@ -121,6 +125,7 @@ class OperatorPanel:
         self._subscribers: list[asyncio.Queue[Any]] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._log = log.bind(panel=name)
+        self._bad_line_log = NoiseLog(self._log, "panel_bad_line", self.BAD_LINE_LOG_PERIOD_S)
 
     # ------------------------------------------------------------------ public API
 
@@ -230,6 +235,7 @@ class OperatorPanel:
             self._reconnect_task.cancel()
             await asyncio.gather(self._reconnect_task, return_exceptions=True)
         await self._stop_tasks()
+        self._bad_line_log.flush()
         self._writer.close()
         try:
             await self._writer.wait_closed()
@@ -319,7 +325,7 @@ class OperatorPanel:
     def _bad_line(self, error: PanelProtocolError) -> None:
         self.bad_lines += 1
         self.last_error = error
-        self._log.warning("panel_bad_line", error=str(error), bad_lines=self.bad_lines)
+        self._bad_line_log.report(error=str(error))
 
     def _on_hello(self, line: Line) -> None:
         if self._hello is not None and not self._hello.done():
