@@ -8,6 +8,11 @@ Requests, one JSON object a line: ``{"id": 1, "cmd": "status"|"scan"|"abort"|"re
 nothing else. The socket is mode 0660 (optionally owned by a group) so only the daemon's
 user and the operators' group can drive the rig; a stale socket left by a killed daemon is
 removed, a live one is refused.
+
+Bounded, never silent: at most MAX_CONNECTIONS connections at once (one more gets a
+``TooManyConnections`` error line and is closed), a connection that sends no request for
+IDLE_TIMEOUT_S is closed, a line is at most MAX_LINE bytes, and a request that is not JSON,
+nested too deeply or not an object gets a ``ProtocolError`` reply on a connection that stays open.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from typing import Any, Protocol
 import structlog
 
 from daemon.errors import DaemonError
+from drivers.noise import NoiseLog
 
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
 SOCKET_ENV = "TBP_CONTROL_SOCKET"
@@ -126,6 +132,11 @@ class ControlServer:
     """Serves the control API on ``path`` for ``handler``; use ``async with``."""
 
     MAX_LINE = 64 * 1024
+    # Operators' clients use one connection per request plus a few `status --follow`; each is a
+    # file descriptor, and the daemon needs its descriptors for phones, pulls and the store
+    # (the unit's LimitNOFILE is sized with this bound, tests/test_systemd_units.py).
+    MAX_CONNECTIONS = 16
+    IDLE_TIMEOUT_S = 10.0  # a client writes its request as soon as it connects
 
     def __init__(self, path: Path | str, handler: ControlHandler, *, group: str | None = None,
                  mode: int = 0o660) -> None:
@@ -135,6 +146,7 @@ class ControlServer:
         self.mode = mode
         self._server: asyncio.Server | None = None
         self._connections: set[asyncio.Task[None]] = set()
+        self._refused_log = NoiseLog(log, "control_connection_refused", period_s=10.0)
 
     async def __aenter__(self) -> ControlServer:
         await self.start()
@@ -178,6 +190,7 @@ class ControlServer:
         raise SocketInUse(f"another daemon is listening on {self.path}")
 
     async def close(self) -> None:
+        self._refused_log.flush()
         if self._server is not None:
             self._server.close()
             for task in list(self._connections):
@@ -190,12 +203,18 @@ class ControlServer:
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
+        if len(self._connections) >= self.MAX_CONNECTIONS:
+            await self._refuse(writer)
+            return
         if task is not None:
             self._connections.add(task)
         try:
             while True:
                 try:
-                    raw = await reader.readline()
+                    async with asyncio.timeout(self.IDLE_TIMEOUT_S):
+                        raw = await reader.readline()
+                except TimeoutError:
+                    return  # an idle connection holds a descriptor and a connection slot
                 except ValueError:  # longer than MAX_LINE
                     writer.write(_line({"id": None, "ok": False, "error": {
                         "type": "ProtocolError", "message": f"line longer than {self.MAX_LINE} bytes"}}))
@@ -222,12 +241,27 @@ class ControlServer:
             with contextlib.suppress(ConnectionError, asyncio.CancelledError):
                 await writer.wait_closed()
 
+    async def _refuse(self, writer: asyncio.StreamWriter) -> None:
+        """Tell a client over the connection limit why, and hang up."""
+        self._refused_log.report(limit=self.MAX_CONNECTIONS)
+        writer.write(_line({"id": None, "ok": False, "error": {
+            "type": "TooManyConnections",
+            "message": f"{self.MAX_CONNECTIONS} control connections are open; try again"}}))
+        with contextlib.suppress(ConnectionError):
+            await writer.drain()
+        writer.close()
+        with contextlib.suppress(ConnectionError):
+            await writer.wait_closed()
+
     def _parse(self, raw: bytes) -> dict[str, Any]:
         try:
             request = json.loads(raw)
         except ValueError as exc:
             return {"id": None, "ok": False,
                     "error": {"type": "ProtocolError", "message": f"not JSON: {exc}"}}
+        except RecursionError:
+            return {"id": None, "ok": False,
+                    "error": {"type": "ProtocolError", "message": "JSON nested too deeply"}}
         if not isinstance(request, dict) or request.get("cmd") not in COMMANDS:
             cmd = request.get("cmd") if isinstance(request, dict) else None
             return {"id": request.get("id") if isinstance(request, dict) else None, "ok": False,
@@ -372,7 +406,7 @@ class ControlClient:
 def _parse_reply(raw: bytes) -> dict[str, Any]:
     try:
         reply = json.loads(raw)
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:
         raise ProtocolError(f"daemon sent a line that is not JSON: {raw[:200]!r}") from exc
     if not isinstance(reply, dict):
         raise ProtocolError(f"daemon sent {raw[:200]!r}; expected an object")

@@ -46,6 +46,9 @@ def test_unit_has_the_required_directives():
     assert "--store /srv/tbp-rig/scans" in one["ExecStart"]
     assert "/srv/tbp-rig/scans" in one["ReadWritePaths"].split()
     assert "PrivateDevices" not in svc
+    from daemon.control import ControlServer
+
+    assert int(one["LimitNOFILE"]) >= 4096 > 64 * ControlServer.MAX_CONNECTIONS  # set, with a wide margin
     assert set(one["RestrictAddressFamilies"].split()) == {
         "AF_UNIX", "AF_INET", "AF_INET6", "AF_CAN", "AF_NETLINK"}
     devices = {v.split()[0] for v in svc["DeviceAllow"]}
