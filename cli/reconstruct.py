@@ -16,6 +16,9 @@ if TYPE_CHECKING:
     from planner.sweep import Sweep
 
 
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb")  # what trimesh writes for a triangle mesh
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "reconstruct",
@@ -42,26 +45,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--true-body", type=Path, help="true body mesh for metrics (default: --sim-body)")
     options.rig(parser)
     parser.add_argument("--save-frames", type=Path, help="also write the simulated sweep to this folder")
-    parser.add_argument("--out", type=Path, help="write the mesh here (.ply, .obj, .stl)")
+    parser.add_argument("--out", type=Path, help="write the mesh here (.ply, .obj, .stl, .off, .glb)")
     parser.add_argument("--json", dest="json_out", type=Path, help="write timings and metrics as JSON here")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import trimesh
-
     from drivers.depth.errors import DepthCameraError
     from drivers.depth.recording import load_sweep, save_sweep
     from planner.mesh_metrics import shape_metrics
+    from planner.plan import load_subject_mesh
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
     from planner.shape_errors import ShapeEstimateError
     from planner.tsdf import FRAME_SPACING_DEG, fuse
 
     report: dict = {"timings_s": {}}
+    problem = _output_problem(args)
+    if problem is not None:  # found now, not after the whole fusion
+        print(f"tbp reconstruct: {problem}", file=sys.stderr)
+        return 2
     try:
         rig = load_rig(args.rig or DEFAULT_RIG_PATH)
         truth_path = args.true_body or args.sim_body
-        truth = trimesh.load(truth_path, force="mesh") if truth_path else None
+        truth = load_subject_mesh(truth_path) if truth_path else None
         t0 = time.perf_counter()
         if args.sim_body:
             from drivers.sim.depth import simulate_sweep
@@ -74,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
             sweep = _read_bags(args, rig)
             report["timings_s"]["load"] = time.perf_counter() - t0
         else:
-            sweep = load_sweep(args.frames)
+            model = rig.depth_camera_model
+            sweep = load_sweep(args.frames, max_frame_px=model.width_px * model.height_px)
             report["timings_s"]["load"] = time.perf_counter() - t0
         result = fuse(sweep.frames, rig)
     except (RigConfigError, ShapeEstimateError, DepthCameraError, OSError, ValueError) as exc:
@@ -95,6 +102,28 @@ def run(args: argparse.Namespace) -> int:
         args.json_out.write_text(text + "\n")
     print(text)
     return 0
+
+
+def _output_problem(args: argparse.Namespace) -> str | None:
+    """Why --out, --json or --save-frames cannot be written, or None: checked before any work."""
+    import os
+
+    if args.out is not None and args.out.suffix.lower() not in MESH_SUFFIXES:
+        return (f"--out {args.out}: cannot write a mesh as {args.out.suffix or 'a file without suffix'!r}; "
+                f"use one of {', '.join(MESH_SUFFIXES)}")
+    for flag, path in (("--out", args.out), ("--json", args.json_out)):
+        if path is None:
+            continue
+        folder = path.parent
+        if path.is_dir():
+            return f"{flag} {path}: is a folder"
+        if not folder.is_dir():
+            return f"{flag} {path}: the folder {folder} does not exist"
+        if not os.access(folder, os.W_OK):
+            return f"{flag} {path}: the folder {folder} is not writable"
+    if args.save_frames is not None and args.save_frames.exists() and not args.save_frames.is_dir():
+        return f"--save-frames {args.save_frames}: exists and is not a folder"
+    return None
 
 
 def _read_bags(args: argparse.Namespace, rig: Rig) -> Sweep:

@@ -1,12 +1,14 @@
 """`tbp scans [--store DIR] [--check]`: list the scan folders in the store, optionally re-verified.
 
 Reads the store directly (no daemon needed). Exit code 1 when --check finds a problem or a
-manifest is unreadable.
+manifest is unreadable, 2 when the store folder does not exist or cannot be read.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 
 from cli import options
 
@@ -29,7 +31,13 @@ def run(args: argparse.Namespace) -> int:
     from daemon.manifest import ManifestError
     from daemon.store import ScanStore
 
-    store = ScanStore(options.store_root(args))
+    root = options.store_root(args)
+    problem = ("does not exist" if not root.exists() else "is not a folder" if not root.is_dir()
+               else "cannot be read" if not os.access(root, os.R_OK | os.X_OK) else None)
+    if problem is not None:
+        print(f"tbp scans: scan store {root} {problem}", file=sys.stderr)
+        return 2
+    store = ScanStore(root)
     status = 0
     for path in store.folders():
         try:

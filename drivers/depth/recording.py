@@ -15,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import zipfile
+import zlib
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import BinaryIO
@@ -28,6 +30,8 @@ from planner.sweep import AngleSpacing, BeamTrace, PosedDepth, Sweep, pose_frame
 
 FORMAT = "tbp-depth-sweep/1"
 INDEX = "sweep.json"
+MAX_INDEX_BYTES = 16 * 1024 * 1024  # ~1 KB a frame
+MAX_FRAME_PX = 4096 * 4096  # default bound of one frame; callers pass their depth camera's size
 
 
 class RecordingError(ShapeEstimateError):
@@ -78,15 +82,50 @@ def save_sweep(sweep: Sweep, folder: Path | str) -> Path:
     return path
 
 
-def load_sweep(folder: Path | str) -> Sweep:
-    """Read a folder written by :func:`save_sweep`; raises RecordingError naming what is wrong."""
+def _read_depth(path: Path, max_px: int) -> np.ndarray:
+    """The (H, W) uint16 ``depth`` array of one frame file, at most max_px pixels.
+
+    The size the zip declares is checked before anything is decompressed (a small file may
+    inflate to gigabytes); a truncated or corrupt file is a RecordingError naming it.
+    """
+    limit = max_px * 2 + 4096  # uint16 pixels plus the .npy header
+    try:
+        with zipfile.ZipFile(path) as archive:
+            info = archive.getinfo("depth.npy")
+            if info.file_size > limit:
+                raise RecordingError(path, f"depth frame of {info.file_size} bytes, more than the "
+                                           f"{max_px} pixels allowed")
+        with np.load(path) as data:
+            depth = data["depth"]
+    except RecordingError:
+        raise
+    except KeyError:
+        raise RecordingError(path, "no 'depth' array in the frame file") from None
+    except OSError as exc:
+        raise RecordingError(path, f"unreadable frame file: {exc.strerror or exc}") from exc
+    except (EOFError, ValueError, zipfile.BadZipFile, zlib.error) as exc:
+        raise RecordingError(path, f"unreadable frame file (truncated or corrupt): {exc}") from exc
+    if depth.dtype != np.uint16 or depth.ndim != 2:
+        raise RecordingError(path, f"depth is {depth.dtype} {depth.shape}, expected (H, W) uint16")
+    return depth
+
+
+def load_sweep(folder: Path | str, *, max_frame_px: int = MAX_FRAME_PX) -> Sweep:
+    """Read a folder written by :func:`save_sweep`; raises RecordingError naming what is wrong.
+
+    Sizes are bounded before reading: the index by MAX_INDEX_BYTES, each frame by max_frame_px.
+    """
     folder = Path(folder)
     path = folder / INDEX
     try:
-        index = json.loads(path.read_text())
+        with open(path, "rb") as f:
+            text = f.read(MAX_INDEX_BYTES + 1)
+        if len(text) > MAX_INDEX_BYTES:
+            raise RecordingError(path, f"larger than {MAX_INDEX_BYTES} bytes: not a sweep index")
+        index = json.loads(text)
     except FileNotFoundError:
         raise RecordingError(folder, f"no {INDEX}: not a recorded depth sweep") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         raise RecordingError(path, f"unreadable: {exc}") from exc
     if not isinstance(index, dict) or index.get("format") != FORMAT:
         found = index.get("format") if isinstance(index, dict) else type(index).__name__
@@ -95,22 +134,20 @@ def load_sweep(folder: Path | str) -> Sweep:
         trace = BeamTrace(np.array(index["trace"]["time_s"]), np.array(index["trace"]["angle_deg"]))
         frames = []
         for e in index["frames"]:
-            with np.load(folder / e["file"]) as data:
-                depth = data["depth"]
-            if depth.dtype != np.uint16 or depth.ndim != 2:
-                raise RecordingError(folder / e["file"], f"depth is {depth.dtype} {depth.shape}, expected (H, W) uint16")
-            frames.append(
-                PosedDepth(
-                    camera_id=str(e["camera_id"]),
-                    frame_number=int(e["frame_number"]),
-                    timestamp_s=float(e["timestamp_s"]),
-                    beam_angle_deg=float(e["beam_angle_deg"]),
-                    depth=depth,
-                    depth_unit_mm=float(e["depth_unit_mm"]),
-                    intrinsics=np.array(e["intrinsics"], dtype=float).reshape(3, 3),
-                    camera_to_world=np.array(e["camera_to_world"], dtype=float).reshape(4, 4),
-                )
-            )
+            name = str(e["file"])
+            if Path(name).name != name or name in ("", ".", ".."):
+                raise RecordingError(path, f"frame file {name[:100]!r} is not a file name in the sweep folder")
+            frame = PosedDepth(
+                camera_id=str(e["camera_id"]),
+                frame_number=int(e["frame_number"]),
+                timestamp_s=float(e["timestamp_s"]),
+                beam_angle_deg=float(e["beam_angle_deg"]),
+                depth=np.zeros((0, 0), np.uint16),
+                depth_unit_mm=float(e["depth_unit_mm"]),
+                intrinsics=np.array(e["intrinsics"], dtype=float).reshape(3, 3),
+                camera_to_world=np.array(e["camera_to_world"], dtype=float).reshape(4, 4),
+            )  # the entry is checked whole before its frame file is read
+            frames.append(dataclasses.replace(frame, depth=_read_depth(folder / name, max_frame_px)))
     except (KeyError, TypeError, ValueError, OSError) as exc:
         raise RecordingError(path, f"inconsistent entry: {exc!r}") from exc
     return Sweep(tuple(frames), trace)

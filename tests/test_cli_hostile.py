@@ -1,0 +1,87 @@
+"""User-facing commands given careless input (issue 14, probe 5): one line naming the problem, the
+documented exit code, no traceback, and no long work before a refusal that could be known up front."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli import main as tbp
+from drivers.depth.recording import INDEX, save_sweep
+from planner.rig import load_rig
+from planner.sweep import BeamTrace, PosedDepth, Sweep
+
+RIG = load_rig()
+
+
+def _one_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def _sweep(folder: Path, frames: int = 2, shape: tuple[int, int] = (720, 1280)) -> Path:
+    posed = [PosedDepth(camera_id="depth0", frame_number=i, timestamp_s=0.1 * i, beam_angle_deg=float(i),
+                        depth=np.full(shape, 900, np.uint16), depth_unit_mm=1.0,
+                        intrinsics=RIG.depth_camera_model.intrinsic_matrix, camera_to_world=np.eye(4))
+             for i in range(frames)]
+    save_sweep(Sweep(tuple(posed), BeamTrace(np.array([0.0, 1.0]), np.array([0.0, 10.0]))), folder)
+    return folder
+
+
+@pytest.fixture
+def no_fusion(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Refusals must come before the fusion: reaching it fails the test."""
+    import planner.tsdf
+
+    def fuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the fusion ran before the refusal")
+
+    monkeypatch.setattr(planner.tsdf, "fuse", fuse)
+
+
+def test_reconstruct_a_truncated_frame_names_the_file(tmp_path: Path, capsys, no_fusion) -> None:
+    frames = _sweep(tmp_path / "frames")
+    victim = sorted(frames.glob("*.npz"))[1]
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
+    assert tbp(["reconstruct", "--frames", str(frames)]) == 1
+    line = _one_line(capsys)
+    assert victim.name in line and "truncated or corrupt" in line
+
+
+def test_reconstruct_a_frame_larger_than_the_camera_is_refused_before_reading(tmp_path: Path, capsys,
+                                                                           no_fusion) -> None:
+    frames = _sweep(tmp_path / "frames", frames=1, shape=(2000, 2000))  # compresses to a few KB
+    assert tbp(["reconstruct", "--frames", str(frames)]) == 1
+    assert "more than the 921600 pixels allowed" in _one_line(capsys)
+
+
+def test_reconstruct_frame_files_stay_in_the_sweep_folder(tmp_path: Path, capsys, no_fusion) -> None:
+    frames = _sweep(tmp_path / "frames", frames=1)
+    index = frames / INDEX
+    index.write_text(index.read_text().replace('"file": "', '"file": "../'))
+    assert tbp(["reconstruct", "--frames", str(frames)]) == 1
+    assert "is not a file name in the sweep folder" in _one_line(capsys)
+
+
+@pytest.mark.parametrize("out, problem", [("o.xyz", "cannot write a mesh as '.xyz'"),
+                                          ("missing/o.ply", "does not exist"),
+                                          ("folder.ply", "is a folder")])
+def test_reconstruct_refuses_an_output_it_cannot_write_before_any_work(tmp_path: Path, capsys, no_fusion,
+                                                                       out: str, problem: str) -> None:
+    frames = _sweep(tmp_path / "frames", frames=1)
+    (tmp_path / "folder.ply").mkdir()
+    assert tbp(["reconstruct", "--frames", str(frames), "--out", str(tmp_path / out)]) == 2
+    assert problem in _one_line(capsys)
+
+
+def test_scans_on_a_store_that_does_not_exist(tmp_path: Path, capsys) -> None:
+    assert tbp(["scans", "--store", str(tmp_path / "nonexistent"), "--check"]) == 2
+    assert _one_line(capsys) == f"tbp scans: scan store {tmp_path / 'nonexistent'} does not exist"
+    (tmp_path / "file").write_text("x")
+    assert tbp(["scans", "--store", str(tmp_path / "file")]) == 2
+    assert "is not a folder" in _one_line(capsys)
