@@ -52,7 +52,7 @@ lines = st.one_of(
     requests,
     json_values.map(lambda v: json.dumps(v).encode()),
     st.binary(max_size=200).map(lambda b: b.replace(b"\n", b" ")),
-    st.integers(1, 40_000).map(lambda depth: b"[" * depth + b"]" * depth),
+    st.integers(1, ControlServer.MAX_LINE // 2 - 1).map(lambda depth: b"[" * depth + b"]" * depth),
 )
 
 

@@ -5,6 +5,7 @@ writing at most one bad-line record per period."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 
 from hypothesis import given, settings
@@ -42,20 +43,20 @@ def test_any_bytes_from_the_panel_leave_the_host_connected(stream: list[bytes]) 
         sim = SimulatedPanel(dev_r, dev_w)
         sim_task = asyncio.create_task(sim.run())
         panel = OperatorPanel(host_r, host_w, name="fuzz")
-        events = panel.events()
         with capture_logs() as records:
-            await panel.connect()
-            for piece in stream:
-                sim.send_garbage(piece)
-                await asyncio.sleep(0.01)
-            sim.send_garbage(b"\n")  # ends whatever half line is left
-            await asyncio.sleep(1.0)
-            assert panel.state is LinkState.CONNECTED
-            assert all(not t.done() for t in panel._tasks)  # the read, heartbeat and watchdog loops live
-            sim.press_start()
-            async with asyncio.timeout(2.0):
-                while await anext(events) is not PanelEvent.START_PRESSED:
-                    pass
+            async with contextlib.aclosing(panel.events()) as events:
+                await panel.connect()
+                for piece in stream:
+                    sim.send_garbage(piece)
+                    await asyncio.sleep(0.01)
+                sim.send_garbage(b"\n")  # ends whatever half line is left
+                await asyncio.sleep(1.0)
+                assert panel.state is LinkState.CONNECTED
+                assert all(not t.done() for t in panel._tasks)  # the read, heartbeat and watchdog loops live
+                sim.press_start()
+                async with asyncio.timeout(2.0):
+                    while await anext(events) is not PanelEvent.START_PRESSED:
+                        pass
             await panel.close()
         noise = [r for r in records if r["event"] == "panel_bad_line"]
         assert len(noise) <= 2 and sum(r["count"] for r in noise) == panel.bad_lines
