@@ -12,7 +12,7 @@ from typing import Any
 import structlog
 
 from daemon.beam import BeamTracker
-from daemon.errors import ScanBusy
+from daemon.errors import ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
 from daemon.safety import SafetyMonitor
@@ -124,10 +124,24 @@ class RigController:
                            "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
-        self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, self.store,
-                            scan_id=scan_id, settings=self.settings)
+        self._close_left_open()
+        # The folder exists before anyone is told the scan started (docs/hardening.md, rule 2).
+        try:
+            folder = self.store.create(self.rig, scan_id=scan_id)
+        except Exception as exc:  # StoreError, or an OSError the store did not expect
+            refused = ScanRefused(scan_id, f"{type(exc).__name__}: {exc}")
+            log.warning("scan_refused", scan_id=str(scan_id)[:80], error=str(refused))
+            self.machine.progress("scan refused", error=str(refused))
+            raise refused from exc
+        self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, folder,
+                            settings=self.settings)
         self.scan_task = asyncio.create_task(self._run_scan(self.current), name="scan")
         return self.scan_task
+
+    def _close_left_open(self) -> None:
+        """Close the last scan's folder if the disk did not let the scan close it."""
+        if self.current is not None and not self.busy:
+            self.current.close_folder()
 
     async def scan(self, scan_id: str | None = None) -> ScanReport:
         """Run one scan to its end (completed, aborted or faulted) and return its report."""
@@ -160,6 +174,8 @@ class RigController:
             raise ScanBusy(self.machine.state.value, "e-stop still pressed: release it before reset")
         if self.busy:
             raise ScanBusy(self.machine.state.value, "the faulted scan is still closing its folder")
+
+        self._close_left_open()
 
         async def recover() -> None:
             drive = self.hw.drive

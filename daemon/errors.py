@@ -40,6 +40,17 @@ class ScanBusy(DaemonError):
         super().__init__(f"cannot start a scan in state {state}: {reason}")
 
 
+class ScanRefused(DaemonError):
+    """A scan could not be started: its folder cannot be created (store full, missing or not
+    writable, a malformed scan id). Nothing was started and nothing is left on disk; the store's
+    error is the ``__cause__``."""
+
+    def __init__(self, scan_id: object, reason: str) -> None:
+        self.scan_id = scan_id
+        self.reason = reason
+        super().__init__(f"scan not started: {reason}")
+
+
 class FaultLatched(DaemonError):
     """The rig is in a latched FAULT; only an explicit reset clears it."""
 

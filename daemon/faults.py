@@ -29,6 +29,8 @@ class FaultSource(enum.Enum):
     """No encoder sample while the beam was expected to move."""
     SHUTDOWN = "shutdown"
     """A shutdown handler (quick stop, fault light) failed during a trip."""
+    SCAN_FAILED = "scan_failed"
+    """Closing a scan raised (e.g. too many open files): the rig stops and says why."""
 
 
 class AbortSource(enum.Enum):

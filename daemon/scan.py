@@ -25,6 +25,7 @@ from daemon.atomic import StoreError
 from daemon.beam import BeamTracker
 from daemon.capture import CaptureRecord, CaptureRunner
 from daemon.depth_sweep import DepthSweeper, SweepRecord
+from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
 from daemon.hardware import RigHardware
 from daemon.manifest import ImageStatus, ScanEnd
@@ -32,7 +33,7 @@ from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import ScanFolder, ScanStore
+from daemon.store import ScanFolder
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 
@@ -149,8 +150,13 @@ class Scan:
     """One scan on connected hardware.
 
     Args:
-        store: where the scan folder goes.
+        folder: the scan's folder, already created (a scan is only started once its folder
+            exists: docs/hardening.md, rule 2).
         settings: seed, planning samples, compute executor, QA report writer.
+
+    Whatever goes wrong, :meth:`run` ends in a recorded outcome (rule 1): a scan step's error
+    aborts the scan, a safety trip faults it, and if closing the scan raises, the rig latches
+    FAULT (``FaultSource.SCAN_FAILED``) naming the error and the folder is closed as ``fault``.
     """
 
     ABORT_DECELERATION_FACTOR = 1.0
@@ -163,9 +169,8 @@ class Scan:
         machine: ScanStateMachine,
         safety: SafetyMonitor,
         tracker: BeamTracker,
-        store: ScanStore,
+        folder: ScanFolder,
         *,
-        scan_id: str | None = None,
         settings: ScanSettings = ScanSettings(),
     ) -> None:
         self.rig = rig
@@ -173,11 +178,9 @@ class Scan:
         self.machine = machine
         self.safety = safety
         self.tracker = tracker
-        self.store = store
-        self.scan_id = scan_id
+        self.folder = folder
         self.settings = settings
-        self.folder: ScanFolder | None = None
-        self.report: ScanReport | None = None
+        self.report = ScanReport(folder.scan_id, folder.path, ScanOutcome.COMPLETED)
         self.runner: CaptureRunner | None = None
         self.schedule: CaptureSchedule | None = None
         self.prep: PhonePrep | None = None
@@ -206,27 +209,63 @@ class Scan:
 
     async def run(self) -> ScanReport:
         """Run the whole scan; returns its report (also for aborted and faulted scans)."""
-        self.safety.check()
-        folder = self.store.create(self.rig, scan_id=self.scan_id)
-        self.folder = folder
-        self.machine.scan_id = folder.scan_id
-        self.report = ScanReport(folder.scan_id, folder.path, ScanOutcome.COMPLETED)
-        self.machine.transition(ScanState.PREPARING, "scan requested", folder=str(folder.path))
-        folder.log_event("scan_started", rig_digest=self.rig.digest)
-        self._body = asyncio.create_task(self._sequence(), name=f"scan-{folder.scan_id}")
-        error: BaseException | None = None
         try:
-            await asyncio.shield(self._body)
-        except asyncio.CancelledError:
-            if self._body.done() or self._abort_cause is not None or self.safety.latched:
-                error = None
-            else:
-                self._body.cancel()
-                raise
-        except Exception as exc:  # every scan error reaches the report and the manifest
-            error = exc
-        await self._finish(error)
+            await self._run_and_finish()
+        except Exception as exc:  # closing the scan failed: the last line of defence (rule 1)
+            await self._closing_failed(exc)
         return self.report
+
+    async def _run_and_finish(self) -> None:
+        folder = self.folder
+        error: BaseException | None = None
+        if self.safety.latched:  # tripped between the request and now: store the empty scan
+            error = FaultLatched(self.safety.causes)
+        else:
+            self.machine.scan_id = folder.scan_id
+            self.machine.transition(ScanState.PREPARING, "scan requested", folder=str(folder.path))
+            self._body = asyncio.create_task(self._sequence(), name=f"scan-{folder.scan_id}")
+            try:
+                await asyncio.shield(self._body)
+            except asyncio.CancelledError:
+                if self._body.done() or self._abort_cause is not None or self.safety.latched:
+                    error = None
+                else:
+                    self._body.cancel()
+                    raise
+            except Exception as exc:  # every scan error reaches the report and the manifest
+                error = exc
+        await self._finish(error)
+
+    async def _closing_failed(self, error: Exception) -> None:
+        """Closing the scan raised (an OSError such as too many open files, or a bug): latch
+        FAULT naming the error, so the rig stops and says why instead of staying in STORING;
+        then close the folder as ``fault`` if the disk lets us."""
+        report = self.report
+        report.errors.append(f"closing the scan: {type(error).__name__}: {error}")
+        log.error("scan_closing_failed", scan_id=self.folder.scan_id, error=f"{type(error).__name__}: {error}")
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+            await asyncio.gather(self._body, return_exceptions=True)
+        await self.safety.trip(FaultCause.of_error(FaultSource.SCAN_FAILED, "scan", error, "closing the scan"))
+        report.outcome, report.causes = ScanOutcome.FAULTED, list(self.safety.causes)
+        self.close_folder()
+        self.machine.scan_id = None
+
+    def close_folder(self) -> bool:
+        """Write the outcome into events.jsonl and close the manifest, if not done yet; False
+        (logged) when the disk does not let us: the folder stays ``in progress`` and the
+        controller tries again at the next reset or scan, the daemon's next start at the latest."""
+        folder, report = self.folder, self.report
+        if not folder.manifest.in_progress:
+            return True
+        try:
+            folder.log_event("scan_ended", outcome=report.outcome.value, reason=report.reason)
+            folder.finish(_END[report.outcome], report.causes)
+        except Exception as exc:  # recorded in the report and the log; retried later
+            report.errors.append(f"manifest: {type(exc).__name__}: {exc}")
+            log.error("scan_folder_not_closed", scan_id=folder.scan_id, error=f"{type(exc).__name__}: {exc}")
+            return False
+        return True
 
     async def _finish(self, error: BaseException | None) -> None:
         """Close the scan on one explicit path per outcome; every step is a legal transition
@@ -287,6 +326,7 @@ class Scan:
         a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
         profile = rig_profile(rig)
 
+        self.folder.log_event("scan_started", rig_digest=rig.digest)
         # PREPARING: beam to the sweep start, phones' clocks and trigger latency measured.
         self._mark("start")
         self._trace_mark = self.tracker.mark()
@@ -451,16 +491,14 @@ class Scan:
             ("captures", lambda: folder.write_json("captures", "captures.json",
                                                    [r.as_dict() for r in records], save=False)),
             ("qa", lambda: folder.write_json("qa", "qa.json", report.as_dict(), save=False)),
-            ("events", lambda: folder.log_event("scan_ended", outcome=report.outcome.value,
-                                                reason=report.reason)),
-            ("manifest", lambda: folder.finish(_END[report.outcome], report.causes)),
         ]
         for name, step in steps:
             try:
                 step()
-            except StoreError as exc:
+            except Exception as exc:  # a full disk, too many open files: recorded, the next step runs
                 report.errors.append(f"{name}: {type(exc).__name__}: {exc}")
-                log.error("store_step_failed", step=name, error=str(exc))
+                log.error("store_step_failed", step=name, error=f"{type(exc).__name__}: {exc}")
+        self.close_folder()
         if report.captured and self.settings.qa_report is not None:
             await self._write_qa_report(folder, self.settings.qa_report)
 

@@ -16,9 +16,10 @@ from typing import Any
 import structlog
 
 from daemon.controller import RigController
-from daemon.errors import ScanBusy
+from daemon.errors import ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.notify import SystemdNotifier, run_watchdog
+from daemon.states import SCAN_STATES
 from daemon.store import new_scan_id
 
 log = structlog.get_logger("daemon.service")
@@ -104,10 +105,13 @@ class RigService:
     # ------------------------------------------------------------------ health
 
     def healthy(self) -> bool:
-        """The loop runs on time and the drive still talks (a latched fault is not ill health)."""
+        """The loop runs on time, no scan state is left without its scan, and the drive still
+        talks (a latched fault is not ill health)."""
         drive = self.controller.hw.drive
         if self.loop_lag_s > self.MAX_LAG_S:
             return False
+        if self.controller.machine.state in SCAN_STATES and not self.controller.busy:
+            return False  # a scan state nobody will leave: the watchdog restarts the daemon
         heartbeat = getattr(drive, "last_heartbeat_s", None)
         if heartbeat is None:
             return True
@@ -136,7 +140,7 @@ class RigService:
             if event is PanelEvent.START_PRESSED:
                 try:
                     ctl.start_scan(new_scan_id())
-                except ScanBusy as exc:
+                except (ScanBusy, ScanRefused) as exc:  # logged and streamed by the controller too
                     log.warning("panel_start_refused", reason=str(exc))
             elif event is PanelEvent.STOP_PRESSED:
                 ctl.abort(AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button"))

@@ -64,6 +64,9 @@ TRANSITIONS: dict[ScanState, frozenset[ScanState]] = {
 ACTIVE_STATES = frozenset(_ACTIVE)
 """States in which the beam may move under the scan's control."""
 
+SCAN_STATES = frozenset({*_ACTIVE, S.STORING, S.ABORTING})
+"""States only a running scan may be in: every one is left by the scan itself."""
+
 
 @dataclass(frozen=True)
 class StatusEvent:

@@ -30,6 +30,7 @@ import math
 import os
 import re
 import secrets
+import shutil
 from collections.abc import Iterable, Sequence
 from datetime import datetime
 from pathlib import Path
@@ -342,28 +343,47 @@ class ScanStore:
 
     def create(self, rig: Rig, *, scan_id: str | None = None,
                now: datetime | None = None) -> ScanFolder:
-        """A new scan folder with an initial manifest (incomplete, in progress)."""
+        """A new scan folder with an initial manifest (incomplete, in progress) and its space
+        reserve: when this returns, the scan can be stored.
+
+        Raises StoreError (StoreFull, StoreWriteError) naming the path when the store cannot
+        take a scan; a folder begun before the failure is removed again, so nothing is left
+        "in progress".
+        """
         scan_id = scan_id or new_scan_id()
-        if not _SCAN_ID.match(scan_id):
-            raise StoreError(self.root, f"scan id {scan_id!r} must be 1-64 of [A-Za-z0-9_-]")
+        if not isinstance(scan_id, str) or not _SCAN_ID.match(scan_id):
+            shown = repr(scan_id)[:80] if isinstance(scan_id, str) else f"a {type(scan_id).__name__}"
+            raise StoreError(self.root, f"scan id {shown} must be 1-64 of [A-Za-z0-9_-]")
         now = now or utc_now()
         path = self.root / f"{now:%Y%m%d-%H%M%S}-{scan_id}"
         try:
             self.root.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise StoreError(self.root, "the scan store is not a folder") from None
+        except OSError as exc:
+            raise_for(self.root, exc, 0)
+        try:
             path.mkdir()
-            (path / "images").mkdir()
-            fsync_dir(self.root)
         except FileExistsError:
             raise StoreError(path, "scan folder already exists") from None
         except OSError as exc:
             raise_for(path, exc, 0)
-        manifest = Manifest(
-            scan_id=scan_id, created_utc=now.isoformat(), rig_digest=rig.digest,
-            calibration_digest=calibration_digest(rig), cameras=[p.id for p in rig.phones],
-        )
-        folder = ScanFolder(path, manifest, self.writer)
-        folder.save()
-        self._reserve(folder.reserve_path)
+        try:
+            try:
+                (path / "images").mkdir()
+                fsync_dir(self.root)
+            except OSError as exc:
+                raise_for(path, exc, 0)
+            manifest = Manifest(
+                scan_id=scan_id, created_utc=now.isoformat(), rig_digest=rig.digest,
+                calibration_digest=calibration_digest(rig), cameras=[p.id for p in rig.phones],
+            )
+            folder = ScanFolder(path, manifest, self.writer)
+            folder.save()
+            self._reserve(folder.reserve_path)
+        except BaseException:
+            shutil.rmtree(path, ignore_errors=True)  # holds nothing yet: no half-made scan stays behind
+            raise
         return folder
 
     def _reserve(self, path: Path) -> None:
