@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from analysis.scan_views import open_scan
+from daemon.manifest import ImageStatus
 
 
 class NavigationError(ValueError):
@@ -35,7 +36,8 @@ def navigate(
 ) -> dict[str, Any]:
     """The best captured images of a skin point (snapped to the scan's mesh), best first.
 
-    Only images on disk and verified count; poses sit at their images' actual exposure angles.
+    Only verified images whose file is still on disk count (``missing_files`` names verified
+    ones that are gone); poses sit at their images' actual exposure angles.
     """
     from planner.navigation import find_views
     from planner.visibility import RayScene
@@ -55,6 +57,11 @@ def navigate(
     on_skin = np.asarray(closest, dtype=float).reshape(-1, 3)[0]
     distance = float(np.linalg.norm(on_skin - query))
     focus = scan.captured_focus_mm()
+    missing = []
+    for image in scan.images:
+        if image.status is ImageStatus.VERIFIED and not scan.image_on_disk(image):
+            focus[scan.rig.pose_index(image.angle_index, image.camera_index)] = np.nan
+            missing.append(image.file)
     views = find_views(scene, scan.rig, scan.poses(), np.nan_to_num(focus, nan=-1.0), on_skin[None, :],
                        limit=scan.rig.n_poses)[0]
     answers = []
@@ -70,4 +77,4 @@ def navigate(
         })
         if len(answers) == count:
             break
-    return {"point_mm": on_skin.tolist(), "snapped_mm": distance, "views": answers}
+    return {"point_mm": on_skin.tolist(), "snapped_mm": distance, "views": answers, "missing_files": missing}

@@ -69,6 +69,10 @@ class ScanRecord:
         angle, camera = divmod(pose, self.rig.n_cameras)
         return self.folder.find_image(camera, angle)
 
+    def image_on_disk(self, image: ImageRecord) -> bool:
+        """A verified image whose file is still in the folder (a deleted one shows nothing)."""
+        return image.status is ImageStatus.VERIFIED and bool(image.file) and (self.path / image.file).is_file()
+
 
 def open_scan(folder: Path | str, rig_path: Path | str | None = None) -> ScanRecord:
     """Load a scan folder; the rig file defaults to the installed one (its digest is checked).
@@ -85,4 +89,11 @@ def open_scan(folder: Path | str, rig_path: Path | str | None = None) -> ScanRec
             f"scanned with rig file digest {recorded[:12]}, but {rig.path} has {rig.digest[:12]}; "
             "pass the rig file the scan was taken with (--rig)",
         )
+    for n, image in enumerate(scan.manifest.images):
+        if image.camera_index >= rig.n_cameras or image.angle_index >= rig.n_angles:
+            raise ScanFileError(
+                scan.path / MANIFEST,
+                f"images[{n}]: camera {image.camera_index}, angle {image.angle_index} outside this rig's "
+                f"{rig.n_cameras} cameras x {rig.n_angles} angles",
+            )
     return ScanRecord(scan, scan.read_plan(), rig)

@@ -46,6 +46,9 @@ def run(args: argparse.Namespace) -> int:
         return 0
     x, y, z = answer["point_mm"]
     print(f"skin point ({x:.1f}, {y:.1f}, {z:.1f}) mm")
+    if answer["missing_files"]:
+        print(f"{len(answer['missing_files'])} verified image(s) are no longer on disk and were left out "
+              f"(tbp scans --check lists them)", file=sys.stderr)
     if not answer["views"]:
         print("no captured image shows this point")
         return 1

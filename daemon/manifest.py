@@ -143,10 +143,24 @@ class Manifest:
         return out
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], path: Path) -> Manifest:
+    def from_dict(cls, data: Any, path: Path) -> Manifest:
+        """The manifest in ``data`` (parsed JSON); ManifestError naming the first field that is
+        missing, of the wrong type, or a file name outside the scan folder (a tampered or
+        corrupted manifest is refused here, not deep inside a report)."""
+        if not isinstance(data, dict):
+            raise ManifestError(path, f"not a manifest: a JSON {type(data).__name__}, not an object")
         if data.get("format_version") != FORMAT_VERSION:
-            raise ManifestError(path, f"format_version {data.get('format_version')!r}; "
+            raise ManifestError(path, f"format_version {json.dumps(data.get('format_version'))[:40]}; "
                                       f"this daemon reads {FORMAT_VERSION}")
+        _check_fields(data, _MANIFEST_FIELDS, "", path)
+        if not isinstance(data["images"], list):
+            raise ManifestError(path, "images: not a list")
+        for n, image in enumerate(data["images"]):
+            if not isinstance(image, dict):
+                raise ManifestError(path, f"images[{n}]: not an object")
+            _check_fields(image, _IMAGE_FIELDS, f"images[{n}].", path)
+        for key, name in data.get("files", {}).items():
+            _check_inside(name, f"files.{key}", path)
         try:
             images = [
                 ImageRecord(**{**i, "status": ImageStatus(i["status"])}) for i in data["images"]
@@ -160,3 +174,69 @@ class Manifest:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ManifestError(path, f"not a valid manifest: {exc}") from exc
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+_IS_STR = (lambda v: isinstance(v, str))
+_FieldRule = tuple[Any, bool, bool]  # (check, None allowed, may be absent)
+_MANIFEST_FIELDS: dict[str, _FieldRule] = {
+    "scan_id": (_IS_STR, False, False),
+    "created_utc": (_IS_STR, False, False),
+    "rig_digest": (_IS_STR, False, False),
+    "calibration_digest": (_IS_STR, False, False),
+    "cameras": (lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v), False, False),
+    "state": (_IS_STR, False, False),
+    "in_progress": (lambda v: isinstance(v, bool), False, True),
+    "reason": (_IS_STR, True, True),
+    "ended_utc": (_IS_STR, True, True),
+    "plan_summary": (lambda v: isinstance(v, dict), False, True),
+    "files": (lambda v: isinstance(v, dict) and all(isinstance(n, str) for n in v.values()), False, True),
+    "causes": (lambda v: isinstance(v, list) and all(isinstance(c, dict) for c in v), False, True),
+    "images": (lambda v: isinstance(v, list), False, False),
+}
+_IMAGE_FIELDS: dict[str, _FieldRule] = {
+    "camera_id": (_IS_STR, False, False),
+    "camera_index": (_count, False, False),
+    "angle_index": (_count, False, False),
+    "planned_angle_deg": (_number, True, False),
+    "focus_mm": (_number, True, False),
+    "focus_diopters": (_number, True, False),
+    "status": (_IS_STR, False, False),
+    "actual_angle_deg": (_number, True, True),
+    "sensor_timestamp_ns": (lambda v: isinstance(v, int) and not isinstance(v, bool), True, True),
+    "host_time_s": (_number, True, True),
+    "phone_path": (_IS_STR, True, True),
+    "file": (_IS_STR, True, True),
+    "size_bytes": (_count, True, True),
+    "sha256": (_IS_STR, True, True),
+    "attempts": (_count, False, True),
+    "error": (_IS_STR, True, True),
+}
+
+
+def _check_fields(data: dict[str, Any], table: dict[str, _FieldRule], prefix: str, path: Path) -> None:
+    for name, (check, none_allowed, may_be_absent) in table.items():
+        if name not in data:
+            if may_be_absent:
+                continue
+            raise ManifestError(path, f"{prefix}{name}: missing")
+        value = data[name]
+        if (value is None and none_allowed) or check(value):
+            continue
+        raise ManifestError(path, f"{prefix}{name}: {json.dumps(value)[:60]} is not a valid value")
+    if data.get("file") is not None and prefix:
+        _check_inside(data["file"], f"{prefix}file", path)
+
+
+def _check_inside(name: Any, key: str, path: Path) -> None:
+    """A file name from a manifest must stay inside its scan folder."""
+    parts = Path(name).parts if isinstance(name, str) and name else ("..",)
+    if Path(name).is_absolute() or ".." in parts:
+        raise ManifestError(path, f"{key}: {str(name)[:60]!r} is not a file inside the scan folder")

@@ -47,6 +47,7 @@ from daemon.utc import utc_now, utc_stamp
 from planner.rig import Rig
 
 RESERVE = ".reserve"
+MAX_MANIFEST_BYTES = 64 * 1024 * 1024  # a 336-image manifest is ~150 KB
 _SCAN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 _FOLDER = re.compile(r"^\d{8}-\d{6}-(?P<scan_id>[A-Za-z0-9][A-Za-z0-9_-]{0,63})$")
 
@@ -462,9 +463,13 @@ def read_folder(path: Path | str, *, writer: AtomicWriter | None = None) -> Scan
     if not manifest.is_file():
         raise ManifestError(manifest, "missing: not a scan folder")
     try:
-        data = json.loads(manifest.read_bytes())
-    except (OSError, ValueError) as exc:
-        raise ManifestError(manifest, f"unreadable: {exc}") from exc
+        with open(manifest, "rb") as f:
+            raw = f.read(MAX_MANIFEST_BYTES + 1)
+        if len(raw) > MAX_MANIFEST_BYTES:
+            raise ManifestError(manifest, f"larger than {MAX_MANIFEST_BYTES} bytes: not a manifest")
+        data = json.loads(raw)
+    except (OSError, ValueError, RecursionError) as exc:
+        raise ManifestError(manifest, f"unreadable: {str(exc)[:200]}") from exc
     return ScanFolder(path, Manifest.from_dict(data, manifest), writer or AtomicWriter())
 
 

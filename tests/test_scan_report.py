@@ -79,3 +79,62 @@ def test_navigation_refuses_what_is_not_a_point_on_the_body(scan_dir, tmp_path, 
         generate_report(tmp_path)
     assert main(["navigate", str(tmp_path), "--vertex", "0"]) == 2
     assert "manifest.json" in capsys.readouterr().err
+
+
+def _front_vertex(scan_dir: Path) -> int:
+    return int(np.argmax(open_scan(scan_dir).mesh().vertices[:, 0]))
+
+
+def test_navigation_never_names_a_deleted_image(scan_dir, tmp_path, capsys):
+    copy = tmp_path / scan_dir.name
+    shutil.copytree(scan_dir, copy)
+    vertex = _front_vertex(copy)
+    best = navigate(copy, vertex=vertex, count=3)["views"][0]
+    (copy / best["file"]).unlink()
+    answer = navigate(copy, vertex=vertex, count=3)
+    assert best["file"] not in [v["file"] for v in answer["views"]] and answer["views"]
+    assert answer["missing_files"] == [best["file"]]
+    assert main(["navigate", str(copy), "--vertex", str(vertex)]) == 0
+    out, err = capsys.readouterr()
+    assert best["file"] not in out and "1 verified image(s) are no longer on disk" in err
+
+
+@pytest.mark.parametrize("tamper, problem", [
+    (lambda m: m["images"][3].update(camera_index="three"), 'images[3].camera_index: "three" is not a valid'),
+    (lambda m: m["images"][3].update(camera_index=99), "images[3]: camera 99, angle 0 outside this rig"),
+    (lambda m: m["images"][5].update(actual_angle_deg="north"), "images[5].actual_angle_deg"),
+    (lambda m: m["images"][5].update(file="../../../etc/passwd"), "is not a file inside the scan folder"),
+    (lambda m: m["images"][5].update(status="lost"), "not a valid manifest"),
+    (lambda m: m["images"].__setitem__(2, "nothing"), "images[2]: not an object"),
+    (lambda m: m.update(images={"a": 1}), "images: "),
+    (lambda m: m.update(files={"mesh": "/etc/hostname"}), "files.mesh"),
+    (lambda m: m.update(cameras="cam0"), "cameras: "),
+    (lambda m: m.clear(), "format_version null"),
+])
+def test_a_tampered_manifest_is_one_line_from_navigate_and_report(scan_dir, tmp_path, capsys, tamper, problem):
+    copy = tmp_path / scan_dir.name
+    shutil.copytree(scan_dir, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    tamper(manifest)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    for command in (["navigate", str(copy), "--vertex", "0"], ["report", str(copy)], ["scans", "--store", str(tmp_path)]):
+        code = main(command)
+        err = capsys.readouterr()
+        assert "Traceback" not in err.err
+        if command[0] == "scans":  # no rig at hand: it checks the manifest's own consistency
+            in_range = problem.startswith("images[3]: camera 99")
+            assert (code, "UNREADABLE" in err.out) == ((0, False) if in_range else (1, True)), err
+        else:
+            assert code == 2, err
+            assert len(err.err.strip().splitlines()) == 1 and problem in err.err
+
+
+@pytest.mark.parametrize("raw", [b"[1, 2]", b"[" * 50_000 + b"]" * 50_000, b"\xff\xfe", b""])
+def test_a_manifest_that_is_not_one_is_a_typed_error(tmp_path, raw, capsys):
+    folder = tmp_path / "20260101-000000-x"
+    folder.mkdir()
+    (folder / "manifest.json").write_bytes(raw)
+    with pytest.raises(ManifestError):
+        open_scan(folder)
+    assert main(["report", str(folder)]) == 2
+    assert "Traceback" not in capsys.readouterr().err
