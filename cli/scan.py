@@ -4,12 +4,18 @@
 loop (as fast as possible, or ``--time-scale X`` times real time); progress lines go to stdout
 and the scan folder's path is the LAST line. Without ``--sim`` it asks the running daemon over
 the control socket to start a scan and follows its status until the scan ends.
+
+Exit codes: 0 the scan completed; 1 it did not (aborted or faulted), or the daemon refused it
+(busy, fault latched, the store cannot take it); 2 it could not be asked for (the daemon is
+unreachable or went away, a rig file, subject mesh or scan store that cannot be used).
+Each failure is one line on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -39,20 +45,40 @@ def run(args: argparse.Namespace) -> int:
 
     configure_logging(level=args.log_level, stream=sys.stderr)
     if args.sim:
-        from analysis.qa_report import generate_report
-        from planner.plan import load_subject_mesh
-        from sim.run import run_sim_scan
+        return _simulated(args)
+    from daemon.control import CommandFailed, ControlError, DaemonUnavailable
 
+    try:
+        return asyncio.run(_remote(args.socket))
+    except CommandFailed as exc:
+        print(f"tbp scan: refused: {exc}", file=sys.stderr)
+        return 1
+    except (DaemonUnavailable, ControlError) as exc:
+        print(f"tbp scan: {exc}", file=sys.stderr)
+        return 2
+
+
+def _simulated(args: argparse.Namespace) -> int:
+    from analysis.qa_report import generate_report
+    from daemon.errors import DaemonError
+    from planner.focus_errors import FocusPlanError
+    from planner.plan import load_subject_mesh
+    from planner.rig import RigConfigError
+    from sim.run import run_sim_scan
+
+    try:
         report = run_sim_scan(
             config=args.rig, store=args.store, seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
             subject=load_subject_mesh(args.subject) if args.subject else None,
             panel=not args.no_panel, qa_report=generate_report,
         )
-        _summary(report)
-        print(report.folder, flush=True)
-        return 0 if report.outcome.value == "COMPLETED" else 1
-    return asyncio.run(_remote(args.socket))
+    except (RigConfigError, FocusPlanError, DaemonError) as exc:  # DaemonError: ScanRefused (the store)
+        print(f"tbp scan: {exc}", file=sys.stderr)
+        return 2
+    _summary(report)
+    print(report.folder, flush=True)
+    return 0 if report.outcome.value == "COMPLETED" else 1
 
 
 def _summary(report: Any) -> None:
@@ -71,33 +97,37 @@ def _summary(report: Any) -> None:
 
 async def _remote(socket: Path | None) -> int:
     """Ask the running daemon for a scan and follow its events until it ends."""
-    from daemon.control import ControlClient
+    from daemon.control import ControlClient, DaemonUnavailable
 
     client = ControlClient(socket)
-    events = client.subscribe()
-    first = await anext(events)
-    del first
-    started = await client.scan()
-    scan_id = started["scan_id"]
-    print(f"scan {scan_id} requested", flush=True)
-    async for event in events:
-        print(_describe(event), flush=True)
-        if event.get("kind") == "transition" and event.get("state") in ("IDLE", "FAULT"):
-            last = await _report_of(client, scan_id)
-            if last.get("folder"):
-                print(last["folder"], flush=True)
-            return 0 if last.get("outcome") == "COMPLETED" else 1
-    return 1
+    async with contextlib.aclosing(client.subscribe()) as events:
+        await anext(events)  # subscribed (the current status) before the scan can emit anything
+        started = await client.scan()
+        scan_id = started["scan_id"]
+        print(f"scan {scan_id} requested", flush=True)
+        async for event in events:
+            print(_describe(event), flush=True)
+            if event.get("kind") == "transition" and event.get("state") in ("IDLE", "FAULT"):
+                last = await _report_of(client, scan_id)
+                if last.get("folder"):
+                    print(last["folder"], flush=True)
+                return 0 if last.get("outcome") == "COMPLETED" else 1
+    raise DaemonUnavailable(client.path, "the daemon ended the subscription before the scan ended")
 
 
 async def _report_of(client: Any, scan_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
     """The daemon's report of ``scan_id`` once the scan has closed its folder."""
-    async with asyncio.timeout(timeout_s):
-        while True:
-            last = (await client.status()).get("last_scan") or {}
-            if last.get("scan_id") == scan_id:
-                return last
-            await asyncio.sleep(0.2)
+    from daemon.control import DaemonUnavailable
+
+    try:
+        async with asyncio.timeout(timeout_s):
+            while True:
+                last = (await client.status()).get("last_scan") or {}
+                if last.get("scan_id") == scan_id:
+                    return last
+                await asyncio.sleep(0.2)
+    except TimeoutError:
+        raise DaemonUnavailable(client.path, f"no report of scan {scan_id} within {timeout_s:g} s") from None
 
 
 def _describe(event: dict[str, Any]) -> str:

@@ -3,6 +3,9 @@ documented exit code, no traceback, and no long work before a refusal that could
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +22,8 @@ RIG = load_rig()
 def _one_line(capsys: pytest.CaptureFixture[str]) -> str:
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    lines = [line for line in err.splitlines() if line.strip()]
+    # (JSON lines are the log of a daemon this test runs in a thread, not the command's output)
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("{")]
     assert len(lines) == 1, err
     return lines[0]
 
@@ -85,3 +89,87 @@ def test_scans_on_a_store_that_does_not_exist(tmp_path: Path, capsys) -> None:
     (tmp_path / "file").write_text("x")
     assert tbp(["scans", "--store", str(tmp_path / "file")]) == 2
     assert "is not a folder" in _one_line(capsys)
+
+
+# ---------------------------------------------------------------------- tbp scan against a daemon
+
+
+class _Daemon:
+    """A control API handler: refuses scans (busy), or accepts one and then goes away."""
+
+    def __init__(self, busy: bool) -> None:
+        self.busy = busy
+        self.gone = threading.Event()
+
+    def status(self) -> dict:
+        return {"state": "CAPTURING" if self.busy else "IDLE"}
+
+    def scan(self, **args: object) -> dict:
+        from daemon.errors import ScanBusy
+
+        if self.busy:
+            raise ScanBusy("CAPTURING", "a scan is already running")
+        self.gone.set()
+        return {"scan_id": "s1"}
+
+    def abort(self) -> dict:
+        return {}
+
+    def reset(self) -> dict:
+        return {}
+
+    async def subscribe(self):
+        while not self.gone.is_set():
+            await asyncio.sleep(0.01)
+        return  # the daemon stops: the subscription ends mid-scan
+        yield
+
+
+@contextlib.contextmanager
+def _daemon_in_thread(sock: Path, handler: _Daemon):
+    """A control server on its own loop in a thread, so `tbp scan` can run here with asyncio.run."""
+    from daemon.control import ControlServer
+
+    ready, stop = threading.Event(), threading.Event()
+
+    async def serve() -> None:
+        async with ControlServer(sock, handler):
+            ready.set()
+            while not stop.is_set():
+                await asyncio.sleep(0.01)
+
+    thread = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
+    thread.start()
+    assert ready.wait(10)
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(10)
+
+
+def test_scan_without_a_daemon_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
+    assert tbp(["scan", "--socket", str(tmp_path / "none.sock")]) == 2
+    assert "rig daemon not reachable" in _one_line(capsys)
+
+
+def test_scan_refused_by_a_busy_daemon_is_one_line_and_exit_1(tmp_path: Path, capsys) -> None:
+    sock = tmp_path / "c.sock"
+    with _daemon_in_thread(sock, _Daemon(busy=True)):
+        assert tbp(["scan", "--socket", str(sock)]) == 1
+    assert "refused: scan: ScanBusy: cannot start a scan in state CAPTURING" in _one_line(capsys)
+
+
+def test_scan_whose_daemon_goes_away_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
+    sock = tmp_path / "c.sock"
+    with _daemon_in_thread(sock, _Daemon(busy=False)):
+        assert tbp(["scan", "--socket", str(sock)]) == 2
+    assert "the daemon closed the subscription" in _one_line(capsys)
+
+
+@pytest.mark.parametrize("extra, problem", [(["--subject", "missing.ply"], "no such file"),
+                                            (["--rig", "missing.yaml"], "cannot read")])
+def test_simulated_scan_with_unusable_input_is_one_line_and_exit_2(tmp_path: Path, capsys, extra, problem) -> None:
+    extra = [str(tmp_path / e) if e.endswith((".ply", ".yaml")) else e for e in extra]
+    assert tbp(["scan", "--sim", "--store", str(tmp_path / "s"), *extra]) == 2
+    assert problem in _one_line(capsys)
