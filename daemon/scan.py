@@ -161,6 +161,7 @@ class Scan:
 
     ABORT_DECELERATION_FACTOR = 1.0
     PULL_TIMEOUT_S = 120.0
+    TRACE_SAVE_S = 5.0  # a killed daemon loses at most this much of the encoder trace
 
     def __init__(
         self,
@@ -330,20 +331,39 @@ class Scan:
         # PREPARING: beam to the sweep start, phones' clocks and trigger latency measured.
         self._mark("start")
         self._trace_mark = self.tracker.mark()
-        await self._rebase_angle(rig.depth_sweep.start_deg)
-        move = asyncio.create_task(drive.move_to(rig.depth_sweep.start_deg, v_max, a_max))
+        keeper = asyncio.create_task(self._keep_trace(), name="trace-keeper")
         try:
-            self.prep = await prepare_phones(self.hw.phones, rig)
+            await self._rebase_angle(rig.depth_sweep.start_deg)
+            move = asyncio.create_task(drive.move_to(rig.depth_sweep.start_deg, v_max, a_max))
+            try:
+                self.prep = await prepare_phones(self.hw.phones, rig)
+            finally:
+                await move
+            self.folder.log_event("prepared", latency_s=[p.value_s for p in self.prep.latency],
+                                  phones_ready=self.prep.ready, errors=self.prep.errors)
+            clocks = asyncio.create_task(keep_clocks_synced(self.hw.phones, self.prep), name="clock-sync")
+            try:
+                await self._after_prepare(profile)
+            finally:
+                clocks.cancel()
+                await asyncio.gather(clocks, return_exceptions=True)
         finally:
-            await move
-        self.folder.log_event("prepared", latency_s=[p.value_s for p in self.prep.latency],
-                              phones_ready=self.prep.ready, errors=self.prep.errors)
-        clocks = asyncio.create_task(keep_clocks_synced(self.hw.phones, self.prep), name="clock-sync")
-        try:
-            await self._after_prepare(profile)
-        finally:
-            clocks.cancel()
-            await asyncio.gather(clocks, return_exceptions=True)
+            keeper.cancel()
+            await asyncio.gather(keeper, return_exceptions=True)
+
+    async def _keep_trace(self) -> None:
+        """Save the encoder trace so far every TRACE_SAVE_S, so a killed daemon leaves it behind
+        (the storing step writes the whole trace at the end). A failed save is logged and retried."""
+        while True:
+            await asyncio.sleep(self.TRACE_SAVE_S)
+            trace = self.tracker.trace(self._trace_mark)
+            first = "trace" not in self.folder.manifest.files
+            try:
+                self.folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2])
+                if first:
+                    self.folder.save()  # lists trace.npz at once, not only at the next image
+            except Exception as exc:  # the end of the scan writes it again; the scan goes on
+                log.warning("trace_save_failed", error=f"{type(exc).__name__}: {exc}")
 
     async def _after_prepare(self, profile: Any) -> None:
         assert self.folder is not None and self.report is not None and self.prep is not None

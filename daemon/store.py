@@ -445,10 +445,16 @@ class ScanStore:
                     continue
                 reason_here = reason
             _settle_images(folder, folder.manifest.images)
+            if (path / "trace.npz").is_file():  # saved while the scan ran (Scan.TRACE_SAVE_S)
+                folder.manifest.files.setdefault("trace", "trace.npz")
             folder.manifest.state = ScanEnd.INCOMPLETE
             folder.manifest.reason = reason_here
             folder.manifest.in_progress = False
             folder.manifest.ended_utc = utc_stamp()
+            try:
+                folder.log_event("scan_recovered", reason=reason_here, **folder.manifest.counts())
+            except StoreError as exc:  # the manifest below still says what happened
+                log.error("scan_recovery_event_not_written", path=str(path), error=str(exc))
             folder.save()
             log.warning("scan_recovered", scan_id=folder.scan_id, path=str(path),
                         reason=reason_here, **folder.manifest.counts())

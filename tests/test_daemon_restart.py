@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from daemon.control import ControlClient, DaemonUnavailable
@@ -83,6 +84,10 @@ def test_sigkill_mid_scan_then_restart(tmp_path: Path) -> None:
     manifest = json.loads((folder / "manifest.json").read_text())
     assert manifest["in_progress"] is False and manifest["state"] == "incomplete"
     assert "stopped while the scan was in progress" in manifest["reason"]
+    with np.load(folder / manifest["files"]["trace"]) as trace:  # saved while the scan ran
+        assert len(trace["time_s"]) > 100 and np.all(np.diff(trace["time_s"]) > 0)
+    events = [json.loads(line)["event"] for line in (folder / "events.jsonl").read_text().splitlines()]
+    assert events[0] == "scan_started" and events[-1] == "scan_recovered"
     verified = [i for i in manifest["images"] if i["status"] == "verified"]
     assert verified, log.read_text()[-2000:]
     for image in verified:

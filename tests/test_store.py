@@ -134,6 +134,9 @@ def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
     live.update_image(0, 0, status="pulled", file="images/cam0-a00.jpg", size_bytes=3,
                       sha256=hashlib.sha256(b"abc").hexdigest())
     (live.path / ".manifest.json.tmp").write_bytes(b"{torn")
+    live.write_trace(np.array([0.0, 0.1]), np.array([-40.0, -39.1]))  # saved mid-scan, not yet listed
+    del live.manifest.files["trace"]
+    live.save()
     done = store.create(rig, scan_id="done", now=NOW)
     done.finish(ScanEnd.ABORTED, [AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button")])
     (tmp_path / "20261122-093001-nomanifest").mkdir()
@@ -148,6 +151,10 @@ def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
     assert statuses[(1, 0)]["status"] == "captured" and "not pulled" in statuses[(1, 0)]["error"]
     assert statuses[(2, 0)]["status"] == "missing"
     assert not list(live.path.glob(".*.tmp"))
+    assert m["files"]["trace"] == "trace.npz"  # the trace saved before the kill is kept
+    events = [json.loads(line) for line in (live.path / "events.jsonl").read_text().splitlines()]
+    assert events[-1]["event"] == "scan_recovered" and events[-1]["reason"] == "killed by test"
+    assert events[-1]["verified"] == 1 and events[-1]["captured"] == 1
     assert _manifest(done)["state"] == "aborted"
     assert _manifest(done)["reason"] == "panel: stop button"
     assert _manifest(done)["causes"] == [{"source": "stop_button", "device": "panel",
