@@ -89,3 +89,23 @@ def test_lost_panel_trips_the_rig(tmp_path: Path) -> None:
         assert [c.source for c in controller.safety.causes] == [FaultSource.PANEL_LOST]
 
     run_service(tmp_path, scenario)
+
+
+def test_start_with_a_store_that_cannot_take_a_scan_is_refused_on_record(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The panel's START takes the control API's path: no scan is started, the refusal is streamed."""
+    import shutil
+
+    monkeypatch.setattr(ScanStore, "RESERVE_BYTES", shutil.disk_usage(tmp_path).free + (1 << 30))
+
+    async def scenario(controller: RigController, sim: SimulatedPanel) -> None:
+        await until(lambda: sim.led is StatusLed.IDLE)
+        sim.press_start()
+        await until(lambda: any(e.cause == "scan refused" for e in controller.machine.history))
+        refused = [e for e in controller.machine.history if e.cause == "scan refused"][0]
+        assert "StoreFull" in refused.data["error"]
+        assert not controller.busy and controller.machine.state.value == "IDLE"
+        assert sim.led is StatusLed.IDLE
+        assert [p for p in tmp_path.iterdir() if p.is_dir()] == []  # no folder left in progress
+
+    run_service(tmp_path, scenario)
