@@ -40,6 +40,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"tbp evaluate: --bodies and --jobs must be >= 1 and --points >= 100 "
               f"(got {args.bodies}, {args.jobs}, {args.plan_points})", file=sys.stderr)
         return 2
+    from cli.outputs import output_problem
+
+    problem = output_problem("--out", args.out, folder=True)
+    if problem is not None:  # found now, not after the whole corpus
+        print(f"tbp evaluate: {problem}", file=sys.stderr)
+        return 2
     options = StudyOptions(
         points=args.plan_points,
         calibration_trials=args.calibration_trials,

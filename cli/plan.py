@@ -82,6 +82,12 @@ def run(args: argparse.Namespace) -> int:
     if args.plan_points is not None and args.plan_points <= 0:
         print(f"tbp plan: --plan-points must be positive, got {args.plan_points}", file=sys.stderr)
         return 2
+    from cli.outputs import output_problem
+
+    problem = output_problem("--json", args.json_out)
+    if problem is not None:  # found now, not after planning
+        print(f"tbp plan: {problem}", file=sys.stderr)
+        return 2
     queries = [_parse_point(v) for v in args.view]
     if None in queries:
         bad = args.view[queries.index(None)]

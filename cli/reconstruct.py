@@ -106,24 +106,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _output_problem(args: argparse.Namespace) -> str | None:
     """Why --out, --json or --save-frames cannot be written, or None: checked before any work."""
-    import os
+    from cli.outputs import output_problem
 
-    if args.out is not None and args.out.suffix.lower() not in MESH_SUFFIXES:
-        return (f"--out {args.out}: cannot write a mesh as {args.out.suffix or 'a file without suffix'!r}; "
-                f"use one of {', '.join(MESH_SUFFIXES)}")
-    for flag, path in (("--out", args.out), ("--json", args.json_out)):
-        if path is None:
-            continue
-        folder = path.parent
-        if path.is_dir():
-            return f"{flag} {path}: is a folder"
-        if not folder.is_dir():
-            return f"{flag} {path}: the folder {folder} does not exist"
-        if not os.access(folder, os.W_OK):
-            return f"{flag} {path}: the folder {folder} is not writable"
-    if args.save_frames is not None and args.save_frames.exists() and not args.save_frames.is_dir():
-        return f"--save-frames {args.save_frames}: exists and is not a folder"
-    return None
+    return (output_problem("--out", args.out, suffixes=MESH_SUFFIXES)
+            or output_problem("--json", args.json_out)
+            or output_problem("--save-frames", args.save_frames, folder=True))
 
 
 def _read_bags(args: argparse.Namespace, rig: Rig) -> Sweep:

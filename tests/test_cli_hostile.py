@@ -72,15 +72,33 @@ def test_reconstruct_frame_files_stay_in_the_sweep_folder(tmp_path: Path, capsys
     assert "is not a file name in the sweep folder" in _one_line(capsys)
 
 
-@pytest.mark.parametrize("out, problem", [("o.xyz", "cannot write a mesh as '.xyz'"),
-                                          ("missing/o.ply", "does not exist"),
+@pytest.mark.parametrize("out, problem", [("o.xyz", "cannot write '.xyz'; use one of .ply"),
+                                          ("a-file/o.ply", "a-file is not a folder"),
                                           ("folder.ply", "is a folder")])
 def test_reconstruct_refuses_an_output_it_cannot_write_before_any_work(tmp_path: Path, capsys, no_fusion,
                                                                        out: str, problem: str) -> None:
     frames = _sweep(tmp_path / "frames", frames=1)
     (tmp_path / "folder.ply").mkdir()
+    (tmp_path / "a-file").write_text("x")
     assert tbp(["reconstruct", "--frames", str(frames), "--out", str(tmp_path / out)]) == 2
     assert problem in _one_line(capsys)
+
+
+def test_plan_and_evaluate_refuse_an_output_they_cannot_write_before_any_work(tmp_path: Path, capsys,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import analysis.evaluation
+    import planner.plan
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the work ran before the refusal")
+
+    monkeypatch.setattr(planner.plan, "plan_focus", never)
+    monkeypatch.setattr(analysis.evaluation, "run_corpus", never)
+    (tmp_path / "a-file").write_text("x")
+    assert tbp(["plan", "--mesh", str(tmp_path / "m.ply"), "--json", str(tmp_path / "a-file" / "p.json")]) == 2
+    assert "tbp plan: --json" in _one_line(capsys)
+    assert tbp(["evaluate", "--bodies", "1", "--out", str(tmp_path / "a-file" / "ev")]) == 2
+    assert "tbp evaluate: --out" in _one_line(capsys)
 
 
 def test_scans_on_a_store_that_does_not_exist(tmp_path: Path, capsys) -> None:

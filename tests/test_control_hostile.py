@@ -10,6 +10,7 @@ from pathlib import Path
 
 from daemon.control import ControlClient, ControlServer
 from sim.clock import run_virtual
+from tests.memory import within_rss
 from tests.test_control import FakeDaemon
 
 
@@ -23,7 +24,7 @@ async def test_thirty_thousand_deep_json_gets_an_error_and_the_connection_stays(
     async with ControlServer(sock, FakeDaemon()):
         reader, writer = await asyncio.open_unix_connection(str(sock))
         for deep in (b"[" * 30_000 + b"]" * 30_000, b'{"a":' * 10_000 + b"1" + b"}" * 10_000):
-            reply = await _request(reader, writer, deep + b"\n")
+            reply, _ = await within_rss(_request(reader, writer, deep + b"\n"))
             assert reply == {"id": None, "ok": False,
                              "error": {"type": "ProtocolError", "message": "JSON nested too deeply"}}
         assert (await _request(reader, writer, b'{"id": 2, "cmd": "status"}\n'))["ok"] is True
