@@ -13,11 +13,12 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from planner.calibration.bundle import normalise_azimuth
 from planner.calibration.geometry import from_rotvec
 from planner.calibration.model import BeamPose, Calibration, CameraCalibration, Intrinsics
 from planner.calibration.nominal import nominal_cameras
@@ -98,6 +99,14 @@ def true_rig(rig: Rig, target: CuboidTarget, seed: int, *, errors: TrueRigErrors
     world_from_cuboid[:3, 3] = [offset[0], offset[1], height]
     boards = [target.faces[0].cuboid_from_board] + [f.cuboid_from_board @ _jitter(rng, e.board_mm, e.board_deg)
                                                     for f in target.faces[1:]]
+    # the world frame the calibration uses: the phone column faces +x at beam angle 0 (the encoder's
+    # zero error is a turn of the whole world about the axis, which no picture can tell)
+    phones = [i for i, c in enumerate(cameras) if c.kind == "phone"]
+    poses, world_from_cuboid, tilts, shifts = normalise_azimuth(
+        [c.beam_from_camera for c in cameras], phones, world_from_cuboid,
+        np.array([b.tilt_rad for b in beam]), np.array([b.shift_mm for b in beam]))
+    cameras = [replace(c, beam_from_camera=m) for c, m in zip(cameras, poses)]
+    beam = [replace(b, tilt_rad=tuple(t), shift_mm=tuple(s)) for b, t, s in zip(beam, tilts, shifts)]
     return Calibration(created_utc="simulated", rig_digest=rig.digest, target_name=target.name,
                        source=f"simulated rig truth, seed {seed}", cameras=tuple(cameras), beam=tuple(beam),
                        world_from_cuboid=world_from_cuboid, cuboid_from_boards=tuple(boards))
@@ -107,66 +116,88 @@ def true_rig(rig: Rig, target: CuboidTarget, seed: int, *, errors: TrueRigErrors
 class CalibrationFaults:
     """Pictures spoiled on purpose: (camera id, angle index) pairs.
 
-    blurred: the image is badly out of focus. upside_down: the phone delivered it rotated by
-    180 deg (a board then reads upside down). blind: cameras that see nothing (lens cap on).
-    hidden_faces: face indices covered (missing faces).
+    blurred: the picture is badly out of focus. blind: cameras that see nothing (lens cap on).
+    hidden_faces: face indices covered (missing faces). A board mounted upside down is a fact of
+    the target, not of a picture: :func:`mount_upside_down` turns it in the truth.
     """
 
     blurred: frozenset[tuple[str, int]] = frozenset()
-    upside_down: frozenset[tuple[str, int]] = frozenset()
     blind: frozenset[str] = frozenset()
     hidden_faces: frozenset[int] = frozenset()
 
 
 def render_calibration_captures(rig: Rig, target: CuboidTarget, truth: Calibration, out: Path, *, seed: int,
-                                faults: CalibrationFaults = CalibrationFaults(),
+                                faults: CalibrationFaults = CalibrationFaults(), jobs: int = 2,
                                 progress: Callable[[int, int], None] | None = None) -> Path:
     """Render the stop-and-go calibration rotation into ``out``: one JPEG per phone and angle, one PNG per
     depth camera's infrared frame and angle, and ``captures.json`` (camera, angle index, encoder angle,
-    file, focus) as the daemon's calibration rotation writes it. Returns the captures file."""
+    file, focus) as the daemon's calibration rotation writes it. Cameras render in ``jobs`` processes.
+    Returns the captures file."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    out.mkdir(parents=True, exist_ok=True)
+    records: list[dict] = []
+    total, done = len(truth.cameras) * len(truth.beam), 0
+    with ProcessPoolExecutor(max_workers=max(1, jobs)) as pool:
+        futures = [pool.submit(_render_camera, rig, target, truth, i, out, seed, faults)
+                   for i in range(len(truth.cameras))]
+        for future in as_completed(futures):
+            records += future.result()
+            done += len(truth.beam)
+            if progress is not None:
+                progress(done, total)
+    order = {c.id: i for i, c in enumerate(truth.cameras)}
+    records.sort(key=lambda r: (order[r["camera"]], r["angle_index"]))
+    path = out / "captures.json"
+    path.write_text(json.dumps({"rig_digest": rig.digest, "target": target.name, "captures": records}, indent=1))
+    return path
+
+
+def _render_camera(rig: Rig, target: CuboidTarget, truth: Calibration, index: int, out: Path, seed: int,
+                   faults: CalibrationFaults) -> list[dict]:
+    """Every picture of one camera (runs in a worker process)."""
     import cv2
 
     from drivers.sim.cuboid_render import SIDE_GREY, CuboidCamera, CuboidScene
 
-    out.mkdir(parents=True, exist_ok=True)
     scene = CuboidScene(target, truth.world_from_cuboid, truth.cuboid_from_boards, texture_px_per_mm=4.0)
     for face in faults.hidden_faces:  # covered with plain card
         scene.textures[face] = np.full_like(scene.textures[face], SIDE_GREY)
-    rng = np.random.default_rng([seed, 0x1A6])
+    cam = truth.cameras[index]
+    rng = np.random.default_rng([seed, 0x1A6, index])
+    phone = cam.kind == "phone"
+    camera = CuboidCamera(scene, cam.intrinsics, optics=rig.optics if phone else None,
+                          psf_sigma_px=0.6 if phone else 0.8, noise_sigma=2.0 if phone else 3.0)
+    (out / cam.id).mkdir(exist_ok=True)
     records = []
-    cams = list(truth.cameras)
-    total, done = len(cams) * len(truth.beam), 0
-    for cam in cams:
-        phone = cam.kind == "phone"
-        camera = CuboidCamera(scene, cam.intrinsics, optics=rig.optics if phone else None,
-                              psf_sigma_px=0.6 if phone else 0.8, noise_sigma=2.0 if phone else 3.0)
-        for b in truth.beam:
-            pose = b.world_from_beam() @ cam.beam_from_camera
-            centre, forward = pose[:3, 3], pose[:3, 2]
-            # the focus the calibration plan sets: the cuboid's axis along the optical axis
-            focus = float(np.clip(np.hypot(centre[0], centre[1]) - 140.0, 200.0, 2000.0) / max(
-                abs(forward[:2] @ (-centre[:2] / np.hypot(*centre[:2]))), 0.3))
-            blur = 6.0 if (cam.id, b.angle_index) in faults.blurred else 0.0
-            if cam.id in faults.blind:
-                image = np.clip(rng.normal(12.0, 2.0, (cam.intrinsics.height_px, cam.intrinsics.width_px)), 0, 255).astype(np.uint8)
-            else:
-                image = camera.render(pose, rng, focus_mm=focus if phone else None, extra_blur_px=blur)
-            if (cam.id, b.angle_index) in faults.upside_down:
-                image = image[::-1, ::-1].copy()
-            if phone:
-                name = f"{cam.id}/a{b.angle_index:02d}.jpg"
-                (out / cam.id).mkdir(exist_ok=True)
-                cv2.imwrite(str(out / name), cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92])
-            else:
-                name = f"{cam.id}/a{b.angle_index:02d}.png"
-                (out / cam.id).mkdir(exist_ok=True)
-                cv2.imwrite(str(out / name), image)
-            records.append({"camera": cam.id, "kind": cam.kind, "angle_index": b.angle_index,
-                            "encoder_deg": b.encoder_deg, "file": name,
-                            "focus_mm": focus if phone else None})
-            done += 1
-            if progress is not None:
-                progress(done, total)
-    path = out / "captures.json"
-    path.write_text(json.dumps({"rig_digest": rig.digest, "target": target.name, "captures": records}, indent=1))
-    return path
+    for b in truth.beam:
+        pose = b.world_from_beam() @ cam.beam_from_camera
+        centre, forward = pose[:3, 3], pose[:3, 2]
+        # the focus the calibration plan sets: the cuboid's near face along the optical axis
+        radial = -centre[:2] / np.hypot(*centre[:2])
+        focus = float(np.clip((np.hypot(*centre[:2]) - 140.0) / max(abs(forward[:2] @ radial), 0.3), 150.0, 2000.0))
+        blur = 6.0 if (cam.id, b.angle_index) in faults.blurred else 0.0
+        if cam.id in faults.blind:
+            shape = (cam.intrinsics.height_px, cam.intrinsics.width_px)
+            image = np.clip(rng.normal(12.0, 2.0, shape), 0, 255).astype(np.uint8)
+        else:
+            image = camera.render(pose, rng, focus_mm=focus if phone else None, extra_blur_px=blur)
+        if phone:
+            name = f"{cam.id}/a{b.angle_index:02d}.jpg"
+            cv2.imwrite(str(out / name), cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92])
+        else:
+            name = f"{cam.id}/a{b.angle_index:02d}.png"
+            cv2.imwrite(str(out / name), image)
+        records.append({"camera": cam.id, "kind": cam.kind, "angle_index": b.angle_index,
+                        "encoder_deg": b.encoder_deg, "file": name, "focus_mm": focus if phone else None})
+    return records
+
+
+def mount_upside_down(truth: Calibration, target: CuboidTarget, face: int) -> Calibration:
+    """The truth with one board glued turned by 180 deg about its centre (a mounting mistake)."""
+    w, h = target.squares[0] * target.square_mm, target.squares[1] * target.square_mm
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+    turn[:2, 3] = [w, h]
+    boards = list(truth.cuboid_from_boards)
+    boards[face] = boards[face] @ turn
+    return replace(truth, cuboid_from_boards=tuple(boards))
