@@ -103,29 +103,43 @@ def _lens_guess(rig: Rig, kind: str, size: tuple[int, int]) -> Intrinsics:
     return phone_intrinsics(rig, *size) if kind == "phone" else depth_intrinsics(rig, *size)
 
 
-def calibrate(rig: Rig, target: CuboidTarget, pictures: Sequence[Picture], *, created_utc: str, source: str,
-              jobs: int = 2, settings: bundle.Settings = bundle.Settings(), discard_px: float = 4.0,
-              max_side_px: int = 2600, progress: Callable[[str, int, int], None] | None = None) -> CalibrationRun:
-    """Calibrate the rig from its pictures of the target (see the module docstring)."""
-    timings: dict[str, float] = {}
-    problems: list[Problem] = []
-    say = progress or (lambda stage, done, total: None)
-
-    # 1. detection
-    t0 = time.perf_counter()
+def detect_pictures(target: CuboidTarget, pictures: Sequence[Picture], *, jobs: int = 2, max_side_px: int = 2600,
+                    progress: Callable[[str, int, int], None] | None = None) -> list[Detection]:
+    """Corners of the target in every picture, in the pictures' order (``jobs`` threads)."""
     detector = CorneredTarget(target)
     done = [0]
 
     def one(p: Picture) -> Detection:
         d = detect_picture(detector, p.path, p.camera, p.angle_index, p.name, max_side_px=max_side_px)
         done[0] += 1
-        say("detect", done[0], len(pictures))
+        if progress is not None:
+            progress("detect", done[0], len(pictures))
         return d
 
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-        detections = list(pool.map(one, pictures))
-    timings["detection"] = time.perf_counter() - t0
+        return list(pool.map(one, pictures))
 
+
+def calibrate(rig: Rig, target: CuboidTarget, pictures: Sequence[Picture], *, created_utc: str, source: str,
+              jobs: int = 2, settings: bundle.Settings = bundle.Settings(), discard_px: float = 4.0,
+              max_side_px: int = 2600, progress: Callable[[str, int, int], None] | None = None) -> CalibrationRun:
+    """Calibrate the rig from its pictures of the target (see the module docstring)."""
+    t0 = time.perf_counter()
+    detections = detect_pictures(target, pictures, jobs=jobs, max_side_px=max_side_px, progress=progress)
+    run = calibrate_detections(rig, target, pictures, detections, created_utc=created_utc, source=source,
+                               settings=settings, discard_px=discard_px, progress=progress)
+    run.timings_s = {"detection": time.perf_counter() - t0 - sum(run.timings_s.values()), **run.timings_s}
+    return run
+
+
+def calibrate_detections(rig: Rig, target: CuboidTarget, pictures: Sequence[Picture], detections: list[Detection], *,
+                         created_utc: str, source: str, settings: bundle.Settings = bundle.Settings(),
+                         discard_px: float = 4.0, progress: Callable[[str, int, int], None] | None = None
+                         ) -> CalibrationRun:
+    """Steps 2 to 6 on detections already made (one per picture, in the same order)."""
+    timings: dict[str, float] = {}
+    problems: list[Problem] = []
+    say = progress or (lambda stage, done, total: None)
     usable = _screen(detections, problems)
     _missing_faces(target, usable, problems)
 
@@ -186,7 +200,7 @@ def calibrate(rig: Rig, target: CuboidTarget, pictures: Sequence[Picture], *, cr
         say("bundle adjustment", round_, 2)
         problem = bundle.BundleProblem(obs, target.board_corners, boards, target.corners_per_face, encoder,
                                        len(cameras), settings)
-        state, err, nfev = problem.solve(state)
+        state, err, nfev = problem.solve(state, robust=round_ == 0)
         evaluations += nfev
         if round_ == 0:
             discarded = int(np.count_nonzero(err > discard_px))
@@ -265,7 +279,7 @@ def _upside_down(target: CuboidTarget, usable: list[Detection], lenses: dict[str
             if not ok:
                 continue
             views[face] += 1
-            measured = cv2.Rodrigues(rvec)[0].T[:2, 2]  # cuboid z of the camera's right and down axes
+            measured = cv2.Rodrigues(rvec)[0][:2, 2]  # cuboid z of the camera's right and down axes
             if float(measured @ expected) < 0:
                 flagged.setdefault(int(face), []).append(d.image)
                 bad.add((d.image, int(face)))
