@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from planner.rig import DepthCamera, Rig
+
+if TYPE_CHECKING:
+    from planner.calibration.model import Calibration
 
 _Z = np.array([0.0, 0.0, 1.0])
 
@@ -104,3 +108,29 @@ def depth_camera_pose(camera: DepthCamera, beam_angle_rad: float) -> np.ndarray:
     m = np.eye(4)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right[0], down[0], forward[0], centre[0]
     return m
+
+
+def poses_from_matrices(matrices: np.ndarray, angle_index: np.ndarray, camera_index: np.ndarray) -> Poses:
+    """Poses from (P, 4, 4) camera-to-world matrices (OpenCV camera axes)."""
+    m = np.asarray(matrices, dtype=float)
+    return Poses(m[:, :3, 3].copy(), m[:, :3, 2].copy(), m[:, :3, 0].copy(), m[:, :3, 1].copy(),
+                 np.asarray(angle_index), np.asarray(camera_index))
+
+
+def rig_rgb_poses(rig: Rig, calibration: Calibration | None = None, angles_deg: np.ndarray | None = None) -> Poses:
+    """Every phone at every capture angle (angle-major, like :func:`rgb_poses`): the calibrated poses
+    when a calibration is given, else the rig file's nominal ones. The one place planning, the capture
+    and navigation get their poses from."""
+    if calibration is None:
+        return rgb_poses(rig, angles_deg)
+    angles = rig.capture.angles_deg if angles_deg is None else np.asarray(angles_deg, dtype=float)
+    n_cam = rig.n_cameras
+    matrices = np.array([calibration.world_from_camera(phone.id, float(a)) for a in angles for phone in rig.phones])
+    return poses_from_matrices(matrices, np.repeat(np.arange(len(angles)), n_cam), np.tile(np.arange(n_cam), len(angles)))
+
+
+def rig_depth_pose(camera: DepthCamera, beam_angle_rad: float, calibration: Calibration | None = None) -> np.ndarray:
+    """(4, 4) camera-to-world of a depth camera at a beam angle: calibrated when a calibration is given."""
+    if calibration is None:
+        return depth_camera_pose(camera, beam_angle_rad)
+    return calibration.world_from_camera(camera.id, math.degrees(beam_angle_rad))
