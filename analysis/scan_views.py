@@ -12,7 +12,8 @@ import numpy as np
 
 from daemon.manifest import MANIFEST, ImageRecord, ImageStatus, Manifest
 from daemon.store import ScanFileError, ScanFolder, read_folder
-from planner.poses import Poses, rgb_poses
+from planner.calibration.model import Calibration, load_calibration
+from planner.poses import Poses, rig_rgb_poses
 from planner.rig import Rig, load_rig
 
 
@@ -23,6 +24,7 @@ class ScanRecord:
     folder: ScanFolder
     plan: dict[str, Any] | None
     rig: Rig
+    calibration: Calibration | None = None
 
     @property
     def path(self) -> Path:
@@ -48,13 +50,14 @@ class ScanRecord:
         return focus
 
     def poses(self) -> Poses:
-        """Every pose at its image's actual exposure angle (the planned angle where none was measured)."""
+        """Every pose at its image's actual exposure angle (the planned angle where none was measured),
+        from the calibration the scan was taken with (nominal poses for a scan without one)."""
         rig = self.rig
         angles = np.tile(rig.capture.angles_deg[:, None], (1, rig.n_cameras))
         for image in self.images:
             if image.actual_angle_deg is not None:
                 angles[image.angle_index, image.camera_index] = image.actual_angle_deg
-        per_camera = [rgb_poses(rig, angles[:, c]) for c in range(rig.n_cameras)]
+        per_camera = [rig_rgb_poses(rig, self.calibration, angles[:, c]) for c in range(rig.n_cameras)]
         pose_of = np.arange(rig.n_poses)
         cam = pose_of % rig.n_cameras
 
@@ -96,4 +99,6 @@ def open_scan(folder: Path | str, rig_path: Path | str | None = None) -> ScanRec
                 f"images[{n}]: camera {image.camera_index}, angle {image.angle_index} outside this rig's "
                 f"{rig.n_cameras} cameras x {rig.n_angles} angles",
             )
-    return ScanRecord(scan, scan.read_plan(), rig)
+    name = scan.manifest.files.get("calibration")
+    calibration = load_calibration(scan.path / name) if name else None
+    return ScanRecord(scan, scan.read_plan(), rig, calibration)

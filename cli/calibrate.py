@@ -19,6 +19,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cli import options
+
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser("calibrate", help="calibrate every camera's pose and lens from the ChArUco cuboid",
@@ -27,10 +29,10 @@ def register(subparsers: Any) -> None:
                         help="'target': write the printable boards instead of calibrating")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--sim", action="store_true", help="simulated rig and pictures, in this process")
-    parser.add_argument("--seed", type=int, default=0, help="simulated rig errors and picture noise (--sim)")
+    options.seed(parser, "simulated rig errors and picture noise (--sim)")
     parser.add_argument("--pictures", type=Path, default=None, metavar="FILE",
                         help="captures.json of a calibration rotation to calibrate from")
-    parser.add_argument("--config", type=Path, default=None, help="rig file (default calibration_data/rig.yaml)")
+    options.rig(parser)
     parser.add_argument("--target", type=Path, default=None,
                         help="target file (default calibration_data/target/cuboid.yaml)")
     parser.add_argument("--jobs", type=int, default=2, help="worker threads/processes (default 2)")
@@ -49,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         target = load_target(args.target) if args.target else load_target()
-        rig = load_rig(args.config or DEFAULT_RIG_PATH)
+        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
     except (TargetError, RigConfigError) as exc:
         print(f"tbp calibrate: {exc}", file=sys.stderr)
         return 2

@@ -12,7 +12,7 @@ from typing import Any
 import structlog
 
 from daemon.beam import BeamTracker
-from daemon.errors import ScanBusy, ScanRefused
+from daemon.errors import CalibrationRefused, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
 from daemon.safety import SafetyMonitor
@@ -125,6 +125,7 @@ class RigController:
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
         self._close_left_open()
+        calibration = self.calibration(scan_id)
         # The folder exists before anyone is told the scan started (docs/hardening.md, rule 2).
         try:
             folder = self.store.create(self.rig, scan_id=scan_id)
@@ -134,7 +135,7 @@ class RigController:
             self.machine.progress("scan refused", error=str(refused))
             raise refused from exc
         self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, folder,
-                            settings=self.settings)
+                            settings=self.settings, calibration=calibration)
         self.scan_task = asyncio.create_task(self._run_scan(self.current), name="scan")
         return self.scan_task
 
@@ -142,6 +143,37 @@ class RigController:
         """Close the last scan's folder if the disk did not let the scan close it."""
         if self.current is not None and not self.busy:
             self.current.close_folder()
+
+    def calibration(self, scan_id: str | None = None) -> Any:
+        """The rig's installed calibration (read afresh for each scan), None for nominal poses.
+
+        Raises CalibrationRefused (a ScanRefused: nothing started, no folder) when the file is
+        unreadable or for other cameras; an old calibration (rig file ``calibration.max_age_days``)
+        is used with a warning.
+        """
+        from daemon.utc import utc_now
+        from planner.calibration.installed import CalibrationMismatch, age_days, calibration_path, installed_calibration
+        from planner.calibration.model import CalibrationFileError
+
+        try:
+            calibration = installed_calibration(self.rig)
+        except (CalibrationMismatch, CalibrationFileError) as exc:
+            refused = CalibrationRefused(scan_id, str(calibration_path(self.rig)), str(exc))
+            log.warning("scan_refused", scan_id=str(scan_id)[:80], error=str(refused))
+            self.machine.progress("scan refused", error=str(refused))
+            raise refused from exc
+        if calibration is None:
+            log.warning("calibration_missing", path=str(calibration_path(self.rig)),
+                        effect="planning and the TSDF use the rig file's nominal poses")
+            return None
+        age = age_days(calibration, utc_now())
+        limit = self.rig.calibration.max_age_days
+        if age is None or age > limit:
+            log.warning("calibration_old", path=calibration.path, made=calibration.created_utc,
+                        age_days=None if age is None else round(age, 1), max_age_days=limit,
+                        effect="calibrate again (tbp calibrate)")
+            self.machine.progress("calibration_old", made=calibration.created_utc, max_age_days=limit)
+        return calibration
 
     async def scan(self, scan_id: str | None = None) -> ScanReport:
         """Run one scan to its end (completed, aborted or faulted) and return its report."""

@@ -24,6 +24,7 @@ from daemon.beam import BeamTracker
 from daemon.errors import SweepFailed
 from drivers.depth.base import DepthCamera, DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
+from planner.calibration.model import Calibration
 from planner.rig import Rig
 from planner.sweep import AngleSpacing, BeamTrace, PosedDepth, Sweep, pose_frame, tag_frame
 from planner.tsdf import FRAME_SPACING_DEG
@@ -54,8 +55,10 @@ class DepthSweeper:
     FRAME_TIMEOUT_S = 1.0
     """A camera silent this long during the sweep has stalled."""
 
-    def __init__(self, rig: Rig, drive: Any, tracker: BeamTracker, cameras: Sequence[DepthCamera]) -> None:
+    def __init__(self, rig: Rig, drive: Any, tracker: BeamTracker, cameras: Sequence[DepthCamera],
+                 calibration: Calibration | None = None) -> None:
         self.rig = rig
+        self.calibration = calibration
         self.drive = drive
         self.tracker = tracker
         self.cameras = list(cameras)
@@ -147,10 +150,10 @@ class DepthSweeper:
         outside = 0
         for frame in self._kept:
             if frame.beam_angle_deg is not None:
-                posed.append(pose_frame(frame, frame.beam_angle_deg, self.rig))
+                posed.append(pose_frame(frame, frame.beam_angle_deg, self.rig, self.calibration))
                 source[frame.camera_id] = "recording"
             elif beam.covers(frame.timestamp_s):
-                posed.append(tag_frame(frame, beam, self.rig))
+                posed.append(tag_frame(frame, beam, self.rig, self.calibration))
             else:
                 outside += 1  # streamed before the first or after the last encoder sample
         posed.sort(key=lambda f: (f.camera_id, f.timestamp_s))

@@ -51,6 +51,14 @@ class ScanRefused(DaemonError):
         super().__init__(f"scan not started: {reason}")
 
 
+class CalibrationRefused(ScanRefused):
+    """The installed calibration cannot be used: unreadable, or for other cameras than the rig's."""
+
+    def __init__(self, scan_id: object, path: str, reason: str) -> None:
+        self.path = path
+        super().__init__(scan_id, f"calibration {path}: {reason}")
+
+
 class FaultLatched(DaemonError):
     """The rig is in a latched FAULT; only an explicit reset clears it."""
 

@@ -34,6 +34,7 @@ from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.store import ScanFolder
+from planner.calibration.model import Calibration
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 
@@ -140,10 +141,12 @@ def canonical_mesh(mesh: Any) -> Any:
     return trimesh.Trimesh(vertices[order], faces, process=False)
 
 
-def _plan(mesh: Any, rig: Rig, seed: int, points: int | None) -> Any:
+def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None) -> Any:
     from planner.plan import plan_focus
+    from planner.poses import rig_rgb_poses
 
-    return plan_focus(mesh, rig, seed=seed, points=points, methods=PLAN_METHODS)
+    return plan_focus(mesh, rig, seed=seed, points=points, methods=PLAN_METHODS,
+                      poses=rig_rgb_poses(rig, calibration))
 
 
 class Scan:
@@ -173,8 +176,10 @@ class Scan:
         folder: ScanFolder,
         *,
         settings: ScanSettings = ScanSettings(),
+        calibration: Calibration | None = None,
     ) -> None:
         self.rig = rig
+        self.calibration = calibration
         self.hw = hardware
         self.machine = machine
         self.safety = safety
@@ -327,7 +332,10 @@ class Scan:
         a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
         profile = rig_profile(rig)
 
-        self.folder.log_event("scan_started", rig_digest=rig.digest)
+        self.folder.log_event("scan_started", rig_digest=rig.digest,
+                              calibration=self.calibration.digest if self.calibration else "nominal poses")
+        if self.calibration is not None:
+            self.folder.write_calibration(Path(self.calibration.path).read_bytes())
         # PREPARING: beam to the sweep start, phones' clocks and trigger latency measured.
         self._mark("start")
         self._trace_mark = self.tracker.mark()
@@ -375,7 +383,7 @@ class Scan:
         # DEPTH_SWEEP
         self.safety.expect_samples = True
         self.machine.transition(ScanState.DEPTH_SWEEP, "beam at the sweep start")
-        sweep = await DepthSweeper(rig, drive, self.tracker, self.hw.depth_cameras).run()
+        sweep = await DepthSweeper(rig, drive, self.tracker, self.hw.depth_cameras, self.calibration).run()
         self._mark("sweep_end")
         self.folder.write_depth_sweep({
             "frames_used": len(sweep.sweep.frames), "frames_seen": sweep.frames_seen,
@@ -397,7 +405,7 @@ class Scan:
                                     vertices=len(fused.mesh.vertices))
             plan, report.compute_s["planning"] = await loop.run_in_executor(
                 self.settings.executor, _timed, _plan, fused.mesh, rig, self.settings.seed,
-                self.settings.plan_points)
+                self.settings.plan_points, self.calibration)
             plan_json = plan.to_json()
             focus = self._reachable(np.asarray(plan.methods[PLAN_METHOD].focus_mm, dtype=float))
             self.folder.write_plan(plan_json, _plan_summary(plan_json))

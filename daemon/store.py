@@ -64,9 +64,10 @@ def new_scan_id() -> str:
 
 
 def calibration_digest(rig: Rig) -> str:
-    """sha256 over the focus calibration files the rig names (a missing file counts by name)."""
+    """sha256 over the calibration files the rig names: the phones' focus tables and the system
+    calibration (camera poses and lenses); a missing file counts by name."""
     h = hashlib.sha256()
-    for name in sorted({p.focus_calibration for p in rig.phones}):
+    for name in sorted({p.focus_calibration for p in rig.phones} | {rig.calibration.file}):
         path = rig.resolve(name)
         h.update(name.encode() + b"\0")
         h.update(path.read_bytes() if path.is_file() else b"<missing>")
@@ -121,6 +122,10 @@ class ScanFolder:
         self.manifest.files[key] = name
         self.save()
         return path
+
+    def write_calibration(self, data: bytes) -> Path:
+        """calibration.yaml: the system calibration the scan planned and reconstructed with."""
+        return self._write_file("calibration", "calibration.yaml", data)
 
     def write_plan(self, plan: dict[str, Any], summary: dict[str, Any]) -> Path:
         """plan.json (the whole plan, JSON-able) and its summary into the manifest."""

@@ -390,6 +390,14 @@ class Motor:
 
 
 @dataclass(frozen=True)
+class CalibrationSettings:
+    """Where the rig's system calibration lives and how old it may get before scans warn."""
+
+    file: str = "calibration.yaml"
+    max_age_days: float = 180.0
+
+
+@dataclass(frozen=True)
 class Rig:
     """The whole validated rig description."""
 
@@ -406,6 +414,7 @@ class Rig:
     depth_sweep: DepthSweep
     tsdf: Tsdf
     motor: Motor
+    calibration: CalibrationSettings = CalibrationSettings()
 
     @property
     def n_cameras(self) -> int:
@@ -531,7 +540,13 @@ _MOTOR = {
     "can_interface": _str(required=False, default="socketcan"),
     "can_channel": _str(required=False, default="can0"),
 }
+_CALIBRATION = {
+    "file": _str(required=False, default="calibration.yaml"),
+    "max_age_days": _num(1.0, 3650.0, required=False, default=180.0),
+}
+_OPTIONAL = {"calibration"}
 _TOP = {
+    "calibration",
     "optics",
     "ring",
     "phones",
@@ -637,7 +652,7 @@ def rig_from_mapping(raw: Any, path: Path | str = "<memory>", digest: str = "") 
     unknown = sorted((k for k in raw if k not in _TOP), key=str)
     if unknown:
         raise reader.error(_key_name(unknown[0]), f"unknown section; allowed: {', '.join(sorted(_TOP))}")
-    for name in sorted(_TOP - set(raw)):
+    for name in sorted(_TOP - _OPTIONAL - set(raw)):
         raise reader.error(name, "missing section")
 
     optics = _build(Optics, reader.section(raw["optics"], "optics", _OPTICS))
@@ -701,4 +716,5 @@ def rig_from_mapping(raw: Any, path: Path | str = "<memory>", digest: str = "") 
         depth_sweep=sweep,
         tsdf=_build(Tsdf, reader.section(raw["tsdf"], "tsdf", _TSDF)),
         motor=motor,
+        calibration=_build(CalibrationSettings, reader.section(raw.get("calibration", {}), "calibration", _CALIBRATION)),
     )

@@ -12,13 +12,16 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from planner.poses import depth_camera_pose
+from planner.poses import rig_depth_pose
 from planner.rig import Rig
 from planner.shape_errors import BadTrace, FrameOutsideTrace, UnknownDepthCamera
+
+if TYPE_CHECKING:
+    from planner.calibration.model import Calibration
 
 
 class FrameLike(Protocol):
@@ -121,7 +124,7 @@ class Sweep:
         return counts
 
 
-def tag_frame(frame: FrameLike, trace: BeamTrace, rig: Rig) -> PosedDepth:
+def tag_frame(frame: FrameLike, trace: BeamTrace, rig: Rig, calibration: Calibration | None = None) -> PosedDepth:
     """The frame with its interpolated beam angle and camera-to-world pose.
 
     Raises FrameOutsideTrace when the frame's timestamp is not covered by the trace, and
@@ -131,11 +134,12 @@ def tag_frame(frame: FrameLike, trace: BeamTrace, rig: Rig) -> PosedDepth:
         raise UnknownDepthCamera(frame.camera_id, sorted(c.id for c in rig.depth_cameras))
     if not trace.covers(frame.timestamp_s):
         raise FrameOutsideTrace(frame.camera_id, frame.frame_number, frame.timestamp_s, trace.start_s, trace.end_s)
-    return pose_frame(frame, float(trace.angle_at(frame.timestamp_s)), rig)
+    return pose_frame(frame, float(trace.angle_at(frame.timestamp_s)), rig, calibration)
 
 
-def pose_frame(frame: FrameLike, angle_deg: float, rig: Rig) -> PosedDepth:
-    """The frame posed at beam angle ``angle_deg`` (a recorded angle, or one read off the trace).
+def pose_frame(frame: FrameLike, angle_deg: float, rig: Rig, calibration: Calibration | None = None) -> PosedDepth:
+    """The frame posed at beam angle ``angle_deg`` (a recorded angle, or one read off the trace);
+    the calibrated depth camera pose when a calibration is given, else the rig file's.
 
     Raises UnknownDepthCamera when the rig has no camera of that id.
     """
@@ -151,13 +155,13 @@ def pose_frame(frame: FrameLike, angle_deg: float, rig: Rig) -> PosedDepth:
         depth=frame.depth,
         depth_unit_mm=frame.depth_unit_mm,
         intrinsics=np.asarray(frame.intrinsics, dtype=float),
-        camera_to_world=depth_camera_pose(cameras[frame.camera_id], math.radians(angle)),
+        camera_to_world=rig_depth_pose(cameras[frame.camera_id], math.radians(angle), calibration),
     )
 
 
-def tag_frames(frames: Sequence[FrameLike], trace: BeamTrace, rig: Rig) -> Sweep:
-    """Tag every frame (all must lie inside the trace; see :func:`tag_frame`)."""
-    return Sweep(tuple(tag_frame(f, trace, rig) for f in frames), trace)
+def tag_frames(frames: Sequence[FrameLike], trace: BeamTrace, rig: Rig, calibration: Calibration | None = None) -> Sweep:
+    """Tag every frame (all must lie inside the trace; see :func:`tag_frame`); calibrated poses with a calibration."""
+    return Sweep(tuple(tag_frame(f, trace, rig, calibration) for f in frames), trace)
 
 
 class AngleSpacing:
