@@ -6,9 +6,15 @@
                                             DIR gets calibration.yaml, truth.yaml (the simulated rig's true
                                             poses, same format), the pictures and report/index.html
   tbp calibrate --pictures FILE --out DIR   calibrate from a calibration rotation's captures.json
+  tbp calibrate focus --sim --seed S --out DIR
+                                            each simulated phone sweeps its focus over a board at known
+                                            distances; DIR/<phone>.yaml is its focus table (name it in the
+                                            rig file's phones[].focus_calibration)
 
 Install the result as the rig's calibration by copying DIR/calibration.yaml next to the rig file
-(``calibration_data/`` or ``/etc/tbp-rig/``). Pictures that cannot be used are listed with the
+(``calibration_data/`` or ``/etc/tbp-rig/``; the rig file's ``calibration.file`` names it).
+Not built yet: the calibration rotation through the daemon on the real rig, and the focus sweep
+of real phones (board stand + sweep over ADB); both pipelines take their pictures as above. Pictures that cannot be used are listed with the
 reason and the rest still calibrates; the exit status is 1 when no calibration could be made.
 """
 
@@ -25,8 +31,8 @@ from cli import options
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser("calibrate", help="calibrate every camera's pose and lens from the ChArUco cuboid",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("action", nargs="?", choices=["target"], default=None,
-                        help="'target': write the printable boards instead of calibrating")
+    parser.add_argument("action", nargs="?", choices=["target", "focus"], default=None,
+                        help="'target': write the printable boards; 'focus': the phones' focus tables")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--sim", action="store_true", help="simulated rig and pictures, in this process")
     options.seed(parser, "simulated rig errors and picture noise (--sim)")
@@ -61,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         for path in write_target_prints(target, args.out):
             print(path)
         return 0
+    if args.action == "focus":
+        return _focus(args, rig, target)
     if args.sim == (args.pictures is not None):
         print("tbp calibrate: give either --sim or --pictures FILE (calibrating on the rig through the daemon "
               "is not built yet: run the calibration rotation's pictures through --pictures)", file=sys.stderr)
@@ -112,4 +120,21 @@ def _calibrate(args: argparse.Namespace, rig: Any, target: Any) -> int:
               f"worst {s['max_mm']:.3f} mm / {s['max_deg']:.4f} deg")
     print(f"report: {page}")
     print(out / "calibration.yaml", flush=True)
+    return 0
+
+
+def _focus(args: argparse.Namespace, rig: Any, target: Any) -> int:
+    if not args.sim:
+        print("tbp calibrate focus: only --sim is built (the real phones' sweep needs the board stand "
+              "procedure over ADB, not built yet)", file=sys.stderr)
+        return 2
+    from sim.focus_calibration import CHECK_MM, calibrate_sim_focus
+
+    print(f"focus sweeps of the simulated phones (seed {args.seed}) over a board at known distances", flush=True)
+    results = calibrate_sim_focus(rig, target, args.seed, args.out)
+    print(f"focus error against each phone's true lens at {', '.join(f'{d:g}' for d in CHECK_MM)} mm "
+          "(worst, mm): measured table / shared default table")
+    for r in results:
+        print(f"  {r.phone}: {abs(r.error_mm).max():6.2f} / {abs(r.default_error_mm).max():6.2f}   "
+              f"fit residual {r.rms_diopters:.4f} D  -> {args.out / (r.phone + '.yaml')}")
     return 0

@@ -82,6 +82,10 @@ class SimulatedPhone(SimulatedAdbd):
         rng = random.Random(seed * 7919 + 17)
         self.clock_offset_s = rng.uniform(1_000.0, 200_000.0)
         self.clock_drift_ppm = rng.uniform(-30.0, 30.0)
+        # The lens focuses at 1000 / (offset + gain * commanded diopters) mm: a per-phone error
+        # that `tbp calibrate focus` measures (about 0.1 D and 3 %, as uncalibrated Camera2 units).
+        self.focus_offset_diopters = rng.gauss(0.0, 0.08)
+        self.focus_gain = 1.0 + rng.gauss(0.0, 0.03)
         self._jitter = random.Random(seed * 104729 + 3)
         self.lens_diopters = 0.0
         self.lens_slowdown = 1.0
@@ -243,6 +247,11 @@ class SimulatedPhone(SimulatedAdbd):
                                       size=len(jpeg))
 
     # ---------------------------------------------------------------- pictures
+    def sharp_distance_mm(self, diopters: float) -> float:
+        """Where the lens is sharpest (mm) at a commanded focus (diopters): this phone's true lens."""
+        measured = self.focus_offset_diopters + self.focus_gain * diopters
+        return 1000.0 / measured if measured > 1e-4 else 1e7
+
     def _image_size(self) -> tuple[int, int]:
         return self.render_size or (self.optics.image_width_px // 32, self.optics.image_height_px // 32)
 
@@ -252,8 +261,7 @@ class SimulatedPhone(SimulatedAdbd):
             return encode_jpeg(empty_rig_picture(width, height, seed=index))
         if self._renderer is None:
             self._renderer = PhoneRenderer(_scene_for(self.subject), self.optics, width, height)
-        focus_mm = 1000.0 / focus_diopters if focus_diopters > 0 else 1e7
-        return encode_jpeg(self._renderer.render(pose, focus_mm))
+        return encode_jpeg(self._renderer.render(pose, self.sharp_distance_mm(focus_diopters)))
 
 
 async def _discard(stream: AdbStream) -> None:
