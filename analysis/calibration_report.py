@@ -21,6 +21,7 @@ from planner.calibration.compare import PoseDifferences, compare
 from planner.calibration.geometry import pose_error
 from planner.calibration.model import Calibration
 from planner.calibration.nominal import nominal_cameras
+from planner.calibration.target import load_target
 from planner.rig import Rig
 
 REPORT_DIR = "report"
@@ -77,8 +78,6 @@ def _corner_overlays(run: CalibrationRun, pictures: list[Picture], out: Path, li
     if not chosen:
         return None
     cal = run.calibration
-    from planner.calibration.target import load_target
-
     corners_world = None
     fig, axes = plt.subplots(1, len(chosen), figsize=(4 * len(chosen), 5))
     for ax, d in zip(np.atleast_1d(axes), chosen):

@@ -96,9 +96,9 @@ def _calibrate(args: argparse.Namespace, rig: Any, target: Any) -> int:
     else:
         captures = args.pictures
         source = f"pictures {captures}"
-    pictures = read_captures(captures)
-    print(f"calibrating from {len(pictures)} pictures", flush=True)
     try:
+        pictures = read_captures(captures)
+        print(f"calibrating from {len(pictures)} pictures", flush=True)
         run = calibrate(rig, target, pictures, created_utc=utc_stamp(), source=source, jobs=args.jobs,
                         progress=_progress)
     except CalibrationFailed as exc:

@@ -92,11 +92,30 @@ class CalibrationRun:
 
 
 def read_captures(path: Path | str) -> list[Picture]:
-    """The pictures listed in a calibration rotation's ``captures.json`` (files relative to it)."""
+    """The pictures listed in a calibration rotation's ``captures.json`` (files relative to it).
+
+    Raises CalibrationFailed naming the file and the entry when it cannot be read."""
     path = Path(path)
-    doc = json.loads(path.read_text())
-    return [Picture(c["camera"], c["kind"], int(c["angle_index"]), float(c["encoder_deg"]), path.parent / c["file"],
-                    c["file"]) for c in doc["captures"]]
+    try:
+        doc = json.loads(path.read_text())
+        entries = doc["captures"]
+    except OSError as exc:
+        raise CalibrationFailed(f"{path}: cannot read: {exc.strerror or exc}", []) from exc
+    except (ValueError, KeyError, TypeError) as exc:
+        raise CalibrationFailed(f"{path}: not a captures file (a 'captures' list): {exc}", []) from exc
+    pictures = []
+    for i, c in enumerate(entries):
+        try:
+            if c["kind"] not in ("phone", "depth"):
+                raise ValueError(f"kind {c['kind']!r} is not phone or depth")
+            pictures.append(Picture(str(c["camera"]), c["kind"], int(c["angle_index"]), float(c["encoder_deg"]),
+                                    path.parent / c["file"], str(c["file"])))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationFailed(f"{path}: captures[{i}]: {exc!r}; expected camera, kind, angle_index, "
+                                    "encoder_deg and file", []) from exc
+    if not pictures:
+        raise CalibrationFailed(f"{path}: lists no picture", [])
+    return pictures
 
 
 def _lens_guess(rig: Rig, kind: str, size: tuple[int, int]) -> Intrinsics:

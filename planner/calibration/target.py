@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from planner.calibration.model import CalibrationFileError
 from planner.rig import CALIBRATION_DIR
 
 DEFAULT_TARGET_PATH = CALIBRATION_DIR / "target" / "cuboid.yaml"
@@ -26,12 +27,8 @@ _KEYS = {"name", "size_mm", "dictionary", "legacy_pattern", "squares", "square_m
          "print_dpi", "faces"}
 
 
-class TargetError(ValueError):
+class TargetError(CalibrationFileError):
     """A target file is unreadable or a key is missing, unknown or out of range."""
-
-    def __init__(self, path: Path | str, key: str, problem: str) -> None:
-        self.path, self.key, self.problem = str(path), key, problem
-        super().__init__(f"{self.path}: {key}: {problem}")
 
 
 @dataclass(frozen=True)
@@ -64,6 +61,12 @@ class CuboidTarget:
     print_dpi: int
     faces: tuple[Face, ...]
     _boards: dict[int, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickle without the OpenCV boards (rebuilt on use): the target goes to worker processes."""
+        state = dict(self.__dict__)
+        state["_boards"] = {}
+        return state
 
     @property
     def markers_per_face(self) -> int:
