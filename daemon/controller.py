@@ -19,6 +19,7 @@ from daemon.safety import SafetyMonitor
 from daemon.scan import Scan, ScanReport, ScanSettings
 from daemon.states import ScanState, ScanStateMachine
 from daemon.store import ScanStore
+from planner.calibration.model import Calibration
 from planner.rig import Rig
 
 log = structlog.get_logger("daemon.controller")
@@ -144,7 +145,7 @@ class RigController:
         if self.current is not None and not self.busy:
             self.current.close_folder()
 
-    def calibration(self, scan_id: str | None = None) -> Any:
+    def calibration(self, scan_id: str | None = None) -> Calibration | None:
         """The rig's installed calibration (read afresh for each scan), None for nominal poses.
 
         Raises CalibrationRefused (a ScanRefused: nothing started, no folder) when the file is

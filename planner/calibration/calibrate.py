@@ -159,6 +159,12 @@ def calibrate_detections(rig: Rig, target: CuboidTarget, pictures: Sequence[Pict
     timings: dict[str, float] = {}
     problems: list[Problem] = []
     say = progress or (lambda stage, done, total: None)
+    known = {c.id for c in nominal_cameras(rig, (2, 2))}
+    for cam in sorted({p.camera for p in pictures} - known):
+        problems.append(Problem("not a camera of the rig file; its pictures are left out", camera=cam))
+    for cam in sorted(known - {p.camera for p in pictures}):
+        problems.append(Problem("no picture in the captures file; left out of the calibration", camera=cam))
+    detections = [d for d in detections if d.camera in known]
     usable = _screen(detections, problems)
     _missing_faces(target, usable, problems)
 
