@@ -161,6 +161,11 @@ def _truth_figure(diff: PoseDifferences, out: Path) -> str:
     return _save(fig, out / "truth.png")
 
 
+def _zhang(run: CalibrationRun, camera: str) -> str:
+    rms = run.lens_rms_px.get(camera)
+    return "device's" if rms is None else f"{rms:.3f}"
+
+
 def write_report(run: CalibrationRun, pictures: list[Picture], rig: Rig, out_dir: Path,
                  truth: Calibration | None = None) -> Path:
     """Write ``out_dir/report/index.html`` and its figures; returns the page."""
@@ -194,7 +199,7 @@ def write_report(run: CalibrationRun, pictures: list[Picture], rig: Rig, out_dir
         if name:
             parts.append(f"<h2>{html.escape(title)}</h2><img src='{name}' alt='{html.escape(title)}'>")
     parts.append("<h2>Cameras</h2><table><tr><th>camera</th><th>fx px</th><th>fy px</th><th>cx px</th><th>cy px</th>"
-                 "<th>k1</th><th>k2</th><th>Zhang RMS px</th><th>mean residual px</th><th>corners</th>"
+                 "<th>k1</th><th>k2</th><th>lens: Zhang RMS px</th><th>mean residual px</th><th>corners</th>"
                  "<th>off nominal mm</th><th>off nominal deg</th></tr>")
     for (cid, mm, deg, _), c in zip(rows, cal.cameras):
         k = c.intrinsics
@@ -202,7 +207,7 @@ def write_report(run: CalibrationRun, pictures: list[Picture], rig: Rig, out_dir
         count = r.per_camera_count.get(cid, 0) if r else 0
         parts.append(f"<tr><td>{html.escape(cid)} ({c.kind})</td><td>{k.fx:.1f}</td><td>{k.fy:.1f}</td><td>{k.cx:.1f}</td>"
                      f"<td>{k.cy:.1f}</td><td>{k.distortion[0]:.4f}</td><td>{k.distortion[1]:.4f}</td>"
-                     f"<td>{run.lens_rms_px.get(cid, math.nan):.3f}</td><td>{mean:.3f}</td><td>{count}</td>"
+                     f"<td>{_zhang(run, cid)}</td><td>{mean:.3f}</td><td>{count}</td>"
                      f"<td>{mm:.2f}</td><td>{deg:.3f}</td></tr>")
     parts.append("</table><h2>Pictures and cameras not used</h2>")
     if run.problems:

@@ -76,8 +76,10 @@ def true_rig(rig: Rig, target: CuboidTarget, seed: int, *, errors: TrueRigErrors
         phone = cam.kind == "phone"
         mount = _jitter(rng, e.phone_mm if phone else e.depth_mm, e.phone_deg if phone else e.depth_deg)
         # the mount error acts at the camera (a rotation about its own centre), the encoder zero on the beam
-        cameras.append(CameraCalibration(cam.id, cam.kind, _lens(rng, cam.intrinsics, e, 1.0 if phone else 0.3),
-                                         zero @ cam.beam_from_camera @ mount))
+        # a depth camera's infrared image is rectified and its intrinsics come calibrated from the
+        # factory (the depth frames carry them): its lens is the one it reports
+        lens = _lens(rng, cam.intrinsics, e, 1.0) if phone else cam.intrinsics
+        cameras.append(CameraCalibration(cam.id, cam.kind, lens, zero @ cam.beam_from_camera @ mount))
     phase = rng.uniform(0, 2 * math.pi, 4)
     beam = []
     for i, planned in enumerate(rig.capture.angles_deg):
@@ -188,8 +190,12 @@ def _render_camera(rig: Rig, target: CuboidTarget, truth: Calibration, index: in
         else:
             name = f"{cam.id}/a{b.angle_index:02d}.png"
             cv2.imwrite(str(out / name), image)
-        records.append({"camera": cam.id, "kind": cam.kind, "angle_index": b.angle_index,
-                        "encoder_deg": b.encoder_deg, "file": name, "focus_mm": focus if phone else None})
+        record = {"camera": cam.id, "kind": cam.kind, "angle_index": b.angle_index,
+                  "encoder_deg": b.encoder_deg, "file": name, "focus_mm": focus if phone else None}
+        if not phone:  # the device's own intrinsics, as the infrared frame reports them
+            k = cam.intrinsics
+            record["intrinsics"] = {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}
+        records.append(record)
     return records
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, csr_matrix, vstack
+from scipy.sparse import coo_matrix, csr_matrix, diags, vstack
 from scipy.spatial.transform import Rotation
 
 from planner.calibration.geometry import from_rotvec, rot_z, to_rotvec
@@ -94,7 +94,8 @@ class BundleProblem:
     """The residual function of one rig over fixed observations (pack/unpack the unknowns)."""
 
     def __init__(self, obs: Observations, board_corners: np.ndarray, nominal_boards: list[np.ndarray],
-                 corners_per_face: int, encoder_deg: np.ndarray, n_cameras: int, settings: Settings) -> None:
+                 corners_per_face: int, encoder_deg: np.ndarray, n_cameras: int, settings: Settings,
+                 held_lenses: list[bool] | None = None) -> None:
         self.obs = obs
         self.board_corners = np.c_[board_corners, np.ones(len(board_corners))]
         self.nominal_boards = nominal_boards
@@ -116,6 +117,11 @@ class BundleProblem:
         self.face = obs.corner // corners_per_face
         self.local = obs.corner % corners_per_face
         self.yaw = 0.0
+        # unknowns held at their start: the lens of cameras whose intrinsics come from the device
+        self.free = np.ones(self.n_params)
+        for c, held in enumerate(held_lenses or []):
+            if held:
+                self.free[c * N_CAM + 6:(c + 1) * N_CAM] = 0.0
 
     # ------------------------------------------------------------------ packing
     def pack(self, s: RigState) -> np.ndarray:
@@ -293,7 +299,7 @@ class BundleProblem:
         k = len(self.free_caps)
         prior = coo_matrix((np.tile(self._prior_weights(), k), (np.arange(6 * k), self.cap0 + np.arange(6 * k))),
                            shape=(6 * k, self.n_params))
-        return vstack([jac, prior]).tocsr()
+        return (vstack([jac, prior]) @ diags(self.free)).tocsr()
 
     def solve(self, state: RigState, *, robust: bool = True) -> tuple[RigState, np.ndarray, int]:
         """Adjusted state, (N,) pixel error of each observation, function evaluations used.

@@ -58,6 +58,7 @@ class Picture:
     encoder_deg: float
     path: Path
     name: str
+    intrinsics: tuple[float, float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -108,8 +109,10 @@ def read_captures(path: Path | str) -> list[Picture]:
         try:
             if c["kind"] not in ("phone", "depth"):
                 raise ValueError(f"kind {c['kind']!r} is not phone or depth")
+            k = c.get("intrinsics")
+            lens = None if k is None else (float(k["fx"]), float(k["fy"]), float(k["cx"]), float(k["cy"]))
             pictures.append(Picture(str(c["camera"]), c["kind"], int(c["angle_index"]), float(c["encoder_deg"]),
-                                    path.parent / c["file"], str(c["file"])))
+                                    path.parent / c["file"], str(c["file"]), lens))
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationFailed(f"{path}: captures[{i}]: {exc!r}; expected camera, kind, angle_index, "
                                     "encoder_deg and file", []) from exc
@@ -174,6 +177,7 @@ def calibrate_detections(rig: Rig, target: CuboidTarget, pictures: Sequence[Pict
     order = [c.id for c in nominal_cameras(rig, (2, 2)) if c.id in kinds]
     lenses: dict[str, Intrinsics] = {}
     lens_rms: dict[str, float] = {}
+    held: set[str] = set()
     for cam in order:
         mine = [d for d in usable if d.camera == cam]
         all_mine = [d for d in detections if d.camera == cam]
@@ -182,6 +186,14 @@ def calibrate_detections(rig: Rig, target: CuboidTarget, pictures: Sequence[Pict
                                     "facing away or unplugged?); left out of the calibration", camera=cam))
             continue
         size = mine[0].size_px
+        if kinds[cam] == "depth":
+            # the depth frames carry the device's factory intrinsics and the TSDF uses them: the
+            # pose must fit those, so they are held (from the pictures, else the rig file's model)
+            reported = next((p.intrinsics for p in pictures if p.camera == cam and p.intrinsics), None)
+            lenses[cam] = (Intrinsics(size[0], size[1], *reported) if reported is not None
+                           else _lens_guess(rig, "depth", size))
+            held.add(cam)
+            continue
         try:
             fit = calibrate_lens(cam, mine, target, _lens_guess(rig, kinds[cam], size))
         except IntrinsicsError as exc:
@@ -224,7 +236,7 @@ def calibrate_detections(rig: Rig, target: CuboidTarget, pictures: Sequence[Pict
     for round_ in range(2):
         say("bundle adjustment", round_, 2)
         problem = bundle.BundleProblem(obs, target.board_corners, boards, target.corners_per_face, encoder,
-                                       len(cameras), settings)
+                                       len(cameras), settings, held_lenses=[c in held for c in cameras])
         state, err, nfev = problem.solve(state, robust=round_ == 0)
         evaluations += nfev
         if round_ == 0:
