@@ -115,9 +115,11 @@ def _calibrate(args: argparse.Namespace, rig: Any, target: Any) -> int:
     if truth is not None:
         from planner.calibration.compare import compare
 
-        s = compare(calibration, truth, rig.capture.angles_deg).summary()
-        print(f"against the truth: median {s['median_mm']:.3f} mm / {s['median_deg']:.4f} deg, "
-              f"worst {s['max_mm']:.3f} mm / {s['max_deg']:.4f} deg")
+        for kind in ("phone", "depth"):
+            ids = [c.id for c in calibration.cameras if c.kind == kind]
+            s = compare(calibration, truth, rig.capture.angles_deg, ids).summary()
+            print(f"{kind} poses against the truth: median {s['median_mm']:.3f} mm / {s['median_deg']:.4f} deg, "
+                  f"worst {s['max_mm']:.3f} mm / {s['max_deg']:.4f} deg")
     print(f"report: {page}")
     print(out / "calibration.yaml", flush=True)
     return 0
