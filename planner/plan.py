@@ -1,7 +1,8 @@
 """Plan the focus of every pose for a subject mesh, compare methods, evaluate plans elsewhere.
 
 ``plan_focus`` samples the surface, finds the visible (pose, point) pairs, and runs the
-baselines, the seed's EM and EM + exact refinement ("shape-aware"). ``evaluate`` scores any
+baselines, the seed's EM, EM + exact refinement ("shape-aware") and EM + refinement with the
+redundancy term ("robust", the plan to capture with). ``evaluate`` scores any
 focus plan on another mesh, sample or pose set: plan on an estimated mesh or noisy poses,
 judge on the true body and poses.
 """
@@ -32,6 +33,7 @@ from planner.focus_errors import (
 )
 from planner.optics import resolution_mm_per_px
 from planner.poses import Poses, rgb_poses
+from planner.redundancy import Redundancy
 from planner.refine import refine_focus
 from planner.rig import PLAN_MEMORY_BUDGET_BYTES, Rig, planning_memory_bytes
 from planner.sampling import SurfaceSamples, sample_surface
@@ -39,7 +41,7 @@ from planner.visibility import RayScene, visible_pairs
 
 log = structlog.get_logger(__name__)
 
-METHODS = ("closest", "average", "fixed", "autofocus", "em", "shape-aware")
+METHODS = ("closest", "average", "fixed", "autofocus", "em", "shape-aware", "robust")
 #: The resolution a 1.5 mm lesion needs (SPEC 2), mm per pixel.
 LESION_RESOLUTION_MM_PER_PX = 0.075
 
@@ -87,9 +89,11 @@ class PlanResult:
 
     @property
     def focus_mm(self) -> np.ndarray:
-        """(P,) mm, the plan to capture with: shape-aware when computed, else the best by K."""
-        if "shape-aware" in self.methods:
-            return self.methods["shape-aware"].focus_mm
+        """(P,) mm, the plan to capture with: robust, else shape-aware when computed, else the best
+        by K."""
+        for name in ("robust", "shape-aware"):
+            if name in self.methods:
+                return self.methods[name].focus_mm
         return min(self.methods.values(), key=lambda m: m.total_cost).focus_mm
 
     @property
@@ -214,6 +218,11 @@ def resolution_stats(table: CostTable, rig: Rig) -> dict[str, float]:
     }
 
 
+def rig_redundancy(rig: Rig) -> Redundancy:
+    """The robust plan's redundancy term from the rig file's planner section."""
+    return Redundancy(rig.planner.redundancy_weight, rig.planner.view_miss_probability)
+
+
 def plan_focus(
     mesh: trimesh.Trimesh,
     rig: Rig,
@@ -268,7 +277,7 @@ def plan_focus(
         record("fixed", *timed(lambda: fixed_focus(table, fallback)))
     if "autofocus" in methods:
         record("autofocus", *timed(lambda: autofocus(scene, poses, table.vis, fallback)))
-    if "em" in methods or "shape-aware" in methods:
+    if "em" in methods or "shape-aware" in methods or "robust" in methods:
         em_focus, timing["em"] = timed(
             lambda: expectation_minimisation(
                 table,
@@ -284,7 +293,15 @@ def plan_focus(
                 lambda: refine_focus(table, em_focus, max_sweeps=rig.planner.refine_max_sweeps).focus_mm
             )
             record("shape-aware", refined, timing["em"] + timing["refine"])
-    timing["plan"] = timing["visibility"] + timing.get("em", 0.0) + timing.get("refine", 0.0)
+        if "robust" in methods:
+            robust, timing["robust"] = timed(
+                lambda: refine_focus(
+                    table, em_focus, max_sweeps=rig.planner.robust_max_sweeps, redundancy=rig_redundancy(rig)
+                ).focus_mm
+            )
+            record("robust", robust, timing["em"] + timing["robust"])
+    last = timing.get("robust", timing.get("refine", 0.0))
+    timing["plan"] = timing["visibility"] + timing.get("em", 0.0) + last
     timing["total"] = time.perf_counter() - t_start
     result = PlanResult(rig, poses, samples, table, plans, resolution_stats(table, rig), timing)
     log.info(

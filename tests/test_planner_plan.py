@@ -37,7 +37,7 @@ def test_json_has_the_agreed_keys(result) -> None:
     assert out["points"] == 2000 and out["poses"] == 336
     assert out["angles_deg"] == RIG.capture.angles_deg.tolist()
     assert out["camera_heights_mm"] == [p.height_mm for p in RIG.phones]
-    assert set(out["methods"]) == {"closest", "average", "em", "shape-aware", "fixed", "autofocus"}
+    assert set(out["methods"]) == {"closest", "average", "em", "shape-aware", "robust", "fixed", "autofocus"}
     for m in out["methods"].values():
         assert set(m) >= METHOD_KEYS
         assert len(m["focus_mm"]) == 336
@@ -52,7 +52,7 @@ def test_methods_rank_as_expected(result) -> None:
     assert m["average"].in_focus_fraction > m["closest"].in_focus_fraction
     assert np.all(np.diff(m["fixed"].focus_mm) == 0)
     assert m["shape-aware"].in_focus_fraction <= result.visible_fraction
-    np.testing.assert_array_equal(result.focus_mm, m["shape-aware"].focus_mm)
+    np.testing.assert_array_equal(result.focus_mm, m["robust"].focus_mm)
 
 
 def test_evaluate_reproduces_the_plan_on_its_own_samples(body, result) -> None:
