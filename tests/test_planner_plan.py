@@ -57,15 +57,15 @@ def test_methods_rank_as_expected(result) -> None:
 
 def test_evaluate_reproduces_the_plan_on_its_own_samples(body, result) -> None:
     same = evaluate(result.focus_mm, body, RIG, points=result.samples)
-    assert same.total_cost == pytest.approx(result.methods["shape-aware"].total_cost)
+    assert same.total_cost == pytest.approx(result.methods["robust"].total_cost)
     fresh = evaluate(result.focus_mm, body, RIG, points=2000, seed=99)
-    assert abs(fresh.in_focus_fraction - result.methods["shape-aware"].in_focus_fraction) < 0.05
+    assert abs(fresh.in_focus_fraction - result.methods["robust"].in_focus_fraction) < 0.05
 
 
 def test_evaluate_on_other_poses(body, result) -> None:
     shifted = rgb_poses(RIG, RIG.capture.angles_deg + 20.0)
     moved = evaluate(result.focus_mm, body, RIG, points=result.samples, poses=shifted)
-    assert moved.total_cost != pytest.approx(result.methods["shape-aware"].total_cost)
+    assert moved.total_cost != pytest.approx(result.methods["robust"].total_cost)
 
 
 def test_plan_on_given_methods_only(body) -> None:
