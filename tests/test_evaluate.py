@@ -45,6 +45,15 @@ def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside
     text = markdown(corpus)
     assert "| shape-aware |" in text and "| 2986 |" in text and "84.9" in text
     assert "calibration noise" in text and "postural sway" in text
+    # Every method side by side on planning samples, fresh samples, calibration noise and sway.
+    assert "| method | planning samples | fresh samples | calibration noise | postural sway |" in text
+    assert "| robust-angles |" in text and "Certified bound" in text
+    for body in corpus["per_body"]:
+        for name, m in body["methods"].items():
+            assert {"fresh_in_focus", "calibration_in_focus", "sway_in_focus"} <= set(m), name
+            if name != "robust-angles":  # the bound is for the rig's own angles
+                assert m["fresh_in_focus"] <= body["bound"]["fresh"] + 1e-12, name
+        assert body["methods"]["shape-aware"]["in_focus_fraction"] <= body["bound"]["planning"] + 1e-12
     paths = write(corpus, tmp_path / "out")
     assert all(p.exists() and p.stat().st_size > 0 for p in paths)
     assert json.loads((tmp_path / "out" / "results.json").read_text())["bodies"] == 2
