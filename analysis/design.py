@@ -34,6 +34,8 @@ from planner.design import (
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig, rig_from_mapping
 
 Progress = Callable[[str, int, int], None]
+#: A capture split replaces the base rig's only if its score (mean + worst in focus) is this much higher.
+PATTERN_MARGIN = 0.002
 
 
 @dataclass(frozen=True)
@@ -124,7 +126,9 @@ def design(constraints: Constraints, options: DesignOptions, out: Path, *, base_
     total = base.n_angles
     splits = []
     fast_sectors = sum(1 for s in base.capture.sectors if s.speed_deg_s == max(x.speed_deg_s for x in base.capture.sectors))
-    candidates = [f for f in range(4, total // fast_sectors) if (total - f * fast_sectors) % (len(base.capture.sectors) - fast_sectors) == 0]
+    base_fast = max(s.captures for s in base.capture.sectors if s.speed_deg_s == max(x.speed_deg_s for x in base.capture.sectors))
+    candidates = [f for f in range(max(2, base_fast - 3), base_fast + 4)
+                  if (total - f * fast_sectors) % (len(base.capture.sectors) - fast_sectors) == 0]
     for n, fast in enumerate(candidates):
         try:
             capture = split_capture(base.capture, fast, total)
@@ -139,7 +143,10 @@ def design(constraints: Constraints, options: DesignOptions, out: Path, *, base_
         tell("angular pattern", n + 1, len(candidates))
     if not splits:
         raise DesignError("no angular pattern fits the capture timeline")
-    _, fast, capture = max(splits, key=lambda x: x[0])
+    # Keep the base rig's split unless another is clearly better (0.1 point on mean and worst).
+    best = max(splits, key=lambda x: x[0])
+    kept = [x for x in splits if x[1] == base_fast]
+    _, fast, capture = kept[0] if kept and best[0] - kept[0][0] < PATTERN_MARGIN else best
     mapping = _rig_mapping(base, heights, tilts, constraints, depth_cameras, pattern_sector_dicts(capture), tallest)
     out.mkdir(parents=True, exist_ok=True)
     rig_path = out / "rig.yaml"

@@ -484,7 +484,7 @@ _PLANNER = {
     # that one sharp view of a sample fails on the real skin (calibration, sway, between samples).
     "redundancy_weight": _num(0.0, 100.0, default=1.0, required=False),
     "view_miss_probability": _num(0.01, 0.99, default=0.2, required=False),
-    "robust_max_sweeps": _int(0, 10_000, default=4, required=False),
+    "robust_max_sweeps": _int(0, 10_000, default=2, required=False),
 }
 _DEPTH_CAMERA = {
     "id": _id(),
