@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", dest="json_out", type=Path, default=None, help="write the plan here")
     parser.add_argument(
         "--fresh", type=int, default=0, metavar="N",
-        help="also score the shape-aware plan on N fresh, independent surface samples",
+        help="also score the plan to capture with (robust) on N fresh, independent surface samples",
     )
     parser.add_argument(
         "--backend", choices=("open3d", "embree"), default="open3d",
@@ -74,6 +74,13 @@ def _table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def _capture_method(result: PlanResult) -> str:
+    for name in ("robust", "shape-aware"):
+        if name in result.methods:
+            return name
+    return min(result.methods.values(), key=lambda m: m.total_cost).name
+
+
 def run(args: argparse.Namespace) -> int:
     from planner.focus_errors import FocusPlanError
     from planner.plan import evaluate, load_subject_mesh, plan_focus
@@ -102,7 +109,11 @@ def run(args: argparse.Namespace) -> int:
     except (RigConfigError, FocusPlanError) as exc:
         print(f"tbp plan: {exc}", file=sys.stderr)
         return 1
+    from planner.bound import in_focus_bound
+
     out = result.to_json()
+    bound = in_focus_bound(result.table)
+    out["in_focus_bound"] = round(bound.fraction, 6)
     if args.fresh > 0:
         fresh = evaluate(
             result.focus_mm, mesh, rig, points=args.fresh, seed=args.seed + 1_000_003, backend=args.backend
@@ -114,10 +125,12 @@ def run(args: argparse.Namespace) -> int:
             "visible_fraction": round(fresh.visible_fraction, 6),
         }
     print(_table(out))
+    print(f"bound: no focus plan of these poses holds more than {100 * bound.fraction:.2f} % of these samples "
+          f"sharp (certified); the plan to capture with reaches {100 * result.methods[_capture_method(result)].in_focus_fraction / max(bound.fraction, 1e-12):.2f} % of it")
     if args.fresh > 0:
         f = out["fresh_sample"]
         print(
-            f"fresh sample ({f['points']} points): shape-aware in focus "
+            f"fresh sample ({f['points']} points): {_capture_method(result)} in focus "
             f"{100 * f['in_focus_fraction']:.1f} %, visible {100 * f['visible_fraction']:.1f} %"
         )
     if queries:

@@ -114,9 +114,11 @@ def test_cli_plan_writes_json(tmp_path: Path, body, capsys) -> None:
     text = capsys.readouterr().out
     for name in METHODS:
         assert name in text
-    assert "visible" in text and "fresh sample" in text
+    assert "visible" in text and "fresh sample" in text and "robust in focus" in text
+    assert "certified" in text
     plan = json.loads(out.read_text())
     assert plan["points"] == 800 and plan["fresh_sample"]["points"] == 500
+    assert plan["methods"]["robust"]["in_focus_fraction"] <= plan["in_focus_bound"] <= plan["visible_fraction"]
 
 
 def test_cli_plan_errors_name_the_file(tmp_path: Path, capsys) -> None:
