@@ -7,6 +7,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from cli import options
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -22,11 +24,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--column-height", type=float, default=2300.0, help="highest camera position, mm")
     parser.add_argument("--spacing", type=float, default=170.0, help="least distance between two phones, mm")
     parser.add_argument("--bodies", type=int, default=6, help="random design adults (tall and short are added)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the design adults")
+    parser.add_argument("--seed", type=int, default=1, metavar="S", help="seed of the design adults (default 1)")
     parser.add_argument("--points", type=int, default=3000, help="surface samples per design body")
     parser.add_argument("--verify-bodies", type=int, default=20, help="evaluation-corpus adults to judge on")
     parser.add_argument("--verify-points", type=int, default=10_000, help="samples per judged body")
-    parser.add_argument("--rig", type=Path, default=None, help="base rig file (default: calibration_data/rig.yaml)")
+    options.rig(parser, "base rig file (default: calibration_data/rig.yaml)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.set_defaults(func=run)
 
