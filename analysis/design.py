@@ -194,10 +194,12 @@ def _layout_figure(rigs: list[tuple[str, Rig]], path: Path) -> None:
     for ax, (name, rig) in zip(np.atleast_1d(axes), rigs):
         half = np.radians(rig.optics.vfov_deg / 2)
         r = rig.ring_radius_mm
-        for p in rig.phones:
+        for p in rig.phones:  # each phone's vertical field of view, out to the far side of the axis
             t = np.radians(p.tilt_deg)
-            for edge in (t - half, t + half):
-                ax.plot([r, r - 700 * np.cos(edge)], [p.height_mm, p.height_mm + 700 * np.sin(edge)], color="tab:blue", lw=0.6)
+            reach = r + 250.0
+            xs = [r] + [r - reach for _ in (0, 1)]
+            ys = [p.height_mm] + [p.height_mm + reach * np.tan(e) for e in (t - half, t + half)]
+            ax.fill(xs, ys, color="tab:blue", alpha=0.12)
             ax.plot(r, p.height_mm, "s", color="tab:blue")
         for c in rig.depth_cameras:
             ax.plot(c.radius_mm if abs(c.angle_offset_deg) < 90 else -c.radius_mm, c.height_mm, "^", color="tab:red")
@@ -205,7 +207,7 @@ def _layout_figure(rigs: list[tuple[str, Rig]], path: Path) -> None:
         ax.set_title(name)
         ax.set_xlim(-1600, 800)
         ax.set_ylim(0, 2400)
-        ax.set_xlabel("distance from the axis, mm (phones right; red: depth cameras)")
+        ax.set_xlabel("mm from the axis (blue: phones, red: depth cameras)")
     np.atleast_1d(axes)[0].set_ylabel("height, mm")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
