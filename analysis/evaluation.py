@@ -121,23 +121,6 @@ def _perturbed(poses: Any, options: StudyOptions, seed: int) -> Any:
                          rotation_deg=options.calibration_rotation_deg, seed=seed)
 
 
-def _plan_angles(mesh: Any, rig: Rig, plan: Any) -> Any:
-    """Per-subject angles for a plan's samples, started from its robust focus."""
-    from planner.angles import candidate_angles, plan_angles
-    from planner.cost import cost_table
-    from planner.plan import rig_redundancy
-    from planner.poses import rgb_poses
-    from planner.schedule import rig_profile
-    from planner.visibility import RayScene, visible_pairs
-
-    profile = rig_profile(rig)
-    candidates = candidate_angles(rig, profile)
-    table = cost_table(visible_pairs(RayScene(mesh), rgb_poses(rig, candidates), plan.samples, rig.optics),
-                       rig.cost, rig.optics)
-    return plan_angles(table, candidates, rig, plan.methods["robust"].focus_mm,
-                       redundancy=rig_redundancy(rig), profile=profile)
-
-
 def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig_path: str | None = None) -> dict[str, Any]:
     """All numbers for one body of the corpus (a plain dict, JSON-ready)."""
     from planner.bound import in_focus_bound
@@ -155,22 +138,15 @@ def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig
     timings["body"] = time.perf_counter() - started
 
     t = time.perf_counter()
-    plan = plan_focus(body, rig, points=options.points, seed=seed)
+    methods = METHODS if options.angles else tuple(m for m in METHODS if m != "robust-angles")
+    plan = plan_focus(body, rig, points=options.points, seed=seed, methods=methods)
     timings["plan"] = time.perf_counter() - t
     plans = {name: m.focus_mm for name, m in plan.methods.items()}
     planning = {name: m.in_focus_fraction for name, m in plan.methods.items()}
     costs = {name: m.total_cost for name, m in plan.methods.items()}
     seconds = {name: m.seconds for name, m in plan.methods.items()}
-    angle_plan = None
-    if options.angles:
-        t = time.perf_counter()
-        angle_plan = _plan_angles(body, rig, plan)
-        seconds["robust-angles"] = time.perf_counter() - t + plan.methods["robust"].seconds
-        timings["angles"] = time.perf_counter() - t
-        plans["robust-angles"] = angle_plan.focus_mm
-        planning["robust-angles"] = angle_plan.in_focus_fraction
-        costs["robust-angles"] = angle_plan.total_cost
-    angle_poses = angle_plan.poses if angle_plan is not None else None
+    chosen_angles = plan.methods["robust-angles"].angles_deg if options.angles else None
+    angle_poses = rgb_poses(rig, chosen_angles) if chosen_angles is not None else None
     true_poses = rgb_poses(rig)
 
     # Plans are judged on a fresh, independent sample: scoring on the planning samples would
@@ -216,18 +192,14 @@ def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig
         t = time.perf_counter()
         sweep = simulate_sweep(body, rig, seed=seed, noise=True, frame_spacing_deg=FRAME_SPACING_DEG)
         estimate = fuse(list(sweep.frames), rig).mesh
-        estimate_plan = plan_focus(estimate, rig, points=options.points, seed=seed,
-                                   methods=tuple(m for m in METHODS if m in plans))
+        estimate_plan = plan_focus(estimate, rig, points=options.points, seed=seed, methods=methods)
         on_estimate = {name: m.focus_mm for name, m in estimate_plan.methods.items()}
-        estimate_angles = None
-        if angle_plan is not None:
-            estimate_angles = _plan_angles(estimate, rig, estimate_plan)
-            on_estimate["robust-angles"] = estimate_angles.focus_mm
         scores = _Judge(body, rig, fresh_samples, true_poses, None).in_focus(
             {k: v for k, v in on_estimate.items() if k != "robust-angles"})
-        if estimate_angles is not None:
-            scores["robust-angles"] = _Judge(body, rig, fresh_samples, estimate_angles.poses, None).rig_table \
-                .in_focus_fraction(estimate_angles.focus_mm)
+        if "robust-angles" in estimate_plan.methods:
+            own = estimate_plan.methods["robust-angles"]
+            scores["robust-angles"] = _Judge(body, rig, fresh_samples, rgb_poses(rig, own.angles_deg), None) \
+                .rig_table.in_focus_fraction(own.focus_mm)
         conditions["shape"] = scores
         metrics = shape_metrics(body, estimate)
         shape_error = {
@@ -253,8 +225,8 @@ def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig
         "methods": methods,
         "plan_timing_s": plan.timing_s,
     }
-    if angle_plan is not None:
-        result["angles_deg"] = angle_plan.angles_deg.tolist()
+    if chosen_angles is not None:
+        result["angles_deg"] = chosen_angles.tolist()
         result["angles_visible_fraction"] = fresh_judge.angle_table.visible_fraction
     for study, key in (("calibration", "calibration_loss"), ("sway", "sway_loss"), ("shape", "shape_loss")):
         if study in conditions:

@@ -205,13 +205,16 @@ def plan_angles(
     redundancy: Redundancy,
     profile: MotionProfile | None = None,
     rounds: int = 3,
-    refine_sweeps: int = 4,
+    refine_sweeps: int = 2,
+    fallback_mm: float | None = None,
 ) -> AnglePlan:
     """Choose rig.n_angles capture angles among ``candidates_deg`` (K,) and their focus.
 
     table: the cost table of rgb_poses(rig, candidates_deg) (K * C poses, angle-major).
     start_focus_mm: (n_angles * C,) focus of the rig's own angles (which must be candidates).
+    fallback_mm: focus of a phone that sees nothing at its angle (default the ring radius).
     """
+    fallback = rig.ring_radius_mm if fallback_mm is None else fallback_mm
     profile = profile if profile is not None else rig_profile(rig)
     n_cam = rig.n_cameras
     if table.n_poses != len(candidates_deg) * n_cam:
@@ -224,7 +227,7 @@ def plan_angles(
     search = _Search(table, n_cam, times, min_capture_gap_s(rig), redundancy)
 
     chosen = where.copy()
-    focus = np.full(table.n_poses, rig.ring_radius_mm)
+    focus = np.full(table.n_poses, fallback)
     focus[(chosen[:, None] * n_cam + np.arange(n_cam)).ravel()] = start_focus_mm
     start = _objective(subset_table(table, _pose_ids(chosen, n_cam), rig), start_focus_mm, redundancy)
     best_objective, best_chosen, best_focus = start, chosen.copy(), np.asarray(start_focus_mm, dtype=float)
@@ -242,7 +245,7 @@ def plan_angles(
                 j = int(np.argmax([v for v, _ in values]))
                 new_focus = values[j][1]
                 chosen[k] = window[j]
-                focus[search.poses_of(int(chosen[k]))] = np.where(np.isnan(new_focus), rig.ring_radius_mm, new_focus)
+                focus[search.poses_of(int(chosen[k]))] = np.where(np.isnan(new_focus), fallback, new_focus)
         ids = _pose_ids(chosen, n_cam)
         sub = subset_table(table, ids, rig)
         refined = refine_focus(sub, focus[ids], max_sweeps=refine_sweeps, redundancy=redundancy)

@@ -41,7 +41,7 @@ from planner.visibility import RayScene, visible_pairs
 
 log = structlog.get_logger(__name__)
 
-METHODS = ("closest", "average", "fixed", "autofocus", "em", "shape-aware", "robust")
+METHODS = ("closest", "average", "fixed", "autofocus", "em", "shape-aware", "robust", "robust-angles")
 #: The resolution a 1.5 mm lesion needs (SPEC 2), mm per pixel.
 LESION_RESOLUTION_MM_PER_PX = 0.075
 
@@ -55,14 +55,19 @@ class MethodPlan:
     total_cost: float
     in_focus_fraction: float
     seconds: float
+    #: (A,) deg: capture angles of a plan with its own angles (robust-angles); None: the rig's.
+    angles_deg: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out = {
             "total_cost": round(self.total_cost, 4),
             "in_focus_fraction": round(self.in_focus_fraction, 6),
             "focus_mm": [round(float(s), 3) for s in self.focus_mm],
             "seconds": round(self.seconds, 4),
         }
+        if self.angles_deg is not None:
+            out["angles_deg"] = [round(float(a), 4) for a in self.angles_deg]
+        return out
 
 
 @dataclass(frozen=True)
@@ -88,13 +93,24 @@ class PlanResult:
     timing_s: dict[str, float] = field(default_factory=dict)
 
     @property
-    def focus_mm(self) -> np.ndarray:
-        """(P,) mm, the plan to capture with: robust, else shape-aware when computed, else the best
-        by K."""
-        for name in ("robust", "shape-aware"):
+    def capture_method(self) -> str:
+        """The plan to capture with: robust-angles, robust or shape-aware when computed, else the
+        best by K."""
+        for name in ("robust-angles", "robust", "shape-aware"):
             if name in self.methods:
-                return self.methods[name].focus_mm
-        return min(self.methods.values(), key=lambda m: m.total_cost).focus_mm
+                return name
+        return min(self.methods.values(), key=lambda m: m.total_cost).name
+
+    @property
+    def focus_mm(self) -> np.ndarray:
+        """(P,) mm, the focus of the plan to capture with (at :attr:`capture_angles_deg`)."""
+        return self.methods[self.capture_method].focus_mm
+
+    @property
+    def capture_angles_deg(self) -> np.ndarray:
+        """(A,) deg, the angles of the plan to capture with (the rig's unless it chose its own)."""
+        own = self.methods[self.capture_method].angles_deg
+        return own if own is not None else pose_angles_deg(self.poses, self.rig)
 
     @property
     def visible_fraction(self) -> float:
@@ -111,6 +127,8 @@ class PlanResult:
             "visible_fraction": round(self.visible_fraction, 6),
             "resolution_mm_per_px": self.resolution,
             "methods": {name: m.to_json() for name, m in self.methods.items()},
+            "capture_method": self.capture_method,
+            "capture_angles_deg": [float(a) for a in self.capture_angles_deg],
             "timing_s": {k: round(v, 4) for k, v in self.timing_s.items()},
             "pose_order": "angle-major: pose = angle_index * cameras + camera_index",
         }
@@ -218,6 +236,19 @@ def resolution_stats(table: CostTable, rig: Rig) -> dict[str, float]:
     }
 
 
+def _plan_angles(scene: RayScene, rig: Rig, samples: SurfaceSamples, robust_focus: np.ndarray,
+                 fallback_mm: float) -> Any:
+    """Per-subject capture angles (planner/angles.py) for these samples, from the robust plan."""
+    from planner.angles import candidate_angles, plan_angles
+    from planner.schedule import rig_profile
+
+    profile = rig_profile(rig)
+    candidates = candidate_angles(rig, profile, rig.planner.angle_step_deg)
+    table = cost_table(visible_pairs(scene, rgb_poses(rig, candidates), samples, rig.optics), rig.cost, rig.optics)
+    return plan_angles(table, candidates, rig, robust_focus, redundancy=rig_redundancy(rig), profile=profile,
+                       fallback_mm=fallback_mm)
+
+
 def rig_redundancy(rig: Rig) -> Redundancy:
     """The robust plan's redundancy term from the rig file's planner section."""
     return Redundancy(rig.planner.redundancy_weight, rig.planner.view_miss_probability)
@@ -230,7 +261,7 @@ def plan_focus(
     points: int | SurfaceSamples | None = None,
     seed: int = 0,
     poses: Poses | None = None,
-    methods: tuple[str, ...] = METHODS,
+    methods: tuple[str, ...] | None = None,
     backend: str = "open3d",
     mesh_name: str = "<mesh>",
 ) -> PlanResult:
@@ -240,9 +271,13 @@ def plan_focus(
     plan for (default: the rig's calibrated RGB poses).
     Raises EmptyMesh, InvertedMesh, NothingVisible (all FocusPlanError, naming the mesh).
     """
+    if methods is None:  # every method; per-subject angles only for the rig's own poses
+        methods = METHODS if poses is None else tuple(m for m in METHODS if m != "robust-angles")
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
         raise ValueError(f"unknown focus method {unknown[0]!r}; allowed: {', '.join(METHODS)}")
+    if "robust-angles" in methods and poses is not None:
+        raise ValueError("per-subject capture angles are planned from the rig's own poses, not given ones")
     RayScene.import_backend(backend)  # a one-off cost, not part of planning
     t_start = time.perf_counter()
     poses = rgb_poses(rig) if poses is None else poses
@@ -277,7 +312,7 @@ def plan_focus(
         record("fixed", *timed(lambda: fixed_focus(table, fallback)))
     if "autofocus" in methods:
         record("autofocus", *timed(lambda: autofocus(scene, poses, table.vis, fallback)))
-    if "em" in methods or "shape-aware" in methods or "robust" in methods:
+    if {"em", "shape-aware", "robust", "robust-angles"} & set(methods):
         em_focus, timing["em"] = timed(
             lambda: expectation_minimisation(
                 table,
@@ -293,14 +328,22 @@ def plan_focus(
                 lambda: refine_focus(table, em_focus, max_sweeps=rig.planner.refine_max_sweeps).focus_mm
             )
             record("shape-aware", refined, timing["em"] + timing["refine"])
-        if "robust" in methods:
+        if "robust" in methods or "robust-angles" in methods:
             robust, timing["robust"] = timed(
                 lambda: refine_focus(
                     table, em_focus, max_sweeps=rig.planner.robust_max_sweeps, redundancy=rig_redundancy(rig)
                 ).focus_mm
             )
             record("robust", robust, timing["em"] + timing["robust"])
-    last = timing.get("robust", timing.get("refine", 0.0))
+        if "robust-angles" in methods:
+            started = time.perf_counter()
+            chosen = _plan_angles(scene, rig, samples, robust, fallback)
+            timing["angles"] = time.perf_counter() - started
+            plans["robust-angles"] = MethodPlan(
+                "robust-angles", chosen.focus_mm, chosen.total_cost, chosen.in_focus_fraction,
+                timing["em"] + timing["robust"] + timing["angles"], chosen.angles_deg,
+            )
+    last = timing.get("robust", timing.get("refine", 0.0)) + timing.get("angles", 0.0)
     timing["plan"] = timing["visibility"] + timing.get("em", 0.0) + last
     timing["total"] = time.perf_counter() - t_start
     result = PlanResult(rig, poses, samples, table, plans, resolution_stats(table, rig), timing)

@@ -315,6 +315,8 @@ class PlannerSettings:
     redundancy_weight: float
     view_miss_probability: float
     robust_max_sweeps: int
+    per_subject_angles: bool
+    angle_step_deg: float
 
 
 @dataclass(frozen=True)
@@ -485,6 +487,9 @@ _PLANNER = {
     "redundancy_weight": _num(0.0, 100.0, default=1.0, required=False),
     "view_miss_probability": _num(0.01, 0.99, default=0.2, required=False),
     "robust_max_sweeps": _int(0, 10_000, default=2, required=False),
+    # Per-subject capture angles (planner/angles.py): off unless a rig file asks for them.
+    "per_subject_angles": _Field(bool, default=False, required=False),
+    "angle_step_deg": _num(0.1, 30.0, default=1.0, required=False),
 }
 _DEPTH_CAMERA = {
     "id": _id(),
