@@ -47,6 +47,12 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
         assert abs(image["actual_angle_deg"] - image["planned_angle_deg"]) <= 0.2
     for name in ("mesh.ply", "plan.json", "trace.npz", "captures.json", "qa.json", "depth_sweep.json"):
         assert (report.folder / name).is_file(), name
+    # The rig file asks for per-subject angles: the scan fired at the angles its plan chose.
+    plan = json.loads((report.folder / "plan.json").read_text())
+    assert plan["capture_method"] == "robust-angles"
+    planned = {image["angle_index"]: image["planned_angle_deg"] for image in manifest["images"]}
+    assert [planned[k] for k in range(RIG.n_angles)] == pytest.approx(plan["capture_angles_deg"])
+    assert plan["capture_angles_deg"] != RIG.capture.angles_deg.tolist()
     assert controller.machine.state is ScanState.IDLE
     states = [e.state for e in controller.machine.history if e.kind == "transition"]
     assert states[:7] == [ScanState.PREPARING, ScanState.DEPTH_SWEEP, ScanState.RECONSTRUCTING,
