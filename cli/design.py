@@ -25,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--spacing", type=float, default=170.0, help="least distance between two phones, mm")
     parser.add_argument("--bodies", type=int, default=6, help="random design adults (tall and short are added)")
     parser.add_argument("--seed", type=int, default=1, metavar="S", help="seed of the design adults (default 1)")
-    parser.add_argument("--points", type=int, default=3000, help="surface samples per design body")
+    options.plan_points(parser, 3000)
     parser.add_argument("--verify-bodies", type=int, default=20, help="evaluation-corpus adults to judge on")
     parser.add_argument("--verify-points", type=int, default=10_000, help="samples per judged body")
     options.rig(parser, "base rig file (default: calibration_data/rig.yaml)")
@@ -40,8 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
     configure_logging(level="warning")
-    if min(args.bodies, args.verify_bodies) < 0 or min(args.points, args.verify_points) < 100:
-        print("tbp design: --bodies and --verify-bodies must be >= 0, --points and --verify-points >= 100",
+    if min(args.bodies, args.verify_bodies) < 0 or min(args.plan_points, args.verify_points) < 100:
+        print("tbp design: --bodies and --verify-bodies must be >= 0, --plan-points and --verify-points >= 100",
               file=sys.stderr)
         return 2
     base_path = args.rig or DEFAULT_RIG_PATH
@@ -62,10 +62,10 @@ def run(args: argparse.Namespace) -> int:
         bar = "#" * (20 * done // max(total, 1))
         print(f"\r{what:<26} [{bar:<20}] {done}/{total}", end="\n" if done >= total else "", file=sys.stderr, flush=True)
 
-    options = DesignOptions(bodies=args.bodies, seed=args.seed, points=args.points,
+    settings = DesignOptions(bodies=args.bodies, seed=args.seed, points=args.plan_points,
                             verify_bodies=args.verify_bodies, verify_points=args.verify_points)
     try:
-        summary = design(constraints, options, args.out, base_path=base_path, progress=progress)
+        summary = design(constraints, settings, args.out, base_path=base_path, progress=progress)
     except DesignError as exc:
         print(f"tbp design: {exc}", file=sys.stderr)
         return 1
