@@ -183,29 +183,36 @@ def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig
         conditions["sway"] = _mean_by_method(swayed)
         timings["sway"] = time.perf_counter() - t
 
-    shape_error: dict[str, float] = {}
+    shape_error: dict[str, Any] = {}
     if options.shape:
         from drivers.sim.depth import simulate_sweep
         from planner.mesh_metrics import shape_metrics
+        from planner.shape_errors import ShapeEstimateError
         from planner.tsdf import FRAME_SPACING_DEG, fuse
 
         t = time.perf_counter()
         sweep = simulate_sweep(body, rig, seed=seed, noise=True, frame_spacing_deg=FRAME_SPACING_DEG)
-        estimate = fuse(list(sweep.frames), rig).mesh
-        estimate_plan = plan_focus(estimate, rig, points=options.points, seed=seed, methods=methods)
-        on_estimate = {name: m.focus_mm for name, m in estimate_plan.methods.items()}
-        scores = _Judge(body, rig, fresh_samples, true_poses, None).in_focus(
-            {k: v for k, v in on_estimate.items() if k != "robust-angles"})
-        if "robust-angles" in estimate_plan.methods:
-            own = estimate_plan.methods["robust-angles"]
-            scores["robust-angles"] = _Judge(body, rig, fresh_samples, rgb_poses(rig, own.angles_deg), None) \
-                .rig_table.in_focus_fraction(own.focus_mm)
-        conditions["shape"] = scores
-        metrics = shape_metrics(body, estimate)
-        shape_error = {
-            "chamfer_true_to_estimate_mm": float(metrics.true_to_estimate_mean_mm),
-            "coverage_10mm": float(metrics.coverage_10mm),
-        }
+        try:
+            estimate = fuse(list(sweep.frames), rig).mesh
+        except ShapeEstimateError as exc:
+            # The rig refuses this subject before the capture (e.g. skin within the camera
+            # ring's clearance): there is no estimate to plan on; the report names why.
+            shape_error = {"refused": f"{type(exc).__name__}: {exc}"}
+        else:
+            estimate_plan = plan_focus(estimate, rig, points=options.points, seed=seed, methods=methods)
+            on_estimate = {name: m.focus_mm for name, m in estimate_plan.methods.items()}
+            scores = _Judge(body, rig, fresh_samples, true_poses, None).in_focus(
+                {k: v for k, v in on_estimate.items() if k != "robust-angles"})
+            if "robust-angles" in estimate_plan.methods:
+                own = estimate_plan.methods["robust-angles"]
+                scores["robust-angles"] = _Judge(body, rig, fresh_samples, rgb_poses(rig, own.angles_deg), None) \
+                    .rig_table.in_focus_fraction(own.focus_mm)
+            conditions["shape"] = scores
+            metrics = shape_metrics(body, estimate)
+            shape_error = {
+                "chamfer_true_to_estimate_mm": float(metrics.true_to_estimate_mean_mm),
+                "coverage_10mm": float(metrics.coverage_10mm),
+            }
         timings["shape"] = time.perf_counter() - t
 
     methods = {
@@ -323,7 +330,8 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         rows = [r["methods"][name] for r in results if name in r["methods"]]
         if not rows:
             continue
-        methods[name] = {key: stat([r[key] for r in rows]) for key in rows[0]}
+        keys = {key for r in rows for key in r}  # a study a body could not run is left out of its mean
+        methods[name] = {key: stat([r[key] for r in rows if key in r]) for key in sorted(keys)}
         fresh = [r["methods"][name].get("fresh_in_focus") for r in results if name in r["methods"]]
         if all(f is not None for f in fresh):
             methods[name]["fresh_share_of_visible"] = stat(
@@ -344,8 +352,13 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         "body_seconds": stat([r["timing_s"]["total"] for r in results]),
     }
     for key in ("calibration_loss", "sway_loss", "shape_loss"):
-        if all(key in r for r in results):
-            summary[key] = stat([r[key] for r in results])
-    if all("shape_error" in r for r in results):
-        summary["shape_chamfer_mm"] = stat([r["shape_error"]["chamfer_true_to_estimate_mm"] for r in results])
+        if any(key in r for r in results):
+            summary[key] = stat([r[key] for r in results if key in r])
+    chamfer = [r["shape_error"]["chamfer_true_to_estimate_mm"] for r in results
+               if "chamfer_true_to_estimate_mm" in r.get("shape_error", {})]
+    if chamfer:
+        summary["shape_chamfer_mm"] = stat(chamfer)
+    refused = {r["label"]: r["shape_error"]["refused"] for r in results if "refused" in r.get("shape_error", {})}
+    if refused:
+        summary["shape_refused"] = refused
     return summary

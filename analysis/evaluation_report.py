@@ -115,6 +115,8 @@ def markdown(results: dict[str, Any]) -> str:
             f"| postural sway ({o['sway_deg']} deg on six joints, {o['sway_poses']} poses) "
             f"| {_pts(s['sway_loss'])} | under {PAPER['sway_loss_pts']} |"
         )
+    for label, reason in s.get("shape_refused", {}).items():
+        lines.append(f"\nBody {label}: no TSDF estimate, the rig refuses the subject before the capture ({reason}).")
     lines += ["", "## Per body (fresh samples, %)", "",
               "| body | height mm | visible | bound | shape-aware | robust | robust-angles |",
               "|---|---|---|---|---|---|---|"]
@@ -200,8 +202,8 @@ def figures(results: dict[str, Any], out: Path) -> list[Path]:
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     studies = [(k, label) for k, label in (("calibration_loss", "calibration"), ("sway_loss", "sway"),
-                                           ("shape_loss", "shape")) if all(k in b for b in per_body)]
-    values = [[100 * b[k] for b in per_body] for k, _ in studies]
+                                           ("shape_loss", "shape")) if any(k in b for b in per_body)]
+    values = [[100 * b[k] for b in per_body if k in b] for k, _ in studies]
     if values:
         ax.boxplot(values, tick_labels=[label for _, label in studies])
     ax.set_ylabel("in-focus loss, points")
