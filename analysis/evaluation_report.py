@@ -33,7 +33,7 @@ def _conditions(methods: dict[str, Any]) -> list[str]:
 
 def _cell(m: dict[str, Any], condition: str) -> str:
     key = "in_focus_fraction" if condition == "planning" else f"{condition}_in_focus"
-    return _pct(m[key]) if key in m else "–"
+    return f"{100 * m[key]['mean']:.2f} ± {100 * m[key]['std']:.2f}" if key in m else "–"
 
 
 def markdown(results: dict[str, Any]) -> str:
