@@ -71,7 +71,7 @@ def navigate(
             continue
         answers.append({
             "file": image.file, "camera_id": image.camera_id, "camera_index": view.camera_index,
-            "angle_index": view.angle_index, "angle_deg": image.actual_angle_deg or view.angle_deg,
+            "angle_index": view.angle_index, "angle_deg": image.actual_angle_deg if image.actual_angle_deg is not None else image.planned_angle_deg,
             "u_px": view.u_px, "v_px": view.v_px, "in_focus": view.in_focus, "depth_mm": view.depth_mm,
             "cost": view.cost, "pose": view.pose,
         })

@@ -104,11 +104,11 @@ def _focus_by_angle(scan: ScanRecord, out: _Figures) -> str | None:
         return None
     plt = _pyplot()
     rig = scan.rig
-    angles = rig.capture.angles_deg
     fig, axes = plt.subplots(rig.n_cameras, 1, figsize=(9, 1.6 * rig.n_cameras), sharex=True)
     for c, ax in enumerate(np.atleast_1d(axes)):
         for name, method in scan.plan["methods"].items():
-            focus = np.asarray(method["focus_mm"]).reshape(rig.n_angles, rig.n_cameras)[:, c]
+            angles = np.asarray(method.get("angles_deg", rig.capture.angles_deg), dtype=float)
+            focus = np.asarray(method["focus_mm"]).reshape(len(angles), rig.n_cameras)[:, c]
             ax.plot(angles, focus, ".-", ms=3, lw=1, label=name)
         ax.set_ylabel(f"{rig.phones[c].id}\nmm", fontsize=8)
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=4)

@@ -50,13 +50,16 @@ class ScanRecord:
         return focus
 
     def poses(self) -> Poses:
-        """Every pose at its image's actual exposure angle (the planned angle where none was measured),
-        from the calibration the scan was taken with (nominal poses for a scan without one)."""
+        """Every pose at its image's actual exposure angle (the planned angle where none was measured:
+        the plan's own angles when it chose them per subject, recorded with every image), from the
+        calibration the scan was taken with (nominal poses for a scan without one)."""
         rig = self.rig
         angles = np.tile(rig.capture.angles_deg[:, None], (1, rig.n_cameras))
         for image in self.images:
-            if image.actual_angle_deg is not None:
-                angles[image.angle_index, image.camera_index] = image.actual_angle_deg
+            measured = image.actual_angle_deg
+            angles[image.angle_index, image.camera_index] = (
+                measured if measured is not None else image.planned_angle_deg
+            )
         per_camera = [rig_rgb_poses(rig, self.calibration, angles[:, c]) for c in range(rig.n_cameras)]
         pose_of = np.arange(rig.n_poses)
         cam = pose_of % rig.n_cameras

@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--json", dest="json_out", type=Path, default=None, help="write the plan here")
     parser.add_argument(
         "--fresh", type=int, default=0, metavar="N",
-        help="also score the shape-aware plan on N fresh, independent surface samples",
+        help="also score the plan to capture with (robust) on N fresh, independent surface samples",
     )
     parser.add_argument(
         "--backend", choices=("open3d", "embree"), default="open3d",
@@ -102,10 +102,16 @@ def run(args: argparse.Namespace) -> int:
     except (RigConfigError, FocusPlanError) as exc:
         print(f"tbp plan: {exc}", file=sys.stderr)
         return 1
+    from planner.bound import in_focus_bound
+    from planner.poses import rgb_poses
+
     out = result.to_json()
+    bound = in_focus_bound(result.table)
+    out["in_focus_bound"] = round(bound.fraction, 6)
     if args.fresh > 0:
         fresh = evaluate(
-            result.focus_mm, mesh, rig, points=args.fresh, seed=args.seed + 1_000_003, backend=args.backend
+            result.focus_mm, mesh, rig, points=args.fresh, seed=args.seed + 1_000_003, backend=args.backend,
+            poses=rgb_poses(rig, result.capture_angles_deg)
         )
         out["fresh_sample"] = {
             "points": fresh.n_points,
@@ -114,10 +120,14 @@ def run(args: argparse.Namespace) -> int:
             "visible_fraction": round(fresh.visible_fraction, 6),
         }
     print(_table(out))
+    if "robust" in result.methods:
+        reach = result.methods["robust"].in_focus_fraction / max(bound.fraction, 1e-12)
+        print(f"bound: no focus plan of the rig's poses holds more than {100 * bound.fraction:.2f} % of these "
+              f"samples sharp (certified); the robust plan reaches {100 * reach:.2f} % of it")
     if args.fresh > 0:
         f = out["fresh_sample"]
         print(
-            f"fresh sample ({f['points']} points): shape-aware in focus "
+            f"fresh sample ({f['points']} points): {result.capture_method} in focus "
             f"{100 * f['in_focus_fraction']:.1f} %, visible {100 * f['visible_fraction']:.1f} %"
         )
     if queries:
@@ -141,11 +151,13 @@ def _print_views(
     import numpy as np
 
     from planner.navigation import find_views
+    from planner.poses import rgb_poses
     from planner.visibility import RayScene
 
     scene = RayScene(mesh, backend)
     on_skin, _ = scene.closest_faces(np.array(queries))
-    views = find_views(scene, rig, result.poses, result.focus_mm, on_skin, limit=3)
+    angles = result.capture_angles_deg
+    views = find_views(scene, rig, rgb_poses(rig, angles), result.focus_mm, on_skin, limit=3, angles_deg=angles)
     for query, point, found in zip(queries, on_skin, views):
         where = ", ".join(f"{v:.1f}" for v in point)
         if not found:

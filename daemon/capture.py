@@ -148,7 +148,7 @@ class CaptureRunner:
                 camera_id=rig.phones[c].id, planned_angle_deg=float(schedule.angles_deg[k]),
                 focus_mm=float(schedule.focus_mm[k, c]),
             )
-            for k in range(rig.n_angles)
+            for k in range(schedule.n_angles)
             for c in range(rig.n_cameras)
         ]
         self.captured = 0
@@ -172,7 +172,7 @@ class CaptureRunner:
         accel = self.rig.capture.acceleration_deg_s2
         targets = [
             [_Target(k, float(self.schedule.angles_deg[k]), float(self.schedule.focus_mm[k, c]))
-             for k in range(self.rig.n_angles)]
+             for k in range(self.schedule.n_angles)]
             for c in range(self.rig.n_cameras)
         ]
         await self._prefocus([t[0] for t in targets], "main")

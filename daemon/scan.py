@@ -40,10 +40,10 @@ from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_pro
 
 log = structlog.get_logger("daemon.scan")
 
-PLAN_METHOD = "shape-aware"
-"""The planner's method whose focus the capture uses (EM + refinement)."""
-PLAN_METHODS = ("average", PLAN_METHOD)
-"""Planned per scan: the capture's method and the seed's usual baseline for the QA report."""
+PLAN_METHODS = ("average", "shape-aware", "robust")
+"""Planned per scan: the seed's usual baseline and the seed's method for the QA report, and the
+robust plan the capture uses; with per-subject angles (rig planner.per_subject_angles) also
+"robust-angles", which then captures (the plan names its capture method and angles)."""
 
 
 @dataclass(frozen=True)
@@ -143,10 +143,9 @@ def canonical_mesh(mesh: Any) -> Any:
 
 def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None) -> Any:
     from planner.plan import plan_focus
-    from planner.poses import rig_rgb_poses
 
-    return plan_focus(mesh, rig, seed=seed, points=points, methods=PLAN_METHODS,
-                      poses=rig_rgb_poses(rig, calibration))
+    methods = PLAN_METHODS + (("robust-angles",) if rig.planner.per_subject_angles else ())
+    return plan_focus(mesh, rig, seed=seed, points=points, methods=methods, calibration=calibration)
 
 
 class Scan:
@@ -407,16 +406,17 @@ class Scan:
                 self.settings.executor, _timed, _plan, fused.mesh, rig, self.settings.seed,
                 self.settings.plan_points, self.calibration)
             plan_json = plan.to_json()
-            focus = self._reachable(np.asarray(plan.methods[PLAN_METHOD].focus_mm, dtype=float))
+            focus = self._reachable(np.asarray(plan.focus_mm, dtype=float))
+            angles = plan.capture_angles_deg
             self.folder.write_plan(plan_json, _plan_summary(plan_json))
-            self.folder.plan_images(rig.capture.angles_deg, focus)
+            self.folder.plan_images(angles, focus)
             timings = [
                 PhoneTiming(rig.capture.capture_cycle_s, rig.capture.lens_settle_s,
                             self.prep.latency[c].value_s, self.prep.min_focus_mm[c],
                             self.prep.max_focus_mm[c])
                 for c in range(rig.n_cameras)
             ]
-            self.schedule = compile_plan(focus, rig, timings, profile=profile)
+            self.schedule = compile_plan(focus, rig, timings, profile=profile, angles_deg=angles)
             self.pulls = PullQueue(self.folder)
             self.pulls.start()
         finally:
@@ -599,7 +599,8 @@ def _plan_summary(plan_json: dict[str, Any]) -> dict[str, Any]:
         "points": plan_json.get("points"),
         "poses": plan_json.get("poses"),
         "visible_fraction": plan_json.get("visible_fraction"),
-        "method": PLAN_METHOD,
+        "method": plan_json.get("capture_method"),
+        "angles_deg": plan_json.get("capture_angles_deg"),
         "methods": {
             name: {k: m.get(k) for k in ("total_cost", "in_focus_fraction")}
             for name, m in plan_json.get("methods", {}).items()

@@ -41,8 +41,17 @@ import structlog
 
 from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
 from daemon.faults import Cause
-from daemon.manifest import (MANIFEST, ImageRecord, ImageStatus, Manifest, ManifestError, ManifestRenderer,
-                             ScanEnd, json_bytes, json_safe)
+from daemon.manifest import (
+    MANIFEST,
+    ImageRecord,
+    ImageStatus,
+    Manifest,
+    ManifestError,
+    ManifestRenderer,
+    ScanEnd,
+    json_bytes,
+    json_safe,
+)
 from daemon.utc import utc_now, utc_stamp
 from planner.rig import Rig
 

@@ -103,3 +103,52 @@ def best_focus_per_group(
     s[present] = np.clip(mid, left, right)
     score[present] = best
     return s, score
+
+
+class PresortedIntervals:
+    """Every pose's interval ends sorted once, so a weighted sweep is a cumulative sum, not a sort.
+
+    The refinement sweeps the same intervals of a pose many times with new weights; sorting
+    2n ends each time dominated its cost. lo, hi: (M,) float, pairs grouped by pose as given by
+    ptr (P + 1,). Ends are ordered by pose, then coordinate, starts before ends on ties (closed
+    intervals), as in :func:`sweep`.
+    """
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, ptr: np.ndarray) -> None:
+        ptr = np.asarray(ptr, dtype=np.int64)
+        local = np.empty(2 * len(lo), dtype=np.int32)
+        is_start = np.empty(2 * len(lo), dtype=bool)
+        # Pose by pose: many small sorts are several times faster than one sort of every end.
+        for a, b in zip(ptr[:-1].tolist(), ptr[1:].tolist()):
+            if b > a:
+                order = np.argsort(np.concatenate([lo[a:b], hi[a:b]]), kind="stable")
+                n = b - a
+                is_start[2 * a : 2 * b] = order < n
+                local[2 * a : 2 * b] = np.where(order < n, order, order - n)
+        pair = local + np.repeat(ptr[:-1], 2 * np.diff(ptr))
+        self.coords = np.where(is_start, lo[pair], hi[pair])
+        self.sign = np.where(is_start, 1.0, -1.0)
+        self.local = local
+        self.ptr = 2 * ptr
+
+    def sweep(self, pose: int, weights: np.ndarray) -> tuple[float, float]:
+        """(s, score) of the best cell of ``pose``'s intervals under ``weights`` (n,) >= 0, given in
+        the pose's pair order; cells of equal score next to each other count as one cell, so s is
+        the diopter midpoint of the widest stretch at the best score, as :func:`sweep` gives
+        when only the weighted intervals are swept."""
+        seg = slice(int(self.ptr[pose]), int(self.ptr[pose + 1]))
+        running = np.cumsum(weights[self.local[seg]] * self.sign[seg])
+        coords = self.coords[seg]
+        inner = running[:-1]
+        k = int(np.argmax(inner))
+        best = float(inner[k])
+        tolerance = 1e-12 * max(1.0, abs(best))
+        below = np.flatnonzero(inner[k:] < best - tolerance)
+        j = k + (int(below[0]) if len(below) else len(inner) - k)
+        left, right = coords[k], coords[j]
+        if np.isinf(right):
+            s = 2.0 * left
+        else:
+            s = 2.0 * left * right / (left + right) if left + right > 0 else left
+            s = min(max(s, left), right)
+        return float(s), best

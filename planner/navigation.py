@@ -54,6 +54,7 @@ def find_views(
     normals: np.ndarray | None = None,
     *,
     limit: int = 5,
+    angles_deg: np.ndarray | None = None,
 ) -> list[list[View]]:
     """For each query point (Q, 3) mm on the mesh: up to ``limit`` views, best (lowest cost) first.
 
@@ -70,7 +71,7 @@ def find_views(
     cost = table.pair_cost(focus_mm)
     in_focus = table.pair_in_focus(focus_mm)
     u, v = pixel_of(poses, vis.pose, points[vis.point], rig)
-    angles = rig.capture.angles_deg
+    angles = rig.capture.angles_deg if angles_deg is None else np.asarray(angles_deg, dtype=float)
     order = np.lexsort((vis.pose, cost, vis.point))
     views: list[list[View]] = [[] for _ in range(len(points))]
     for i in order:

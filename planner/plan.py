@@ -1,7 +1,8 @@
 """Plan the focus of every pose for a subject mesh, compare methods, evaluate plans elsewhere.
 
 ``plan_focus`` samples the surface, finds the visible (pose, point) pairs, and runs the
-baselines, the seed's EM and EM + exact refinement ("shape-aware"). ``evaluate`` scores any
+baselines, the seed's EM, EM + exact refinement ("shape-aware") and EM + refinement with the
+redundancy term ("robust", the plan to capture with). ``evaluate`` scores any
 focus plan on another mesh, sample or pose set: plan on an estimated mesh or noisy poses,
 judge on the true body and poses.
 """
@@ -12,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
@@ -31,15 +32,19 @@ from planner.focus_errors import (
     SubjectOutsideRing,
 )
 from planner.optics import resolution_mm_per_px
-from planner.poses import Poses, rgb_poses
+from planner.poses import Poses, rgb_poses, rig_rgb_poses
+from planner.redundancy import Redundancy
 from planner.refine import refine_focus
 from planner.rig import PLAN_MEMORY_BUDGET_BYTES, Rig, planning_memory_bytes
 from planner.sampling import SurfaceSamples, sample_surface
 from planner.visibility import RayScene, visible_pairs
 
+if TYPE_CHECKING:
+    from planner.calibration.model import Calibration
+
 log = structlog.get_logger(__name__)
 
-METHODS = ("closest", "average", "fixed", "autofocus", "em", "shape-aware")
+METHODS = ("closest", "average", "fixed", "autofocus", "em", "shape-aware", "robust", "robust-angles")
 #: The resolution a 1.5 mm lesion needs (SPEC 2), mm per pixel.
 LESION_RESOLUTION_MM_PER_PX = 0.075
 
@@ -53,14 +58,19 @@ class MethodPlan:
     total_cost: float
     in_focus_fraction: float
     seconds: float
+    #: (A,) deg: capture angles of a plan with its own angles (robust-angles); None: the rig's.
+    angles_deg: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out = {
             "total_cost": round(self.total_cost, 4),
             "in_focus_fraction": round(self.in_focus_fraction, 6),
             "focus_mm": [round(float(s), 3) for s in self.focus_mm],
             "seconds": round(self.seconds, 4),
         }
+        if self.angles_deg is not None:
+            out["angles_deg"] = [round(float(a), 4) for a in self.angles_deg]
+        return out
 
 
 @dataclass(frozen=True)
@@ -84,13 +94,36 @@ class PlanResult:
     methods: dict[str, MethodPlan]
     resolution: dict[str, float]
     timing_s: dict[str, float] = field(default_factory=dict)
+    beam_angles_deg: np.ndarray | None = None
+    """(A,) deg, the beam angle of each angle index of ``poses`` when known (the rig's own poses,
+    nominal or calibrated); None for given poses, whose angles are estimated from their centres."""
+
+    @property
+    def pose_angles_deg(self) -> np.ndarray:
+        """(A,) deg, the beam angle of each angle index of :attr:`poses`."""
+        if self.beam_angles_deg is not None:
+            return self.beam_angles_deg
+        return pose_angles_deg(self.poses, self.rig)
+
+    @property
+    def capture_method(self) -> str:
+        """The plan to capture with: robust-angles, robust or shape-aware when computed, else the
+        best by K."""
+        for name in ("robust-angles", "robust", "shape-aware"):
+            if name in self.methods:
+                return name
+        return min(self.methods.values(), key=lambda m: m.total_cost).name
 
     @property
     def focus_mm(self) -> np.ndarray:
-        """(P,) mm, the plan to capture with: shape-aware when computed, else the best by K."""
-        if "shape-aware" in self.methods:
-            return self.methods["shape-aware"].focus_mm
-        return min(self.methods.values(), key=lambda m: m.total_cost).focus_mm
+        """(P,) mm, the focus of the plan to capture with (at :attr:`capture_angles_deg`)."""
+        return self.methods[self.capture_method].focus_mm
+
+    @property
+    def capture_angles_deg(self) -> np.ndarray:
+        """(A,) deg, the angles of the plan to capture with (the rig's unless it chose its own)."""
+        own = self.methods[self.capture_method].angles_deg
+        return own if own is not None else self.pose_angles_deg
 
     @property
     def visible_fraction(self) -> float:
@@ -98,7 +131,7 @@ class PlanResult:
 
     def to_json(self) -> dict[str, Any]:
         camera_heights = [p.height_mm for p in self.rig.phones]
-        angles = pose_angles_deg(self.poses, self.rig)
+        angles = self.pose_angles_deg
         return {
             "points": len(self.samples),
             "poses": len(self.poses),
@@ -107,6 +140,8 @@ class PlanResult:
             "visible_fraction": round(self.visible_fraction, 6),
             "resolution_mm_per_px": self.resolution,
             "methods": {name: m.to_json() for name, m in self.methods.items()},
+            "capture_method": self.capture_method,
+            "capture_angles_deg": [float(a) for a in self.capture_angles_deg],
             "timing_s": {k: round(v, 4) for k, v in self.timing_s.items()},
             "pose_order": "angle-major: pose = angle_index * cameras + camera_index",
         }
@@ -214,6 +249,25 @@ def resolution_stats(table: CostTable, rig: Rig) -> dict[str, float]:
     }
 
 
+def _plan_angles(scene: RayScene, rig: Rig, samples: SurfaceSamples, robust_focus: np.ndarray,
+                 fallback_mm: float, calibration: Calibration | None) -> Any:
+    """Per-subject capture angles (planner/angles.py) for these samples, from the robust plan."""
+    from planner.angles import candidate_angles, plan_angles
+    from planner.schedule import rig_profile
+
+    profile = rig_profile(rig)
+    candidates = candidate_angles(rig, profile, rig.planner.angle_step_deg)
+    poses = rig_rgb_poses(rig, calibration, candidates)
+    table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics)
+    return plan_angles(table, candidates, rig, robust_focus, redundancy=rig_redundancy(rig), profile=profile,
+                       fallback_mm=fallback_mm, poses_at=lambda angles: rig_rgb_poses(rig, calibration, angles))
+
+
+def rig_redundancy(rig: Rig) -> Redundancy:
+    """The robust plan's redundancy term from the rig file's planner section."""
+    return Redundancy(rig.planner.redundancy_weight, rig.planner.view_miss_probability)
+
+
 def plan_focus(
     mesh: trimesh.Trimesh,
     rig: Rig,
@@ -221,22 +275,29 @@ def plan_focus(
     points: int | SurfaceSamples | None = None,
     seed: int = 0,
     poses: Poses | None = None,
-    methods: tuple[str, ...] = METHODS,
+    calibration: Calibration | None = None,
+    methods: tuple[str, ...] | None = None,
     backend: str = "open3d",
     mesh_name: str = "<mesh>",
 ) -> PlanResult:
     """Plan one focus distance per pose (angle-major order) for ``mesh`` (mm) on ``rig``.
 
     points: sample count (default rig.planner.points) or given samples. poses: camera poses to
-    plan for (default: the rig's calibrated RGB poses).
+    plan for (default: the rig's RGB poses, calibrated when ``calibration`` is given; per-subject
+    capture angles need the rig's own poses, so they are refused with given ``poses``).
     Raises EmptyMesh, InvertedMesh, NothingVisible (all FocusPlanError, naming the mesh).
     """
+    if methods is None:  # every method; per-subject angles only for the rig's own poses
+        methods = METHODS if poses is None else tuple(m for m in METHODS if m != "robust-angles")
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
         raise ValueError(f"unknown focus method {unknown[0]!r}; allowed: {', '.join(METHODS)}")
+    if "robust-angles" in methods and poses is not None:
+        raise ValueError("per-subject capture angles are planned from the rig's own poses, not given ones")
     RayScene.import_backend(backend)  # a one-off cost, not part of planning
     t_start = time.perf_counter()
-    poses = rgb_poses(rig) if poses is None else poses
+    given_poses = poses
+    poses = rig_rgb_poses(rig, calibration) if poses is None else poses
     samples = _samples(mesh, rig, points, seed, mesh_name)
     t_sampled = time.perf_counter()
     scene = RayScene(mesh, backend)
@@ -268,7 +329,7 @@ def plan_focus(
         record("fixed", *timed(lambda: fixed_focus(table, fallback)))
     if "autofocus" in methods:
         record("autofocus", *timed(lambda: autofocus(scene, poses, table.vis, fallback)))
-    if "em" in methods or "shape-aware" in methods:
+    if {"em", "shape-aware", "robust", "robust-angles"} & set(methods):
         em_focus, timing["em"] = timed(
             lambda: expectation_minimisation(
                 table,
@@ -284,9 +345,26 @@ def plan_focus(
                 lambda: refine_focus(table, em_focus, max_sweeps=rig.planner.refine_max_sweeps).focus_mm
             )
             record("shape-aware", refined, timing["em"] + timing["refine"])
-    timing["plan"] = timing["visibility"] + timing.get("em", 0.0) + timing.get("refine", 0.0)
+        if "robust" in methods or "robust-angles" in methods:
+            robust, timing["robust"] = timed(
+                lambda: refine_focus(
+                    table, em_focus, max_sweeps=rig.planner.robust_max_sweeps, redundancy=rig_redundancy(rig)
+                ).focus_mm
+            )
+            record("robust", robust, timing["em"] + timing["robust"])
+        if "robust-angles" in methods:
+            started = time.perf_counter()
+            chosen = _plan_angles(scene, rig, samples, robust, fallback, calibration)
+            timing["angles"] = time.perf_counter() - started
+            plans["robust-angles"] = MethodPlan(
+                "robust-angles", chosen.focus_mm, chosen.total_cost, chosen.in_focus_fraction,
+                timing["em"] + timing["robust"] + timing["angles"], chosen.angles_deg,
+            )
+    last = timing.get("robust", timing.get("refine", 0.0)) + timing.get("angles", 0.0)
+    timing["plan"] = timing["visibility"] + timing.get("em", 0.0) + last
     timing["total"] = time.perf_counter() - t_start
-    result = PlanResult(rig, poses, samples, table, plans, resolution_stats(table, rig), timing)
+    result = PlanResult(rig, poses, samples, table, plans, resolution_stats(table, rig), timing,
+                        beam_angles_deg=rig.capture.angles_deg if given_poses is None else None)
     log.info(
         "plan.done",
         points=len(samples),

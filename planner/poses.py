@@ -134,3 +134,27 @@ def rig_depth_pose(camera: DepthCamera, beam_angle_rad: float, calibration: Cali
     if calibration is None:
         return depth_camera_pose(camera, beam_angle_rad)
     return calibration.world_from_camera(camera.id, math.degrees(beam_angle_rad))
+
+
+def column_poses(radius_mm: float, heights_mm: np.ndarray, tilts_deg: np.ndarray, angles_deg: np.ndarray) -> Poses:
+    """Poses of cameras in one column (heights (C,) mm, tilts (C,) deg, > 0 looks up) at a ring
+    radius, at every angle (A,) deg, angle-major like :func:`rgb_poses`. For rig designs that
+    are not (yet) a rig file."""
+    angles = np.radians(np.asarray(angles_deg, dtype=float))
+    heights = np.asarray(heights_mm, dtype=float)
+    n_cam = len(heights)
+    angle_index = np.repeat(np.arange(len(angles)), n_cam)
+    camera_index = np.tile(np.arange(n_cam), len(angles))
+    azimuth = angles[angle_index]
+    centres = np.stack([radius_mm * np.cos(azimuth), radius_mm * np.sin(azimuth), heights[camera_index]], axis=1)
+    tilts = np.radians(np.asarray(tilts_deg, dtype=float))[camera_index]
+    forward, right, down = _look_towards_axis(centres, azimuth, tilts, np.zeros_like(azimuth))
+    return Poses(centres, forward, right, down, angle_index, camera_index)
+
+
+def depth_sweep_poses(camera: DepthCamera, beam_angles_deg: np.ndarray) -> Poses:
+    """Poses (optical frames) of one depth camera at every beam angle (K,) deg of a sweep."""
+    frames = [depth_camera_pose(camera, math.radians(a)) for a in np.asarray(beam_angles_deg, dtype=float)]
+    m = np.array(frames).reshape(-1, 4, 4)
+    n = len(m)
+    return Poses(m[:, :3, 3], m[:, :3, 2], m[:, :3, 0], m[:, :3, 1], np.arange(n), np.zeros(n, dtype=int))

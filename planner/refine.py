@@ -8,6 +8,11 @@ over the remaining poses, so bringing p into focus saves
 and K(s) = const - sum of gain_cp over the intervals containing s. Keeping each point's best and
 second-best cost makes other_p O(1), so one pose update costs O(pairs of that pose) plus the
 points whose cost it changes. A pose is revisited only after a neighbour changed its points.
+
+With a :class:`~planner.redundancy.Redundancy` the descent minimises K plus the expected number
+of points left out of focus when every sharp view independently fails (``planner/redundancy.py``);
+that term is also additive over one pose's pairs once the others are fixed, so each step is
+still an exact weighted sweep.
 """
 
 from __future__ import annotations
@@ -18,7 +23,8 @@ import numpy as np
 import structlog
 
 from planner.cost import INVISIBLE_COST, CostTable
-from planner.interval_sweep import sweep
+from planner.interval_sweep import PresortedIntervals
+from planner.redundancy import Redundancy, expected_misses
 
 log = structlog.get_logger(__name__)
 
@@ -28,12 +34,14 @@ MIN_GAIN = 1e-9
 
 @dataclass(frozen=True)
 class RefineResult:
-    """focus_mm (P,) after descent, its K, full passes over the poses, accepted pose moves."""
+    """focus_mm (P,) after descent, its K, full passes over the poses, accepted pose moves, and the
+    objective descended (K, plus the redundancy term when one was given)."""
 
     focus_mm: np.ndarray
     total_cost: float
     sweeps: int
     updates: int
+    objective: float
 
 
 class _PointBest:
@@ -125,13 +133,31 @@ class _PointBest:
         return np.concatenate([direct, self.recompute(points[redo])])
 
 
-def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20) -> RefineResult:
-    """Block-coordinate descent over poses from ``focus_mm`` (P,); K never increases."""
+def refine_focus(
+    table: CostTable,
+    focus_mm: np.ndarray,
+    *,
+    max_sweeps: int = 20,
+    redundancy: Redundancy | None = None,
+) -> RefineResult:
+    """Block-coordinate descent over poses from ``focus_mm`` (P,); the objective never increases.
+
+    The objective is K, or K + redundancy.weight * expected misses when ``redundancy`` is given.
+    """
     focus = np.array(focus_mm, dtype=float, copy=True)
     vis = table.vis
     w3 = table.w_focus
-    pair_cost = table.pair_cost(focus)
+    sharp_pair = table.pair_in_focus(focus)
+    pair_cost = table.base + w3 * ~sharp_pair
     state = _PointBest(table, pair_cost)
+    # Sharp views per point, and the value of one more: weight * miss^k * (1 - miss).
+    sharp_views = np.bincount(vis.point[sharp_pair], minlength=table.n_points)
+    if redundancy is not None:
+        # weight * (1 - miss) * miss^k for k = 0 .. the most views any point has.
+        extra = redundancy.weight * (1.0 - redundancy.miss_probability) * (
+            redundancy.miss_probability ** np.arange(int(np.diff(table.point_ptr).max(initial=0)) + 2)
+        )
+    ends = PresortedIntervals(table.lo, table.hi, vis.pose_ptr)
     dirty = np.diff(vis.pose_ptr) > 0
     pair_index = np.arange(len(vis), dtype=np.int64)
     base_all, lo_all, hi_all = table.base, table.lo, table.hi
@@ -150,33 +176,39 @@ def refine_focus(table: CostTable, focus_mm: np.ndarray, *, max_sweeps: int = 20
             mine = np.flatnonzero(state.best_pair[points] == pair_index[sl])
             other[mine] = state.second[points[mine]]
             base = base_all[sl]
-            useful = np.flatnonzero(other > base)  # only there does focus change the point's cost
-            if not len(useful):
-                continue
-            b = base[useful]
-            gain = np.minimum(other[useful], b + w3) - b
-            lo, hi = lo_all[sl][useful], hi_all[sl][useful]
-            s_old = focus[c]
-            sharp = (lo <= s_old) & (s_old <= hi)
-            current = float(gain[sharp].sum())
+            sharp_now = sharp_pair[sl]
+            # What bringing each point into focus in this pose saves (0 where the point is
+            # better served elsewhere whatever this pose does).
+            gain = np.maximum(np.minimum(other, base + w3) - base, 0.0)
+            if redundancy is not None:
+                gain += extra[sharp_views[points] - sharp_now]
+            current = float(gain[sharp_now].sum())
             if not float(gain.sum()) - current > MIN_GAIN:
                 continue  # everything this pose could gain is already in focus
-            s, score = sweep(lo, hi, gain)
+            s, score = ends.sweep(c, gain)
             if score <= current + MIN_GAIN:
                 continue
             focus[c] = s
             updates += 1
             changed_any = True
             lo, hi = lo_all[sl], hi_all[sl]
-            moved = np.flatnonzero(((lo <= s_old) & (s_old <= hi)) != ((lo <= s) & (s <= hi)))
+            now = (lo <= s) & (s <= hi)
+            moved = np.flatnonzero(sharp_now != now)
             moved_pairs = moved + sl.start
+            sharp_pair[moved_pairs] = now[moved]
+            sharp_views[points[moved]] += np.where(now[moved], 1, -1)
             old_cost = pair_cost[moved_pairs]
-            pair_cost[moved_pairs] = np.where(old_cost > base[moved], base[moved], base[moved] + w3)
+            pair_cost[moved_pairs] = np.where(now[moved], base[moved], base[moved] + w3)
             changed = state.update(moved_pairs, points[moved], old_cost)
+            if redundancy is not None:  # every pose seeing a point whose sharp views changed
+                changed = np.concatenate([changed, points[moved]])
             dirty[state.poses_seeing(changed)] = True
             dirty[c] = False
         if not changed_any:
             break
     total = float(state.best.sum())
-    log.debug("refine.done", sweeps=sweeps, updates=updates, total_cost=total)
-    return RefineResult(focus, total, sweeps, updates)
+    objective = total
+    if redundancy is not None:
+        objective += redundancy.weight * expected_misses(sharp_views, redundancy.miss_probability)
+    log.debug("refine.done", sweeps=sweeps, updates=updates, total_cost=total, objective=objective)
+    return RefineResult(focus, total, sweeps, updates, objective)

@@ -312,6 +312,11 @@ class PlannerSettings:
     em_relative_tolerance: float
     em_max_iterations: int
     refine_max_sweeps: int
+    redundancy_weight: float
+    view_miss_probability: float
+    robust_max_sweeps: int
+    per_subject_angles: bool
+    angle_step_deg: float
 
 
 @dataclass(frozen=True)
@@ -486,6 +491,14 @@ _PLANNER = {
     "em_relative_tolerance": _num(0.0, 0.5),
     "em_max_iterations": _int(1, 10_000),
     "refine_max_sweeps": _int(0, 10_000),
+    # Robust focus (planner/redundancy.py): cost of one expected missed point, and the chance
+    # that one sharp view of a sample fails on the real skin (calibration, sway, between samples).
+    "redundancy_weight": _num(0.0, 100.0, default=1.0, required=False),
+    "view_miss_probability": _num(0.01, 0.99, default=0.2, required=False),
+    "robust_max_sweeps": _int(0, 10_000, default=2, required=False),
+    # Per-subject capture angles (planner/angles.py): off unless a rig file asks for them.
+    "per_subject_angles": _Field(bool, default=False, required=False),
+    "angle_step_deg": _num(0.1, 30.0, default=1.0, required=False),
 }
 _DEPTH_CAMERA = {
     "id": _id(),

@@ -50,7 +50,8 @@ class OutsideProfile(TimelineError):
 class Violation:
     """One reason a plan cannot be executed.
 
-    kind: "focus_missing" | "focus_range" | "cycle" | "lens_settle" | "motion_blur".
+    kind: "focus_missing" | "focus_range" | "cycle" | "lens_settle" | "motion_blur" | "ramp" |
+    "order".
     camera_index is -1 when the problem concerns every camera at that angle.
     """
 
@@ -70,6 +71,8 @@ class Violation:
             "cycle": "time between captures shorter than the phone's capture cycle",
             "lens_settle": "lens cannot settle between the previous capture and this trigger",
             "motion_blur": "motion blur above the limit",
+            "ramp": "beam speed differs from its sector's constant speed (capture in a speed ramp)",
+            "order": "angle not after the previous capture angle",
         }[self.kind]
         where = f"angle {self.angle_index} ({self.angle_deg:.2f} deg), {who}: {words}"
         if self.kind == "focus_missing":
@@ -398,7 +401,8 @@ class CaptureSchedule:
 
 
 def compile_plan(focus_mm: np.ndarray, rig: Rig, phones: Sequence[PhoneTiming] | None = None, *,
-                 profile: MotionProfile | None = None, check: bool = True) -> CaptureSchedule:
+                 profile: MotionProfile | None = None, check: bool = True,
+                 angles_deg: np.ndarray | None = None) -> CaptureSchedule:
     """Compile a focus plan into per-angle capture events and check that it can be executed.
 
     Args:
@@ -407,22 +411,26 @@ def compile_plan(focus_mm: np.ndarray, rig: Rig, phones: Sequence[PhoneTiming] |
         phones: one PhoneTiming per camera; default from rig.capture with zero latency.
         profile: the motion profile; default :func:`rig_profile`.
         check: raise PlanInfeasible on any violation (else they are in ``.violations``).
+        angles_deg: (A,) capture angles of this plan (per-subject angles), in rotation order;
+            default the rig's. Each must be crossed at its sector's constant speed.
 
     Raises:
         TimelineError: focus_mm has the wrong shape.
+        OutsideProfile: an angle is not on the capture rotation.
         PlanInfeasible: focus missing or out of range, captures closer in time than a
-            phone's cycle (+ lens settle), or motion blur above rig.capture.max_motion_blur_px.
+            phone's cycle (+ lens settle), motion blur above rig.capture.max_motion_blur_px,
+            angles out of order or inside a speed ramp.
     """
     phones = tuple(phones) if phones is not None else phone_timings(rig)
     profile = profile if profile is not None else rig_profile(rig)
-    n_a, n_c = rig.n_angles, rig.n_cameras
+    angles = rig.capture.angles_deg if angles_deg is None else np.asarray(angles_deg, dtype=float).reshape(-1)
+    n_a, n_c = len(angles), rig.n_cameras
     focus = np.asarray(focus_mm, dtype=float)
     if focus.shape != (n_a * n_c,):
         raise TimelineError(f"focus plan has shape {focus.shape}; expected ({n_a * n_c},) poses")
     if len(phones) != n_c:
         raise TimelineError(f"got timings for {len(phones)} phones; the rig has {n_c}")
     focus = focus.reshape(n_a, n_c)
-    angles = rig.capture.angles_deg
     exposure = rig.optics.exposure_s
 
     crossing = profile.time_at(angles)
@@ -436,9 +444,14 @@ def compile_plan(focus_mm: np.ndarray, rig: Rig, phones: Sequence[PhoneTiming] |
     send[1:] = trigger[:-1] + cycle[None, :]
     deadline = trigger.copy()
 
+    nominal = profile.nominal_speed(angles)
     violations: list[Violation] = []
     for k in range(n_a):
         a = float(angles[k])
+        if k > 0 and not a > float(angles[k - 1]):
+            violations.append(Violation("order", k, a, -1, a, float(angles[k - 1]), "deg"))
+        if not math.isclose(float(speed[k]), float(nominal[k]), rel_tol=1e-6, abs_tol=1e-6) or nominal[k] <= 0:
+            violations.append(Violation("ramp", k, a, -1, float(speed[k]), float(nominal[k]), "deg/s"))
         if blur[k] > rig.capture.max_motion_blur_px:
             violations.append(Violation("motion_blur", k, a, -1, float(blur[k]),
                                         rig.capture.max_motion_blur_px, "px"))

@@ -126,3 +126,30 @@ def test_a_scan_plans_with_the_calibration_and_keeps_it(tmp_path: Path) -> None:
     pose = scan.poses()
     expected = scan.calibration.world_from_camera(image.camera_id, image.actual_angle_deg)
     assert np.allclose(pose.centres[rig.pose_index(image.angle_index, image.camera_index)], expected[:3, 3])
+
+
+def test_calibrated_plans_keep_the_beam_angles_and_choose_angles_on_calibrated_poses(tmp_path: Path) -> None:
+    """The capture fires at beam angles: a plan on calibrated poses captures at the rig's angles
+    (not the camera centres' azimuths, which the calibration moves), and per-subject angles are
+    chosen and posed with the calibration."""
+    from planner.calibration.installed import installed_calibration
+    from planner.plan import plan_focus
+    from tests.daemon_rigs import capsule_subject
+
+    rig = rig_with_calibration(tmp_path)
+    cal = installed_calibration(rig)
+    mesh = capsule_subject()
+    fixed = plan_focus(mesh, rig, points=600, calibration=cal, methods=("robust",))
+    assert np.array_equal(fixed.capture_angles_deg, rig.capture.angles_deg)
+    assert np.array_equal(fixed.to_json()["angles_deg"], rig.capture.angles_deg)
+    chosen = plan_focus(mesh, rig, points=600, calibration=cal, methods=("robust", "robust-angles"))
+    angles = chosen.capture_angles_deg
+    posed = chosen.methods["robust-angles"]
+    assert posed.angles_deg is not None and np.array_equal(angles, posed.angles_deg)
+    # its score is the score of its focus on the calibrated poses at its angles
+    from planner.cost import cost_table
+    from planner.visibility import RayScene, visible_pairs
+
+    table = cost_table(visible_pairs(RayScene(mesh), rig_rgb_poses(rig, cal, angles), chosen.samples, rig.optics),
+                       rig.cost, rig.optics)
+    assert table.in_focus_fraction(posed.focus_mm) == pytest.approx(posed.in_focus_fraction, abs=1e-9)

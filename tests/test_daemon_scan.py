@@ -31,8 +31,12 @@ def _captures(report) -> list[dict]:
     return json.loads((report.folder / "captures.json").read_text())
 
 
+ANGLES_RIG = dataclasses.replace(RIG, planner=dataclasses.replace(RIG.planner, per_subject_angles=True))
+"""The default rig asking for per-subject capture angles (the default file leaves them off)."""
+
+
 def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
-    report, controller, _ = run_scan(tmp_path)
+    report, controller, _ = run_scan(tmp_path, rig=ANGLES_RIG)
     assert report.outcome is ScanOutcome.COMPLETED, report.reason
     assert report.captured == RIG.n_poses == 336 and report.missing == 0
     assert report.max_abs_angle_error_deg <= RIG.capture.angle_tolerance_deg
@@ -47,6 +51,12 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
         assert abs(image["actual_angle_deg"] - image["planned_angle_deg"]) <= 0.2
     for name in ("mesh.ply", "plan.json", "trace.npz", "captures.json", "qa.json", "depth_sweep.json"):
         assert (report.folder / name).is_file(), name
+    # The rig asks for per-subject angles: the scan fired at the angles its plan chose.
+    plan = json.loads((report.folder / "plan.json").read_text())
+    assert plan["capture_method"] == "robust-angles"
+    planned = {image["angle_index"]: image["planned_angle_deg"] for image in manifest["images"]}
+    assert [planned[k] for k in range(RIG.n_angles)] == pytest.approx(plan["capture_angles_deg"])
+    assert plan["capture_angles_deg"] != RIG.capture.angles_deg.tolist()
     assert controller.machine.state is ScanState.IDLE
     states = [e.state for e in controller.machine.history if e.kind == "transition"]
     assert states[:7] == [ScanState.PREPARING, ScanState.DEPTH_SWEEP, ScanState.RECONSTRUCTING,

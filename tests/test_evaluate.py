@@ -45,6 +45,15 @@ def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside
     text = markdown(corpus)
     assert "| shape-aware |" in text and "| 2986 |" in text and "84.9" in text
     assert "calibration noise" in text and "postural sway" in text
+    # Every method side by side on planning samples, fresh samples, calibration noise and sway.
+    assert "| method | planning samples | fresh samples | calibration noise | postural sway |" in text
+    assert "| robust-angles |" in text and "Certified bound" in text
+    for body in corpus["per_body"]:
+        for name, m in body["methods"].items():
+            assert {"fresh_in_focus", "calibration_in_focus", "sway_in_focus"} <= set(m), name
+            if name != "robust-angles":  # the bound is for the rig's own angles
+                assert m["fresh_in_focus"] <= body["bound"]["fresh"] + 1e-12, name
+        assert body["methods"]["shape-aware"]["in_focus_fraction"] <= body["bound"]["planning"] + 1e-12
     paths = write(corpus, tmp_path / "out")
     assert all(p.exists() and p.stat().st_size > 0 for p in paths)
     assert json.loads((tmp_path / "out" / "results.json").read_text())["bodies"] == 2
@@ -60,3 +69,24 @@ def test_motion_blur_of_every_capture_is_within_the_limit():
 def test_cli_refuses_an_empty_corpus(capsys, tmp_path):
     assert main(["evaluate", "--bodies", "0", "--out", str(tmp_path)]) == 2
     assert "--bodies" in capsys.readouterr().err
+
+
+def test_a_subject_the_rig_refuses_is_reported_not_fatal(monkeypatch) -> None:
+    import types
+
+    import drivers.sim.depth
+    import planner.tsdf
+    from planner.shape_errors import SubjectTooCloseToCameras
+
+    def refuse(frames, rig):
+        raise SubjectTooCloseToCameras(-88.0, 1340.0, 412.0, 450.0, 50.0)
+
+    # The depth sweep is not under test here: the TSDF refuses whatever it gets.
+    monkeypatch.setattr(drivers.sim.depth, "simulate_sweep", lambda *a, **k: types.SimpleNamespace(frames=()))
+    monkeypatch.setattr(planner.tsdf, "fuse", refuse)
+    options = StudyOptions(points=800, calibration_trials=0, sway_poses=0, shape=True, angles=False)
+    results = run_corpus(1, seed=3, jobs=1, options=options)
+    body = results["per_body"][0]
+    assert "SubjectTooCloseToCameras" in body["shape_error"]["refused"]
+    assert "shape_in_focus" not in body["methods"]["robust"] and "shape_loss" not in body
+    assert "refuses the subject before the capture" in markdown(results)

@@ -12,6 +12,7 @@ from planner.baselines import average_focus, closest_focus, fixed_focus
 from planner.cost import cost_table
 from planner.em import expectation_minimisation
 from planner.poses import rgb_poses
+from planner.redundancy import Redundancy, expected_misses, sharp_views
 from planner.refine import refine_focus
 from planner.rig import load_rig
 from planner.sampling import sample_surface
@@ -118,3 +119,46 @@ def test_random_problems_em_refine_monotone_and_refine_optimal(seed: int, n_pose
             trial = refined.focus_mm.copy()
             trial[c] = s
             assert table.total_cost(trial) >= k - 1e-9
+
+
+def robust_objective(table, focus: np.ndarray, redundancy: Redundancy) -> float:
+    return table.total_cost(focus) + redundancy.weight * expected_misses(
+        sharp_views(table, focus), redundancy.miss_probability
+    )
+
+
+@given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 5), n_points=st.integers(1, 25),
+       miss=st.floats(0.05, 0.9), weight=st.floats(0.0, 3.0))
+@settings(max_examples=60, deadline=None)
+def test_robust_refinement_is_monotone_and_a_coordinate_wise_optimum(
+    seed: int, n_poses: int, n_points: int, miss: float, weight: float
+) -> None:
+    table = random_table(seed, n_poses, n_points)
+    redundancy = Redundancy(weight, miss)
+    start = np.random.default_rng(seed + 1).uniform(200.0, 1500.0, n_poses)
+    refined = refine_focus(table, start, max_sweeps=1000, redundancy=redundancy)
+    j = robust_objective(table, refined.focus_mm, redundancy)
+    assert j <= robust_objective(table, start, redundancy) + 1e-9
+    assert refined.objective == pytest.approx(j, abs=1e-9)
+    assert refined.total_cost == pytest.approx(table.total_cost(refined.focus_mm), abs=1e-9)
+    for c in range(n_poses):
+        sl = table.vis.pairs_of(c)
+        for s in np.concatenate([table.lo[sl], table.hi[sl][np.isfinite(table.hi[sl])]]):
+            trial = refined.focus_mm.copy()
+            trial[c] = s
+            assert robust_objective(table, trial, redundancy) >= j - 1e-9
+
+
+def test_robust_plan_holds_more_skin_sharp_in_two_poses(table) -> None:
+    em = expectation_minimisation(table, average_focus(table.vis, 450.0)).focus_mm
+    plain = refine_focus(table, em).focus_mm
+    robust = refine_focus(table, em, redundancy=Redundancy(1.0, 0.2)).focus_mm
+    assert (sharp_views(table, robust) >= 2).sum() > (sharp_views(table, plain) >= 2).sum()
+    assert table.total_cost(robust) <= 1.02 * table.total_cost(plain)
+
+
+def test_redundancy_parameters_are_checked() -> None:
+    with pytest.raises(ValueError, match="miss probability"):
+        Redundancy(1.0, 1.0)
+    with pytest.raises(ValueError, match="weight"):
+        Redundancy(-1.0, 0.2)

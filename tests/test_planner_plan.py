@@ -37,10 +37,15 @@ def test_json_has_the_agreed_keys(result) -> None:
     assert out["points"] == 2000 and out["poses"] == 336
     assert out["angles_deg"] == RIG.capture.angles_deg.tolist()
     assert out["camera_heights_mm"] == [p.height_mm for p in RIG.phones]
-    assert set(out["methods"]) == {"closest", "average", "em", "shape-aware", "fixed", "autofocus"}
+    assert set(out["methods"]) == {"closest", "average", "em", "shape-aware", "robust", "robust-angles", "fixed",
+                                   "autofocus"}
     for m in out["methods"].values():
         assert set(m) >= METHOD_KEYS
         assert len(m["focus_mm"]) == 336
+    # The plan to capture with chose its own 48 angles; the others use the rig's.
+    assert out["capture_method"] == "robust-angles"
+    assert out["capture_angles_deg"] == out["methods"]["robust-angles"]["angles_deg"]
+    assert len(out["capture_angles_deg"]) == 48 and "angles_deg" not in out["methods"]["robust"]
     assert {"mean", "std", "share_at_most_0.075"} <= set(out["resolution_mm_per_px"])
     assert {"visibility", "total"} <= set(out["timing_s"])
 
@@ -52,20 +57,21 @@ def test_methods_rank_as_expected(result) -> None:
     assert m["average"].in_focus_fraction > m["closest"].in_focus_fraction
     assert np.all(np.diff(m["fixed"].focus_mm) == 0)
     assert m["shape-aware"].in_focus_fraction <= result.visible_fraction
-    np.testing.assert_array_equal(result.focus_mm, m["shape-aware"].focus_mm)
+    np.testing.assert_array_equal(result.focus_mm, m["robust-angles"].focus_mm)
+    assert m["robust-angles"].in_focus_fraction >= m["robust"].in_focus_fraction - 0.01
 
 
 def test_evaluate_reproduces_the_plan_on_its_own_samples(body, result) -> None:
-    same = evaluate(result.focus_mm, body, RIG, points=result.samples)
-    assert same.total_cost == pytest.approx(result.methods["shape-aware"].total_cost)
-    fresh = evaluate(result.focus_mm, body, RIG, points=2000, seed=99)
-    assert abs(fresh.in_focus_fraction - result.methods["shape-aware"].in_focus_fraction) < 0.05
+    same = evaluate(result.methods["robust"].focus_mm, body, RIG, points=result.samples)
+    assert same.total_cost == pytest.approx(result.methods["robust"].total_cost)
+    fresh = evaluate(result.methods["robust"].focus_mm, body, RIG, points=2000, seed=99)
+    assert abs(fresh.in_focus_fraction - result.methods["robust"].in_focus_fraction) < 0.05
 
 
 def test_evaluate_on_other_poses(body, result) -> None:
     shifted = rgb_poses(RIG, RIG.capture.angles_deg + 20.0)
-    moved = evaluate(result.focus_mm, body, RIG, points=result.samples, poses=shifted)
-    assert moved.total_cost != pytest.approx(result.methods["shape-aware"].total_cost)
+    moved = evaluate(result.methods["robust"].focus_mm, body, RIG, points=result.samples, poses=shifted)
+    assert moved.total_cost != pytest.approx(result.methods["robust"].total_cost)
 
 
 def test_plan_on_given_methods_only(body) -> None:
@@ -114,9 +120,11 @@ def test_cli_plan_writes_json(tmp_path: Path, body, capsys) -> None:
     text = capsys.readouterr().out
     for name in METHODS:
         assert name in text
-    assert "visible" in text and "fresh sample" in text
+    assert "visible" in text and "fresh sample" in text and "robust-angles in focus" in text
+    assert "certified" in text
     plan = json.loads(out.read_text())
     assert plan["points"] == 800 and plan["fresh_sample"]["points"] == 500
+    assert plan["methods"]["robust"]["in_focus_fraction"] <= plan["in_focus_bound"] <= plan["visible_fraction"]
 
 
 def test_cli_plan_errors_name_the_file(tmp_path: Path, capsys) -> None:
