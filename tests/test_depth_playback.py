@@ -85,6 +85,25 @@ async def test_every_frame_plays_back_at_the_consumers_pace_with_its_recorded_an
     np.testing.assert_allclose(np.diff([f.timestamp_s for f in frames]), PERIOD_MS / 1000.0, atol=1e-6)
 
 
+class SlowToOpen(BagPlayback):
+    """The file already streams while the SDK call that opened it has not returned (a loaded
+    machine): every frame arrives before start() knows the depth scale and intrinsics."""
+
+    def _open(self, rs, on_frame):
+        opened = super()._open(rs, on_frame)
+        time.sleep(0.5)  # the SDK's reader runs meanwhile, as a descheduled start() lets it
+        return opened
+
+
+async def test_frames_read_before_start_finishes_wait_for_it_and_none_is_dropped(sweep_recording) -> None:
+    path, _ = sweep_recording
+    bag = SlowToOpen(path, camera_id="depth1")
+    bag.QUEUE_FRAMES = 4
+    frames = await play(bag)
+    assert bag.dropped_frames == 0
+    assert [f.frame_number for f in frames] == list(range(40))
+
+
 async def test_each_start_replays_the_recording_from_its_beginning(sweep_recording) -> None:
     path, _ = sweep_recording
     bag = BagPlayback(path, camera_id="depth1")

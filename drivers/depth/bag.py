@@ -116,10 +116,10 @@ class BagPlayback(RealSenseStream):
                     return
 
     async def _offer(self, raw: RawFrame) -> None:
-        if self._stopping or self._queue is None:
-            return
-        if self.depth_unit_mm is None or self.intrinsics is None:
-            self._early.append(raw)
+        # A frame read before start() knows the scale and intrinsics waits for them here, holding
+        # the reader back: set aside, it would let the reader run ahead and overflow the queue.
+        await self._described.wait()
+        if self._stopping or self._queue is None or self.depth_unit_mm is None or self.intrinsics is None:
             return
         await self._queue.put(self._frame(raw, self.depth_unit_mm, self.intrinsics))
 

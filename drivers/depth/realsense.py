@@ -139,6 +139,7 @@ class RealSenseStream(ABC):
         self._stopping = False
         self._failure: BaseException | None = None
         self._early: list[RawFrame] = []
+        self._described = asyncio.Event()  # set once start() knows the depth scale and intrinsics
         self._log = log.bind(camera=camera_id)
         self._dropped_log = NoiseLog(self._log, "realsense_frame_dropped", self.DROPPED_LOG_PERIOD_S)
 
@@ -154,6 +155,7 @@ class RealSenseStream(ABC):
         self._stopping = False
         self._failure = None
         self._early = []
+        self._described = asyncio.Event()
         self.depth_unit_mm = self.intrinsics = None
         starting = loop.run_in_executor(None, self._open, rs, self._on_frame)
         try:
@@ -175,6 +177,7 @@ class RealSenseStream(ABC):
         early, self._early = self._early, []
         for raw in early:
             self._arrived(raw)
+        self._described.set()
         self._log.info("realsense_started", depth_unit_mm=self.depth_unit_mm,
                        fx=float(self.intrinsics[0, 0]), cx=float(self.intrinsics[0, 2]))
 
@@ -203,6 +206,7 @@ class RealSenseStream(ABC):
         """Stop streaming and release the device (idempotent); a waiting frames() then ends."""
         close, self._close_source = self._close_source, None
         self._stopping = True
+        self._described.set()  # a hand-over waiting for start() returns and sees the stop
         if close is not None:
             self._discard_queued()  # a callback blocked on a full queue must return for stop()
             loop = asyncio.get_running_loop()
