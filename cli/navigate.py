@@ -56,5 +56,6 @@ def run(args: argparse.Namespace) -> int:
         label = "best" if rank == 0 else f"#{rank + 1}"
         print(f"{label:>5}  {view['file']}  camera {view['camera_id']} at {view['angle_deg']:.1f} deg  "
               f"pixel ({view['u_px']:.0f}, {view['v_px']:.0f})  {'sharp' if view['in_focus'] else 'blurred'}  "
-              f"depth {view['depth_mm']:.0f} mm  cost {view['cost']:.3f}")
+              f"depth {view['depth_mm']:.0f} mm  focus {view['focus_mm']:.0f} mm  "
+              f"{view['resolution_mm_px']:.3f} mm/px  cost {view['cost']:.3f}")
     return 0
