@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from analysis.scan_views import ScanRecord, open_scan
+from analysis.skin_map import skin_status_at, write_vertex_map
 from daemon.manifest import ImageStatus
 
 REPORT_DIR = "report"
@@ -55,26 +56,13 @@ def skin_status(scan: ScanRecord, samples: int = SAMPLES, seed: int = 0) -> dict
     Returns points (N, 3) mm, inward normals (N, 3), status (N,) int (2 sharp, 1 seen but blurred, 0 not seen) and
     resolution (N,) mm/px in each point's best sharp-or-seen image (NaN if unseen).
     """
-    from planner.cost import cost_table
-    from planner.optics import resolution_mm_per_px
     from planner.sampling import sample_surface
-    from planner.visibility import RayScene, visible_pairs
 
-    rig = scan.rig
     mesh = scan.mesh()
     points = sample_surface(mesh, samples, seed=seed)
-    focus = scan.captured_focus_mm()
-    table = cost_table(visible_pairs(RayScene(mesh), scan.poses(), points, rig.optics), rig.cost, rig.optics)
-    captured = np.isfinite(focus)[table.vis.pose]
-    sharp_pair = table.pair_in_focus(np.nan_to_num(focus, nan=-1.0)) & captured
-    status = np.zeros(len(points), dtype=int)
-    status[table.vis.point[captured]] = 1
-    status[table.vis.point[sharp_pair]] = 2
-    resolution = np.full(len(points), np.inf)
-    per_pair = resolution_mm_per_px(table.vis.depth, rig.optics)
-    np.minimum.at(resolution, table.vis.point[captured], per_pair[captured])
-    resolution[np.isinf(resolution)] = np.nan
-    return {"points": points.points, "normals": points.normals, "status": status, "resolution": resolution}
+    skin = skin_status_at(scan, mesh, points)
+    return {"points": points.points, "normals": points.normals, "status": skin["status"].astype(int),
+            "resolution": skin["resolution"]}
 
 
 def _body_views(skin: dict[str, np.ndarray], out: _Figures) -> str:
@@ -176,6 +164,7 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
     if "mesh" in scan.manifest.files and np.isfinite(scan.captured_focus_mm()).any():
         skin = skin_status(scan)
         figures.append(("Skin in focus in the captured images", _body_views(skin, out)))
+        write_vertex_map(scan)  # the web viewer's mesh colours
     figures.append(("Focus plan", _focus_by_angle(scan, out)))
     figures.append(("Speed profile", _speed_profile(scan, out)))
     figures.append(("Planned vs actual capture angles", _angle_errors(scan, out)))

@@ -1,0 +1,171 @@
+"""Carrying lesion marks from one scan of a person to a later one: mesh registration.
+
+The person never stands exactly where they stood before, and sways a little. First the two
+body meshes are aligned as a whole (Open3D point-to-plane ICP from the centroid offset at a
+few turns about the vertical axis; the best fit wins), then every mark is refined on its own
+neighbourhood (ICP on ever smaller neighbourhoods of the mark, starting from the whole-body
+fit), so an arm that moved a few degrees still carries its marks. The carried point is
+snapped onto the later mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+class RegistrationError(ValueError):
+    """The two meshes do not overlap enough to be the same body."""
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A rigid map of the earlier scan onto the later one: transform (4, 4), points in mm."""
+
+    transform: np.ndarray
+    fitness: float
+    rmse_mm: float
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        return points @ self.transform[:3, :3].T + self.transform[:3, 3]
+
+
+def _cloud(mesh: Any, voxel_mm: float) -> Any:
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(mesh.vertices, dtype=float)))
+    cloud = cloud.voxel_down_sample(voxel_mm)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel_mm, max_nn=30))
+    return cloud
+
+
+def _vertex_cloud(mesh: Any) -> Any:
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(mesh.vertices, dtype=float)))
+    cloud.normals = o3d.utility.Vector3dVector(np.array(mesh.vertex_normals, dtype=float))
+    return cloud
+
+
+def _edge_graph(mesh: Any) -> Any:
+    """(V, V) sparse graph of the mesh's edges weighted by length, mm."""
+    from scipy.sparse import coo_matrix
+
+    edges = np.asarray(mesh.edges_unique)
+    length = np.asarray(mesh.edges_unique_length)
+    n = len(mesh.vertices)
+    # Coincident vertices (a seam kept unmerged) are one point of skin: join them.
+    _, first = np.unique(np.round(np.asarray(mesh.vertices), 3), axis=0, return_inverse=True)
+    rep = np.full(first.max() + 1, -1)
+    rep[first[::-1]] = np.arange(n)[::-1]
+    seam = np.flatnonzero(rep[first] != np.arange(n))
+    rows = np.concatenate([edges[:, 0], seam])
+    cols = np.concatenate([edges[:, 1], rep[first][seam]])
+    weight = np.concatenate([length, np.full(len(seam), 1e-6)])
+    return coo_matrix((weight, (rows, cols)), shape=(n, n)).tocsr()
+
+
+def _yaw_about(centre: np.ndarray, yaw_deg: float, shift: np.ndarray) -> np.ndarray:
+    a = np.radians(yaw_deg)
+    rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = centre + shift - rot @ centre
+    return out
+
+
+def _icp(source: Any, target: Any, init: np.ndarray, distance_mm: float, iterations: int = 40) -> Any:
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    return reg.registration_icp(source, target, distance_mm, init,
+                                reg.TransformationEstimationPointToPlane(),
+                                reg.ICPConvergenceCriteria(max_iteration=iterations))
+
+
+class MarkCarrier:
+    """Registers an earlier scan's mesh (source) onto a later one's (target) and carries points.
+
+    voxel_mm: sampling of the whole-body fit; YAWS_DEG: the turns tried as starting points.
+    """
+
+    YAWS_DEG = (-40.0, -20.0, 0.0, 20.0, 40.0)
+    MIN_FITNESS = 0.5
+    MAX_SWAY_MM = 80.0
+    """A mark never moves further than this from where the whole-body fit puts it."""
+    STAGES = ((300.0, 60.0), (150.0, 25.0), (80.0, 10.0), (50.0, 5.0))
+    """(neighbourhood radius, correspondence distance) mm of the per-mark fits."""
+
+    def __init__(self, source_mesh: Any, target_mesh: Any, *, voxel_mm: float = 8.0) -> None:
+        import open3d as o3d
+
+        self.source_fine = _vertex_cloud(source_mesh)
+        self.target_fine = _cloud(target_mesh, 3.0)
+        self._source_tree = o3d.geometry.KDTreeFlann(self.source_fine)
+        self._source_graph = _edge_graph(source_mesh)
+        self._target_tree = o3d.geometry.KDTreeFlann(self.target_fine)
+        legacy = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(np.asarray(target_mesh.vertices, dtype=float)),
+            o3d.utility.Vector3iVector(np.asarray(target_mesh.faces, dtype=np.int32))))
+        self._target_scene = o3d.t.geometry.RaycastingScene()
+        self._target_scene.add_triangles(legacy)
+        self.whole = self._whole_body(_cloud(source_mesh, voxel_mm), _cloud(target_mesh, voxel_mm), voxel_mm)
+
+    def _whole_body(self, source: Any, target: Any, voxel_mm: float) -> Registration:
+        centre = np.asarray(source.get_center())
+        shift = np.asarray(target.get_center()) - centre
+        best = None
+        for yaw in self.YAWS_DEG:
+            fit = _icp(source, target, _yaw_about(centre, yaw, shift), 6 * voxel_mm)
+            if best is None or (fit.fitness, -fit.inlier_rmse) > (best.fitness, -best.inlier_rmse):
+                best = fit
+        assert best is not None
+        fine = _icp(source, target, best.transformation, 2 * voxel_mm)
+        if fine.fitness < self.MIN_FITNESS:
+            raise RegistrationError(
+                f"the meshes overlap on {100 * fine.fitness:.0f} % of the earlier body after alignment "
+                f"(needs {100 * self.MIN_FITNESS:.0f} %): not the same person, or a scan that missed most of the body")
+        return Registration(np.asarray(fine.transformation), float(fine.fitness), float(fine.inlier_rmse))
+
+    def _local(self, point: np.ndarray) -> Registration:
+        """Coarse to fine on shrinking neighbourhoods of the mark, each stage from the last fit."""
+        from scipy.sparse.csgraph import dijkstra
+
+        fit = self.whole
+        _, seed, _ = self._source_tree.search_knn_vector_3d(point, 1)
+        along = dijkstra(self._source_graph, directed=False, indices=int(seed[0]), limit=self.STAGES[0][0])
+        for radius, distance in self.STAGES:
+            near = np.flatnonzero(along <= radius)  # along the skin: the other leg is not a neighbour
+            _, near_target, _ = self._target_tree.search_radius_vector_3d(fit.apply(point)[0], radius + distance)
+            if len(near) < 30 or len(near_target) < 30:
+                break
+            result = _icp(self.source_fine.select_by_index(near.tolist()),
+                          self.target_fine.select_by_index(list(near_target)), fit.transform, distance)
+            if result.fitness < self.MIN_FITNESS:
+                break
+            candidate = Registration(np.asarray(result.transformation), float(result.fitness),
+                                     float(result.inlier_rmse))
+            if np.linalg.norm(candidate.apply(point) - self.whole.apply(point)) > self.MAX_SWAY_MM:
+                break  # slid onto another limb
+            fit = Registration(np.asarray(result.transformation), float(result.fitness), float(result.inlier_rmse))
+        return fit
+
+    def carry(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 3) points on the earlier mesh -> (K, 3) on the later mesh, and (K,) local fit rmse, mm."""
+        import open3d as o3d
+
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        moved = np.empty_like(points)
+        rmse = np.empty(len(points))
+        for k, point in enumerate(points):  # a handful of marks: one local fit each
+            local = self._local(point)
+            moved[k] = local.apply(point)[0]
+            rmse[k] = local.rmse_mm
+        if len(points):
+            closest = self._target_scene.compute_closest_points(
+                o3d.core.Tensor(moved.astype(np.float32)))["points"].numpy()
+            moved = closest.astype(float)
+        return moved, rmse
