@@ -39,11 +39,11 @@ class Navigator:
     ones that are gone). Build it once per scan, query it many times.
     """
 
-    def __init__(self, scan: ScanRecord) -> None:
+    def __init__(self, scan: ScanRecord, mesh: Any | None = None) -> None:
         from planner.visibility import RayScene
 
         self.scan = scan
-        self.mesh = scan.mesh()
+        self.mesh = scan.mesh() if mesh is None else mesh
         self.scene = RayScene(self.mesh)
         self.poses = scan.poses()
         self.focus_mm = scan.captured_focus_mm()

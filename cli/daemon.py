@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from cli import options
+
+DEFAULT_HTTP = "127.0.0.1:8470"
 
 
 def register(subparsers: Any) -> None:
@@ -24,6 +27,12 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--group", default=None, help="group of the control socket (default $TBP_CONTROL_GROUP)")
     options.time_scale(parser, 1.0)
     options.plan_points(parser)
+    parser.add_argument("--http", default=DEFAULT_HTTP, metavar="HOST:PORT",
+                        help=f"web viewer and console address (default {DEFAULT_HTTP}: this machine only); "
+                             "'off' serves none")
+    parser.add_argument("--http-token-file", type=Path, default=None, metavar="FILE",
+                        help="operator token for START/ABORT/RESET and marks over the web; needed to allow "
+                             "them when --http listens beyond loopback")
     options.log_level(parser, "info")
     parser.set_defaults(func=run)
 
@@ -41,6 +50,17 @@ def run(args: argparse.Namespace) -> int:
         return 2
     import asyncio
 
+    attach = None
+    if args.http != "off":
+        from web.access import Access, AccessError, parse_listen, read_token
+
+        try:
+            host, port = parse_listen(args.http)
+            token = read_token(args.http_token_file) if args.http_token_file else None
+        except AccessError as exc:
+            print(f"tbp daemon: {exc}", file=sys.stderr)
+            return 2
+        attach = _web(args, Access(host, port, token))
     from analysis.qa_report import generate_report
     from sim.clock import VirtualTimeLoop
     from sim.run import sim_service
@@ -49,5 +69,18 @@ def run(args: argparse.Namespace) -> int:
         return runner.run(sim_service(
             config=args.rig, store=options.store_root(args), socket_path=socket_path, seed=args.seed,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
-            subject_path=args.subject, panel=not args.no_panel, qa_report=generate_report,
+            subject_path=args.subject, panel=not args.no_panel, qa_report=generate_report, attach=attach,
         ))
+
+
+def _web(args: argparse.Namespace, access: Any) -> Any:
+    """attach(service): the web server on the daemon's store, control through the service."""
+
+    def attach(service: Any) -> None:
+        from web.app import make_app
+        from web.server import WebServer
+
+        app = make_app(service.controller.store, access, service=service, rig_path=args.rig)
+        service.attach(WebServer(app, access.host, access.port))
+
+    return attach

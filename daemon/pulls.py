@@ -77,9 +77,12 @@ class PullQueue:
     PULL_TIMEOUT_S = 120.0
     SPACE_MARGIN_BYTES = 1 << 20
 
-    def __init__(self, folder: ScanFolder, *, workers: int = 2) -> None:
+    def __init__(self, folder: ScanFolder, *, workers: int = 2,
+                 on_verified: Callable[[int], None] | None = None) -> None:
         self.folder = folder
         self.n_workers = workers
+        self.on_verified = on_verified
+        self.verified = 0
         self.failures: list[ImagePullFailed] = []
         self.fatal: StoreError | None = None
         self._queue: asyncio.Queue[PullJob] = asyncio.Queue()
@@ -162,6 +165,9 @@ class PullQueue:
                     file=str(dest.relative_to(folder.path)), size_bytes=size, sha256=sha,
                     error=None,
                 )
+                self.verified += 1
+                if self.on_verified is not None:
+                    self.on_verified(self.verified)
                 return
             log.warning("pull_retry", device=image.camera_id, angle_index=job.angle_index,
                         attempt=attempt, error=cause)

@@ -417,7 +417,7 @@ class Scan:
                 for c in range(rig.n_cameras)
             ]
             self.schedule = compile_plan(focus, rig, timings, profile=profile, angles_deg=angles)
-            self.pulls = PullQueue(self.folder)
+            self.pulls = PullQueue(self.folder, on_verified=lambda n: self._progress("verified", verified=n))
             self.pulls.start()
         finally:
             await reposition

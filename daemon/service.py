@@ -49,6 +49,12 @@ class RigService:
         self.loop_lag_s = 0.0
         self._tasks: list[asyncio.Task[Any]] = []
         self._server: Any = None
+        self.attached: list[Any] = []
+
+    def attach(self, server: Any) -> None:
+        """Serve ``server`` (``await start()``, ``await close()``; the web server) while the daemon runs:
+        started after the control socket, closed before the devices."""
+        self.attached.append(server)
 
     # ------------------------------------------------------------------ life cycle
 
@@ -67,6 +73,8 @@ class RigService:
 
             self._server = ControlServer(self.socket_path, self, group=self.group)
             await self._server.start()
+        for server in self.attached:
+            await server.start()
         self._tasks += [
             asyncio.create_task(self._measure_lag(), name="loop-lag"),
             asyncio.create_task(run_watchdog(self.notifier, self.healthy), name="watchdog"),
@@ -86,6 +94,8 @@ class RigService:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
+        for server in reversed(self.attached):
+            await server.close()
         if self._server is not None:
             await self._server.close()
         failures = await self.controller.close()

@@ -92,8 +92,9 @@ def run_sim_scan(*, time_scale: float | None = None, **kwargs: Any) -> ScanRepor
 async def sim_service(*, config: Path | None, store: Path, socket_path: Path | None, seed: int = 0,
                       plan_points: int | None = None, depth_decimation: int = 2,
                       group: str | None = None, subject_path: Path | None = None,
-                      panel: bool = True, qa_report: Callable[..., Path] | None = None) -> int:
-    """The daemon on the simulated rig until SIGINT/SIGTERM."""
+                      panel: bool = True, qa_report: Callable[..., Path] | None = None,
+                      attach: Callable[[Any], None] | None = None) -> int:
+    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
     from planner.plan import load_subject_mesh
@@ -112,4 +113,6 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                                                          executor=executor, qa_report=qa_report))
         service = RigService(controller, socket_path=socket_path, group=group,
                              notifier=SystemdNotifier.from_env())
+        if attach is not None:
+            attach(service)
         return await service.run(stop)

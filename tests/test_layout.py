@@ -10,6 +10,7 @@ Layers, lowest first (a package may import itself and what its row allows, nothi
 - ``daemon``: the scan runtime, on ``drivers`` and ``planner``, never a simulator;
 - ``sim``: the simulated world (virtual clock, bodies, the simulated rig, device processes);
 - ``analysis``: evaluation, QA report, navigation, on scan folders and the simulated world;
+- ``web``: the browser's viewer and console (aiohttp), on ``analysis`` and the daemon's handler;
 - ``cli``: the ``tbp`` command, on everything.
 
 Every ``import`` counts, also those inside functions (they are imports all the same).
@@ -31,7 +32,8 @@ ALLOWED: dict[str, frozenset[str]] = {
     "daemon": frozenset({"daemon", "drivers", "planner"}),
     "sim": frozenset({"sim", "daemon", "drivers.sim", "drivers", "planner"}),
     "analysis": frozenset({"analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
-    "cli": frozenset({"cli", "analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
+    "web": frozenset({"web", "analysis", "daemon", "drivers", "planner"}),
+    "cli": frozenset({"cli", "web", "analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
 }
 """Importer layer -> the layers it may import."""
 
@@ -64,7 +66,7 @@ def module_name(path: Path) -> str:
 
 
 def source_files() -> list[Path]:
-    return sorted(p for layer in ("planner", "drivers", "daemon", "sim", "analysis", "cli")
+    return sorted(p for layer in ("planner", "drivers", "daemon", "sim", "analysis", "web", "cli")
                   for p in (ROOT / layer).rglob("*.py"))
 
 
@@ -141,6 +143,9 @@ def test_only_the_clock_owners_read_the_wall_clock() -> None:
     ("sim/rig.py", "drivers.sim.drive", True),
     ("analysis/navigate.py", "cli", False),
     ("cli/scan.py", "analysis.qa_report", True),
+    ("daemon/service.py", "web.app", False),
+    ("web/rig.py", "sim.run", False),
+    ("web/scans.py", "analysis.navigate", True),
 ])
 def test_the_rule_itself(importer: str, module: str, allowed: bool) -> None:
     """The checker catches a forbidden arrow (so an empty violation list means something)."""

@@ -1,0 +1,80 @@
+"""The web application: pages, static assets (three.js from npm), viewer, marks and console APIs."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import structlog
+from aiohttp import web
+
+from daemon.store import ScanStore
+from web import marks, rig, scans
+from web.access import Access
+
+STATIC = Path(__file__).with_name("static")
+THREE = Path(__file__).with_name("node_modules") / "three"
+MAX_REQUEST_BYTES = 64 * 1024
+
+log = structlog.get_logger("web.app")
+
+
+class AssetsMissing(RuntimeError):
+    """three.js is not installed beside the web package (./dev installs it with npm)."""
+
+
+@web.middleware
+async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
+    """Host check, JSON errors for the API, and headers that keep pages to themselves."""
+    request.app["access"].check_host(request)
+    try:
+        response = await handler(request)
+    except web.HTTPException as exc:
+        if request.path.startswith("/api/") and exc.content_type != "application/json":
+            raise scans.json_error(type(exc), exc.text or exc.reason) from None
+        raise
+    response.headers.setdefault("X-Content-Type-Options", "nosniff")
+    response.headers.setdefault("Referrer-Policy", "no-referrer")
+    response.headers.setdefault("X-Frame-Options", "DENY")
+    return response
+
+
+def _page(name: str) -> Any:
+    async def serve(request: web.Request) -> web.FileResponse:
+        return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-cache"})
+
+    return serve
+
+
+async def _config(request: web.Request) -> web.Response:
+    access: Access = request.app["access"]
+    return web.json_response({"rig": request.app["service"] is not None, "writes": access.writes_enabled,
+                              "token_required": access.token is not None})
+
+
+def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = None,
+             rig_path: Path | None = None) -> web.Application:
+    """The application for a scan store; service: the daemon's RigService (None: viewer only)."""
+    if not (THREE / "build" / "three.module.js").is_file():
+        raise AssetsMissing(f"{THREE}: three.js is not installed; run ./dev (npm ci in web/)")
+    app = web.Application(middlewares=[guard], client_max_size=MAX_REQUEST_BYTES)
+    app["access"] = access
+    app["service"] = service
+    app["library"] = scans.ScanLibrary(store if isinstance(store, ScanStore) else ScanStore(store), rig_path)
+    app["closing"] = asyncio.Event()
+
+    async def closing(app: web.Application) -> None:
+        app["closing"].set()  # event streams end so the server can close
+
+    app.on_shutdown.append(closing)
+    app.router.add_get("/", _page("console.html"))
+    app.router.add_get("/scans", _page("scans.html"))
+    app.router.add_get("/scans/{folder}", _page("viewer.html"))
+    app.router.add_get("/api/config", _config)
+    scans.routes(app)
+    marks.routes(app)
+    rig.routes(app)
+    app.router.add_static("/static/", STATIC, follow_symlinks=False)
+    app.router.add_static("/vendor/three/", THREE, follow_symlinks=False)
+    return app

@@ -1,0 +1,149 @@
+"""Lesion marks over the web: list (with the marks carried from the earlier scan), add, delete,
+and name the earlier scan to compare with. Writes pass the access policy first."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+from aiohttp import web
+
+from analysis.marks import MarkBook, MarkError, check_mark_id, new_mark, read_marks, write_marks
+from analysis.registration import MarkCarrier, RegistrationError
+from web.scans import ScanLibrary, _off_loop, json_error
+
+MAX_BODY = 16 * 1024
+
+
+def _library(request: web.Request) -> ScanLibrary:
+    return request.app["library"]
+
+
+async def read_json(request: web.Request) -> dict[str, Any]:
+    """The request's JSON object, after the access check; 4xx for anything else."""
+    request.app["access"].check_write(request)
+    if request.content_length is not None and request.content_length > MAX_BODY:
+        raise json_error(web.HTTPRequestEntityTooLarge, f"body of {request.content_length} bytes; at most {MAX_BODY}")
+    raw = await request.content.read(MAX_BODY + 1)
+    if len(raw) > MAX_BODY:
+        raise json_error(web.HTTPRequestEntityTooLarge, f"body longer than {MAX_BODY} bytes")
+    try:
+        body = json.loads(raw or b"{}")
+    except ValueError as exc:
+        raise json_error(web.HTTPBadRequest, f"body is not JSON: {exc}") from None
+    if not isinstance(body, dict):
+        raise json_error(web.HTTPBadRequest, f"body must be a JSON object, not {type(body).__name__}")
+    return body
+
+
+class Carriers:
+    """Registrations between an earlier and a later scan's meshes, kept for a few pairs."""
+
+    KEEP = 4
+
+    def __init__(self) -> None:
+        self._fits: OrderedDict[tuple[Any, ...], MarkCarrier] = OrderedDict()
+        self._lock = asyncio.Lock()
+
+    async def get(self, library: ScanLibrary, earlier: str, later: str) -> MarkCarrier:
+        a, b = library.opened(earlier), library.opened(later)
+        key = (earlier, a.stamp, later, b.stamp)
+        async with self._lock:
+            if key not in self._fits:
+                source = await _off_loop(lambda: a.navigator_now().mesh)
+                target = await _off_loop(lambda: b.navigator_now().mesh)
+                self._fits[key] = await _off_loop(MarkCarrier, source, target)
+                while len(self._fits) > self.KEEP:
+                    self._fits.popitem(last=False)
+            self._fits.move_to_end(key)
+            return self._fits[key]
+
+
+def _book(folder: Any) -> MarkBook:
+    try:
+        return read_marks(folder)
+    except MarkError as exc:
+        raise json_error(web.HTTPConflict, exc) from exc
+
+
+async def list_marks(request: web.Request) -> web.Response:
+    """This scan's marks, and the earlier scan's marks carried onto this body."""
+    library = _library(request)
+    name = request.match_info["folder"]
+    book = _book(library.folder(name))
+    out: dict[str, Any] = {"previous_scan": book.previous_scan, "marks": [m.as_dict() for m in book.marks],
+                           "carried": [], "registration": None}
+    if book.previous_scan:
+        earlier = _book(library.folder(book.previous_scan))
+        if earlier.marks:
+            try:
+                carrier = await request.app["carriers"].get(library, book.previous_scan, name)
+                points, rmse = await _off_loop(carrier.carry, np.array([m.point_mm for m in earlier.marks]))
+            except RegistrationError as exc:
+                out["registration"] = {"error": str(exc)}
+            else:
+                out["registration"] = {"fitness": carrier.whole.fitness, "rmse_mm": carrier.whole.rmse_mm}
+                out["carried"] = [{**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm),
+                                   "fit_rmse_mm": float(r)} for m, p, r in zip(earlier.marks, points, rmse)]
+    return web.json_response(out)
+
+
+async def add_mark(request: web.Request) -> web.Response:
+    body = await read_json(request)
+    folder = _library(request).folder(request.match_info["folder"])
+    try:
+        mark = new_mark(body.get("name"), body.get("point_mm"), body.get("carried_from"))
+        if mark.carried_from is not None and not isinstance(mark.carried_from, dict):
+            raise MarkError(f"carried_from {mark.carried_from!r}: expected an object")
+        book = _book(folder)
+        book.marks.append(mark)
+        await _off_loop(write_marks, folder, book)
+    except MarkError as exc:
+        raise json_error(web.HTTPBadRequest, exc) from exc
+    return web.json_response(mark.as_dict(), status=201)
+
+
+async def delete_mark(request: web.Request) -> web.Response:
+    await read_json(request)
+    folder = _library(request).folder(request.match_info["folder"])
+    try:
+        mark_id = check_mark_id(request.match_info["mark"])
+    except MarkError as exc:
+        raise json_error(web.HTTPBadRequest, exc) from exc
+    book = _book(folder)
+    kept = [m for m in book.marks if m.id != mark_id]
+    if len(kept) == len(book.marks):
+        raise json_error(web.HTTPNotFound, f"no mark {mark_id} on this scan")
+    book.marks = kept
+    await _off_loop(write_marks, folder, book)
+    return web.json_response({"deleted": mark_id})
+
+
+async def set_previous(request: web.Request) -> web.Response:
+    """{"previous_scan": FOLDER | null}: the earlier scan of the same person."""
+    body = await read_json(request)
+    library = _library(request)
+    name = request.match_info["folder"]
+    folder = library.folder(name)
+    previous = body.get("previous_scan")
+    if previous is not None:
+        if not isinstance(previous, str):
+            raise json_error(web.HTTPBadRequest, f"previous_scan {previous!r}: a scan folder name or null")
+        library.folder(previous)
+        if previous >= name:
+            raise json_error(web.HTTPBadRequest, f"previous_scan {previous!r} is not earlier than {name!r}")
+    book = _book(folder)
+    book.previous_scan = previous
+    await _off_loop(write_marks, folder, book)
+    return web.json_response({"previous_scan": previous})
+
+
+def routes(app: web.Application) -> None:
+    app["carriers"] = Carriers()
+    app.router.add_get("/api/scans/{folder}/marks", list_marks)
+    app.router.add_post("/api/scans/{folder}/marks", add_mark)
+    app.router.add_delete("/api/scans/{folder}/marks/{mark}", delete_mark)
+    app.router.add_put("/api/scans/{folder}/previous", set_previous)

@@ -1,0 +1,270 @@
+"""The viewer's read side: the scan list, one scan's mesh and skin colours, navigation, images.
+
+A scan is named in URLs by its folder name and found by listing the store, never by joining
+a request's text onto a path; image files are the ones the manifest lists as verified.
+Heavy work (loading a mesh, building the ray-casting scene) runs off the event loop and is
+kept for the few most recently opened scans.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from aiohttp import web
+
+from analysis.navigate import NavigationError, Navigator
+from analysis.scan_views import ScanFolderError, ScanRecord, open_scan
+from analysis.skin_map import read_vertex_map, vertex_skin
+from daemon.store import ManifestError, ScanStore
+from web import images
+
+MESH_MAGIC = b"TBPM"
+
+
+def json_error(status: type[web.HTTPException], error: Exception | str) -> web.HTTPException:
+    """An HTTP error whose body is {"error": {"type", "message"}}."""
+    kind = type(error).__name__ if isinstance(error, Exception) else status.__name__
+    body = {"error": {"type": kind, "message": str(error)}}
+    return status(text=web.json_response(body).text, content_type="application/json")
+
+
+class OpenScan:
+    """What the viewer keeps of one scan: record, navigator, mesh bytes, previews."""
+
+    def __init__(self, record: ScanRecord, stamp: tuple[int, int]) -> None:
+        self.record = record
+        self.stamp = stamp
+        self.navigator: Navigator | None = None
+        self.mesh: Any = None
+        self.mesh_bytes: bytes | None = None
+        self.previews: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
+        self.lock = asyncio.Lock()
+
+    def mesh_now(self) -> Any:
+        if self.mesh is None:
+            self.mesh = self.record.mesh()
+        return self.mesh
+
+    def navigator_now(self) -> Navigator:
+        if self.navigator is None:
+            self.navigator = Navigator(self.record, self.mesh_now())
+        return self.navigator
+
+    def mesh_payload(self) -> bytes:
+        """TBPM, V, F (uint32 LE), positions (V, 3) float32 mm, faces (F, 3) uint32, skin (V,) uint8."""
+        if self.mesh_bytes is None:
+            mesh = self.mesh_now()
+            skin = read_vertex_map(self.record, self.record.folder / "report")
+            if skin is None or len(skin["status"]) != len(mesh.vertices):
+                skin = vertex_skin(self.record, mesh)
+            vertices = np.ascontiguousarray(mesh.vertices, dtype="<f4")
+            faces = np.ascontiguousarray(mesh.faces, dtype="<u4")
+            self.mesh_bytes = b"".join([MESH_MAGIC, struct.pack("<II", len(vertices), len(faces)),
+                                        vertices.tobytes(), faces.tobytes(),
+                                        np.asarray(skin["status"], dtype=np.uint8).tobytes()])
+        return self.mesh_bytes
+
+
+class ScanLibrary:
+    """The store as the viewer sees it, with the last few opened scans kept in memory."""
+
+    KEEP = 3
+    PREVIEWS = 600
+
+    def __init__(self, store: ScanStore, rig_path: Path | None = None) -> None:
+        self.store = store
+        self.rig_path = rig_path
+        self._open: OrderedDict[str, OpenScan] = OrderedDict()
+
+    def folder(self, name: str) -> Path:
+        """The scan folder called ``name``; 404 unless it is one of the store's folders."""
+        for path in self.store.folders():
+            if path.name == name:
+                return path
+        raise json_error(web.HTTPNotFound, f"no scan {name[:80]!r} in the store")
+
+    def listing(self) -> list[dict[str, Any]]:
+        from analysis.marks import MarkError, read_marks
+
+        rows = []
+        for path in reversed(self.store.folders()):
+            try:
+                m = self.store.open(path).manifest
+            except ManifestError as exc:
+                rows.append({"folder": path.name, "error": str(exc)})
+                continue
+            try:
+                marks = len(read_marks(path).marks)
+            except MarkError:
+                marks = None
+            rows.append({
+                "folder": path.name, "scan_id": m.scan_id, "created_utc": m.created_utc,
+                "ended_utc": m.ended_utc, "state": m.state.value, "in_progress": m.in_progress,
+                "reason": m.reason, "counts": m.counts(), "plan": m.plan_summary,
+                "has_mesh": (path / "mesh.ply").is_file(),
+                "report": (path / "report" / "index.html").is_file(), "marks": marks,
+            })
+        return rows
+
+    def _stamp(self, path: Path) -> tuple[int, int]:
+        manifest = (path / "manifest.json").stat()
+        mesh = path / "mesh.ply"
+        return manifest.st_mtime_ns, mesh.stat().st_mtime_ns if mesh.exists() else 0
+
+    def opened(self, name: str) -> OpenScan:
+        """The scan, reloaded when its manifest or mesh changed since last time (a scan in progress)."""
+        path = self.folder(name)
+        stamp = self._stamp(path)
+        scan = self._open.get(name)
+        if scan is None or scan.stamp != stamp:
+            try:
+                scan = OpenScan(open_scan(path, self.rig_path), stamp)
+            except ScanFolderError as exc:
+                raise json_error(web.HTTPConflict, exc) from exc
+            self._open[name] = scan
+        self._open.move_to_end(name)
+        while len(self._open) > self.KEEP:
+            self._open.popitem(last=False)
+        return scan
+
+
+async def _off_loop(fn: Any, *args: Any) -> Any:
+    return await asyncio.get_running_loop().run_in_executor(None, fn, *args)
+
+
+def _library(request: web.Request) -> ScanLibrary:
+    return request.app["library"]
+
+
+async def list_scans(request: web.Request) -> web.Response:
+    return web.json_response({"scans": await _off_loop(_library(request).listing)})
+
+
+async def scan_detail(request: web.Request) -> web.Response:
+    scan = _library(request).opened(request.match_info["folder"])
+    rec = scan.record
+    rig = rec.rig
+    images_out = [{k: i.get(k) for k in ("file", "camera_id", "camera_index", "angle_index", "planned_angle_deg",
+                                         "actual_angle_deg", "focus_mm", "status", "error")}
+                  for i in rec.images]
+    m = rec.manifest
+    return web.json_response({
+        "folder": rec.folder.name, "scan_id": m.get("scan_id"), "state": m.get("state"),
+        "in_progress": m.get("in_progress"), "created_utc": m.get("created_utc"), "reason": m.get("reason"),
+        "counts": m.get("counts"), "plan": m.get("plan_summary"),
+        "cameras": [p.id for p in rig.phones], "angles_deg": [float(a) for a in rig.capture.angles_deg],
+        "image_width_px": rig.optics.image_width_px, "image_height_px": rig.optics.image_height_px,
+        "has_mesh": (rec.folder / "mesh.ply").is_file(),
+        "report": (rec.folder / "report" / "index.html").is_file(),
+        "images": images_out,
+    })
+
+
+async def scan_mesh(request: web.Request) -> web.Response:
+    scan = _library(request).opened(request.match_info["folder"])
+    async with scan.lock:
+        try:
+            payload = await _off_loop(scan.mesh_payload)
+        except ScanFolderError as exc:
+            raise json_error(web.HTTPConflict, exc) from exc
+    return web.Response(body=payload, content_type="application/octet-stream",
+                        headers={"Cache-Control": "private, max-age=60"})
+
+
+def _number(request: web.Request, key: str, kind: type = float) -> Any:
+    text = request.query.get(key)
+    if text is None:
+        return None
+    try:
+        value = kind(text)
+    except ValueError:
+        raise json_error(web.HTTPBadRequest, f"{key}={text[:40]!r}: expected a number") from None
+    if kind is float and not np.isfinite(value):
+        raise json_error(web.HTTPBadRequest, f"{key}={text[:40]!r}: expected a finite number")
+    return value
+
+
+async def navigate(request: web.Request) -> web.Response:
+    """?x=&y=&z= (mm) or ?vertex=I; &count=N (default every image that sees the spot)."""
+    scan = _library(request).opened(request.match_info["folder"])
+    vertex = _number(request, "vertex", int)
+    xyz = [_number(request, k) for k in ("x", "y", "z")]
+    count = _number(request, "count", int)
+    if vertex is None and any(v is None for v in xyz):
+        raise json_error(web.HTTPBadRequest, "give x, y and z (mm) or vertex")
+    async with scan.lock:
+        navigator = await _off_loop(scan.navigator_now)
+    try:
+        answer = await _off_loop(lambda: navigator.query(
+            point=None if vertex is not None else np.array(xyz), vertex=vertex, count=count))
+    except NavigationError as exc:
+        raise json_error(web.HTTPBadRequest, exc) from exc
+    return web.json_response(answer)
+
+
+def _image_path(scan: OpenScan, name: str) -> Path:
+    for image in scan.record.images:
+        if image.get("status") == "verified" and image.get("file") and Path(image["file"]).name == name:
+            path = (scan.record.folder / image["file"]).resolve()
+            if path.parent != (scan.record.folder / "images").resolve() or not path.is_file():
+                break
+            return path
+    raise json_error(web.HTTPNotFound, f"no verified image {name[:80]!r} in this scan")
+
+
+async def image(request: web.Request) -> web.StreamResponse:
+    """images/NAME: the original; ?size=thumb|preview scaled; ?u=&v=&half= a zoomed crop (full-resolution px)."""
+    library = _library(request)
+    scan = library.opened(request.match_info["folder"])
+    path = _image_path(scan, request.match_info["name"])
+    size = request.query.get("size")
+    u, v, half = _number(request, "u"), _number(request, "v"), _number(request, "half")
+    if size is None and u is None:
+        return web.FileResponse(path, headers={"Cache-Control": "private, max-age=3600"})
+    if u is not None:
+        if v is None:
+            raise json_error(web.HTTPBadRequest, "a crop needs u and v (full-resolution pixels)")
+        key: tuple[Any, ...] = (path.name, "crop", round(u, 1), round(v, 1), half or 150.0)
+        width = scan.record.rig.optics.image_width_px
+        make = lambda: images.crop(path, u, v, width, half or 150.0)  # noqa: E731
+    elif size in ("thumb", "preview"):
+        key = (path.name, size)
+        make = lambda: images.scaled(path, images.THUMB_PX if size == "thumb" else images.PREVIEW_PX)  # noqa: E731
+    else:
+        raise json_error(web.HTTPBadRequest, f"size={size[:20]!r}: thumb or preview")
+    data = scan.previews.get(key)
+    if data is None:
+        try:
+            data = await _off_loop(make)
+        except images.ImageRequestError as exc:
+            raise json_error(web.HTTPBadRequest, exc) from exc
+        scan.previews[key] = data
+        while len(scan.previews) > library.PREVIEWS:
+            scan.previews.popitem(last=False)
+    return web.Response(body=data, content_type="image/jpeg", headers={"Cache-Control": "private, max-age=3600"})
+
+
+async def report_file(request: web.Request) -> web.StreamResponse:
+    """The scan's QA report (report/index.html and its figures)."""
+    folder = _library(request).folder(request.match_info["folder"])
+    name = request.match_info.get("name") or "index.html"
+    report = (folder / "report").resolve()
+    path = (report / name).resolve()
+    if path.parent != report or not path.is_file() or path.suffix not in (".html", ".png"):
+        raise json_error(web.HTTPNotFound, f"no report file {name[:80]!r}")
+    return web.FileResponse(path)
+
+
+def routes(app: web.Application) -> None:
+    app.router.add_get("/api/scans", list_scans)
+    app.router.add_get("/api/scans/{folder}", scan_detail)
+    app.router.add_get("/api/scans/{folder}/mesh", scan_mesh)
+    app.router.add_get("/api/scans/{folder}/navigate", navigate)
+    app.router.add_get("/api/scans/{folder}/images/{name}", image)
+    app.router.add_get("/scans/{folder}/report/", report_file)
+    app.router.add_get("/scans/{folder}/report/{name}", report_file)

@@ -1,0 +1,37 @@
+// Shared by the pages: JSON fetch with readable errors, and the operator token for writes.
+export async function getJSON(url) {
+  const response = await fetch(url, { headers: { Accept: "application/json" } });
+  const body = await response.json().catch(() => ({}));
+  if (!response.ok) throw new Error(body.error ? `${body.error.type}: ${body.error.message}` : response.statusText);
+  return body;
+}
+
+export async function send(method, url, body = {}) {
+  const headers = { "Content-Type": "application/json" };
+  const token = sessionStorage.getItem("tbp-token");
+  if (token) headers.Authorization = `Bearer ${token}`;
+  let response = await fetch(url, { method, headers, body: JSON.stringify(body) });
+  if (response.status === 401) {
+    const given = prompt("This action needs the operator token:");
+    if (!given) throw new Error("no token given");
+    sessionStorage.setItem("tbp-token", given.trim());
+    return send(method, url, body);
+  }
+  const reply = await response.json().catch(() => ({}));
+  if (!response.ok) throw new Error(reply.error ? `${reply.error.type}: ${reply.error.message}` : response.statusText);
+  return reply;
+}
+
+export function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs)) {
+    if (key === "class") node.className = value;
+    else if (key.startsWith("on")) node.addEventListener(key.slice(2), value);
+    else if (key === "dataset") Object.assign(node.dataset, value);
+    else node.setAttribute(key, value);
+  }
+  for (const child of children) if (child !== null && child !== undefined) node.append(child);
+  return node;
+}
+
+export const fmt = (x, digits = 1) => (x === null || x === undefined || Number.isNaN(x) ? "–" : Number(x).toFixed(digits));

@@ -1,0 +1,89 @@
+// The operator console: the daemon's status and event stream; START / ABORT / RESET go to the
+// same control handler as the panel's buttons and `tbp scan` / `tbp abort` / `tbp reset`.
+import { send, el, fmt } from "/static/common.js";
+
+const ACTIVE = ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "RETAKING", "STORING", "ABORTING"];
+const $ = (id) => document.getElementById(id);
+const hooks = { events: [], status: null };
+window.tbpConsole = hooks;
+let state = null;
+let counts = { captured: 0, verified: 0 };
+
+function pill(text, kind) { return el("span", { class: `pill ${kind}` }, text); }
+
+function showState(name, cause) {
+  state = name;
+  $("state").replaceChildren(pill(name, ACTIVE.includes(name) ? "busy" : name));
+  if (cause !== undefined) $("cause").textContent = cause;
+  $("start").disabled = name !== "IDLE";
+  $("abort").disabled = !ACTIVE.includes(name) || name === "ABORTING" || name === "STORING";
+  $("reset").disabled = name !== "FAULT";
+}
+
+function showStatus(s) {
+  hooks.status = s;
+  if (s.state !== state) showState(s.state);
+  $("angle").textContent = s.beam_angle_deg === null ? "–" : `${fmt(s.beam_angle_deg, 1)}°`;
+  $("speed").textContent = s.beam_speed_deg_s === null ? "–" : `${fmt(s.beam_speed_deg_s, 1)}°/s`;
+  $("scan-id").textContent = s.scan_id || "";
+  const devices = $("devices");
+  devices.replaceChildren(
+    el("div", {}, "Daemon ", pill(s.healthy ? "healthy" : "unhealthy", s.healthy ? "ok" : "bad")),
+    el("div", {}, "Beam drive ", pill(s.beam_angle_deg === null ? "no encoder" : "encoder live", s.beam_angle_deg === null ? "bad" : "ok")),
+    el("div", {}, "Phones ", pill(s.phones_failed.length ? `${s.phones_failed.length} failed` : "all connected", s.phones_failed.length ? "bad" : "ok")));
+  $("faults").replaceChildren(...s.fault_causes.map((c) => el("div", {}, `Fault: ${c}`)),
+    ...s.phones_failed.map((c) => el("div", {}, `Phone: ${c}`)),
+    ...(s.recovered_scans || []).map((r) => el("div", { class: "muted" }, `Recovered interrupted scan ${r.scan_id}: ${r.reason}`)));
+  showLast(s.last_scan);
+}
+
+function showLast(last) {
+  if (!last) { $("last").replaceChildren(); return; }
+  const name = last.folder.split("/").pop();
+  $("last").replaceChildren(el("b", {}, "Last scan "), `${last.scan_id}: ${last.outcome.toLowerCase()}, ${last.captured} captured, ${last.missing} missing `,
+    el("a", { id: "report-link", href: `/scans/${encodeURIComponent(name)}/report/` }, "QA report"), " · ",
+    el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"));
+}
+
+function logLine(e) {
+  const line = `${fmt(e.time_s, 2).padStart(9)} s  ${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}`;
+  const log = $("log");
+  log.prepend(el("div", {}, line));
+  while (log.childElementCount > 200) log.lastChild.remove();
+}
+
+function onEvent(e) {
+  hooks.events.push({ ...e, received_ms: performance.timeOrigin + performance.now() });
+  if (e.kind === "transition") {
+    showState(e.state, e.cause);
+    if (e.state === "PREPARING") counts = { captured: 0, verified: 0 };
+    logLine(e);
+  } else if (e.cause === "captured") {
+    counts.captured = e.data.captured;
+    if (e.data.angle_deg !== undefined) $("angle").textContent = `${fmt(e.data.angle_deg, 1)}°`;
+  } else if (e.cause === "verified") {
+    counts.verified = e.data.verified;
+  } else logLine(e);
+  $("captured").textContent = counts.captured;
+  $("verified").textContent = counts.verified;
+  $("bar-captured").style.width = `${Math.min(100, (100 * counts.captured) / 336)}%`;
+  $("bar-verified").style.width = `${Math.min(100, (100 * counts.verified) / 336)}%`;
+}
+
+function connect() {
+  const source = new EventSource("/api/rig/events");
+  source.addEventListener("open", () => { $("link").textContent = "live"; });
+  source.addEventListener("status", (m) => showStatus(JSON.parse(m.data)));
+  source.addEventListener("rig", (m) => onEvent(JSON.parse(m.data)));
+  source.addEventListener("error", () => { $("link").textContent = "reconnecting…"; });
+}
+
+async function act(action) {
+  $("action-error").textContent = "";
+  try { await send("POST", `/api/rig/${action}`, {}); } catch (error) { $("action-error").textContent = String(error.message || error); }
+}
+$("start").addEventListener("click", () => act("scan"));
+$("abort").addEventListener("click", () => act("abort"));
+$("reset").addEventListener("click", () => act("reset"));
+showState("–");
+connect();

@@ -1,0 +1,333 @@
+// The scan viewer: the body mesh coloured by sharp / blurred / unseen skin; a click finds the
+// best image of the spot (the server's navigator, the same as `tbp navigate`); marks; gallery.
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { getJSON, send, el, fmt } from "/static/common.js";
+
+const folder = decodeURIComponent(location.pathname.split("/")[2]);
+const api = `/api/scans/${encodeURIComponent(folder)}`;
+const COLOURS = [[0.60, 0.64, 0.68], [0.85, 0.51, 0.17], [0.18, 0.62, 0.29]]; // unseen, blurred, sharp
+const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, marks: null, mesh: null };
+const hooks = { ready: false, folder, firstPaintMs: null, lastAnswer: null, clickMs: null };
+window.tbpViewer = hooks;
+
+// ------------------------------------------------------------------ 3D stage
+const stage = document.getElementById("stage");
+const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+renderer.setClearColor(0x1c2431);
+renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+stage.prepend(renderer.domElement);
+const scene = new THREE.Scene();
+const camera = new THREE.PerspectiveCamera(30, 1, 10, 30000);
+camera.up.set(0, 0, 1);
+const controls = new OrbitControls(camera, renderer.domElement);
+scene.add(new THREE.HemisphereLight(0xffffff, 0x3a4352, 1.5));
+const lamp = new THREE.DirectionalLight(0xffffff, 1.6);
+lamp.position.set(0.3, 0.4, 1);
+camera.add(lamp);
+scene.add(camera);
+const markers = new THREE.Group();
+scene.add(markers);
+let dirty = true;
+controls.addEventListener("change", () => { dirty = true; });
+
+function resize() {
+  const { clientWidth: w, clientHeight: h } = stage;
+  renderer.setSize(w, h, false);
+  camera.aspect = w / Math.max(h, 1);
+  camera.updateProjectionMatrix();
+  dirty = true;
+}
+window.addEventListener("resize", resize);
+function frame() {
+  requestAnimationFrame(frame);
+  if (dirty) { dirty = false; renderer.render(scene, camera); }
+}
+
+function lookFrom(side) {
+  const box = state.mesh.geometry.boundingBox;
+  const centre = box.getCenter(new THREE.Vector3());
+  const height = box.max.z - box.min.z;
+  const dir = { front: [1, 0, 0], back: [-1, 0, 0], left: [0, 1, 0], right: [0, -1, 0] }[side];
+  camera.position.set(centre.x + dir[0] * height * 2.1, centre.y + dir[1] * height * 2.1, centre.z + height * 0.05);
+  controls.target.copy(centre);
+  controls.update();
+  dirty = true;
+}
+document.querySelectorAll(".views button").forEach((b) => b.addEventListener("click", () => lookFrom(b.dataset.view)));
+
+async function loadMesh() {
+  const response = await fetch(`${api}/mesh`);
+  if (!response.ok) {
+    const body = await response.json().catch(() => ({}));
+    throw new Error(body.error ? body.error.message : response.statusText);
+  }
+  const buffer = await response.arrayBuffer();
+  const head = new DataView(buffer, 0, 12);
+  if (String.fromCharCode(...new Uint8Array(buffer, 0, 4)) !== "TBPM") throw new Error("not a mesh payload");
+  const nv = head.getUint32(4, true), nf = head.getUint32(8, true);
+  const positions = new Float32Array(buffer, 12, nv * 3);
+  const faces = new Uint32Array(buffer, 12 + nv * 12, nf * 3);
+  const skin = new Uint8Array(buffer, 12 + nv * 12 + nf * 12, nv);
+  const colours = new Float32Array(nv * 3);
+  const counts = [0, 0, 0];
+  for (let i = 0; i < nv; i++) {
+    const c = COLOURS[skin[i]];
+    colours[3 * i] = c[0]; colours[3 * i + 1] = c[1]; colours[3 * i + 2] = c[2];
+    counts[skin[i]] += 1;
+  }
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute("position", new THREE.BufferAttribute(positions, 3));
+  geometry.setAttribute("color", new THREE.BufferAttribute(colours, 3));
+  geometry.setIndex(new THREE.BufferAttribute(faces, 1));
+  geometry.computeVertexNormals();
+  geometry.computeBoundingBox();
+  geometry.computeBoundingSphere();
+  const material = new THREE.MeshStandardMaterial({ vertexColors: true, roughness: 0.8, metalness: 0.0 });
+  state.mesh = new THREE.Mesh(geometry, material);
+  scene.add(state.mesh);
+  const share = (k) => `${fmt((100 * counts[k]) / nv)} %`;
+  document.getElementById("sh-sharp").textContent = share(2);
+  document.getElementById("sh-blurred").textContent = share(1);
+  document.getElementById("sh-unseen").textContent = share(0);
+  lookFrom("front");
+}
+
+function project(point) {
+  const v = new THREE.Vector3(...point).project(camera);
+  const rect = renderer.domElement.getBoundingClientRect();
+  return { x: rect.left + ((v.x + 1) / 2) * rect.width, y: rect.top + ((1 - v.y) / 2) * rect.height, visible: v.z < 1 };
+}
+hooks.project = project;
+
+function sphere(point, colour, radius = 7) {
+  const ball = new THREE.Mesh(new THREE.SphereGeometry(radius, 16, 12), new THREE.MeshBasicMaterial({ color: colour }));
+  ball.position.set(...point);
+  return ball;
+}
+
+function drawMarkers() {
+  markers.clear();
+  if (state.point) markers.add(sphere(state.point, 0x00dcff, 8));
+  for (const m of state.marks?.marks || []) markers.add(sphere(m.point_mm, 0xe040fb, 6));
+  for (const m of state.marks?.carried || []) markers.add(sphere(m.point_mm, 0xffd600, 6));
+  dirty = true;
+}
+
+// a click (not a drag) on the skin asks for the spot's images
+let down = null;
+renderer.domElement.addEventListener("pointerdown", (e) => { down = [e.clientX, e.clientY]; });
+renderer.domElement.addEventListener("pointerup", (e) => {
+  if (!down || Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 4 || !state.mesh) return;
+  const rect = renderer.domElement.getBoundingClientRect();
+  const ndc = new THREE.Vector2(((e.clientX - rect.left) / rect.width) * 2 - 1, -((e.clientY - rect.top) / rect.height) * 2 + 1);
+  const ray = new THREE.Raycaster();
+  ray.setFromCamera(ndc, camera);
+  const hit = ray.intersectObject(state.mesh, false)[0];
+  if (hit) selectSpot([hit.point.x, hit.point.y, hit.point.z]);
+});
+
+// ------------------------------------------------------------------ the spot and its images
+async function selectSpot(point) {
+  const started = performance.now();
+  const q = new URLSearchParams({ x: point[0], y: point[1], z: point[2] });
+  const answer = await getJSON(`${api}/navigate?${q}`);
+  hooks.clickMs = performance.now() - started;
+  hooks.lastAnswer = answer;
+  state.point = answer.point_mm;
+  state.views = answer.views;
+  state.byPose = new Map(answer.views.map((v, rank) => [v.pose, { ...v, rank }]));
+  drawMarkers();
+  showPane("spot");
+  if (answer.views.length) showImage(answer.views[0].angle_index, answer.views[0].camera_index);
+  else renderSpot(null, "No verified image shows this spot.");
+}
+
+function imageRecord(angle, cameraIndex) {
+  return state.scan.images.find((i) => i.angle_index === angle && i.camera_index === cameraIndex);
+}
+
+function shot(view, record, size = "preview") {
+  const src = `${api}/images/${encodeURIComponent(record.file.split("/").pop())}?size=${size}`;
+  const box = el("div", { class: "shot" }, el("img", { src, alt: `${record.camera_id} at ${fmt(record.actual_angle_deg)}°` }));
+  if (view) {
+    const dot = el("div", { class: "spot" });
+    dot.style.left = `${(100 * view.u_px) / state.scan.image_width_px}%`;
+    dot.style.top = `${(100 * view.v_px) / state.scan.image_height_px}%`;
+    box.append(dot);
+    box.dataset.u = view.u_px; box.dataset.v = view.v_px;
+  }
+  box.dataset.file = record.file;
+  return box;
+}
+
+function showImage(angle, cameraIndex) {
+  const n = state.scan.angles_deg.length;
+  angle = ((angle % n) + n) % n;
+  state.current = { angle, cameraIndex };
+  const record = imageRecord(angle, cameraIndex);
+  const pose = angle * state.scan.cameras.length + cameraIndex;
+  const view = state.byPose.get(pose) || null;
+  if (!record || record.status !== "verified") return renderSpot(null, `No verified image from ${state.scan.cameras[cameraIndex]} at angle ${angle} (${record ? record.status : "not planned"}).`);
+  renderSpot({ view, record });
+}
+
+function renderSpot(shown, message) {
+  const root = document.getElementById("spot");
+  document.getElementById("spot-empty").hidden = true;
+  root.replaceChildren();
+  if (state.point) root.append(el("div", { class: "muted", id: "spot-point", dataset: { point: JSON.stringify(state.point) } },
+    `Spot (${state.point.map((x) => fmt(x, 1)).join(", ")}) mm · seen sharp or blurred in ${state.views.length} images`));
+  if (!shown) { root.append(el("p", { class: "muted" }, message)); return; }
+  const { view, record } = shown;
+  const main = shot(view, record);
+  main.id = view && view.rank === 0 ? "best-image" : "shown-image";
+  const row = el("div", { class: "bestrow" }, main);
+  if (view) {
+    const crop = `${api}/images/${encodeURIComponent(record.file.split("/").pop())}?u=${view.u_px.toFixed(1)}&v=${view.v_px.toFixed(1)}&half=160`;
+    row.append(el("div", { class: "crop" }, el("img", { src: crop, alt: "zoomed spot" }), el("div", { class: "hint" }, "zoom on the spot")));
+  }
+  const title = view ? (view.rank === 0 ? "Best image of the spot" : `Image #${view.rank + 1} of the spot`) : "Image (the spot is not visible here)";
+  root.append(el("h2", {}, title), row);
+  const dl = el("dl", { class: "facts" });
+  const fact = (k, v) => dl.append(el("dt", {}, k), el("dd", {}, v));
+  fact("Camera", `${record.camera_id} (phone ${record.camera_index + 1} of ${state.scan.cameras.length})`);
+  fact("Exposure angle", `${fmt(record.actual_angle_deg, 2)}° (planned ${fmt(record.planned_angle_deg, 1)}°)`);
+  fact("Focus distance", `${fmt(record.focus_mm, 0)} mm`);
+  if (view) {
+    fact("Spot distance", `${fmt(view.depth_mm, 0)} mm, ${view.in_focus ? "sharp (in depth of field)" : "blurred (outside depth of field)"}`);
+    fact("Resolution", `${fmt(view.resolution_mm_px, 3)} mm/px`);
+    fact("Pixel", `(${fmt(view.u_px, 0)}, ${fmt(view.v_px, 0)}) of ${state.scan.image_width_px} × ${state.scan.image_height_px}`);
+  }
+  fact("File", record.file);
+  root.append(dl);
+  const others = state.views.slice(0, 5).filter((v) => !view || v.pose !== view.pose).slice(0, 4);
+  if (others.length) {
+    root.append(el("h2", {}, view && view.rank === 0 ? "Runners-up" : "Best images"));
+    const grid = el("div", { class: "runners" });
+    for (const v of others) {
+      const rec = imageRecord(v.angle_index, v.camera_index);
+      grid.append(el("div", { class: "r", onclick: () => showImage(v.angle_index, v.camera_index) }, shot(v, rec, "thumb"),
+        `#${state.byPose.get(v.pose).rank + 1} ${v.camera_id} ${fmt(v.angle_deg, 1)}° · ${fmt(v.focus_mm, 0)} mm · ${fmt(v.resolution_mm_px, 3)} mm/px${v.in_focus ? "" : " · blurred"}`));
+    }
+    root.append(grid);
+  }
+  root.append(el("div", { class: "hint" }, el("kbd", {}, "←"), " ", el("kbd", {}, "→"), " neighbouring angles · ",
+    el("kbd", {}, "↑"), " ", el("kbd", {}, "↓"), " neighbouring cameras"));
+}
+
+window.addEventListener("keydown", (e) => {
+  if (!state.current || e.target.tagName === "INPUT") return;
+  const step = { ArrowLeft: [-1, 0], ArrowRight: [1, 0], ArrowUp: [0, -1], ArrowDown: [0, 1] }[e.key];
+  if (!step) return;
+  e.preventDefault();
+  const cam = state.current.cameraIndex + step[1];
+  if (cam < 0 || cam >= state.scan.cameras.length) return;
+  showImage(state.current.angle + step[0], cam);
+});
+
+// ------------------------------------------------------------------ panes: marks, gallery
+function showPane(name) {
+  document.querySelectorAll(".tabs button").forEach((b) => b.classList.toggle("on", b.dataset.pane === name));
+  document.querySelectorAll(".pane").forEach((p) => p.classList.toggle("on", p.id === `pane-${name}`));
+  if (name === "gallery") renderGallery(state.galleryCamera || 0);
+}
+document.querySelectorAll(".tabs button").forEach((b) => b.addEventListener("click", () => showPane(b.dataset.pane)));
+
+function renderGallery(cameraIndex) {
+  state.galleryCamera = cameraIndex;
+  const root = document.getElementById("gallery");
+  const pick = el("div", { class: "controls", style: "flex-wrap:wrap;gap:4px;margin:0 0 8px" });
+  state.scan.cameras.forEach((id, c) => pick.append(el("button", { class: c === cameraIndex ? "primary" : "", onclick: () => renderGallery(c) }, id)));
+  const grid = el("div", { class: "gallery", style: "grid-template-columns: repeat(6, 1fr)" });
+  state.scan.angles_deg.forEach((deg, a) => {
+    const rec = imageRecord(a, cameraIndex);
+    const cell = el("div", {});
+    if (rec && rec.status === "verified") {
+      cell.append(el("img", { loading: "lazy", src: `${api}/images/${encodeURIComponent(rec.file.split("/").pop())}?size=thumb`,
+        title: `${rec.camera_id} at ${fmt(rec.actual_angle_deg, 2)}°, focus ${fmt(rec.focus_mm, 0)} mm`,
+        onclick: () => { showPane("spot"); showImage(a, cameraIndex); } }));
+    } else cell.append(el("div", { class: "lab error" }, rec ? rec.status : "–"));
+    cell.append(el("div", { class: "lab" }, `${fmt(deg, 1)}°`));
+    grid.append(cell);
+  });
+  root.replaceChildren(pick, grid);
+}
+
+async function loadMarks() {
+  state.marks = await getJSON(`${api}/marks`);
+  drawMarkers();
+  renderMarks();
+}
+
+async function compare(mark) {
+  const here = await getJSON(`${api}/navigate?${new URLSearchParams({ x: mark.point_mm[0], y: mark.point_mm[1], z: mark.point_mm[2], count: 1 })}`);
+  const prevApi = `/api/scans/${encodeURIComponent(state.marks.previous_scan)}`;
+  const then = await getJSON(`${prevApi}/navigate?${new URLSearchParams({ x: mark.from_point_mm[0], y: mark.from_point_mm[1], z: mark.from_point_mm[2], count: 1 })}`);
+  const box = document.getElementById(`pair-${mark.id}`);
+  const cropOf = (base, v) => v ? el("div", { class: "crop" }, el("img", { src: `${base}/images/${encodeURIComponent(v.file.split("/").pop())}?u=${v.u_px.toFixed(1)}&v=${v.v_px.toFixed(1)}&half=160` }),
+    el("div", { class: "hint" }, `${v.camera_id} ${fmt(v.angle_deg, 1)}° · ${fmt(v.resolution_mm_px, 3)} mm/px`)) : el("p", { class: "muted" }, "no image");
+  box.replaceChildren(el("div", {}, el("b", {}, "Earlier"), cropOf(prevApi, then.views[0])), el("div", {}, el("b", {}, "This scan"), cropOf(api, here.views[0])));
+}
+
+async function renderMarks() {
+  const root = document.getElementById("marks");
+  const m = state.marks;
+  const { scans } = await getJSON("/api/scans");
+  const earlier = scans.filter((s) => s.folder < folder && s.has_mesh);
+  const select = el("select", { id: "previous" }, el("option", { value: "" }, "— none —"));
+  for (const s of earlier) {
+    const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}`);
+    if (s.folder === m.previous_scan) opt.selected = true;
+    select.append(opt);
+  }
+  select.addEventListener("change", async () => {
+    await send("PUT", `${api}/previous`, { previous_scan: select.value || null });
+    await loadMarks();
+  });
+  const name = el("input", { id: "mark-name", placeholder: "name, e.g. naevus left scapula", maxlength: 80, style: "width:100%;padding:7px" });
+  const add = el("button", { class: "primary", id: "add-mark", onclick: async () => {
+    if (!state.point) return alert("Click the spot on the body first.");
+    await send("POST", `${api}/marks`, { name: name.value, point_mm: state.point });
+    await loadMarks();
+  } }, "Mark the selected spot");
+  root.replaceChildren(el("h2", {}, "Marks on this scan"));
+  for (const mark of m.marks) {
+    root.append(el("div", { class: "mark" }, el("span", {}, el("b", {}, mark.name), el("span", { class: "muted" }, mark.carried_from ? "  (carried)" : "")),
+      el("span", {}, el("button", { onclick: () => selectSpot(mark.point_mm) }, "Show"), " ",
+        el("button", { onclick: async () => { await send("DELETE", `${api}/marks/${mark.id}`); await loadMarks(); } }, "Delete"))));
+  }
+  if (!m.marks.length) root.append(el("p", { class: "muted" }, "None yet."));
+  root.append(el("div", { style: "margin:10px 0" }, name), add);
+  root.append(el("h2", {}, "Compare with an earlier scan of this person"), select);
+  if (m.registration && m.registration.error) root.append(el("p", { class: "error" }, m.registration.error));
+  else if (m.registration) root.append(el("p", { class: "muted" }, `Bodies registered: ${fmt(100 * m.registration.fitness, 0)} % overlap, ${fmt(m.registration.rmse_mm, 1)} mm rms.`));
+  for (const mark of m.carried) {
+    root.append(el("div", { class: "mark" }, el("span", {}, el("b", {}, mark.name), el("span", { class: "muted" }, "  from the earlier scan")),
+      el("span", {}, el("button", { onclick: () => compare(mark) }, "Compare"), " ",
+        el("button", { onclick: () => selectSpot(mark.point_mm) }, "Show"), " ",
+        el("button", { onclick: async () => { await send("POST", `${api}/marks`, { name: mark.name, point_mm: mark.point_mm, carried_from: { scan: m.previous_scan, mark: mark.id } }); await loadMarks(); } }, "Keep here"))),
+      el("div", { class: "pair", id: `pair-${mark.id}` }));
+  }
+}
+
+// ------------------------------------------------------------------ start
+try {
+  resize();
+  const scanPromise = getJSON(api);
+  await loadMesh();
+  state.scan = await scanPromise;
+  document.getElementById("title").textContent = `Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.state}`;
+  renderer.render(scene, camera);
+  requestAnimationFrame(() => {
+    hooks.firstPaintMs = performance.now();
+    hooks.ready = true;
+    frame();
+  });
+  loadMarks().catch((error) => { document.getElementById("marks").textContent = String(error); });
+  const wanted = new URLSearchParams(location.hash.slice(1));
+  if (wanted.has("x")) selectSpot(["x", "y", "z"].map((k) => Number(wanted.get(k))));
+} catch (error) {
+  document.getElementById("stage-msg").textContent = String(error);
+  hooks.error = String(error);
+}
