@@ -10,7 +10,7 @@ import structlog
 from aiohttp import web
 
 from daemon.store import ScanStore
-from web import marks, rig, scans
+from web import keys, marks, rig, scans
 from web.access import Access
 
 STATIC = Path(__file__).with_name("static")
@@ -27,12 +27,13 @@ class AssetsMissing(RuntimeError):
 @web.middleware
 async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
     """Host check, JSON errors for the API, and headers that keep pages to themselves."""
-    request.app["access"].check_host(request)
+    request.app[keys.ACCESS].check_host(request)
     try:
         response = await handler(request)
     except web.HTTPException as exc:
-        if request.path.startswith("/api/") and exc.content_type != "application/json":
-            raise scans.json_error(type(exc), exc.text or exc.reason) from None
+        if request.path.startswith("/api/") and exc.content_type != "application/json" and exc.status >= 400:
+            return web.json_response({"error": {"type": type(exc).__name__, "message": exc.text or exc.reason}},
+                                     status=exc.status)
         raise
     response.headers.setdefault("X-Content-Type-Options", "nosniff")
     response.headers.setdefault("Referrer-Policy", "no-referrer")
@@ -48,8 +49,8 @@ def _page(name: str) -> Any:
 
 
 async def _config(request: web.Request) -> web.Response:
-    access: Access = request.app["access"]
-    return web.json_response({"rig": request.app["service"] is not None, "writes": access.writes_enabled,
+    access: Access = request.app[keys.ACCESS]
+    return web.json_response({"rig": request.app[keys.SERVICE] is not None, "writes": access.writes_enabled,
                               "token_required": access.token is not None})
 
 
@@ -59,13 +60,13 @@ def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = N
     if not (THREE / "build" / "three.module.js").is_file():
         raise AssetsMissing(f"{THREE}: three.js is not installed; run ./dev (npm ci in web/)")
     app = web.Application(middlewares=[guard], client_max_size=MAX_REQUEST_BYTES)
-    app["access"] = access
-    app["service"] = service
-    app["library"] = scans.ScanLibrary(store if isinstance(store, ScanStore) else ScanStore(store), rig_path)
-    app["closing"] = asyncio.Event()
+    app[keys.ACCESS] = access
+    app[keys.SERVICE] = service
+    app[keys.LIBRARY] = scans.ScanLibrary(store if isinstance(store, ScanStore) else ScanStore(store), rig_path)
+    app[keys.CLOSING] = asyncio.Event()
 
     async def closing(app: web.Application) -> None:
-        app["closing"].set()  # event streams end so the server can close
+        app[keys.CLOSING].set()  # event streams end so the server can close
 
     app.on_shutdown.append(closing)
     app.router.add_get("/", _page("console.html"))

@@ -13,18 +13,19 @@ from aiohttp import web
 
 from analysis.marks import MarkBook, MarkError, check_mark_id, new_mark, read_marks, write_marks
 from analysis.registration import MarkCarrier, RegistrationError
+from web import keys
 from web.scans import ScanLibrary, _off_loop, json_error
 
 MAX_BODY = 16 * 1024
 
 
 def _library(request: web.Request) -> ScanLibrary:
-    return request.app["library"]
+    return request.app[keys.LIBRARY]
 
 
 async def read_json(request: web.Request) -> dict[str, Any]:
     """The request's JSON object, after the access check; 4xx for anything else."""
-    request.app["access"].check_write(request)
+    request.app[keys.ACCESS].check_write(request)
     if request.content_length is not None and request.content_length > MAX_BODY:
         raise json_error(web.HTTPRequestEntityTooLarge, f"body of {request.content_length} bytes; at most {MAX_BODY}")
     raw = await request.content.read(MAX_BODY + 1)
@@ -80,7 +81,7 @@ async def list_marks(request: web.Request) -> web.Response:
         earlier = _book(library.folder(book.previous_scan))
         if earlier.marks:
             try:
-                carrier = await request.app["carriers"].get(library, book.previous_scan, name)
+                carrier = await request.app[keys.CARRIERS].get(library, book.previous_scan, name)
                 points, rmse = await _off_loop(carrier.carry, np.array([m.point_mm for m in earlier.marks]))
             except RegistrationError as exc:
                 out["registration"] = {"error": str(exc)}
@@ -142,7 +143,7 @@ async def set_previous(request: web.Request) -> web.Response:
 
 
 def routes(app: web.Application) -> None:
-    app["carriers"] = Carriers()
+    app[keys.CARRIERS] = Carriers()
     app.router.add_get("/api/scans/{folder}/marks", list_marks)
     app.router.add_post("/api/scans/{folder}/marks", add_mark)
     app.router.add_delete("/api/scans/{folder}/marks/{mark}", delete_mark)

@@ -19,6 +19,7 @@ from aiohttp import web
 
 from daemon.control import to_jsonable
 from daemon.errors import ScanBusy
+from web import keys
 from web.marks import read_json
 from web.scans import json_error
 
@@ -27,7 +28,7 @@ STATUS_PERIOD_S = 0.5
 
 
 def _service(request: web.Request) -> Any:
-    service = request.app["service"]
+    service = request.app[keys.SERVICE]
     if service is None:
         raise json_error(web.HTTPServiceUnavailable, "no rig daemon in this server (viewer only)")
     return service
@@ -49,7 +50,7 @@ async def events(request: web.Request) -> web.StreamResponse:
     iterator = aiter(service.subscribe())
     nxt: asyncio.Future[Any] = asyncio.ensure_future(anext(iterator))
     await asyncio.sleep(0)  # subscribed before the snapshot: nothing between the two is lost
-    closing: asyncio.Event = request.app["closing"]
+    closing: asyncio.Event = request.app[keys.CLOSING]
     stop = asyncio.ensure_future(closing.wait())
     try:
         await stream.write(b"retry: 2000\n\n" + _sse("status", service.status()))

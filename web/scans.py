@@ -9,6 +9,7 @@ kept for the few most recently opened scans.
 from __future__ import annotations
 
 import asyncio
+import json
 import struct
 from collections import OrderedDict
 from pathlib import Path
@@ -21,7 +22,7 @@ from analysis.navigate import NavigationError, Navigator
 from analysis.scan_views import ScanFolderError, ScanRecord, open_scan
 from analysis.skin_map import read_vertex_map, vertex_skin
 from daemon.store import ManifestError, ScanStore
-from web import images
+from web import images, keys
 
 MESH_MAGIC = b"TBPM"
 
@@ -29,8 +30,10 @@ MESH_MAGIC = b"TBPM"
 def json_error(status: type[web.HTTPException], error: Exception | str) -> web.HTTPException:
     """An HTTP error whose body is {"error": {"type", "message"}}."""
     kind = type(error).__name__ if isinstance(error, Exception) else status.__name__
-    body = {"error": {"type": kind, "message": str(error)}}
-    return status(text=web.json_response(body).text, content_type="application/json")
+    text = json.dumps({"error": {"type": kind, "message": str(error)}})
+    if status is web.HTTPRequestEntityTooLarge:
+        return status(max_size=0, actual_size=0, text=text, content_type="application/json")
+    return status(text=text, content_type="application/json")
 
 
 class OpenScan:
@@ -138,7 +141,7 @@ async def _off_loop(fn: Any, *args: Any) -> Any:
 
 
 def _library(request: web.Request) -> ScanLibrary:
-    return request.app["library"]
+    return request.app[keys.LIBRARY]
 
 
 async def list_scans(request: web.Request) -> web.Response:

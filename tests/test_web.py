@@ -1,0 +1,201 @@
+"""The web server on a small simulated scan: viewer API, navigation identical to `tbp navigate`,
+lesion marks, and hostile requests refused with a clear 4xx that changes nothing."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from aiohttp.test_utils import TestClient, TestServer
+
+from analysis.marks import MARKS
+from analysis.navigate import navigate
+from analysis.qa_report import generate_report
+from sim.run import run_sim_scan
+from tests.daemon_rigs import PLAN_POINTS, capsule_subject
+from web.access import Access, AccessError, parse_listen
+from web.app import make_app
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("store")
+    run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
+                 panel=False, qa_report=generate_report)
+    return root
+
+
+@pytest.fixture
+def scan_store(store: Path, tmp_path: Path) -> Path:
+    """A private copy (tests write marks)."""
+    copy = tmp_path / "store"
+    shutil.copytree(store, copy)
+    return copy
+
+
+async def client_for(root: Path, access: Access | None = None, service: object | None = None) -> TestClient:
+    access = access or Access("127.0.0.1", 0)
+    client = TestClient(TestServer(make_app(root, access, service=service), host="127.0.0.1"))
+    await client.start_server()
+    return client
+
+
+def folder_of(root: Path) -> str:
+    return next(p.name for p in root.iterdir() if p.is_dir())
+
+
+async def test_navigation_over_the_web_is_tbp_navigate(scan_store):
+    name = folder_of(scan_store)
+    client = await client_for(scan_store)
+    try:
+        for vertex in (100, 50_000):
+            web = await (await client.get(f"/api/scans/{name}/navigate", params={"vertex": vertex, "count": 5})).json()
+            assert web == json.loads(json.dumps(navigate(scan_store / name, vertex=vertex, count=5)))
+        point = web["point_mm"]
+        q = {"x": point[0] + 3.0, "y": point[1], "z": point[2]}
+        web = await (await client.get(f"/api/scans/{name}/navigate", params=q)).json()
+        cli = navigate(scan_store / name, point=f"{q['x']},{q['y']},{q['z']}", count=len(web["views"]))
+        assert web["views"] == json.loads(json.dumps(cli["views"])) and web["views"]
+        best = web["views"][0]
+        full = await client.get(f"/api/scans/{name}/images/{Path(best['file']).name}")
+        assert full.status == 200 and await full.read() == (scan_store / name / best["file"]).read_bytes()
+        crop = await client.get(f"/api/scans/{name}/images/{Path(best['file']).name}",
+                                params={"u": best["u_px"], "v": best["v_px"]})
+        assert crop.status == 200 and crop.content_type == "image/jpeg"
+    finally:
+        await client.close()
+
+
+async def test_scan_list_detail_and_mesh(scan_store):
+    name = folder_of(scan_store)
+    client = await client_for(scan_store)
+    try:
+        scans = (await (await client.get("/api/scans")).json())["scans"]
+        assert [s["folder"] for s in scans] == [name] and scans[0]["state"] == "complete"
+        detail = await (await client.get(f"/api/scans/{name}")).json()
+        assert len(detail["images"]) == 336 and detail["cameras"][0] == "cam0"
+        body = await (await client.get(f"/api/scans/{name}/mesh")).read()
+        import numpy as np
+        import trimesh
+
+        mesh = trimesh.load(scan_store / name / "mesh.ply", process=False)
+        nv, nf = np.frombuffer(body[4:12], "<u4")
+        assert body[:4] == b"TBPM" and (nv, nf) == (len(mesh.vertices), len(mesh.faces))
+        skin = np.frombuffer(body[12 + 12 * nv + 12 * nf:], np.uint8)
+        assert len(skin) == nv and set(np.unique(skin)) <= {0, 1, 2} and (skin == 2).mean() > 0.5
+        for page in ("/", "/scans", f"/scans/{name}", f"/scans/{name}/report/", "/vendor/three/build/three.module.js"):
+            assert (await client.get(page)).status == 200, page
+    finally:
+        await client.close()
+
+
+async def test_marks_are_saved_beside_the_scan_and_never_touch_its_record(scan_store):
+    name = folder_of(scan_store)
+    folder = scan_store / name
+    before = {p: p.read_bytes() for p in [folder / "manifest.json", *sorted((folder / "images").iterdir())]}
+    client = await client_for(scan_store)
+    try:
+        reply = await client.post(f"/api/scans/{name}/marks", json={"name": "naevus, left flank", "point_mm": [1, 2, 3]})
+        assert reply.status == 201
+        mark = await reply.json()
+        listed = await (await client.get(f"/api/scans/{name}/marks")).json()
+        assert [m["name"] for m in listed["marks"]] == ["naevus, left flank"]
+        assert json.loads((folder / MARKS).read_text())["marks"][0]["id"] == mark["id"]
+        assert (await client.delete(f"/api/scans/{name}/marks/{mark['id']}", json={})).status == 200
+        assert (await (await client.get(f"/api/scans/{name}/marks")).json())["marks"] == []
+    finally:
+        await client.close()
+    assert {p: p.read_bytes() for p in before} == before
+
+
+@pytest.mark.parametrize("method, path, kwargs, status", [
+    ("GET", "/api/scans/..%2F..%2Fetc/navigate?vertex=1", {}, 404),
+    ("GET", "/api/scans/{name}/images/..%2Fmanifest.json", {}, 404),
+    ("GET", "/api/scans/{name}/images/%2Fetc%2Fpasswd", {}, 404),
+    ("GET", "/static/../../../../etc/passwd", {}, 404),
+    ("GET", "/vendor/three/..%2F..%2Fapp.py", {}, 404),
+    ("GET", "/scans/{name}/report/..%2Fmanifest.json", {}, 404),
+    ("GET", "/api/scans/{name}/navigate?vertex=999999999", {}, 400),
+    ("GET", "/api/scans/{name}/navigate?x=nan&y=1&z=1", {}, 400),
+    ("GET", "/api/scans/{name}/navigate?x=1", {}, 400),
+    ("GET", "/api/scans/{name}/images/cam0-a00.jpg?u=1&v=1&half=-3", {}, 400),
+    ("POST", "/api/scans/{name}/marks", {"data": b"{not json", "headers": {"Content-Type": "application/json"}}, 400),
+    ("POST", "/api/scans/{name}/marks", {"data": b"[1, 2]", "headers": {"Content-Type": "application/json"}}, 400),
+    ("POST", "/api/scans/{name}/marks", {"json": {"name": "x", "point_mm": [1, "a", 3]}}, 400),
+    ("POST", "/api/scans/{name}/marks", {"json": {"name": "", "point_mm": [1, 2, 3]}}, 400),
+    ("POST", "/api/scans/{name}/marks", {"json": {"name": "x" * 81, "point_mm": [1, 2, 3]}}, 400),
+    ("POST", "/api/scans/{name}/marks", {"data": b"name=x", "headers": {"Content-Type": "text/plain"}}, 415),
+    ("POST", "/api/scans/{name}/marks", {"data": b"{" + b" " * 200_000 + b"}",
+                                         "headers": {"Content-Type": "application/json"}}, 413),
+    ("POST", "/api/scans/{name}/marks", {"json": {"name": "x", "point_mm": [1, 2, 3]},
+                                         "headers": {"Origin": "http://evil.example"}}, 403),
+    ("GET", "/api/scans", {"headers": {"Host": "evil.example:80"}}, 421),
+    ("DELETE", "/api/scans/{name}/marks/../../x", {"json": {}}, 405),
+    ("PUT", "/api/scans/{name}/previous", {"json": {"previous_scan": "../other"}}, 404),
+    ("POST", "/api/rig/scan", {"json": {}}, 503),
+])
+async def test_hostile_requests_get_a_clear_4xx_and_change_nothing(scan_store, method, path, kwargs, status):
+    name = folder_of(scan_store)
+    snapshot = {p: p.read_bytes() for p in scan_store.rglob("*") if p.is_file()}
+    client = await client_for(scan_store)
+    try:
+        reply = await client.request(method, path.format(name=name), **kwargs)
+        assert reply.status == status, await reply.text()
+        if path.startswith("/api/") and status != 421:
+            assert reply.content_type == "application/json"
+            assert (await reply.json())["error"]["message"]
+    finally:
+        await client.close()
+    assert {p: p.read_bytes() for p in scan_store.rglob("*") if p.is_file()} == snapshot
+
+
+class RecordingService:
+    """The control handler's interface, recording calls (the real one is tested in the console test)."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def status(self):
+        return {"state": "IDLE"}
+
+    def scan(self, **args):
+        self.calls.append("scan")
+        return {"scan_id": "x", "state": "PREPARING"}
+
+    def abort(self):
+        self.calls.append("abort")
+        return {"aborted": False}
+
+    async def reset(self):
+        self.calls.append("reset")
+        return {"state": "IDLE"}
+
+
+async def test_control_needs_the_token_beyond_loopback(scan_store):
+    service = RecordingService()
+    token = "s3cret-operator-token"
+    open_wide = await client_for(scan_store, Access("0.0.0.0", 0), service)
+    with_token = await client_for(scan_store, Access("0.0.0.0", 0, token), service)
+    local = await client_for(scan_store, Access("127.0.0.1", 0), service)
+    try:
+        assert (await open_wide.post("/api/rig/scan", json={})).status == 403
+        assert (await with_token.post("/api/rig/scan", json={})).status == 401
+        bad = await with_token.post("/api/rig/abort", json={}, headers={"Authorization": "Bearer wrong-token-123456"})
+        assert bad.status == 401 and service.calls == []
+        good = await with_token.post("/api/rig/abort", json={}, headers={"Authorization": f"Bearer {token}"})
+        assert good.status == 200 and service.calls == ["abort"]
+        assert (await local.post("/api/rig/reset", json={})).status == 200 and service.calls[-1] == "reset"
+        assert (await local.get("/api/rig/status")).status == 200
+    finally:
+        for c in (open_wide, with_token, local):
+            await c.close()
+
+
+def test_listen_address_is_checked():
+    assert parse_listen("127.0.0.1:8470") == ("127.0.0.1", 8470)
+    assert parse_listen("[::1]:80") == ("::1", 80)
+    for bad in ("8470", "host:", "host:99999", ":80"):
+        with pytest.raises(AccessError, match="--http"):
+            parse_listen(bad)
