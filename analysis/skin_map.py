@@ -21,24 +21,26 @@ UNSEEN, BLURRED, SHARP = 0, 1, 2
 VERTEX_MAP = "skin_vertices.npz"
 
 
-def skin_status_at(scan: ScanRecord, mesh: Any, samples: Any) -> dict[str, np.ndarray]:
+def skin_status_at(scan: ScanRecord, mesh: Any, samples: Any, scene: Any = None) -> dict[str, np.ndarray]:
     """status (N,) uint8 (2 sharp, 1 blurred, 0 unseen) and resolution (N,) mm/px in each
     point's best captured image (NaN if unseen), for SurfaceSamples on ``mesh``."""
-    from planner.cost import cost_table
-    from planner.optics import resolution_mm_per_px
+    from planner.optics import focus_interval, resolution_mm_per_px
     from planner.visibility import RayScene, visible_pairs
 
     rig = scan.rig
     focus = scan.captured_focus_mm()
-    table = cost_table(visible_pairs(RayScene(mesh), scan.poses(), samples, rig.optics), rig.cost, rig.optics)
-    captured = np.isfinite(focus)[table.vis.pose]
-    sharp_pair = table.pair_in_focus(np.nan_to_num(focus, nan=-1.0)) & captured
+    vis = visible_pairs(scene or RayScene(mesh), scan.poses(), samples, rig.optics)
+    # The plan's own depth-of-field test (CostTable.pair_in_focus), without the cost terms.
+    lo, hi = focus_interval(vis.depth, rig.optics.hyperfocal_mm, rig.optics.focal_length_mm)
+    used = np.nan_to_num(focus, nan=-1.0)[vis.pose]
+    captured = np.isfinite(focus)[vis.pose]
+    sharp_pair = (lo <= used) & (used <= hi) & captured
     status = np.zeros(len(samples.points), dtype=np.uint8)
-    status[table.vis.point[captured]] = BLURRED
-    status[table.vis.point[sharp_pair]] = SHARP
+    status[vis.point[captured]] = BLURRED
+    status[vis.point[sharp_pair]] = SHARP
     resolution = np.full(len(samples.points), np.inf)
-    per_pair = resolution_mm_per_px(table.vis.depth, rig.optics)
-    np.minimum.at(resolution, table.vis.point[captured], per_pair[captured])
+    per_pair = resolution_mm_per_px(vis.depth, rig.optics)
+    np.minimum.at(resolution, vis.point[captured], per_pair[captured])
     resolution[np.isinf(resolution)] = np.nan
     return {"status": status, "resolution": resolution}
 
@@ -49,16 +51,25 @@ def mesh_digest(path: Path) -> str:
 
 
 def vertex_skin(scan: ScanRecord, mesh: Any | None = None) -> dict[str, np.ndarray]:
-    """The skin map at every vertex of the scan's mesh: status (V,) uint8, resolution (V,) mm/px."""
+    """The skin map at every vertex of the scan's mesh: status (V,) uint8, resolution (V,) mm/px.
+
+    Each vertex takes the normal of its closest triangle, as a navigation query of that vertex
+    does (planner.navigation.find_views), so the colour under a click and the images the click
+    finds always agree.
+    """
     from planner.sampling import SurfaceSamples
+    from planner.visibility import RayScene
 
     mesh = scan.mesh() if mesh is None else mesh
-    inward = -np.asarray(mesh.vertex_normals, dtype=float)
-    loose = np.linalg.norm(inward, axis=1) == 0  # vertices of no face: nothing to image
-    inward[loose] = [1.0, 0.0, 0.0]
-    skin = skin_status_at(scan, mesh, SurfaceSamples.from_arrays(np.asarray(mesh.vertices), inward))
-    skin["status"][loose] = UNSEEN
-    skin["resolution"][loose] = np.nan
+    scene = RayScene(mesh)
+    vertices = np.asarray(mesh.vertices, dtype=float)
+    _, faces = scene.closest_faces(vertices)
+    inward = -np.asarray(scene.face_normals)[faces]
+    degenerate = np.linalg.norm(inward, axis=1) == 0  # a zero-area triangle: no direction to image from
+    inward[degenerate] = [1.0, 0.0, 0.0]
+    skin = skin_status_at(scan, mesh, SurfaceSamples.from_arrays(vertices, inward), scene)
+    skin["status"][degenerate] = UNSEEN
+    skin["resolution"][degenerate] = np.nan
     return skin
 
 

@@ -199,3 +199,27 @@ def test_listen_address_is_checked():
     for bad in ("8470", "host:", "host:99999", ":80"):
         with pytest.raises(AccessError, match="--http"):
             parse_listen(bad)
+
+
+def test_mesh_colours_agree_with_navigation(store):
+    """A vertex coloured sharp has an in-focus verified image; unseen has no image at all."""
+    import numpy as np
+
+    from analysis.navigate import Navigator
+    from analysis.scan_views import open_scan
+    from analysis.skin_map import BLURRED, SHARP, UNSEEN, read_vertex_map
+
+    scan = open_scan(store / folder_of(store))
+    skin = read_vertex_map(scan, scan.folder / "report")
+    assert skin is not None  # written by the QA report at the end of the scan
+    navigator = Navigator(scan)
+    rng = np.random.default_rng(4)
+    checked = set()
+    for status in (SHARP, BLURRED, UNSEEN):
+        candidates = np.flatnonzero(skin["status"] == status)
+        for vertex in rng.choice(candidates, size=min(6, len(candidates)), replace=False):
+            views = navigator.query(vertex=int(vertex), count=None)["views"]
+            assert (status == SHARP) == any(v["in_focus"] for v in views), (status, vertex)
+            assert (status == UNSEEN) == (not views), (status, vertex)
+            checked.add(status)
+    assert {SHARP, UNSEEN} <= checked

@@ -66,3 +66,42 @@ def canvas_is_blank(png: bytes) -> bool:
 
     pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
     return float(pixels.std(axis=(0, 1)).max()) < 2.0
+
+
+@contextmanager
+def serve_in_thread(store: Any, access: Any = None, service: Any = None) -> Iterator[str]:
+    """The web app on 127.0.0.1 (a free port) in its own thread and event loop; yields its URL
+    (Selenium blocks, so the server cannot share the test's loop)."""
+    import asyncio
+    import threading
+
+    from web.access import Access
+    from web.app import make_app
+    from web.server import WebServer
+
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="web-test-server", daemon=True)
+    thread.start()
+
+    async def start() -> WebServer:
+        server = WebServer(make_app(store, access or Access("127.0.0.1", 0), service=service), "127.0.0.1", 0)
+        await server.start()
+        return server
+
+    server = asyncio.run_coroutine_threadsafe(start(), loop).result(60)
+    try:
+        yield server.url
+    finally:
+        asyncio.run_coroutine_threadsafe(server.close(), loop).result(60)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(30)
+        loop.close()
+
+
+def click_at(driver: Any, x: float, y: float) -> None:
+    """A real mouse click at page coordinates (x, y) CSS px."""
+    from selenium.webdriver.common.actions.action_builder import ActionBuilder
+
+    actions = ActionBuilder(driver)
+    actions.pointer_action.move_to_location(int(round(x)), int(round(y))).click()
+    actions.perform()

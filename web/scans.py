@@ -47,6 +47,12 @@ class OpenScan:
         self.mesh_bytes: bytes | None = None
         self.previews: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
         self.lock = asyncio.Lock()
+        self.warming: asyncio.Task[Any] | None = None
+
+    async def navigator_ready(self) -> Navigator:
+        """The navigator, built off the loop once (the ray scene takes about a second)."""
+        async with self.lock:
+            return await _off_loop(self.navigator_now)
 
     def mesh_now(self) -> Any:
         if self.mesh is None:
@@ -175,6 +181,9 @@ async def scan_mesh(request: web.Request) -> web.Response:
             payload = await _off_loop(scan.mesh_payload)
         except ScanFolderError as exc:
             raise json_error(web.HTTPConflict, exc) from exc
+    if scan.warming is None:  # the first click comes soon: build the navigator meanwhile
+        scan.warming = asyncio.create_task(scan.navigator_ready(), name=f"navigator-{scan.record.folder.name}")
+        scan.warming.add_done_callback(lambda task: task.cancelled() or task.exception())  # a click reports it
     return web.Response(body=payload, content_type="application/octet-stream",
                         headers={"Cache-Control": "private, max-age=60"})
 
@@ -200,8 +209,7 @@ async def navigate(request: web.Request) -> web.Response:
     count = _number(request, "count", int)
     if vertex is None and any(v is None for v in xyz):
         raise json_error(web.HTTPBadRequest, "give x, y and z (mm) or vertex")
-    async with scan.lock:
-        navigator = await _off_loop(scan.navigator_now)
+    navigator = await scan.navigator_ready()
     try:
         answer = await _off_loop(lambda: navigator.query(
             point=None if vertex is not None else np.array(xyz), vertex=vertex, count=count))

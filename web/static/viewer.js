@@ -6,7 +6,8 @@ import { getJSON, send, el, fmt } from "/static/common.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
 const api = `/api/scans/${encodeURIComponent(folder)}`;
-const COLOURS = [[0.60, 0.64, 0.68], [0.85, 0.51, 0.17], [0.18, 0.62, 0.29]]; // unseen, blurred, sharp
+// unseen, blurred, sharp: the QA report's grey, red and green
+const COLOURS = [[0.60, 0.60, 0.60], [0.83, 0.24, 0.18], [0.18, 0.62, 0.29]];
 const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, marks: null, mesh: null };
 const hooks = { ready: false, folder, firstPaintMs: null, lastAnswer: null, clickMs: null };
 window.tbpViewer = hooks;
@@ -237,7 +238,7 @@ document.querySelectorAll(".tabs button").forEach((b) => b.addEventListener("cli
 function renderGallery(cameraIndex) {
   state.galleryCamera = cameraIndex;
   const root = document.getElementById("gallery");
-  const pick = el("div", { class: "controls", style: "flex-wrap:wrap;gap:4px;margin:0 0 8px" });
+  const pick = el("div", { class: "cams" }, el("span", { class: "muted" }, "Camera "));
   state.scan.cameras.forEach((id, c) => pick.append(el("button", { class: c === cameraIndex ? "primary" : "", onclick: () => renderGallery(c) }, id)));
   const grid = el("div", { class: "gallery", style: "grid-template-columns: repeat(6, 1fr)" });
   state.scan.angles_deg.forEach((deg, a) => {

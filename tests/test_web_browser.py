@@ -1,0 +1,141 @@
+"""The viewer and the console in real headless Chromium (Debian's, software WebGL).
+
+Skipped, with the reason, only where Chromium and its driver are not installed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from analysis.scan_views import open_scan
+from cli import main
+from tests.test_web import folder_of, store  # noqa: F401  (the module's simulated scan)
+from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
+
+pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
+SHOTS = Path(os.environ.get("TBP_SCREENSHOTS", "/tmp/tbp-web-screenshots"))
+
+
+def front_vertex(scan_dir: Path) -> int:
+    """A vertex on the front of the body at mid-height (seen head-on from the viewer's front view)."""
+    mesh = open_scan(scan_dir).mesh()
+    v = np.asarray(mesh.vertices)
+    middle = np.abs(v[:, 2] - np.median(v[:, 2])) < 30
+    front = np.flatnonzero(middle & (np.abs(v[:, 1]) < 20))
+    return int(front[np.argmax(v[front, 0])])
+
+
+def test_click_on_the_body_shows_the_image_and_pixel_tbp_navigate_gives(store, capsys):  # noqa: F811
+    name = folder_of(store)
+    scan_dir = store / name
+    vertex = front_vertex(scan_dir)
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    with serve_in_thread(store) as url, chromium() as driver:
+        driver.get(f"{url}/scans/{name}")
+        assert wait_for(driver, "window.tbpViewer && (window.tbpViewer.ready || window.tbpViewer.error)") is True
+        assert driver.execute_script("return window.tbpViewer.error") is None
+        canvas = driver.find_element("css selector", "canvas")
+        assert not canvas_is_blank(canvas.screenshot_as_png)
+        where = open_scan(scan_dir).mesh().vertices[vertex].tolist()
+        spot = driver.execute_script("return window.tbpViewer.project(arguments[0])", where)
+        click_at(driver, spot["x"], spot["y"])
+        wait_for(driver, "document.querySelector('#best-image img') && document.querySelector('#best-image img').complete"
+                         " && document.querySelector('.crop img') && document.querySelector('.crop img').complete")
+        best = driver.find_element("id", "best-image")
+        shown = {"file": best.get_attribute("data-file"), "u": float(best.get_attribute("data-u")),
+                 "v": float(best.get_attribute("data-v"))}
+        point = json.loads(driver.find_element("id", "spot-point").get_attribute("data-point"))
+        driver.save_screenshot(str(SHOTS / "viewer-spot.png"))
+        assert np.linalg.norm(np.array(point) - where) < 5.0  # the click landed on the vertex's skin
+
+        capsys.readouterr()
+        assert main(["navigate", str(scan_dir), "--point", ",".join(map(repr, point)), "--json"]) == 0
+        cli = json.loads(capsys.readouterr().out)["views"][0]
+        assert shown["file"] == cli["file"]
+        assert (shown["u"], shown["v"]) == pytest.approx((cli["u_px"], cli["v_px"]), abs=1e-3)  # float32 ray scene
+        natural = driver.execute_script("const i = document.querySelector('#best-image img');"
+                                        "return [i.naturalWidth, i.naturalHeight]")
+        assert natural[0] > 0 and natural[1] > natural[0]  # a portrait phone image, loaded
+
+        # Arrow keys walk to the neighbouring angle of the same camera.
+        from selenium.webdriver.common.keys import Keys
+
+        driver.find_element("tag name", "body").send_keys(Keys.ARROW_RIGHT)
+        wait_for(driver, "document.querySelector('#shown-image, #best-image') &&"
+                         f" document.querySelector('#shown-image, #best-image').dataset.file !== {json.dumps(shown['file'])}")
+        moved = driver.find_element("css selector", "#shown-image, #best-image").get_attribute("data-file")
+        camera, angle = cli["camera_id"], cli["angle_index"]
+        assert moved == f"images/{camera}-a{(angle + 1) % 48:02d}.jpg"
+
+        driver.find_element("css selector", ".tabs button[data-pane='gallery']").click()
+        wait_for(driver, "document.querySelectorAll('#gallery img').length === 48")
+        driver.save_screenshot(str(SHOTS / "viewer-gallery.png"))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
+    from tests.daemon_rigs import PLAN_POINTS, capsule_subject
+
+    subject = tmp_path / "subject.ply"
+    capsule_subject().export(subject)
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    daemon = subprocess.Popen(
+        [str(Path(sys.executable).with_name("tbp")), "daemon", "--sim", "--store", str(tmp_path / "scans"),
+         "--socket", str(tmp_path / "control.sock"), "--subject", str(subject), "--plan-points", str(PLAN_POINTS),
+         "--depth-decimation", "4", "--time-scale", "20", "--http", f"127.0.0.1:{port}", "--log-level", "warning"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=Path(__file__).resolve().parent.parent)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                urllib.request.urlopen(f"{url}/api/rig/status", timeout=2).read()
+                break
+            except OSError:
+                if daemon.poll() is not None or time.monotonic() > deadline:
+                    pytest.fail(f"the daemon did not serve the web: {daemon.stderr.read().decode()[-2000:]}")
+                time.sleep(0.2)
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        with chromium() as driver:
+            driver.get(url)
+            wait_for(driver, "window.tbpConsole.status && window.tbpConsole.status.state === 'IDLE'")
+            assert driver.find_element("id", "start").is_enabled()
+            driver.find_element("id", "start").click()
+            wait_for(driver, "window.tbpConsole.events.some(e => e.state === 'CAPTURING')", 300)
+            driver.save_screenshot(str(SHOTS / "console-capturing.png"))
+            done = wait_for(driver, "window.tbpConsole.events.find(e => e.kind === 'transition' && e.state === 'IDLE'"
+                                    " && e.previous === 'STORING')", 600)
+            assert done["cause"] == "scan completed"
+            wait_for(driver, "document.getElementById('report-link') !== null", 30)
+            verified = int(driver.find_element("id", "verified").text)
+            assert verified == 336 and int(driver.find_element("id", "captured").text) == 336
+            states = [e["state"] for e in driver.execute_script("return window.tbpConsole.events") if e["kind"] == "transition"]
+            assert states == ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "STORING", "IDLE"]
+            report = driver.find_element("id", "report-link").get_attribute("href")
+            driver.save_screenshot(str(SHOTS / "console-done.png"))
+            driver.get(report)
+            assert "every planned image is on disk and verified" in driver.page_source
+    finally:
+        daemon.terminate()
+        try:
+            daemon.wait(60)
+        except subprocess.TimeoutExpired:
+            daemon.kill()
+            daemon.wait()
+    assert daemon.returncode == 0, daemon.stderr.read().decode()[-2000:]

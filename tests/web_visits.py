@@ -1,0 +1,83 @@
+"""Two visits of one simulated person: the second scan has a new seed, postural sway and the
+person standing a little elsewhere. Ground truth for carrying lesion marks between them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+VISIT_SHIFT_MM = (25.0, -15.0, 0.0)
+VISIT_TURN_DEG = 6.0
+SWAY_DEG = 2.0  # the evaluation's postural sway (analysis/evaluation.py)
+
+
+@dataclass(frozen=True)
+class Visits:
+    earlier: Path
+    later: Path
+    subject_earlier: Any
+    subject_later: Any
+
+
+def placed(mesh: Any, shift_mm: tuple[float, float, float], turn_deg: float) -> Any:
+    """The mesh turned about the ring's vertical axis and shifted (where the person stood)."""
+    a = np.radians(turn_deg)
+    rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    moved = mesh.copy()
+    moved.vertices = np.asarray(mesh.vertices) @ rot.T + np.asarray(shift_mm)
+    return moved
+
+
+def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2) -> Visits:
+    """Scan the same simulated adult twice (seeds 1 and 2) into ``store``; QA reports included."""
+    from analysis.qa_report import generate_report
+    from sim.body import make_body
+    from sim.run import run_sim_scan
+
+    still = make_body(seed=person_seed)
+    swayed = placed(make_body(seed=person_seed, sway_deg=SWAY_DEG, sway_seed=person_seed * 100 + 7),
+                    VISIT_SHIFT_MM, VISIT_TURN_DEG)
+    folders = []
+    for seed, subject in ((1, still), (2, swayed)):
+        report = run_sim_scan(store=store, seed=seed, plan_points=plan_points, depth_decimation=depth_decimation,
+                              subject=subject, panel=False, qa_report=generate_report)
+        folders.append(Path(report.folder))
+    return Visits(folders[0], folders[1], still, swayed)
+
+
+def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, Any]:
+    """Marks at ``count`` skin points seen sharp in the earlier scan (feet soles excluded),
+    carried to the later scan; distance (mm) from the same skin point on the later mesh."""
+    from analysis.registration import MarkCarrier
+    from analysis.scan_views import open_scan
+    from analysis.skin_map import SHARP, vertex_skin
+    from planner.visibility import RayScene
+
+    earlier, later = open_scan(visits.earlier), open_scan(visits.later)
+    mesh_a, mesh_b = earlier.mesh(), later.mesh()
+    skin_a = vertex_skin(earlier, mesh_a)["status"]
+    scene_a, scene_b = RayScene(mesh_a), RayScene(mesh_b)
+    truth_a = np.asarray(visits.subject_earlier.vertices)
+    truth_b = np.asarray(visits.subject_later.vertices)
+    on_a, _ = scene_a.closest_faces(truth_a)
+    on_a = np.asarray(on_a, dtype=float).reshape(-1, 3)
+    # Skin the earlier scan holds sharp, and that the scanned surface really is (within 3 mm).
+    near_vertex = _nearest(mesh_a, on_a)
+    usable = np.flatnonzero((skin_a[near_vertex] == SHARP) & (np.linalg.norm(on_a - truth_a, axis=1) < 3.0)
+                            & (truth_a[:, 2] > 150.0))
+    chosen = np.random.default_rng(seed).choice(usable, size=min(count, len(usable)), replace=False)
+    carrier = MarkCarrier(mesh_a, mesh_b)
+    carried, _ = carrier.carry(on_a[chosen])
+    target, _ = scene_b.closest_faces(truth_b[chosen])
+    error = np.linalg.norm(carried - np.asarray(target, dtype=float).reshape(-1, 3), axis=1)
+    return {"error_mm": error, "points": on_a[chosen], "fitness": carrier.whole.fitness,
+            "rmse_mm": carrier.whole.rmse_mm}
+
+
+def _nearest(mesh: Any, points: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(mesh.vertices)).query(points)[1]
