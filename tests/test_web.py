@@ -223,3 +223,45 @@ def test_mesh_colours_agree_with_navigation(store):
             assert (status == UNSEEN) == (not views), (status, vertex)
             checked.add(status)
     assert {SHARP, UNSEEN} <= checked
+
+
+async def test_marks_of_the_earlier_scan_are_carried_to_the_later_one(scan_store):
+    """The same scan stored again as a 'later visit': its earlier marks land where they were."""
+    import numpy as np
+
+    earlier = folder_of(scan_store)
+    later = "20991231-000000-" + earlier.split("-", 2)[2]
+    shutil.copytree(scan_store / earlier, scan_store / later)
+    client = await client_for(scan_store)
+    try:
+        vertex = (await (await client.get(f"/api/scans/{earlier}/navigate", params={"vertex": 4242})).json())["point_mm"]
+        assert (await client.post(f"/api/scans/{earlier}/marks", json={"name": "naevus", "point_mm": vertex})).status == 201
+        assert (await client.put(f"/api/scans/{earlier}/previous", json={"previous_scan": later})).status == 400
+        assert (await client.put(f"/api/scans/{later}/previous", json={"previous_scan": earlier})).status == 200
+        listed = await (await client.get(f"/api/scans/{later}/marks")).json()
+        assert listed["previous_scan"] == earlier and listed["marks"] == []
+        (carried,) = listed["carried"]
+        assert carried["name"] == "naevus" and listed["registration"]["fitness"] > 0.99
+        assert np.linalg.norm(np.subtract(carried["point_mm"], vertex)) < 1.0
+    finally:
+        await client.close()
+
+
+@pytest.mark.slow
+def test_marks_carry_to_a_swayed_later_visit():
+    """The same adult, swayed 2 deg per joint and standing 29 mm and 6 deg elsewhere: marks on
+    the earlier body land on the same skin point of the later one (body meshes, no scan; the
+    web benchmark measures it on two simulated scans)."""
+    import numpy as np
+
+    from analysis.registration import MarkCarrier
+    from sim.body import make_body
+    from tests.web_visits import SWAY_DEG, VISIT_SHIFT_MM, VISIT_TURN_DEG, placed
+
+    earlier = make_body(seed=3)
+    later = placed(make_body(seed=3, sway_deg=SWAY_DEG, sway_seed=307), VISIT_SHIFT_MM, VISIT_TURN_DEG)
+    rng = np.random.default_rng(0)
+    marks = rng.choice(np.flatnonzero(np.asarray(earlier.vertices)[:, 2] > 150.0), size=40, replace=False)
+    carried, _ = MarkCarrier(earlier, later).carry(np.asarray(earlier.vertices)[marks])
+    error = np.linalg.norm(carried - np.asarray(later.vertices)[marks], axis=1)
+    assert np.median(error) < 2.0 and np.mean(error <= 5.0) >= 0.9, np.sort(error)

@@ -1,0 +1,185 @@
+"""The browser: viewer first paint, click to best image, console event latency, marks carried.
+
+Goals (issue 11): first paint of a scan (mesh + colours) in headless Chromium <= 1.5 s; click to
+best image <= 200 ms server time; console events within 100 ms of the daemon's state change;
+marks carried to a second scan of the same simulated person (new seed, 2 deg sway, standing
+29 mm and 6 deg elsewhere) within 5 mm of the same skin point.
+
+Two simulated adult scans at the rig defaults (1500 planning points to keep it short) are made
+first (several minutes); TBP_BENCH_DIR keeps them between runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import pickle
+import statistics
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+from tests.web_browser import chromium, chromium_missing, serve_in_thread, wait_for
+from tests.web_visits import Visits, carry_errors, two_visits
+
+PAINTS = 5
+CLICKS = 40
+
+
+def _visits(root: Path) -> Visits:
+    cache = root / "visits.pickle"
+    if cache.exists():
+        visits = pickle.loads(cache.read_bytes())
+        if visits.earlier.exists() and visits.later.exists():
+            return visits
+    visits = two_visits(root / "scans")
+    cache.write_bytes(pickle.dumps(visits))
+    return visits
+
+
+def _first_paint(store: Path, folder: str) -> tuple[list[float], list[float]]:
+    """First-paint ms with a fresh server each time (cold: mesh read, colours read) and reloads (warm)."""
+    cold, warm = [], []
+    for _ in range(PAINTS):
+        with serve_in_thread(store) as url, chromium() as driver:
+            driver.get(f"{url}/scans/{folder}")
+            wait_for(driver, "window.tbpViewer && window.tbpViewer.ready")
+            cold.append(driver.execute_script("return window.tbpViewer.firstPaintMs"))
+            driver.get(f"{url}/scans/{folder}")
+            wait_for(driver, "window.tbpViewer && window.tbpViewer.ready")
+            warm.append(driver.execute_script("return window.tbpViewer.firstPaintMs"))
+    return cold, warm
+
+
+def _clicks(store: Path, folder: str, mesh_vertices: int) -> tuple[float, list[float]]:
+    """Server ms of the first click right after the mesh loaded (navigator still warming), then of CLICKS more."""
+    rng = np.random.default_rng(1)
+    with serve_in_thread(store) as url:
+        urllib.request.urlopen(f"{url}/api/scans/{folder}/mesh").read()
+        times = []
+        for vertex in rng.choice(mesh_vertices, size=CLICKS + 1, replace=False):
+            started = time.perf_counter()
+            urllib.request.urlopen(f"{url}/api/scans/{folder}/navigate?vertex={vertex}").read()
+            times.append(1e3 * (time.perf_counter() - started))
+    return times[0], times[1:]
+
+
+def _event_latency(root: Path, subject: object) -> list[float]:
+    """ms from the state machine publishing an event to the console page receiving it, over one scan
+    of the simulated rig (daemon in this process, paced at 10x real time, browser in a thread)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from daemon.controller import RigController
+    from daemon.scan import ScanSettings
+    from daemon.service import RigService
+    from daemon.store import ScanStore
+    from planner.rig import load_rig
+    from sim.clock import VirtualTimeLoop
+    from sim.rig import SimOptions, build_sim_rig
+    from web.access import Access
+    from web.app import make_app
+    from web.server import WebServer
+
+    published: dict[tuple, float] = {}
+    received: list[dict] = []
+    url: dict[str, str] = {}
+    ready, finished = threading.Event(), threading.Event()
+
+    def browse() -> None:
+        ready.wait(300)
+        with chromium() as driver:
+            driver.get(url["base"])
+            wait_for(driver, "window.tbpConsole.status && window.tbpConsole.status.state === 'IDLE'", 120)
+            driver.find_element("id", "start").click()
+            wait_for(driver, "window.tbpConsole.events.some(e => e.kind === 'transition' && e.previous === 'STORING')", 900)
+            received.extend(driver.execute_script("return window.tbpConsole.events"))
+        finished.set()
+
+    async def daemon() -> None:
+        rig = load_rig()
+        hardware, _ = await build_sim_rig(rig, SimOptions(seed=5, depth_decimation=2, panel=True), subject=subject)
+        with ThreadPoolExecutor(max_workers=1) as executor:
+            controller = RigController(rig, hardware, ScanStore(root / "console-scans"),
+                                       settings=ScanSettings(seed=5, plan_points=1500, executor=executor))
+            machine = controller.machine
+            emit = machine._emit
+
+            def timed(kind, to, cause, data):  # the instant the daemon publishes, wall clock
+                event = emit(kind, to, cause, data)
+                published[(event.kind, event.cause, round(event.time_s, 6))] = time.time() * 1e3
+                return event
+
+            machine._emit = timed
+            service = RigService(controller)
+            server = WebServer(make_app(controller.store, Access("127.0.0.1", 0), service=service), "127.0.0.1", 0)
+            service.attach(server)
+            stop = asyncio.Event()
+            runner = asyncio.create_task(service.run(stop))
+            while server.port == 0 or server._runner is None:
+                await asyncio.sleep(0.05)
+            url["base"] = server.url
+            ready.set()
+            while not finished.is_set():
+                await asyncio.sleep(0.2)
+            stop.set()
+            await runner
+
+    browser = threading.Thread(target=browse, daemon=True)
+    browser.start()
+    with asyncio.Runner(loop_factory=lambda: VirtualTimeLoop(time_scale=10.0)) as run:
+        run.run(daemon())
+    browser.join(60)
+    return [e["received_ms"] - published[(e["kind"], e["cause"], round(e["time_s"], 6))]
+            for e in received if (e["kind"], e["cause"], round(e["time_s"], 6)) in published]
+
+
+def _mark(value: float, goal: float) -> str:
+    return "ok" if value <= goal else "MISSED"
+
+
+def run() -> None:
+    reason = chromium_missing()
+    if reason:
+        print(f"skipped: {reason}")
+        return
+    keep = os.environ.get("TBP_BENCH_DIR")
+    with tempfile.TemporaryDirectory(dir=keep) as tmp:
+        root = Path(keep) / "web" if keep else Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        started = time.perf_counter()
+        visits = _visits(root)
+        print(f"two simulated adult scans ready in {time.perf_counter() - started:.0f} s")
+        store, folder = visits.earlier.parent, visits.earlier.name
+        import trimesh
+
+        mesh = trimesh.load(visits.earlier / "mesh.ply", process=False)
+        print(f"scan mesh: {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles")
+
+        cold, warm = _first_paint(store, folder)
+        print(f"viewer first paint (mesh + colours), fresh server: median {statistics.median(cold):.0f} ms, "
+              f"max {max(cold):.0f} ms; reload: median {statistics.median(warm):.0f} ms "
+              f"(goal <= 1500 ms) {_mark(max(cold), 1500)}")
+
+        first, clicks = _clicks(store, folder, len(mesh.vertices))
+        p95 = float(np.percentile(clicks, 95))
+        print(f"click to best image (server, loopback round trip): first {first:.0f} ms, then median "
+              f"{statistics.median(clicks):.0f} ms, p95 {p95:.0f} ms, max {max(clicks):.0f} ms "
+              f"(goal <= 200 ms) {_mark(max(p95, first), 200)}")
+
+        latency = _event_latency(root, visits.subject_earlier)
+        print(f"console events: {len(latency)} over one scan, latency median {statistics.median(latency):.1f} ms, "
+              f"p95 {np.percentile(latency, 95):.1f} ms, max {max(latency):.1f} ms (goal <= 100 ms) "
+              f"{_mark(max(latency), 100)}")
+
+        started = time.perf_counter()
+        carried = carry_errors(visits, count=100)
+        error = carried["error_mm"]
+        print(f"marks carried to the second visit: {len(error)} marks, median {np.median(error):.2f} mm, "
+              f"p90 {np.percentile(error, 90):.2f} mm, max {error.max():.2f} mm, {100 * np.mean(error <= 5):.0f} % "
+              f"within 5 mm (goal: within 5 mm) {_mark(float(np.percentile(error, 90)), 5.0)}; whole-body fit "
+              f"{100 * carried['fitness']:.0f} % overlap, {carried['rmse_mm']:.1f} mm rms; "
+              f"{time.perf_counter() - started:.0f} s for 100 marks")
