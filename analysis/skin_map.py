@@ -10,6 +10,7 @@ which the report stores beside its figures (``report/skin_vertices.npz``).
 from __future__ import annotations
 
 import hashlib
+import io
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import numpy as np
 from analysis.scan_views import ScanRecord
 
 UNSEEN, BLURRED, SHARP = 0, 1, 2
+REPORT_DIR = "report"
 VERTEX_MAP = "skin_vertices.npz"
 
 
@@ -45,9 +47,10 @@ def skin_status_at(scan: ScanRecord, mesh: Any, samples: Any, scene: Any = None)
     return {"status": status, "resolution": resolution}
 
 
-def mesh_digest(path: Path) -> str:
-    """SHA-256 of the mesh file (a stored vertex map belongs to exactly that mesh)."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+def mesh_digest(scan: ScanRecord) -> str:
+    """SHA-256 of the scan's mesh file (a stored vertex map belongs to exactly that mesh)."""
+    path = scan.folder.listed("mesh")
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None else ""
 
 
 def vertex_skin(scan: ScanRecord, mesh: Any | None = None) -> dict[str, np.ndarray]:
@@ -73,26 +76,23 @@ def vertex_skin(scan: ScanRecord, mesh: Any | None = None) -> dict[str, np.ndarr
     return skin
 
 
-def write_vertex_map(scan: ScanRecord, out_dir: Path, mesh: Any | None = None) -> Path:
-    """Compute and store the per-vertex map in ``out_dir`` (atomic rename); returns its path."""
+def write_vertex_map(scan: ScanRecord, mesh: Any | None = None) -> Path:
+    """Compute the per-vertex map and store it as ``report/skin_vertices.npz`` (derived, atomic)."""
     skin = vertex_skin(scan, mesh)
-    path = out_dir / VERTEX_MAP
-    tmp = out_dir / (VERTEX_MAP + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, status=skin["status"], resolution=skin["resolution"].astype(np.float32),
-                 mesh_sha256=np.array(mesh_digest(scan.folder / "mesh.ply")))
-    tmp.replace(path)
-    return path
+    buffer = io.BytesIO()
+    np.savez(buffer, status=skin["status"], resolution=skin["resolution"].astype(np.float32),
+             mesh_sha256=np.array(mesh_digest(scan)))
+    return scan.folder.write_derived(f"{REPORT_DIR}/{VERTEX_MAP}", buffer.getvalue())
 
 
-def read_vertex_map(scan: ScanRecord, out_dir: Path) -> dict[str, np.ndarray] | None:
+def read_vertex_map(scan: ScanRecord) -> dict[str, np.ndarray] | None:
     """The stored per-vertex map if it exists and belongs to the scan's current mesh, else None."""
-    path = out_dir / VERTEX_MAP
+    path = scan.path / REPORT_DIR / VERTEX_MAP
     if not path.is_file():
         return None
     try:
         with np.load(path) as data:
-            if str(data["mesh_sha256"]) != mesh_digest(scan.folder / "mesh.ply"):
+            if str(data["mesh_sha256"]) != mesh_digest(scan):
                 return None
             return {"status": data["status"].astype(np.uint8), "resolution": data["resolution"]}
     except (OSError, KeyError, ValueError):

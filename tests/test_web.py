@@ -210,7 +210,7 @@ def test_mesh_colours_agree_with_navigation(store):
     from analysis.skin_map import BLURRED, SHARP, UNSEEN, read_vertex_map
 
     scan = open_scan(store / folder_of(store))
-    skin = read_vertex_map(scan, scan.folder / "report")
+    skin = read_vertex_map(scan)
     assert skin is not None  # written by the QA report at the end of the scan
     navigator = Navigator(scan)
     rng = np.random.default_rng(4)

@@ -54,8 +54,8 @@ class Carriers:
         key = (earlier, a.stamp, later, b.stamp)
         async with self._lock:
             if key not in self._fits:
-                source = await _off_loop(lambda: a.navigator_now().mesh)
-                target = await _off_loop(lambda: b.navigator_now().mesh)
+                source = await _off_loop(a.mesh_now)
+                target = await _off_loop(b.mesh_now)
                 self._fits[key] = await _off_loop(MarkCarrier, source, target)
                 while len(self._fits) > self.KEEP:
                     self._fits.popitem(last=False)

@@ -19,9 +19,11 @@ import numpy as np
 from aiohttp import web
 
 from analysis.navigate import NavigationError, Navigator
-from analysis.scan_views import ScanFolderError, ScanRecord, open_scan
+from analysis.scan_views import ScanRecord, open_scan
 from analysis.skin_map import read_vertex_map, vertex_skin
-from daemon.store import ManifestError, ScanStore
+from daemon.atomic import StoreError
+from daemon.manifest import ImageStatus, ManifestError
+from daemon.store import ScanStore
 from web import images, keys
 
 MESH_MAGIC = b"TBPM"
@@ -68,7 +70,7 @@ class OpenScan:
         """TBPM, V, F (uint32 LE), positions (V, 3) float32 mm, faces (F, 3) uint32, skin (V,) uint8."""
         if self.mesh_bytes is None:
             mesh = self.mesh_now()
-            skin = read_vertex_map(self.record, self.record.folder / "report")
+            skin = read_vertex_map(self.record)
             if skin is None or len(skin["status"]) != len(mesh.vertices):
                 skin = vertex_skin(self.record, mesh)
             vertices = np.ascontiguousarray(mesh.vertices, dtype="<f4")
@@ -115,7 +117,7 @@ class ScanLibrary:
                 "folder": path.name, "scan_id": m.scan_id, "created_utc": m.created_utc,
                 "ended_utc": m.ended_utc, "state": m.state.value, "in_progress": m.in_progress,
                 "reason": m.reason, "counts": m.counts(), "plan": m.plan_summary,
-                "has_mesh": (path / "mesh.ply").is_file(),
+                "has_mesh": "mesh" in m.files,
                 "report": (path / "report" / "index.html").is_file(), "marks": marks,
             })
         return rows
@@ -133,7 +135,7 @@ class ScanLibrary:
         if scan is None or scan.stamp != stamp:
             try:
                 scan = OpenScan(open_scan(path, self.rig_path), stamp)
-            except ScanFolderError as exc:
+            except StoreError as exc:  # no manifest, a listed file missing, another rig file
                 raise json_error(web.HTTPConflict, exc) from exc
             self._open[name] = scan
         self._open.move_to_end(name)
@@ -158,18 +160,17 @@ async def scan_detail(request: web.Request) -> web.Response:
     scan = _library(request).opened(request.match_info["folder"])
     rec = scan.record
     rig = rec.rig
-    images_out = [{k: i.get(k) for k in ("file", "camera_id", "camera_index", "angle_index", "planned_angle_deg",
-                                         "actual_angle_deg", "focus_mm", "status", "error")}
-                  for i in rec.images]
+    images_out = [{"file": i.file, "camera_id": i.camera_id, "camera_index": i.camera_index,
+                   "angle_index": i.angle_index, "planned_angle_deg": i.planned_angle_deg,
+                   "actual_angle_deg": i.actual_angle_deg, "focus_mm": i.focus_mm, "status": i.status.value,
+                   "error": i.error} for i in rec.images]
     m = rec.manifest
     return web.json_response({
-        "folder": rec.folder.name, "scan_id": m.get("scan_id"), "state": m.get("state"),
-        "in_progress": m.get("in_progress"), "created_utc": m.get("created_utc"), "reason": m.get("reason"),
-        "counts": m.get("counts"), "plan": m.get("plan_summary"),
+        "folder": rec.path.name, "scan_id": m.scan_id, "state": m.state.value, "in_progress": m.in_progress,
+        "created_utc": m.created_utc, "reason": m.reason, "counts": m.counts(), "plan": m.plan_summary,
         "cameras": [p.id for p in rig.phones], "angles_deg": [float(a) for a in rig.capture.angles_deg],
         "image_width_px": rig.optics.image_width_px, "image_height_px": rig.optics.image_height_px,
-        "has_mesh": (rec.folder / "mesh.ply").is_file(),
-        "report": (rec.folder / "report" / "index.html").is_file(),
+        "has_mesh": "mesh" in m.files, "report": (rec.path / "report" / "index.html").is_file(),
         "images": images_out,
     })
 
@@ -179,10 +180,10 @@ async def scan_mesh(request: web.Request) -> web.Response:
     async with scan.lock:
         try:
             payload = await _off_loop(scan.mesh_payload)
-        except ScanFolderError as exc:
+        except StoreError as exc:  # the scan ended before the depth sweep: no mesh
             raise json_error(web.HTTPConflict, exc) from exc
     if scan.warming is None:  # the first click comes soon: build the navigator meanwhile
-        scan.warming = asyncio.create_task(scan.navigator_ready(), name=f"navigator-{scan.record.folder.name}")
+        scan.warming = asyncio.create_task(scan.navigator_ready(), name=f"navigator-{scan.record.path.name}")
         scan.warming.add_done_callback(lambda task: task.cancelled() or task.exception())  # a click reports it
     return web.Response(body=payload, content_type="application/octet-stream",
                         headers={"Cache-Control": "private, max-age=60"})
@@ -219,10 +220,11 @@ async def navigate(request: web.Request) -> web.Response:
 
 
 def _image_path(scan: OpenScan, name: str) -> Path:
+    folder = scan.record.path
     for image in scan.record.images:
-        if image.get("status") == "verified" and image.get("file") and Path(image["file"]).name == name:
-            path = (scan.record.folder / image["file"]).resolve()
-            if path.parent != (scan.record.folder / "images").resolve() or not path.is_file():
+        if image.status is ImageStatus.VERIFIED and image.file and Path(image.file).name == name:
+            path = (folder / image.file).resolve()
+            if path.parent != (folder / "images").resolve() or not path.is_file():
                 break
             return path
     raise json_error(web.HTTPNotFound, f"no verified image {name[:80]!r} in this scan")
