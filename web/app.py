@@ -50,8 +50,10 @@ def _page(name: str) -> Any:
 
 async def _config(request: web.Request) -> web.Response:
     access: Access = request.app[keys.ACCESS]
-    return web.json_response({"rig": request.app[keys.SERVICE] is not None, "writes": access.writes_enabled,
-                              "token_required": access.token is not None})
+    service = request.app[keys.SERVICE]
+    return web.json_response({"rig": service is not None, "writes": access.writes_enabled,
+                              "token_required": access.token is not None,
+                              "poses": service.controller.rig.n_poses if service is not None else None})
 
 
 def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = None,

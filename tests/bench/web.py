@@ -55,11 +55,13 @@ def _first_paint(store: Path, folder: str) -> tuple[list[float], list[float]]:
     return cold, warm
 
 
-def _clicks(store: Path, folder: str, mesh_vertices: int) -> tuple[float, list[float]]:
-    """Server ms of the first click right after the mesh loaded (navigator still warming), then of CLICKS more."""
+def _clicks(store: Path, folder: str, mesh_vertices: int, pause_s: float) -> tuple[float, list[float]]:
+    """Server ms of the first click ``pause_s`` after the mesh arrived (the navigator builds
+    meanwhile), then of CLICKS more."""
     rng = np.random.default_rng(1)
     with serve_in_thread(store) as url:
         urllib.request.urlopen(f"{url}/api/scans/{folder}/mesh").read()
+        time.sleep(pause_s)
         times = []
         for vertex in rng.choice(mesh_vertices, size=CLICKS + 1, replace=False):
             started = time.perf_counter()
@@ -68,7 +70,7 @@ def _clicks(store: Path, folder: str, mesh_vertices: int) -> tuple[float, list[f
     return times[0], times[1:]
 
 
-def _event_latency(root: Path, subject: object) -> list[float]:
+def _event_latency(root: Path, subject: object) -> list[tuple[float, str]]:
     """ms from the state machine publishing an event to the console page receiving it, over one scan
     of the simulated rig (daemon in this process, paced at 10x real time, browser in a thread)."""
     from concurrent.futures import ThreadPoolExecutor
@@ -133,7 +135,7 @@ def _event_latency(root: Path, subject: object) -> list[float]:
     with asyncio.Runner(loop_factory=lambda: VirtualTimeLoop(time_scale=10.0)) as run:
         run.run(daemon())
     browser.join(60)
-    return [e["received_ms"] - published[(e["kind"], e["cause"], round(e["time_s"], 6))]
+    return [(e["received_ms"] - published[(e["kind"], e["cause"], round(e["time_s"], 6))], f"{e['state']} {e['cause']}")
             for e in received if (e["kind"], e["cause"], round(e["time_s"], 6)) in published]
 
 
@@ -164,16 +166,20 @@ def run() -> None:
               f"max {max(cold):.0f} ms; reload: median {statistics.median(warm):.0f} ms "
               f"(goal <= 1500 ms) {_mark(max(cold), 1500)}")
 
-        first, clicks = _clicks(store, folder, len(mesh.vertices))
-        p95 = float(np.percentile(clicks, 95))
-        print(f"click to best image (server, loopback round trip): first {first:.0f} ms, then median "
-              f"{statistics.median(clicks):.0f} ms, p95 {p95:.0f} ms, max {max(clicks):.0f} ms "
-              f"(goal <= 200 ms) {_mark(max(p95, first), 200)}")
+        at_once, _ = _clicks(store, folder, len(mesh.vertices), 0.0)
+        first, clicks = _clicks(store, folder, len(mesh.vertices), 2.0)
+        print(f"click to best image (server, loopback round trip): median {statistics.median(clicks):.0f} ms, "
+              f"p95 {np.percentile(clicks, 95):.0f} ms, max {max(clicks):.0f} ms over {len(clicks)} clicks; "
+              f"first click 2 s after the mesh {first:.0f} ms, at the very instant the mesh arrived "
+              f"{at_once:.0f} ms (navigator still building) (goal <= 200 ms) {_mark(max(max(clicks), first), 200)}")
 
-        latency = _event_latency(root, visits.subject_earlier)
+        timed = _event_latency(root, visits.subject_earlier)
+        latency = [t for t, _ in timed]
+        worst = sorted(timed, reverse=True)[:3]
         print(f"console events: {len(latency)} over one scan, latency median {statistics.median(latency):.1f} ms, "
-              f"p95 {np.percentile(latency, 95):.1f} ms, max {max(latency):.1f} ms (goal <= 100 ms) "
-              f"{_mark(max(latency), 100)}")
+              f"p99 {np.percentile(latency, 99):.1f} ms, max {max(latency):.1f} ms (goal <= 100 ms) "
+              f"{_mark(max(latency), 100)}; slowest: "
+              + ", ".join(f"{t:.0f} ms ({what})" for t, what in worst))
 
         started = time.perf_counter()
         carried = carry_errors(visits, count=100)

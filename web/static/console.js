@@ -1,6 +1,6 @@
 // The operator console: the daemon's status and event stream; START / ABORT / RESET go to the
 // same control handler as the panel's buttons and `tbp scan` / `tbp abort` / `tbp reset`.
-import { send, el, fmt } from "/static/common.js";
+import { getJSON, send, el, fmt } from "/static/common.js";
 
 const ACTIVE = ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "RETAKING", "STORING", "ABORTING"];
 const $ = (id) => document.getElementById(id);
@@ -8,6 +8,7 @@ const hooks = { events: [], status: null };
 window.tbpConsole = hooks;
 let state = null;
 let counts = { captured: 0, verified: 0 };
+let poses = 336;
 
 function pill(text, kind) { return el("span", { class: `pill ${kind}` }, text); }
 
@@ -66,8 +67,8 @@ function onEvent(e) {
   } else logLine(e);
   $("captured").textContent = counts.captured;
   $("verified").textContent = counts.verified;
-  $("bar-captured").style.width = `${Math.min(100, (100 * counts.captured) / 336)}%`;
-  $("bar-verified").style.width = `${Math.min(100, (100 * counts.verified) / 336)}%`;
+  $("bar-captured").style.width = `${Math.min(100, (100 * counts.captured) / poses)}%`;
+  $("bar-verified").style.width = `${Math.min(100, (100 * counts.verified) / poses)}%`;
 }
 
 function connect() {
@@ -86,4 +87,8 @@ $("start").addEventListener("click", () => act("scan"));
 $("abort").addEventListener("click", () => act("abort"));
 $("reset").addEventListener("click", () => act("reset"));
 showState("–");
-connect();
+getJSON("/api/config").then((config) => {
+  if (config.poses) { poses = config.poses; document.querySelectorAll(".n-poses").forEach((n) => { n.textContent = poses; }); }
+  if (!config.rig) $("link").textContent = "no rig daemon (viewer only)";
+  else connect();
+});
