@@ -265,3 +265,24 @@ def test_marks_carry_to_a_swayed_later_visit():
     carried, _ = MarkCarrier(earlier, later).carry(np.asarray(earlier.vertices)[marks])
     error = np.linalg.norm(carried - np.asarray(later.vertices)[marks], axis=1)
     assert np.median(error) < 2.0 and np.mean(error <= 5.0) >= 0.9, np.sort(error)
+
+
+def test_token_file_is_checked(tmp_path):
+    from web.access import read_token
+
+    short = tmp_path / "short"
+    short.write_text("abc\n")
+    with pytest.raises(AccessError, match="needs 16 or more"):
+        read_token(short)
+    with pytest.raises(AccessError, match="--http-token-file"):
+        read_token(tmp_path / "absent")
+    good = tmp_path / "token"
+    good.write_text("  0123456789abcdefXYZ \n")
+    assert read_token(good) == "0123456789abcdefXYZ"
+
+
+def test_daemon_refuses_a_bad_http_address(capsys):
+    from cli import main
+
+    assert main(["daemon", "--sim", "--http", "localhost"]) == 2
+    assert "expected HOST:PORT" in capsys.readouterr().err
