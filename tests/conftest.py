@@ -23,3 +23,16 @@ def _structlog_defaults() -> Iterator[None]:
     test; put the defaults back so later tests never log into a closed stream."""
     yield
     structlog.reset_defaults()
+
+
+@pytest.fixture(scope="session")
+def web_store(tmp_path_factory: pytest.TempPathFactory):
+    """A store with one small simulated scan (capsule subject, QA report), shared by the web tests."""
+    from analysis.qa_report import generate_report
+    from sim.run import run_sim_scan
+    from tests.daemon_rigs import PLAN_POINTS, capsule_subject
+
+    root = tmp_path_factory.mktemp("web-store")
+    run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
+                 panel=False, qa_report=generate_report)
+    return root

@@ -12,19 +12,14 @@ from aiohttp.test_utils import TestClient, TestServer
 
 from analysis.marks import MARKS
 from analysis.navigate import navigate
-from analysis.qa_report import generate_report
-from sim.run import run_sim_scan
-from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 from web.access import Access, AccessError, parse_listen
 from web.app import make_app
 
 
-@pytest.fixture(scope="module")
-def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("store")
-    run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
-                 panel=False, qa_report=generate_report)
-    return root
+@pytest.fixture
+def store(web_store: Path) -> Path:
+    """The shared simulated scan (read only: tests that write use scan_store's copy)."""
+    return web_store
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ import pytest
 
 from analysis.scan_views import open_scan
 from cli import main
-from tests.test_web import folder_of, store  # noqa: F401  (the module's simulated scan)
+from tests.test_web import folder_of
 from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
 
 pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
@@ -35,7 +35,8 @@ def front_vertex(scan_dir: Path) -> int:
     return int(front[np.argmax(v[front, 0])])
 
 
-def test_click_on_the_body_shows_the_image_and_pixel_tbp_navigate_gives(store, capsys):  # noqa: F811
+def test_click_on_the_body_shows_the_image_and_pixel_tbp_navigate_gives(web_store, capsys):
+    store = web_store
     name = folder_of(store)
     scan_dir = store / name
     vertex = front_vertex(scan_dir)
