@@ -53,6 +53,11 @@ class Navigator:
                 self.focus_mm[scan.rig.pose_index(image.angle_index, image.camera_index)] = np.nan
                 self.missing_files.append(image.file)
 
+    def prepare(self) -> None:
+        """Build the ray-casting structures now (the scene builds them on its first query,
+        about half a second for a body mesh) so that the first real query is fast."""
+        self.query(vertex=0, count=1)
+
     @classmethod
     def open(cls, scan_dir: Path | str, rig_path: Path | str | None = None) -> Navigator:
         return cls(open_scan(scan_dir, rig_path))

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from analysis.scan_views import ScanRecord, open_scan
-from analysis.skin_map import skin_status_at, write_vertex_map
+from analysis.skin_map import skin_status_at, write_skin_mesh
 from daemon.manifest import ImageStatus
 
 REPORT_DIR = "report"
@@ -164,7 +164,7 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
     if "mesh" in scan.manifest.files and np.isfinite(scan.captured_focus_mm()).any():
         skin = skin_status(scan)
         figures.append(("Skin in focus in the captured images", _body_views(skin, out)))
-        write_vertex_map(scan)  # the web viewer's mesh colours
+        write_skin_mesh(scan)  # the web viewer's coloured mesh
     figures.append(("Focus plan", _focus_by_angle(scan, out)))
     figures.append(("Speed profile", _speed_profile(scan, out)))
     figures.append(("Planned vs actual capture angles", _angle_errors(scan, out)))

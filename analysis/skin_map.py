@@ -4,13 +4,13 @@ A skin point is *sharp* when a verified image sees it in focus, *blurred* when v
 images see it but none in focus, *unseen* otherwise (the focus plan's own visibility and
 depth-of-field test, at the actual exposure angles and the focus actually used). The QA
 report shows it from four sides; the web viewer colours the mesh with the per-vertex map,
-which the report stores beside its figures (``report/skin_vertices.npz``).
+which the report stores beside its figures with the mesh (``report/skin_mesh.bin``).
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,9 @@ from analysis.scan_views import ScanRecord
 
 UNSEEN, BLURRED, SHARP = 0, 1, 2
 REPORT_DIR = "report"
-VERTEX_MAP = "skin_vertices.npz"
+SKIN_MESH = "skin_mesh.bin"
+MAGIC = b"TBPM"
+HEADER = struct.Struct("<4sII32s")
 
 
 def skin_status_at(scan: ScanRecord, mesh: Any, samples: Any, scene: Any = None) -> dict[str, np.ndarray]:
@@ -47,10 +49,10 @@ def skin_status_at(scan: ScanRecord, mesh: Any, samples: Any, scene: Any = None)
     return {"status": status, "resolution": resolution}
 
 
-def mesh_digest(scan: ScanRecord) -> str:
-    """SHA-256 of the scan's mesh file (a stored vertex map belongs to exactly that mesh)."""
+def mesh_digest(scan: ScanRecord) -> bytes:
+    """SHA-256 of the scan's mesh file (a stored skin mesh belongs to exactly that mesh)."""
     path = scan.folder.listed("mesh")
-    return hashlib.sha256(path.read_bytes()).hexdigest() if path is not None else ""
+    return hashlib.sha256(path.read_bytes()).digest() if path is not None else bytes(32)
 
 
 def vertex_skin(scan: ScanRecord, mesh: Any | None = None) -> dict[str, np.ndarray]:
@@ -76,24 +78,37 @@ def vertex_skin(scan: ScanRecord, mesh: Any | None = None) -> dict[str, np.ndarr
     return skin
 
 
-def write_vertex_map(scan: ScanRecord, mesh: Any | None = None) -> Path:
-    """Compute the per-vertex map and store it as ``report/skin_vertices.npz`` (derived, atomic)."""
-    skin = vertex_skin(scan, mesh)
-    buffer = io.BytesIO()
-    np.savez(buffer, status=skin["status"], resolution=skin["resolution"].astype(np.float32),
-             mesh_sha256=np.array(mesh_digest(scan)))
-    return scan.folder.write_derived(f"{REPORT_DIR}/{VERTEX_MAP}", buffer.getvalue())
+def skin_mesh(mesh: Any, status: np.ndarray, digest: bytes) -> bytes:
+    """The viewer's mesh payload: ``TBPM``, V, F (uint32 LE), the mesh file's SHA-256 (32 bytes),
+    positions (V, 3) float32 mm, faces (F, 3) uint32, skin status (V,) uint8."""
+    vertices = np.ascontiguousarray(mesh.vertices, dtype="<f4")
+    faces = np.ascontiguousarray(mesh.faces, dtype="<u4")
+    return b"".join([HEADER.pack(MAGIC, len(vertices), len(faces), digest), vertices.tobytes(), faces.tobytes(),
+                     np.asarray(status, dtype=np.uint8).tobytes()])
 
 
-def read_vertex_map(scan: ScanRecord) -> dict[str, np.ndarray] | None:
-    """The stored per-vertex map if it exists and belongs to the scan's current mesh, else None."""
-    path = scan.path / REPORT_DIR / VERTEX_MAP
-    if not path.is_file():
-        return None
+def skin_mesh_status(payload: bytes) -> np.ndarray:
+    """(V,) uint8 skin status of a :func:`skin_mesh` payload."""
+    _, nv, nf, _ = HEADER.unpack_from(payload)
+    return np.frombuffer(payload, np.uint8, nv, HEADER.size + 12 * nv + 12 * nf)
+
+
+def write_skin_mesh(scan: ScanRecord, mesh: Any | None = None) -> Path:
+    """Compute the per-vertex map and store the viewer's payload as ``report/skin_mesh.bin``
+    (derived, written atomically through the store), so opening the scan costs a file read."""
+    mesh = scan.mesh() if mesh is None else mesh
+    payload = skin_mesh(mesh, vertex_skin(scan, mesh)["status"], mesh_digest(scan))
+    return scan.folder.write_derived(f"{REPORT_DIR}/{SKIN_MESH}", payload)
+
+
+def read_skin_mesh(scan: ScanRecord) -> bytes | None:
+    """The stored payload if it exists and belongs to the scan's current mesh, else None."""
+    path = scan.path / REPORT_DIR / SKIN_MESH
     try:
-        with np.load(path) as data:
-            if str(data["mesh_sha256"]) != mesh_digest(scan):
-                return None
-            return {"status": data["status"].astype(np.uint8), "resolution": data["resolution"]}
-    except (OSError, KeyError, ValueError):
+        payload = path.read_bytes()
+        magic, nv, nf, digest = HEADER.unpack_from(payload)
+    except (OSError, struct.error):
         return None
+    if magic != MAGIC or len(payload) != HEADER.size + 12 * nv + 12 * nf + nv or digest != mesh_digest(scan):
+        return None
+    return payload

@@ -78,7 +78,9 @@ async def test_scan_list_detail_and_mesh(scan_store):
         mesh = trimesh.load(scan_store / name / "mesh.ply", process=False)
         nv, nf = np.frombuffer(body[4:12], "<u4")
         assert body[:4] == b"TBPM" and (nv, nf) == (len(mesh.vertices), len(mesh.faces))
-        skin = np.frombuffer(body[12 + 12 * nv + 12 * nf:], np.uint8)
+        positions = np.frombuffer(body, "<f4", 3 * nv, 44).reshape(-1, 3)
+        assert np.array_equal(positions, np.asarray(mesh.vertices, dtype=np.float32))
+        skin = np.frombuffer(body[44 + 12 * nv + 12 * nf:], np.uint8)
         assert len(skin) == nv and set(np.unique(skin)) <= {0, 1, 2} and (skin == 2).mean() > 0.5
         for page in ("/", "/scans", f"/scans/{name}", f"/scans/{name}/report/", "/vendor/three/build/three.module.js"):
             assert (await client.get(page)).status == 200, page
@@ -202,11 +204,12 @@ def test_mesh_colours_agree_with_navigation(store):
 
     from analysis.navigate import Navigator
     from analysis.scan_views import open_scan
-    from analysis.skin_map import BLURRED, SHARP, UNSEEN, read_vertex_map
+    from analysis.skin_map import BLURRED, SHARP, UNSEEN, read_skin_mesh, skin_mesh_status
 
     scan = open_scan(store / folder_of(store))
-    skin = read_vertex_map(scan)
-    assert skin is not None  # written by the QA report at the end of the scan
+    payload = read_skin_mesh(scan)
+    assert payload is not None  # written by the QA report at the end of the scan
+    skin = {"status": skin_mesh_status(payload)}
     navigator = Navigator(scan)
     rng = np.random.default_rng(4)
     checked = set()

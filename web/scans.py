@@ -20,13 +20,12 @@ from aiohttp import web
 
 from analysis.navigate import NavigationError, Navigator
 from analysis.scan_views import ScanRecord, open_scan
-from analysis.skin_map import read_vertex_map, vertex_skin
+from analysis.skin_map import mesh_digest, read_skin_mesh, skin_mesh, vertex_skin
 from daemon.atomic import StoreError
 from daemon.manifest import ImageStatus, ManifestError
 from daemon.store import ScanStore
 from web import images, keys
 
-MESH_MAGIC = b"TBPM"
 
 
 def json_error(status: type[web.HTTPException], error: Exception | str) -> web.HTTPException:
@@ -63,21 +62,20 @@ class OpenScan:
 
     def navigator_now(self) -> Navigator:
         if self.navigator is None:
-            self.navigator = Navigator(self.record, self.mesh_now())
+            navigator = Navigator(self.record, self.mesh_now())
+            navigator.prepare()
+            self.navigator = navigator
         return self.navigator
 
     def mesh_payload(self) -> bytes:
-        """TBPM, V, F (uint32 LE), positions (V, 3) float32 mm, faces (F, 3) uint32, skin (V,) uint8."""
+        """The coloured mesh for the viewer (analysis.skin_map.skin_mesh): the one the QA report
+        stored, or computed now for a scan without it."""
         if self.mesh_bytes is None:
-            mesh = self.mesh_now()
-            skin = read_vertex_map(self.record)
-            if skin is None or len(skin["status"]) != len(mesh.vertices):
-                skin = vertex_skin(self.record, mesh)
-            vertices = np.ascontiguousarray(mesh.vertices, dtype="<f4")
-            faces = np.ascontiguousarray(mesh.faces, dtype="<u4")
-            self.mesh_bytes = b"".join([MESH_MAGIC, struct.pack("<II", len(vertices), len(faces)),
-                                        vertices.tobytes(), faces.tobytes(),
-                                        np.asarray(skin["status"], dtype=np.uint8).tobytes()])
+            payload = read_skin_mesh(self.record)
+            if payload is None:
+                mesh = self.mesh_now()
+                payload = skin_mesh(mesh, vertex_skin(self.record, mesh)["status"], mesh_digest(self.record))
+            self.mesh_bytes = payload
         return self.mesh_bytes
 
 

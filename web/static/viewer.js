@@ -9,7 +9,7 @@ const api = `/api/scans/${encodeURIComponent(folder)}`;
 // unseen, blurred, sharp: the QA report's grey, red and green
 const COLOURS = [[0.60, 0.60, 0.60], [0.83, 0.24, 0.18], [0.18, 0.62, 0.29]];
 const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, marks: null, mesh: null };
-const hooks = { ready: false, folder, firstPaintMs: null, lastAnswer: null, clickMs: null };
+const hooks = { ready: false, folder, firstPaintMs: null, lastAnswer: null, clickMs: null, timing: { scriptMs: performance.now() } };
 window.tbpViewer = hooks;
 
 // ------------------------------------------------------------------ 3D stage
@@ -58,18 +58,21 @@ function lookFrom(side) {
 document.querySelectorAll(".views button").forEach((b) => b.addEventListener("click", () => lookFrom(b.dataset.view)));
 
 async function loadMesh() {
-  const response = await fetch(`${api}/mesh`);
+  const response = await (window.tbpMesh || fetch(`${api}/mesh`));
   if (!response.ok) {
     const body = await response.json().catch(() => ({}));
     throw new Error(body.error ? body.error.message : response.statusText);
   }
   const buffer = await response.arrayBuffer();
-  const head = new DataView(buffer, 0, 12);
+  hooks.timing.meshReceivedMs = performance.now();
+  // TBPM, V, F (uint32 LE), the mesh file's SHA-256, positions, faces, skin (analysis/skin_map.py)
+  const HEADER = 44;
+  const head = new DataView(buffer, 0, HEADER);
   if (String.fromCharCode(...new Uint8Array(buffer, 0, 4)) !== "TBPM") throw new Error("not a mesh payload");
   const nv = head.getUint32(4, true), nf = head.getUint32(8, true);
-  const positions = new Float32Array(buffer, 12, nv * 3);
-  const faces = new Uint32Array(buffer, 12 + nv * 12, nf * 3);
-  const skin = new Uint8Array(buffer, 12 + nv * 12 + nf * 12, nv);
+  const positions = new Float32Array(buffer, HEADER, nv * 3);
+  const faces = new Uint32Array(buffer, HEADER + nv * 12, nf * 3);
+  const skin = new Uint8Array(buffer, HEADER + nv * 12 + nf * 12, nv);
   const colours = new Float32Array(nv * 3);
   const counts = [0, 0, 0];
   for (let i = 0; i < nv; i++) {
@@ -86,6 +89,7 @@ async function loadMesh() {
   geometry.computeBoundingSphere();
   const material = new THREE.MeshStandardMaterial({ vertexColors: true, roughness: 0.8, metalness: 0.0 });
   state.mesh = new THREE.Mesh(geometry, material);
+  hooks.timing.meshBuiltMs = performance.now();
   scene.add(state.mesh);
   const share = (k) => `${fmt((100 * counts[k]) / nv)} %`;
   document.getElementById("sh-sharp").textContent = share(2);
