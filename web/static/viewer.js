@@ -253,7 +253,7 @@ function renderGallery(cameraIndex) {
         title: `${rec.camera_id} at ${fmt(rec.actual_angle_deg, 2)}°, focus ${fmt(rec.focus_mm, 0)} mm`,
         onclick: () => { showPane("spot"); showImage(a, cameraIndex); } }));
     } else cell.append(el("div", { class: "lab error" }, rec ? rec.status : "–"));
-    cell.append(el("div", { class: "lab" }, `${fmt(deg, 1)}°`));
+    cell.append(el("div", { class: "lab" }, `${fmt(rec ? rec.planned_angle_deg : deg, 1)}°`));  // the plan may move angles
     grid.append(cell);
   });
   root.replaceChildren(pick, grid);
