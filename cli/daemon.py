@@ -32,7 +32,10 @@ def register(subparsers: Any) -> None:
                              "'off' serves none")
     parser.add_argument("--http-token-file", type=Path, default=None, metavar="FILE",
                         help="operator token for START/ABORT/RESET and marks over the web; needed to allow "
-                             "them when --http listens beyond loopback")
+                             "them when --http listens beyond loopback; beyond loopback readers log in with it too")
+    parser.add_argument("--http-open-reads", action="store_true",
+                        help="beyond loopback, show scans to anyone who reaches --http without a login "
+                             "(patients' images on the network: a deliberate choice)")
     options.log_level(parser, "info")
     parser.set_defaults(func=run)
 
@@ -57,10 +60,11 @@ def run(args: argparse.Namespace) -> int:
         try:
             host, port = parse_listen(args.http)
             token = read_token(args.http_token_file) if args.http_token_file else None
+            access = Access(host, port, token, open_reads=args.http_open_reads)
         except AccessError as exc:
             print(f"tbp daemon: {exc}", file=sys.stderr)
             return 2
-        attach = _web(args, Access(host, port, token))
+        attach = _web(args, access)
     from analysis.qa_report import generate_report
     from sim.clock import VirtualTimeLoop
     from sim.run import sim_service

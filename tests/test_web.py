@@ -173,7 +173,7 @@ class RecordingService:
 async def test_control_needs_the_token_beyond_loopback(scan_store):
     service = RecordingService()
     token = "s3cret-operator-token"
-    open_wide = await client_for(scan_store, Access("0.0.0.0", 0), service)
+    open_wide = await client_for(scan_store, Access("0.0.0.0", 0, open_reads=True), service)
     with_token = await client_for(scan_store, Access("0.0.0.0", 0, token), service)
     local = await client_for(scan_store, Access("127.0.0.1", 0), service)
     try:
@@ -188,6 +188,58 @@ async def test_control_needs_the_token_beyond_loopback(scan_store):
     finally:
         for c in (open_wide, with_token, local):
             await c.close()
+
+
+async def test_beyond_loopback_every_reader_logs_in_first(scan_store):
+    service = RecordingService()
+    token = "s3cret-operator-token"
+    name = folder_of(scan_store)
+    client = await client_for(scan_store, Access("0.0.0.0", 0, token), service)
+    try:
+        for path in ("/api/scans", f"/api/scans/{name}", f"/api/scans/{name}/mesh", "/api/rig/status"):
+            refused = await client.get(path)
+            assert refused.status == 401, path
+            assert "log in" in (await refused.json())["error"]["message"]
+        page = await client.get(f"/scans/{name}", allow_redirects=False)
+        assert page.status == 303 and page.headers["Location"] == f"/login?next=/scans/{name}"
+        assert (await client.get("/static/style.css")).status == 200  # assets hold no patient data
+        wrong = await client.post("/login", data={"token": "not-the-token-at-all", "next": "/scans"},
+                                  allow_redirects=False)
+        assert wrong.status == 401 and "not the operator token" in await wrong.text()
+        assert (await client.get("/api/scans")).status == 401
+        hostile = await client.post("/login", data={"token": token, "next": "//evil.example/x"},
+                                    allow_redirects=False)
+        assert hostile.status == 303 and hostile.headers["Location"] == "/"
+        cookie = hostile.cookies["tbp_session"]
+        assert token not in cookie.value and cookie["httponly"] and cookie["samesite"] == "Strict"
+        listing = await client.get("/api/scans")
+        assert listing.status == 200 and (await listing.json())["scans"]
+        assert (await client.get(f"/scans/{name}", allow_redirects=False)).status == 200
+        assert (await client.post("/api/rig/abort", json={})).status == 200 and service.calls == ["abort"]
+        await client.post("/logout", allow_redirects=False)
+        assert (await client.get("/api/scans")).status == 401
+        bearer = await client.get("/api/scans", headers={"Authorization": f"Bearer {token}"})
+        assert bearer.status == 200
+    finally:
+        await client.close()
+
+
+def test_serving_beyond_loopback_needs_a_login_or_an_explicit_open_viewer():
+    with pytest.raises(AccessError, match="--http-token-file.*--http-open-reads"):
+        Access("0.0.0.0", 8470)
+    assert not Access("0.0.0.0", 8470, open_reads=True).login_required
+    assert Access("0.0.0.0", 8470, "0123456789abcdef").login_required
+    assert not Access("127.0.0.1", 8470).login_required
+
+
+@pytest.mark.parametrize("target, expected", [
+    ("/scans/x?y=1", "/scans/x?y=1"), ("//evil.example", "/"), ("https://evil.example/", "/"),
+    ("", "/"), (None, "/"), ("scans", "/"), ("/\\evil", "/"),
+])
+def test_login_returns_only_to_a_path_on_this_server(target, expected):
+    from web.access import safe_next
+
+    assert safe_next(target) == expected
 
 
 def test_listen_address_is_checked():

@@ -140,3 +140,29 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
             daemon.kill()
             daemon.wait()
     assert daemon.returncode == 0, daemon.stderr.read().decode()[-2000:]
+
+
+def test_a_reader_on_the_network_logs_in_before_seeing_any_scan(web_store):
+    """Served beyond loopback with a token: the viewer sends the browser to the login page, the
+    wrong token is refused, the right one opens the scan list (and the cookie stays out of reach
+    of the page's scripts)."""
+    from selenium.webdriver.common.by import By
+
+    from web.access import Access
+
+    token = "clinic-operator-token-0042"
+    policy = Access("0.0.0.0", 0, token)  # the policy of a daemon bound to the clinic network
+    with serve_in_thread(web_store, policy) as url, chromium() as driver:
+        driver.get(f"{url}/scans")
+        wait_for(driver, "location.pathname === '/login'", 30)
+        assert "next=" in driver.current_url and not driver.find_elements(By.CSS_SELECTOR, "#scans")
+        driver.find_element(By.ID, "token").send_keys("wrong-token-wrong-token")
+        driver.find_element(By.ID, "login").click()
+        wait_for(driver, "document.getElementById('message').textContent.length > 0", 30)
+        assert "not the operator token" in driver.find_element(By.ID, "message").text
+        driver.find_element(By.ID, "token").send_keys(token)
+        driver.find_element(By.ID, "login").click()
+        wait_for(driver, "location.pathname === '/scans' && document.querySelectorAll('#scans tbody tr').length > 0", 60)
+        assert driver.execute_script("return document.cookie") == ""  # HttpOnly
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(SHOTS / "login-then-scans.png"))

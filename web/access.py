@@ -1,13 +1,20 @@
-"""Who may change what through the web server.
+"""Who may read and change what through the web server.
 
-Reading (the viewer, the console's status and events) is open to whoever reaches the address.
+Reading (the viewer, the console's status and events) shows patients' images. While the
+server is bound to loopback, whoever is on the rig PC may read. Bound beyond loopback, every
+page and API request needs a login with the operator token (``POST /login`` sets an HttpOnly,
+SameSite=Strict session cookie derived from the token), unless the daemon was started with
+``--http-open-reads``, an explicit choice to show scans to the whole network. The static
+assets (styles, scripts, three.js) hold no patient data and are served to anyone.
+
 Changing anything (START, ABORT, RESET, lesion marks) needs, on every request:
 
 * a JSON body (``Content-Type: application/json``): a page of another origin cannot send one
   without a CORS preflight, which this server never grants;
 * no foreign ``Origin`` header (the browser names the page that sent the request);
-* the bearer token (``Authorization: Bearer ...``) when one is configured; without a token,
-  only a client on the same machine, and only while the server is bound to loopback.
+* the bearer token (``Authorization: Bearer ...``) or the login's session cookie when a
+  token is configured; without a token, only a client on the same machine, and only while
+  the server is bound to loopback.
 
 While bound to loopback, the ``Host`` header must name the loopback address too, so a
 page on another site cannot rebind its DNS name to 127.0.0.1 and read the store.
@@ -15,11 +22,13 @@ page on another site cannot rebind its DNS name to 127.0.0.1 and read the store.
 
 from __future__ import annotations
 
+import hashlib
 import hmac
 import ipaddress
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlencode
 
 from aiohttp import web
 
@@ -68,6 +77,23 @@ def new_token() -> str:
     return secrets.token_urlsafe(24)
 
 
+SESSION_COOKIE = "tbp_session"
+PUBLIC_PREFIXES = ("/login", "/logout", "/static/", "/vendor/three/")
+"""Paths served without a login: the login itself and assets without patient data."""
+
+
+def session_value(token: str) -> str:
+    """The session cookie's value for a token: an HMAC, so the cookie never holds the token itself."""
+    return hmac.new(token.encode(), b"tbp-rig web session v1", hashlib.sha256).hexdigest()
+
+
+def safe_next(target: str | None) -> str:
+    """Where a login returns to: a path on this server only (no scheme, host or '//')."""
+    if not target or not target.startswith("/") or target.startswith("//") or "\\" in target:
+        return "/"
+    return target
+
+
 @dataclass(frozen=True)
 class Access:
     """The write policy. host/port: where the server listens; token: None for none."""
@@ -75,10 +101,42 @@ class Access:
     host: str
     port: int
     token: str | None = None
+    open_reads: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.loopback and self.token is None and not self.open_reads:
+            raise AccessError(
+                f"--http {self.host}:{self.port} listens beyond this machine and would show patients' "
+                "images to the network: give --http-token-file (a login for every reader) or, "
+                "deliberately, --http-open-reads")
 
     @property
     def loopback(self) -> bool:
         return is_loopback(self.host)
+
+    @property
+    def login_required(self) -> bool:
+        """Reads need a login: bound beyond loopback without --http-open-reads."""
+        return not self.loopback and not self.open_reads
+
+    def logged_in(self, request: web.Request) -> bool:
+        """The request carries the token as a bearer header or the login's session cookie."""
+        if self.token is None:
+            return False
+        cookie = request.cookies.get(SESSION_COOKIE, "")
+        if cookie and hmac.compare_digest(cookie.encode(), session_value(self.token).encode()):
+            return True
+        scheme, _, value = request.headers.get("Authorization", "").partition(" ")
+        return scheme.lower() == "bearer" and hmac.compare_digest(value.strip().encode(), self.token.encode())
+
+    def check_read(self, request: web.Request) -> None:
+        """Raise the response that sends a reader without a login to it (pages) or refuses (API)."""
+        if not self.login_required or request.path.startswith(PUBLIC_PREFIXES) or self.logged_in(request):
+            return
+        if request.path.startswith("/api/"):
+            raise web.HTTPUnauthorized(text="log in first: this server shows scans only after a login (/login)",
+                                       headers={"WWW-Authenticate": 'Bearer realm="tbp-rig"'})
+        raise web.HTTPSeeOther(f"/login?{urlencode({'next': request.path_qs})}")
 
     @property
     def writes_enabled(self) -> bool:
@@ -102,9 +160,7 @@ class Access:
             raise web.HTTPUnsupportedMediaType(
                 text=f"writes take a JSON body (Content-Type: application/json), not {request.content_type!r}")
         if self.token is not None:
-            given = request.headers.get("Authorization", "")
-            scheme, _, value = given.partition(" ")
-            if scheme.lower() != "bearer" or not hmac.compare_digest(value.strip().encode(), self.token.encode()):
+            if not self.logged_in(request):
                 raise web.HTTPUnauthorized(text="this action needs the operator token (Authorization: Bearer ...)",
                                            headers={"WWW-Authenticate": 'Bearer realm="tbp-rig"'})
             return

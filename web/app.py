@@ -10,7 +10,7 @@ import structlog
 from aiohttp import web
 
 from daemon.store import ScanStore
-from web import keys, marks, rig, scans
+from web import keys, login, marks, rig, scans
 from web.access import Access
 
 STATIC = Path(__file__).with_name("static")
@@ -27,8 +27,10 @@ class AssetsMissing(RuntimeError):
 @web.middleware
 async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
     """Host check, JSON errors for the API, and headers that keep pages to themselves."""
-    request.app[keys.ACCESS].check_host(request)
+    access = request.app[keys.ACCESS]
+    access.check_host(request)
     try:
+        access.check_read(request)
         response = await handler(request)
     except web.HTTPException as exc:
         if request.path.startswith("/api/") and exc.content_type != "application/json" and exc.status >= 400:
@@ -53,6 +55,7 @@ async def _config(request: web.Request) -> web.Response:
     service = request.app[keys.SERVICE]
     return web.json_response({"rig": service is not None, "writes": access.writes_enabled,
                               "token_required": access.token is not None,
+                              "login_required": access.login_required,
                               "poses": service.controller.rig.n_poses if service is not None else None})
 
 
@@ -75,6 +78,7 @@ def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = N
     app.router.add_get("/scans", _page("scans.html"))
     app.router.add_get("/scans/{folder}", _page("viewer.html"))
     app.router.add_get("/api/config", _config)
+    login.routes(app)
     scans.routes(app)
     marks.routes(app)
     rig.routes(app)

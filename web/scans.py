@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import struct
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
@@ -25,7 +24,6 @@ from daemon.atomic import StoreError
 from daemon.manifest import ImageStatus, ManifestError
 from daemon.store import ScanStore
 from web import images, keys
-
 
 
 def json_error(status: type[web.HTTPException], error: Exception | str) -> web.HTTPException:
@@ -242,10 +240,10 @@ async def image(request: web.Request) -> web.StreamResponse:
             raise json_error(web.HTTPBadRequest, "a crop needs u and v (full-resolution pixels)")
         key: tuple[Any, ...] = (path.name, "crop", round(u, 1), round(v, 1), half or 150.0)
         width = scan.record.rig.optics.image_width_px
-        make = lambda: images.crop(path, u, v, width, half or 150.0)  # noqa: E731
+        make = lambda: images.crop(path, u, v, width, half or 150.0)
     elif size in ("thumb", "preview"):
         key = (path.name, size)
-        make = lambda: images.scaled(path, images.THUMB_PX if size == "thumb" else images.PREVIEW_PX)  # noqa: E731
+        make = lambda: images.scaled(path, images.THUMB_PX if size == "thumb" else images.PREVIEW_PX)
     else:
         raise json_error(web.HTTPBadRequest, f"size={size[:20]!r}: thumb or preview")
     data = scan.previews.get(key)

@@ -1,6 +1,11 @@
 // Shared by the pages: JSON fetch with readable errors, and the operator token for writes.
+function toLogin() {
+  location.assign(`/login?next=${encodeURIComponent(location.pathname + location.search)}`);
+}
+
 export async function getJSON(url) {
   const response = await fetch(url, { headers: { Accept: "application/json" } });
+  if (response.status === 401) { toLogin(); throw new Error("log in first"); }
   const body = await response.json().catch(() => ({}));
   if (!response.ok) throw new Error(body.error ? `${body.error.type}: ${body.error.message}` : response.statusText);
   return body;
