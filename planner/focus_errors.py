@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from planner.picklable import PicklableError
 
-class FocusPlanError(ValueError):
+
+class FocusPlanError(PicklableError, ValueError):
     """Base of the focus planner's errors."""
 
 

@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from planner.picklable import PicklableError
+
 CALIBRATION_DIR = Path(__file__).resolve().parent.parent / "calibration_data"
 DEFAULT_RIG_PATH = CALIBRATION_DIR / "rig.yaml"
 MAX_FILE_BYTES = 1024 * 1024  # the default rig is 6 KB
@@ -94,7 +96,7 @@ def _key_name(key: Any) -> str:
     return key if isinstance(key, str) and len(key) <= 40 else show(key)
 
 
-class RigConfigError(ValueError):
+class RigConfigError(PicklableError, ValueError):
     """A rig file is unreadable or a field is missing, unknown or out of range."""
 
     def __init__(self, path: Path | str, key: str, problem: str) -> None:

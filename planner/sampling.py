@@ -34,7 +34,7 @@ class SurfaceSamples:
         return len(self.points)
 
     @classmethod
-    def from_arrays(cls, points: np.ndarray, inward_normals: np.ndarray) -> "SurfaceSamples":
+    def from_arrays(cls, points: np.ndarray, inward_normals: np.ndarray) -> SurfaceSamples:
         """Samples from given points (N, 3) and inward normals (N, 3) (normalised here)."""
         points = np.asarray(points, dtype=float).reshape(-1, 3)
         normals = np.asarray(inward_normals, dtype=float).reshape(-1, 3)

@@ -22,10 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.picklable import PicklableError
 from planner.rig import Capture, Rig
 
 
-class TimelineError(ValueError):
+class TimelineError(PicklableError, ValueError):
     """Base of the timeline errors."""
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from planner.picklable import PicklableError
 
-class ShapeEstimateError(Exception):
+
+class ShapeEstimateError(PicklableError):
     """Base of every depth-sweep and TSDF refusal."""
 
 

@@ -212,7 +212,7 @@ class BundleProblem:
         # capture: angle, wobble tilt (right perturbation of W, x and y only), shift
         wt = np.transpose(wob[k], (0, 2, 1))
         ez_cross_y = np.c_[-y[:, 1], y[:, 0], np.zeros(n)]
-        blocks.append((j_xb @ (-np.einsum("nij,nj->ni", wt, ez_cross_y))[:, :, None]))
+        blocks.append(j_xb @ (-np.einsum("nij,nj->ni", wt, ez_cross_y))[:, :, None])
         jw = _right_jacobian(np.c_[caps[:, 1:3], np.zeros(self.n_captures)])[k]
         blocks.append((j_xb @ _skew(xb) @ jw)[:, :, :2])
         blocks.append(-j_xb @ wt)

@@ -34,13 +34,14 @@ from planner.calibration.intrinsics import IntrinsicsError, calibrate_lens, pict
 from planner.calibration.model import BeamPose, Calibration, CameraCalibration, Intrinsics, Residuals
 from planner.calibration.nominal import depth_intrinsics, nominal_cameras, phone_intrinsics
 from planner.calibration.target import CuboidTarget
+from planner.picklable import PicklableError
 from planner.rig import Rig
 
 BLUR_RATIO = 0.3
 """A picture whose sharpness is below this share of its camera's median is refused as blurred."""
 
 
-class CalibrationFailed(RuntimeError):
+class CalibrationFailed(PicklableError, RuntimeError):
     """Too little usable data for a calibration; ``problems`` says what was wrong with which picture."""
 
     def __init__(self, reason: str, problems: Sequence[Problem]) -> None:

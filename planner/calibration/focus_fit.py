@@ -15,8 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.picklable import PicklableError
 
-class FocusFitError(ValueError):
+
+class FocusFitError(PicklableError, ValueError):
     """The sweeps do not determine a focus table (named: phone, distance, problem)."""
 
     def __init__(self, phone: str, problem: str) -> None:

@@ -11,10 +11,11 @@ from datetime import datetime
 from pathlib import Path
 
 from planner.calibration.model import Calibration, load_calibration
+from planner.picklable import PicklableError
 from planner.rig import Rig
 
 
-class CalibrationMismatch(ValueError):
+class CalibrationMismatch(PicklableError, ValueError):
     """The installed calibration is for other cameras than the rig file's."""
 
     def __init__(self, path: str, missing: list[str], extra: list[str]) -> None:

@@ -17,12 +17,13 @@ from planner.calibration.detect import Detection
 from planner.calibration.geometry import invert, transform
 from planner.calibration.model import Intrinsics
 from planner.calibration.target import CuboidTarget
+from planner.picklable import PicklableError
 
 MIN_VIEWS = 4
 """Zhang's method needs several board orientations; fewer planar views than this are refused."""
 
 
-class IntrinsicsError(ValueError):
+class IntrinsicsError(PicklableError, ValueError):
     """A camera's pictures do not determine its lens."""
 
     def __init__(self, camera: str, problem: str) -> None:

@@ -20,11 +20,12 @@ import numpy as np
 import yaml
 
 from planner.calibration.geometry import from_rotvec, rot_z, to_rotvec
+from planner.picklable import PicklableError
 
 FORMAT = "tbp-rig calibration 1"
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(PicklableError, ValueError):
     """A calibration file is unreadable or a key is missing, unknown or out of range."""
 
     def __init__(self, path: Path | str, key: str, problem: str) -> None:
