@@ -19,15 +19,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from planner.picklable import PicklableError
+from planner.yaml_files import read_yaml
 
 CALIBRATION_DIR = Path(__file__).resolve().parent.parent / "calibration_data"
 DEFAULT_RIG_PATH = CALIBRATION_DIR / "rig.yaml"
 MAX_FILE_BYTES = 1024 * 1024  # the default rig is 6 KB
 MAX_STRING = 256
-MAX_FLOW_NESTING = 32  # [ ] and { } levels; the YAML scanner is quadratic in this depth
 # Camera ids and sector names become file and folder names in a scan: letters, digits, '_', '-'
 # and '.', starting with a letter or digit (so never '..', '/', or a hidden file).
 ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,31}")
@@ -63,32 +62,6 @@ _SHORT = _ShortRepr()
 def show(value: Any) -> str:
     """A short, bounded rendering of a value from a file, for error messages."""
     return _SHORT.repr(value)
-
-
-_FLOW_SYNTAX = re.compile(rb"[\[\]{}'\"#\n]")
-
-
-def flow_nesting(text: bytes) -> int:
-    """Deepest nesting of YAML flow collections ([ ] and { }) outside quotes and comments."""
-    depth = deepest = 0
-    quote: bytes | None = None
-    comment = False
-    for match in _FLOW_SYNTAX.finditer(text):
-        char = match.group()
-        if comment:
-            comment = char != b"\n"
-        elif quote is not None:
-            quote = None if char == quote else quote
-        elif char in (b"'", b'"'):
-            quote = char
-        elif char == b"#":
-            comment = True
-        elif char in (b"[", b"{"):
-            depth += 1
-            deepest = max(deepest, depth)
-        elif char in (b"]", b"}"):
-            depth -= 1
-    return deepest
 
 
 def _key_name(key: Any) -> str:
@@ -641,22 +614,8 @@ def load_rig(path: Path | str = DEFAULT_RIG_PATH) -> Rig:
             range. The message names the file, the key and the allowed range.
     """
     path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            text = f.read(MAX_FILE_BYTES + 1)
-    except OSError as exc:
-        raise RigConfigError(path, "<file>", f"cannot read: {exc.strerror or exc}") from exc
-    if len(text) > MAX_FILE_BYTES:
-        raise RigConfigError(path, "<file>", f"larger than {MAX_FILE_BYTES} bytes: not a rig file")
-    if flow_nesting(text) > MAX_FLOW_NESTING:
-        raise RigConfigError(path, "<file>", f"lists or mappings nested more than {MAX_FLOW_NESTING} deep: "
-                                             "not a rig file")
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise RigConfigError(path, "<file>", f"not valid YAML: {exc}") from exc
-    except (ValueError, RecursionError) as exc:  # e.g. a 5000-digit number, nesting thousands deep
-        raise RigConfigError(path, "<file>", f"not a rig file: {type(exc).__name__}: {str(exc)[:200]}") from exc
+    raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="rig file",
+                          error=lambda problem: RigConfigError(path, "<file>", problem))
     return rig_from_mapping(raw, path, hashlib.sha256(text).hexdigest())
 
 

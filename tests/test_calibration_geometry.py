@@ -82,3 +82,13 @@ def test_beam_pose_between_captures_interpolates_the_wobble_around_the_turn() ->
     wob = from_rotvec(np.array([0, 0, -math.radians(316.0)]), np.zeros(3)) @ m
     w = (316.0 - truth.beam[-1].encoder_deg) / (truth.beam[0].encoder_deg + 360.0 - truth.beam[-1].encoder_deg)
     assert np.allclose(wob[:3, 3], (1 - w) * last[:3, 3] + w * first[:3, 3], atol=1e-9)
+
+
+def test_a_calibration_file_larger_than_any_rig_needs_is_refused(tmp_path):
+    from planner.calibration.model import MAX_FILE_BYTES, CalibrationFileError, load_calibration
+
+    big = tmp_path / "calibration.yaml"
+    with open(big, "wb") as f:
+        f.truncate(MAX_FILE_BYTES + 1)
+    with pytest.raises(CalibrationFileError, match="larger than"):
+        load_calibration(big)

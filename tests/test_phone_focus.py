@@ -96,3 +96,17 @@ def test_bad_files_name_file_and_key(tmp_path: Path, text: str, key: str) -> Non
     assert info.value.key == key and str(path) in str(info.value)
     with pytest.raises(FocusCalibrationError, match="cannot read"):
         load_focus_calibration(tmp_path / "missing.yaml")
+
+
+def test_a_huge_or_deeply_nested_focus_table_is_refused_before_parsing(tmp_path):
+    from drivers.phone.errors import FocusCalibrationError
+    from drivers.phone.focus import MAX_FILE_BYTES, load_focus_calibration
+
+    huge = tmp_path / "huge.yaml"
+    huge.write_bytes(b"points:\n" + b"  - [1.0, 1000.0]\n" * (MAX_FILE_BYTES // 17 + 1))
+    with pytest.raises(FocusCalibrationError, match=f"larger than {MAX_FILE_BYTES} bytes"):
+        load_focus_calibration(huge)
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("points: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(FocusCalibrationError, match="nested more than 32 deep"):
+        load_focus_calibration(deep)

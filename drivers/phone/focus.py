@@ -20,11 +20,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from drivers.phone.errors import FocusCalibrationError, FocusOutOfRange
+from planner.yaml_files import read_yaml
 
 MIN_DISTANCE_MM = 20.0
+MAX_FILE_BYTES = 1024 * 1024  # a focus table is a few hundred bytes
 MAX_DISTANCE_MM = 100_000.0
 MAX_DIOPTERS = 50.0
 
@@ -90,12 +91,8 @@ class FocusCalibration:
 def load_focus_calibration(path: Path | str) -> FocusCalibration:
     """Read and validate a focus table file (see the module docstring for the format)."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise FocusCalibrationError(str(path), "file", f"cannot read: {exc.strerror}") from exc
-    except yaml.YAMLError as exc:
-        raise FocusCalibrationError(str(path), "file", f"not valid YAML: {exc}") from exc
+    doc, _ = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="focus table",
+                       error=lambda problem: FocusCalibrationError(str(path), "file", problem))
     if not isinstance(doc, dict):
         raise FocusCalibrationError(str(path), "file", "expected a mapping with 'points'")
     unknown = sorted(set(doc) - {"points", "phone_model", "measured"})

@@ -21,6 +21,10 @@ import yaml
 
 from planner.calibration.geometry import from_rotvec, rot_z, to_rotvec
 from planner.picklable import PicklableError
+from planner.yaml_files import read_yaml
+
+MAX_FILE_BYTES = 16 * 1024 * 1024
+"""A calibration file of the default rig (10 cameras, 96 captures) is ~60 KB."""
 
 FORMAT = "tbp-rig calibration 1"
 
@@ -256,13 +260,8 @@ class _Reader:
 def load_calibration(path: Path | str) -> Calibration:
     """Load and validate a calibration file; CalibrationFileError names the file and the key."""
     path = Path(path)
-    try:
-        text = path.read_bytes()
-        raw = yaml.safe_load(text)
-    except OSError as exc:
-        raise CalibrationFileError(path, "<file>", f"cannot read: {exc.strerror or exc}") from exc
-    except yaml.YAMLError as exc:
-        raise CalibrationFileError(path, "<file>", f"not valid YAML: {exc}") from exc
+    raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="calibration file",
+                          error=lambda problem: CalibrationFileError(path, "<file>", problem))
     r = _Reader(path)
     raw = r.mapping(raw, "<top>", {"format", "created_utc", "rig_digest", "target", "source", "cameras", "beam",
                                    "world_from_cuboid", "cuboid_from_boards", "residuals"})

@@ -16,10 +16,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from planner.calibration.model import CalibrationFileError
 from planner.rig import CALIBRATION_DIR
+from planner.yaml_files import read_yaml
+
+MAX_FILE_BYTES = 1024 * 1024  # the cuboid's file is 2 KB
 
 DEFAULT_TARGET_PATH = CALIBRATION_DIR / "target" / "cuboid.yaml"
 _NORMALS = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}
@@ -142,13 +144,8 @@ def load_target(path: Path | str = DEFAULT_TARGET_PATH) -> CuboidTarget:
     import cv2
 
     path = Path(path)
-    try:
-        text = path.read_bytes()
-        raw = yaml.safe_load(text)
-    except OSError as exc:
-        raise TargetError(path, "<file>", f"cannot read: {exc.strerror or exc}") from exc
-    except yaml.YAMLError as exc:
-        raise TargetError(path, "<file>", f"not valid YAML: {exc}") from exc
+    raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="target file",
+                          error=lambda problem: TargetError(path, "<file>", problem))
     if not isinstance(raw, dict):
         raise TargetError(path, "<top>", f"expected a mapping, got {type(raw).__name__}")
     unknown = sorted(set(raw) - _KEYS)
