@@ -164,11 +164,18 @@ def pose_angles_deg(poses: Poses, rig: Rig) -> np.ndarray:
     return np.round(angles, 3)
 
 
-def load_subject_mesh(path: Path | str) -> trimesh.Trimesh:
+MAX_MESH_BYTES = 512 * 1024 * 1024
+"""A body mesh from the TSDF is 10-40 MB; a scanned body at 0.5 mm, a few hundred MB at most."""
+
+
+def load_subject_mesh(path: Path | str, max_bytes: int = MAX_MESH_BYTES) -> trimesh.Trimesh:
     """Read a triangle mesh (mm) from a file trimesh understands (PLY, OBJ, STL, GLB...)."""
     path = Path(path)
     if not path.is_file():
         raise MeshLoadError(str(path), "no such file")
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise MeshLoadError(str(path), f"{size} bytes, larger than the {max_bytes} a body mesh may have")
     try:
         mesh = trimesh.load(path, force="mesh", process=True)
     except Exception as exc:  # trimesh raises many types for unreadable files

@@ -110,6 +110,10 @@ def test_mesh_file_errors(tmp_path: Path) -> None:
     bad.write_text("not a mesh")
     with pytest.raises(MeshLoadError, match="bad.ply: cannot be read"):
         load_subject_mesh(bad)
+    big = tmp_path / "big.ply"
+    big.write_bytes(b"ply\nformat ascii 1.0\n" + b" " * 4096)
+    with pytest.raises(MeshLoadError, match="larger than the 1024 a body mesh may have"):
+        load_subject_mesh(big, max_bytes=1024)
 
 
 def test_cli_plan_writes_json(tmp_path: Path, body, capsys) -> None:
