@@ -137,6 +137,9 @@ class ControlServer:
     # (the unit's LimitNOFILE is sized with this bound, tests/test_systemd_units.py).
     MAX_CONNECTIONS = 16
     IDLE_TIMEOUT_S = 10.0  # a client writes its request as soon as it connects
+    MAX_REFUSING = 16
+    BACKLOG = 16
+    REFUSE_WAIT_S = 0.5
 
     def __init__(self, path: Path | str, handler: ControlHandler, *, group: str | None = None,
                  mode: int = 0o660) -> None:
@@ -146,6 +149,7 @@ class ControlServer:
         self.mode = mode
         self._server: asyncio.Server | None = None
         self._connections: set[asyncio.Task[None]] = set()
+        self._refusing = 0
         self._refused_log = NoiseLog(log, "control_connection_refused", period_s=10.0)
 
     async def __aenter__(self) -> ControlServer:
@@ -158,8 +162,10 @@ class ControlServer:
     async def start(self) -> None:
         self._remove_stale()
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # backlog: asyncio also accepts up to this many connections in one go before any of
+        # them is served; the default (100) let a flood of clients take 100 descriptors at once.
         self._server = await asyncio.start_unix_server(
-            self._serve, path=str(self.path), limit=self.MAX_LINE
+            self._serve, path=str(self.path), limit=self.MAX_LINE, backlog=self.BACKLOG
         )
         os.chmod(self.path, self.mode)
         if self.group is not None:
@@ -204,7 +210,7 @@ class ControlServer:
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         if len(self._connections) >= self.MAX_CONNECTIONS:
-            await self._refuse(writer)
+            await self._refuse(reader, writer)
             return
         if task is not None:
             self._connections.add(task)
@@ -241,9 +247,23 @@ class ControlServer:
             with contextlib.suppress(ConnectionError, asyncio.CancelledError):
                 await writer.wait_closed()
 
-    async def _refuse(self, writer: asyncio.StreamWriter) -> None:
-        """Tell a client over the connection limit why, and hang up."""
+    async def _refuse(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Tell a client over the connection limit why, and hang up.
+
+        The refusal waits (at most REFUSE_WAIT_S) for the client's request line before it
+        answers: a reply sent before the client has written makes the client's write fail and
+        it never reads why. At most MAX_REFUSING connections wait like that; beyond them a flood
+        is closed at once, so refusals never hold more than that many descriptors."""
         self._refused_log.report(limit=self.MAX_CONNECTIONS)
+        if self._refusing < self.MAX_REFUSING:
+            self._refusing += 1
+            try:
+                async with asyncio.timeout(self.REFUSE_WAIT_S):
+                    await reader.readline()
+            except (TimeoutError, ValueError, ConnectionError):
+                pass
+            finally:
+                self._refusing -= 1
         writer.write(_line({"id": None, "ok": False, "error": {
             "type": "TooManyConnections",
             "message": f"{self.MAX_CONNECTIONS} control connections are open; try again"}}))

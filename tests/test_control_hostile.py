@@ -8,7 +8,9 @@ import asyncio
 import json
 from pathlib import Path
 
-from daemon.control import ControlClient, ControlServer
+import pytest
+
+from daemon.control import CommandFailed, ControlClient, ControlServer
 from sim.clock import run_virtual
 from tests.memory import within_rss
 from tests.test_control import FakeDaemon
@@ -51,6 +53,26 @@ async def test_connections_beyond_the_limit_are_told_why_and_closed(tmp_path: Pa
         while server._connections:
             await asyncio.sleep(0.01)
         assert (await ControlClient(sock).status())["state"] == "IDLE"  # slots are given back
+
+
+async def test_a_client_over_the_limit_reads_why_instead_of_a_broken_pipe(tmp_path: Path) -> None:
+    """`tbp status` against a crowded daemon says the daemon is busy; the refusal used to be sent
+    before the client wrote, so its write failed and it reported 'connection lost'."""
+    sock = tmp_path / "c.sock"
+    async with ControlServer(sock, FakeDaemon()) as server:
+        held = [await asyncio.open_unix_connection(str(sock)) for _ in range(ControlServer.MAX_CONNECTIONS)]
+        while len(server._connections) < ControlServer.MAX_CONNECTIONS:
+            await asyncio.sleep(0.01)
+        reader, writer = await asyncio.open_unix_connection(str(sock))
+        await asyncio.sleep(0.2)  # a slow client: the server has had time to answer before it writes
+        reply = await _request(reader, writer, b'{"id": 1, "cmd": "status"}\n')
+        assert reply["error"]["type"] == "TooManyConnections"
+        writer.close()
+        with pytest.raises(CommandFailed) as refused:
+            await ControlClient(sock).status()
+        assert refused.value.error_type == "TooManyConnections"
+        for _, w in held:
+            w.close()
 
 
 def test_an_idle_connection_is_closed_after_the_idle_timeout(tmp_path: Path) -> None:
