@@ -26,10 +26,6 @@ LIMIT = 256
 HELD = 300
 
 
-def _low_fd_limit() -> None:
-    resource.setrlimit(resource.RLIMIT_NOFILE, (LIMIT, LIMIT))
-
-
 def _hold_connections(sock: Path, count: int) -> list[socket.socket]:
     held = []
     for _ in range(count):
@@ -84,7 +80,8 @@ def test_three_hundred_connections_under_a_256_descriptor_limit(tmp_path: Path) 
     cmd = [TBP, "daemon", "--sim", "--no-panel", "--subject", str(subject), "--socket", str(sock),
            "--store", str(store), "--time-scale", "10", "--plan-points", "1500", "--depth-decimation", "4",
            "--log-level", "warning", "--http", "off"]
-    proc = subprocess.Popen(cmd, stdout=log.open("ab"), stderr=subprocess.STDOUT, preexec_fn=_low_fd_limit,
+    limited = ["sh", "-c", f'ulimit -n {LIMIT} && exec "$@"', "sh", *cmd]  # as the probe did; no preexec_fn
+    proc = subprocess.Popen(limited, stdout=log.open("ab"), stderr=subprocess.STDOUT,
                             env={**os.environ, "NOTIFY_SOCKET": ""})
     held: list[socket.socket] = []
     try:
