@@ -386,7 +386,7 @@ class ControlClient:
             return await self._exchange(reader, writer, cmd, args)
         finally:
             writer.close()
-            with contextlib.suppress(ConnectionError):
+            with contextlib.suppress(OSError):  # ENOTCONN after a hang-up is no news
                 await writer.wait_closed()
 
     async def status(self) -> dict[str, Any]:
@@ -419,7 +419,7 @@ class ControlClient:
                 yield message["event"]
         finally:
             writer.close()
-            with contextlib.suppress(ConnectionError):
+            with contextlib.suppress(OSError):  # ENOTCONN after a hang-up is no news
                 await writer.wait_closed()
 
 
