@@ -21,15 +21,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Connect to the beam's CiA 402 drive, run one action and print the drive's state "
         "and beam angle. Not while the daemon runs: bring-up resets the drive's communication.",
     )
-    parser.add_argument(
-        "--interface", default=None, help="python-can interface (default: the rig file's motor.can_interface)"
-    )
-    parser.add_argument(
-        "--channel", default=None, help="CAN channel (default: the rig file's motor.can_channel)"
-    )
-    parser.add_argument("--host", default="127.0.0.1", help="socketcand host")
-    parser.add_argument("--port", type=int, default=29536, help="socketcand TCP port")
+    parser.add_argument("--interface", default=None,
+                        help="python-can interface (default: the hardware file's can.interface)")
+    parser.add_argument("--channel", default=None, help="CAN channel (default: the hardware file's can.channel)")
+    parser.add_argument("--host", default=None, help="socketcand host (default: the hardware file's, else 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=None,
+                        help="socketcand TCP port (default: the hardware file's, else 29536)")
     options.rig(parser)
+    options.hardware(parser)
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("status", help="connect and report")
     actions.add_parser("enable", help="check the drive reaches OPERATION ENABLED")
@@ -59,28 +58,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _open_port(args: argparse.Namespace, motor: Any) -> Any:
-    import dataclasses
+def _open_port(args: argparse.Namespace, rig: Any) -> Any:
+    """The drive's bus: the hardware file's ``can`` section (when there is a file), overridden by
+    the command line; without either, SocketCAN ``can0``."""
+    from daemon.hardware_config import CanBus
+    from drivers.motor import PythonCanPort
 
-    from drivers.motor import open_rig_port
+    path = options.hardware_path(args)
+    bus = _configured_bus(path, rig) if path.is_file() else CanBus("socketcan", "can0")
+    interface = args.interface or bus.interface
+    channel = args.channel or bus.channel
+    extra: dict[str, Any] = {}
+    if interface == "socketcand":
+        extra = {"host": args.host or bus.host or "127.0.0.1", "port": args.port or bus.port or 29536}
+    elif interface == "slcan":
+        extra = {"bitrate": bus.bitrate or rig.motor.bitrate}
+    return PythonCanPort.open(interface, channel, **extra)
 
-    motor = dataclasses.replace(
-        motor,
-        can_interface=args.interface or motor.can_interface,
-        can_channel=args.channel or motor.can_channel,
-    )
-    options: dict[str, Any] = {}
-    if motor.can_interface == "socketcand":
-        options = {"host": args.host, "port": args.port}
-    return open_rig_port(motor, **options)
+
+def _configured_bus(path: Any, rig: Any) -> Any:
+    from daemon.hardware_config import load_hardware
+
+    return load_hardware(path, rig).can
 
 
 async def _act(args: argparse.Namespace) -> str:
     from drivers.motor import BeamDrive
     from planner.rig import DEFAULT_RIG_PATH, load_rig
 
-    motor = load_rig(args.rig or DEFAULT_RIG_PATH).motor
-    drive = BeamDrive(_open_port(args, motor), motor)
+    rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+    motor = rig.motor
+    drive = BeamDrive(_open_port(args, rig), motor)
     speed = getattr(args, "limit_speed", None) or motor.max_speed_deg_s / 4
     accel = getattr(args, "acceleration", None) or motor.max_acceleration_deg_s2 / 4
     try:

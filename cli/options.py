@@ -20,6 +20,19 @@ def rig(parser: argparse.ArgumentParser, help: str = "rig file (default: calibra
     parser.add_argument("--rig", "--config", dest="rig", type=Path, default=None, metavar="FILE", help=help)
 
 
+def hardware(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--hardware", type=Path, default=None, metavar="FILE",
+                        help="hardware file: how this PC reaches each device (default: hardware.yaml beside the rig file)")
+
+
+def hardware_path(args: argparse.Namespace) -> Path:
+    """--hardware, else hardware.yaml beside the rig file (--rig, else the default rig)."""
+    from daemon.hardware_config import default_hardware_path
+    from planner.rig import DEFAULT_RIG_PATH
+
+    return args.hardware or default_hardware_path(args.rig or DEFAULT_RIG_PATH)
+
+
 def store(parser: argparse.ArgumentParser, default: Path | None = None) -> None:
     """``--store DIR``; without a default, $TBP_STORE or the installed store (see :func:`store_root`)."""
     where = default if default is not None else f"${STORE_ENV} or {INSTALLED_STORE}"

@@ -12,7 +12,8 @@ from typing import Any
 import structlog
 
 from daemon.beam import BeamTracker
-from daemon.errors import CalibrationRefused, ScanBusy, ScanRefused
+from daemon.bringup import BringUp
+from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
 from daemon.safety import SafetyMonitor
@@ -34,7 +35,6 @@ def _led(name: str) -> Any:
 class RigController:
     """Owns the state machine, the safety latch, the beam tracker and the current scan."""
 
-    CONNECT_TIMEOUT_S = 10.0
     STOP_DECELERATION_DEG_S2 = 30.0
     STANDSTILL_TIMEOUT_S = 5.0
     STANDSTILL_DEG_S = 1e-3
@@ -55,7 +55,6 @@ class RigController:
         self.machine = machine or ScanStateMachine()
         self.safety = SafetyMonitor(self.machine, hardware.drive)
         self.tracker = BeamTracker(hardware.drive)
-        self.phone_errors: list[str | None] = [None] * len(hardware.phones)
         self.scan_task: asyncio.Task[ScanReport] | None = None
         self.current: Scan | None = None
         self.last_report: ScanReport | None = None
@@ -63,38 +62,42 @@ class RigController:
         if hardware.panel is not None:
             self.safety.add_handler("panel fault light", self._panel_fault)
         self.safety.on_trip(self._cancel_scan)
+        self.bringup = BringUp(self)
 
     # ------------------------------------------------------------------ bring-up
 
     async def start(self) -> None:
-        """Connect every device, enable the drive, follow the encoder, make sure the beam is still."""
-        drive = self.hw.drive
-        async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
-            await drive.connect()
-            await self.tracker.start()
-        try:
-            async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
-                await drive.enable()
-                await drive.stop(self.STOP_DECELERATION_DEG_S2)
-        except Exception as exc:  # a drive left faulted (e.g. by a killed daemon) latches FAULT
-            await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, getattr(drive, "name", "beam"),
-                                                       exc, "at start-up"))
-        results = await asyncio.gather(
-            *(self._connect_phone(i, p) for i, p in enumerate(self.hw.phones)), return_exceptions=True
-        )
-        for i, result in enumerate(results):
-            if isinstance(result, BaseException):
-                self.phone_errors[i] = f"{type(result).__name__}: {result}"
-        if self.hw.panel is not None:
-            async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
-                await self.hw.panel.connect()
-            await self.hw.panel.set_status(_led("IDLE"))
-        self.safety.start()
-        log.info("rig_started", phones_failed=[e for e in self.phone_errors if e])
+        """Bring every device up once (each under its timeout): connect the drive, follow the
+        encoder, make sure the beam is still, connect the phones and the panel, find the depth
+        cameras. Raises DevicesMissing when the drive did not come up (a one-shot scan cannot
+        go on); other missing devices are recorded (:attr:`bringup`) and refuse scans."""
+        ready = await self.bringup.once()
+        log.info("rig_started", ready=ready, missing=[d.name for d in self.bringup.missing()])
+        if not self.bringup.devices["drive"].ok:
+            raise DevicesMissing(self.bringup.summary())
 
-    async def _connect_phone(self, index: int, phone: Any) -> None:
-        async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
-            await phone.connect()
+    def replace_drive_if_spent(self) -> Any:
+        """The drive to connect: the current one, or a fresh one on a new link when the current
+        one was closed (a dead link) and the rig can make another."""
+        drive = self.hw.drive
+        if getattr(drive, "closed", False) and self.hw.drive_factory is not None:
+            drive = self.hw.drive_factory()
+            self.hw.drive = self.safety.drive = self.tracker.drive = drive
+            log.info("drive_link_renewed", drive=drive.name)
+        return drive
+
+    async def retire_drive(self) -> None:
+        """After a failed connect: stop following and close the drive (a fresh one comes next)."""
+        await self.tracker.stop()
+        if self.hw.drive_factory is not None:
+            try:
+                await self.hw.drive.close()
+            except Exception as exc:  # closing a link that never opened: nothing left to release
+                log.info("drive_close_after_failed_connect", error=str(exc))
+
+    async def show_idle(self) -> None:
+        if self.hw.panel is not None:
+            await self.hw.panel.set_status(_led("FAULT" if self.safety.latched else "IDLE"))
 
     async def close(self) -> list[str]:
         """Stop the beam, stop watching, close every device; returns close failures."""
@@ -123,6 +126,11 @@ class RigController:
         if self.safety.latched or self.machine.state is not ScanState.IDLE:
             raise ScanBusy(self.machine.state.value,
                            "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")
+        if not self.bringup.ready:
+            refused = ScanRefused(scan_id, self.bringup.summary())
+            log.warning("scan_refused", scan_id=str(scan_id)[:80], error=str(refused))
+            self.machine.progress("scan refused", error=str(refused))
+            raise refused
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
         self._close_left_open()
@@ -212,12 +220,32 @@ class RigController:
 
         async def recover() -> None:
             drive = self.hw.drive
-            if getattr(drive, "fault", None) is not None:
+            if getattr(drive, "closed", False) or self._link_lost(drive):
+                await self._reconnect_drive()
+                drive = self.hw.drive
+            if drive.fault is not None:
                 await drive.reset_fault()
             await drive.enable()
             await self._panel("IDLE")
 
         await self.safety.reset(cause, recover)
+
+    def _link_lost(self, drive: Any) -> bool:
+        """The drive's link died (CAN unplugged, bridge gone, drive powered off): only a fresh
+        link brings it back."""
+        from drivers.motor.errors import CanBusError, HeartbeatLost
+
+        return self.hw.drive_factory is not None and isinstance(drive.fault, (CanBusError, HeartbeatLost))
+
+    async def _reconnect_drive(self) -> None:
+        await self.tracker.stop()
+        try:
+            await self.hw.drive.close()
+        except Exception as exc:  # the old link is gone; its goodbye cannot be sent
+            log.info("drive_close_before_reconnect", error=str(exc))
+        self.bringup.devices["drive"].ok = False
+        if not await self.bringup.once() and not self.bringup.devices["drive"].ok:
+            raise DevicesMissing(self.bringup.summary())
 
     async def _quick_stop(self) -> None:
         """Quick stop, then wait until the encoder shows the beam standing still."""
@@ -257,6 +285,7 @@ class RigController:
             "fault_causes": [cause.as_dict() for cause in self.safety.causes],
             "beam_angle_deg": None if latest is None else latest.angle_deg,
             "beam_speed_deg_s": None if latest is None else latest.speed_deg_s,
-            "phones_failed": [e for e in self.phone_errors if e],
+            "ready": self.bringup.ready,
+            "devices": [d.as_dict() for d in self.bringup.devices.values()],
             "last_scan": None if self.last_report is None else self.last_report.as_dict(),
         }

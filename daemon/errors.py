@@ -51,6 +51,14 @@ class ScanRefused(DaemonError):
         super().__init__(f"scan not started: {reason}")
 
 
+class DevicesMissing(DaemonError):
+    """Devices of the rig did not answer at bring-up; names each with its address and what to check."""
+
+    def __init__(self, summary: str) -> None:
+        self.summary = summary
+        super().__init__(summary)
+
+
 class CalibrationRefused(ScanRefused):
     """The installed calibration cannot be used: unreadable, or for other cameras than the rig's."""
 

@@ -23,6 +23,11 @@ class RigHardware:
     drive: ``BeamDrive``; phones: one ``PhoneCamera`` per rig phone in rig order; depth_cameras:
     ``DepthCamera`` objects in rig order; panel: ``OperatorPanel`` or None (no panel fitted).
     closers: extra shutdown steps (simulator tasks, sockets), run last.
+    addresses: device name -> where it is reached (shown in status and errors).
+    drive_factory: a fresh ``BeamDrive`` on a fresh link, for a drive whose link died (a real rig;
+        the simulated one never needs it).
+    depth_probe: ``await depth_probe(index)`` raises when that depth camera cannot be found.
+    timeouts: open, phone authorisation and re-probe periods (the hardware file's).
     """
 
     drive: Any
@@ -30,6 +35,16 @@ class RigHardware:
     depth_cameras: Sequence[Any]
     panel: Any | None = None
     closers: list[Callable[[], Awaitable[None]]] = field(default_factory=list)
+    addresses: dict[str, str] = field(default_factory=dict)
+    drive_factory: Callable[[], Any] | None = None
+    depth_probe: Callable[[int], Awaitable[None]] | None = None
+    timeouts: Any = None
+
+    def __post_init__(self) -> None:
+        if self.timeouts is None:
+            from daemon.hardware_config import Timeouts
+
+            self.timeouts = Timeouts(open_s=10.0)
 
     CLOSE_TIMEOUT_S = 3.0
 

@@ -22,6 +22,13 @@ from daemon.notify import SystemdNotifier, run_watchdog
 from daemon.states import SCAN_STATES
 from daemon.store import new_scan_id
 
+
+def _led(name: str) -> Any:
+    from drivers.panel import StatusLed
+
+    return StatusLed[name]
+
+
 log = structlog.get_logger("daemon.service")
 
 
@@ -50,6 +57,7 @@ class RigService:
         self._tasks: list[asyncio.Task[Any]] = []
         self._server: Any = None
         self.attached: list[Any] = []
+        self._ready_sent = False
 
     def attach(self, server: Any) -> None:
         """Serve ``server`` (``await start()``, ``await close()``; the web server) while the daemon runs:
@@ -67,7 +75,7 @@ class RigService:
                                    "reason": folder.manifest.reason, "counts": counts})
             log.warning("interrupted_scan_recovered", scan_id=folder.scan_id, path=str(folder.path),
                         **counts)
-        await ctl.start()
+        ready = await ctl.bringup.once()
         if self.socket_path is not None:
             from daemon.control import ControlServer
 
@@ -79,13 +87,44 @@ class RigService:
             asyncio.create_task(self._measure_lag(), name="loop-lag"),
             asyncio.create_task(run_watchdog(self.notifier, self.healthy), name="watchdog"),
             asyncio.create_task(self._mirror_status(), name="notify-status"),
+            asyncio.create_task(ctl.bringup.run(self._readiness_changed), name="reprobe"),
         ]
         if ctl.hw.panel is not None:
             self._tasks.append(asyncio.create_task(self._panel_events(), name="panel-events"))
+        self._readiness_changed(ready)
+
+    def _readiness_changed(self, ready: bool) -> None:
+        """READY=1 the first time every device answers; until then, and whenever a device is
+        missing, STATUS= names it (and the journal, `tbp status`, the panel's fault LED)."""
+        ctl = self.controller
+        if not ready:
+            summary = ctl.bringup.summary()
+            self.notifier.status(summary)
+            log.warning("daemon_not_ready", missing=[d.as_dict() for d in ctl.bringup.missing()])
+            if ctl.hw.panel is not None and ctl.bringup.devices["panel"].ok:
+                self._spawn(ctl.hw.panel.set_status(_led("FAULT")), "panel-not-ready")
+            return
         state = ctl.machine.state.value
-        self.notifier.ready(f"{state}; {len(self.recovered)} interrupted scan(s) recovered")
-        log.info("daemon_ready", state=state, recovered=len(self.recovered),
-                 socket=str(self.socket_path) if self.socket_path else None)
+        text = f"{state}; {len(self.recovered)} interrupted scan(s) recovered"
+        if not self._ready_sent:
+            self.notifier.ready(text)
+            self._ready_sent = True
+            log.info("daemon_ready", state=state, recovered=len(self.recovered),
+                     socket=str(self.socket_path) if self.socket_path else None)
+        else:
+            self.notifier.status(text)
+            log.info("devices_back", state=state)
+        self._spawn(ctl.show_idle(), "panel-ready")
+
+    def _spawn(self, coro: Any, name: str) -> None:
+        async def quietly() -> None:
+            try:
+                await coro
+            except Exception as exc:  # the panel's own loss is handled by its heartbeat watch
+                log.info("panel_led_not_set", task=name, error=str(exc))
+
+        task = asyncio.create_task(quietly(), name=name)
+        self._tasks.append(task)
 
     async def stop(self) -> list[str]:
         """Abort a running scan, stop the beam, close devices and the socket."""
@@ -115,18 +154,19 @@ class RigService:
     # ------------------------------------------------------------------ health
 
     def healthy(self) -> bool:
-        """The loop runs on time, no scan state is left without its scan, and the drive still
-        talks (a latched fault is not ill health)."""
-        drive = self.controller.hw.drive
+        """The daemon itself works: the loop runs on time, no scan state is left without its
+        scan, and the re-probe of missing devices still runs.
+
+        A missing or silent device is not ill health: restarting the daemon would not bring a
+        phone back, it would only lose the status the operator reads. A drive whose heartbeat
+        stops latches FAULT (the safety monitor), a missing device keeps the rig NOT READY and
+        is re-probed; the watchdog is for a wedged daemon."""
         if self.loop_lag_s > self.MAX_LAG_S:
             return False
         if self.controller.machine.state in SCAN_STATES and not self.controller.busy:
             return False  # a scan state nobody will leave: the watchdog restarts the daemon
-        heartbeat = getattr(drive, "last_heartbeat_s", None)
-        if heartbeat is None:
-            return True
-        limit = drive.config.heartbeat_timeout_ms / 1000.0
-        return asyncio.get_running_loop().time() - heartbeat <= limit
+        reprobe = next((t for t in self._tasks if t.get_name() == "reprobe"), None)
+        return reprobe is None or not reprobe.done()
 
     async def _measure_lag(self) -> None:
         loop = asyncio.get_running_loop()

@@ -360,8 +360,6 @@ class Motor:
     heartbeat_timeout_ms: int
     following_error_deg: float
     position_rate_hz: float
-    can_interface: str
-    can_channel: str
 
     @property
     def counts_per_degree(self) -> float:
@@ -525,8 +523,6 @@ _MOTOR = {
     "heartbeat_timeout_ms": _int(20, 60_000),
     "following_error_deg": _num(0.01, 90.0),
     "position_rate_hz": _num(1.0, 10_000.0),
-    "can_interface": _str(required=False, default="socketcan"),
-    "can_channel": _str(required=False, default="can0"),
 }
 _CALIBRATION = {
     "file": _str(required=False, default="calibration.yaml"),

@@ -109,21 +109,3 @@ async def test_python_can_port_reports_bus_failures() -> None:
 async def test_python_can_port_open_unknown_interface() -> None:
     with pytest.raises(CanBusError, match="cannot open nosuchbus can0"):
         PythonCanPort.open("nosuchbus", "can0")
-
-
-async def test_open_rig_port_uses_the_rig_file_bus() -> None:
-    import dataclasses
-
-    from drivers.motor import open_rig_port
-    from planner.rig import load_rig
-
-    motor = load_rig().motor
-    assert (motor.can_interface, motor.can_channel) == ("socketcan", "can0")
-    port = open_rig_port(
-        dataclasses.replace(motor, can_interface="virtual", can_channel=f"rig-{uuid.uuid4().hex}")
-    )
-    port.close()
-    with pytest.raises(CanBusError, match="cannot open slcan /dev/tbp-no-such-adapter"):
-        open_rig_port(
-            dataclasses.replace(motor, can_interface="slcan", can_channel="/dev/tbp-no-such-adapter")
-        )

@@ -27,7 +27,7 @@ from drivers.motor.errors import (
     SdoTimeout,
     StateTransitionTimeout,
 )
-from drivers.motor.port import CanPort, LoopbackCanBus, PythonCanPort, open_rig_port
+from drivers.motor.port import CanPort, LoopbackCanBus, PythonCanPort
 
 __all__ = [
     "BeamDrive",
@@ -53,5 +53,4 @@ __all__ = [
     "SdoProtocolError",
     "SdoTimeout",
     "StateTransitionTimeout",
-    "open_rig_port",
 ]

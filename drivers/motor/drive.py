@@ -104,6 +104,11 @@ class BeamDrive:
 
     # ------------------------------------------------------------------ public API
 
+    @property
+    def closed(self) -> bool:
+        """Closed for good: a new link needs a new BeamDrive."""
+        return self._closed
+
     async def connect(self) -> None:
         """NMT reset communication, heartbeat producer and consumer, PDO mapping, NMT start;
         returns once the first position sample arrived. A drive found in FAULT connects with the

@@ -18,7 +18,6 @@ import can
 import structlog
 
 from drivers.motor.errors import CanBusError
-from planner.rig import Motor
 
 log = structlog.get_logger(__name__)
 
@@ -172,11 +171,3 @@ class PythonCanPort:
         finally:
             self._reader.wake_closed()
             self.bus.shutdown()
-
-
-def open_rig_port(motor: Motor, **kwargs: Any) -> PythonCanPort:
-    """The beam drive's bus as the rig file names it (``motor.can_interface``, ``can_channel``);
-    serial adapters (``slcan``) also get ``motor.bitrate``, kernel buses have theirs set by the OS."""
-    if motor.can_interface == "slcan":
-        kwargs.setdefault("bitrate", motor.bitrate)
-    return PythonCanPort.open(motor.can_interface, motor.can_channel, **kwargs)

@@ -96,8 +96,8 @@ class OperatorPanel:
 
     def __init__(
         self,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
+        reader: asyncio.StreamReader | None,
+        writer: asyncio.StreamWriter | None,
         *,
         name: str = "panel",
         reopen: Reopen | None = None,
@@ -142,16 +142,33 @@ class OperatorPanel:
 
         return cls(*await reopen(), name=name, reopen=reopen)
 
+    @classmethod
+    def at(cls, path: str, *, baudrate: int = 115200, name: str = "panel") -> OperatorPanel:
+        """A panel on the serial port ``path``, opened by :meth:`connect` (so a panel that is not
+        plugged in yet can be connected later) and reopened whenever it vanishes."""
+
+        async def reopen() -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+            return await open_serial(path, baudrate=baudrate, name=name)
+
+        return cls(None, None, name=name, reopen=reopen)
+
     async def connect(self) -> None:
         """Greet the panel (HELLO, protocol version), then keep and watch the heartbeats."""
         if self.state is not LinkState.NEW:
             raise PanelStateError(self.name, self.state.value, "connect")
+        if self._writer is None:
+            if self._reopen is None:
+                raise PanelStateError(self.name, self.state.value, "connect without a link")
+            self._reader, self._writer = await self._reopen()
         try:
             await self._open_session()
         except BaseException:
             await self._stop_tasks()
             if self.state is LinkState.CONNECTING:
                 self.state = LinkState.NEW
+            if self._reopen is not None and self._writer is not None:  # the next connect reopens the port
+                self._writer.close()
+                self._reader = self._writer = None
             raise
 
     async def _open_session(self) -> None:
@@ -236,6 +253,9 @@ class OperatorPanel:
             await asyncio.gather(self._reconnect_task, return_exceptions=True)
         await self._stop_tasks()
         self._bad_line_log.flush()
+        if self._writer is None:  # never opened
+            self._end_subscribers()
+            return
         self._writer.close()
         try:
             await self._writer.wait_closed()
