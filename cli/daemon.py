@@ -1,5 +1,11 @@
 """``tbp daemon``: the long-running rig daemon (systemd ``Type=notify`` service).
 
+Without ``--sim`` it runs the real rig: the rig file says what the rig is, the hardware file
+(``--hardware``, default hardware.yaml beside the rig file) how this PC reaches every device.
+A device that is missing keeps the daemon up and NOT READY, naming it, until it answers.
+The ADB key the phones authorise is kept in $STATE_DIRECTORY (systemd's StateDirectory=),
+else ~/.local/state/tbp-rig.
+
 With ``--sim`` the whole simulated rig runs inside the daemon on the virtual-time loop, paced
 at real time (``--time-scale``), so the control API, the panel logic and scans behave as on
 the real rig.
@@ -22,6 +28,7 @@ def register(subparsers: Any) -> None:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     options.simulated_rig(parser)
     options.rig(parser)
+    options.hardware(parser)
     options.store(parser)
     options.socket(parser)
     parser.add_argument("--group", default=None, help="group of the control socket (default $TBP_CONTROL_GROUP)")
@@ -47,12 +54,6 @@ def run(args: argparse.Namespace) -> int:
     configure_logging(level=args.log_level, stream=sys.stdout)
     socket_path = args.socket or default_socket()
     group = args.group or default_group()
-    if not args.sim:
-        print("tbp daemon: real hardware wiring is not configured on this machine; use --sim",
-              file=sys.stderr)
-        return 2
-    import asyncio
-
     attach = None
     if args.http != "off":
         from web.access import Access, AccessError, parse_listen, read_token
@@ -66,6 +67,11 @@ def run(args: argparse.Namespace) -> int:
             return 2
         attach = _web(args, access)
     from analysis.qa_report import generate_report
+
+    if not args.sim:
+        return _real(args, socket_path, group, generate_report, attach)
+    import asyncio
+
     from sim.clock import VirtualTimeLoop
     from sim.run import sim_service
 
@@ -75,6 +81,35 @@ def run(args: argparse.Namespace) -> int:
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
             subject_path=args.subject, panel=not args.no_panel, qa_report=generate_report, attach=attach,
         ))
+
+
+def _real(args: argparse.Namespace, socket_path: Path, group: str | None, qa_report: Any, attach: Any) -> int:
+    """The daemon on the real rig the rig and hardware files describe; a bad file exits 2
+    (systemd's RestartPreventExitStatus: restarting would not fix it)."""
+    import asyncio
+    import os
+
+    from daemon.control import ControlError
+    from daemon.hardware_config import load_hardware
+    from daemon.real_rig import real_service
+    from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
+
+    try:
+        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+        config = load_hardware(options.hardware_path(args), rig)
+    except (RigConfigError, OSError) as exc:
+        print(f"tbp daemon: {exc}", file=sys.stderr)
+        return 2
+    state = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    state_dir = Path(state) if state else Path.home() / ".local" / "state" / "tbp-rig"
+    try:
+        return asyncio.run(real_service(
+            rig=rig, config=config, store=options.store_root(args), socket_path=socket_path,
+            state_dir=state_dir, group=group, plan_points=args.plan_points, qa_report=qa_report,
+            attach=attach))
+    except ControlError as exc:  # the control socket cannot be served: a setup problem
+        print(f"tbp daemon: {exc}", file=sys.stderr)
+        return 2
 
 
 def _web(args: argparse.Namespace, access: Any) -> Any:

@@ -83,7 +83,7 @@ class RigController:
         if getattr(drive, "closed", False) and self.hw.drive_factory is not None:
             drive = self.hw.drive_factory()
             self.hw.drive = self.safety.drive = self.tracker.drive = drive
-            log.info("drive_link_renewed", drive=drive.name)
+            log.debug("drive_link_renewed", drive=drive.name)  # at every re-probe of a missing drive
         return drive
 
     async def retire_drive(self) -> None:

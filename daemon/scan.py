@@ -13,7 +13,7 @@ import asyncio
 import functools
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,8 @@ import structlog
 from daemon.atomic import StoreError
 from daemon.beam import BeamTracker
 from daemon.capture import CaptureRecord, CaptureRunner
-from daemon.depth_sweep import DepthSweeper, SweepRecord
+from daemon.compute import SharedFrames, release, share_frames, unshare_frames
+from daemon.depth_sweep import DepthSweeper
 from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
 from daemon.hardware import RigHardware
@@ -113,13 +114,18 @@ def _timed(func: Callable[..., Any], *args: Any) -> tuple[Any, float]:
     return result, time.perf_counter() - start
 
 
-def _reconstruct(sweep: SweepRecord, rig: Rig) -> Any:
+def _reconstruct(frames: list[Any], rig: Rig) -> Any:
     import dataclasses
 
     from planner.tsdf import fuse
 
-    fused = fuse(list(sweep.sweep.frames), rig)
+    fused = fuse(frames, rig)
     return dataclasses.replace(fused, mesh=canonical_mesh(fused.mesh))
+
+
+def _reconstruct_shared(shared: SharedFrames, rig: Rig) -> Any:
+    """In a worker process: the sweep's images come out of shared memory (daemon/compute.py)."""
+    return _reconstruct(unshare_frames(shared), rig)
 
 
 def canonical_mesh(mesh: Any) -> Any:
@@ -395,8 +401,7 @@ class Scan:
                                 frames=len(sweep.sweep.frames))
         reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
         try:
-            fused, report.compute_s["tsdf"] = await loop.run_in_executor(
-                self.settings.executor, _timed, _reconstruct, sweep, rig)
+            fused, report.compute_s["tsdf"] = await self._fuse(list(sweep.sweep.frames))
             self.folder.write_mesh(fused.mesh)
 
             # PLANNING
@@ -442,6 +447,19 @@ class Scan:
             if record.status != "captured":
                 record.status = "missing"
         self.safety.expect_samples = False
+
+    async def _fuse(self, frames: list[Any]) -> tuple[Any, float]:
+        """The TSDF of the sweep, and its compute time; a worker process gets the images through
+        shared memory, never pickled on the loop's interpreter lock."""
+        loop = asyncio.get_running_loop()
+        executor = self.settings.executor
+        if not isinstance(executor, ProcessPoolExecutor):
+            return await loop.run_in_executor(executor, _timed, _reconstruct, frames, self.rig)
+        block, shared = await asyncio.to_thread(share_frames, frames)
+        try:
+            return await loop.run_in_executor(executor, _timed, _reconstruct_shared, shared, self.rig)
+        finally:
+            release(block)
 
     def _reachable(self, focus: np.ndarray) -> np.ndarray:
         """(P,) focus clipped to each phone's lens range: beyond its far end means 'focus far'."""

@@ -27,7 +27,7 @@ from drivers.motor.errors import (
     SdoTimeout,
     StateTransitionTimeout,
 )
-from drivers.motor.port import CanPort, LoopbackCanBus, PythonCanPort
+from drivers.motor.port import CanPort, LazyCanPort, LoopbackCanBus, PythonCanPort
 
 __all__ = [
     "BeamDrive",
@@ -42,6 +42,7 @@ __all__ = [
     "FollowingError",
     "FrameError",
     "HeartbeatLost",
+    "LazyCanPort",
     "LoopbackCanBus",
     "MotionInterrupted",
     "MotionLimitError",

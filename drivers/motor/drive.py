@@ -385,6 +385,7 @@ class BeamDrive:
             return
         goodbye_error: DriveError | None = None
         receiving = any(t.get_name().endswith("-receive") and not t.done() for t in self._tasks)
+        was_connected = self._connected
         if self._connected and receiving and not isinstance(self.fault, (HeartbeatLost, CanBusError)):
             try:
                 await self._write_controlword(cia402.DISABLE_VOLTAGE)
@@ -401,7 +402,9 @@ class BeamDrive:
             stream.end()
         self.port.close()
         self._wake()
-        log.info("drive_closed", drive=self.name, goodbye_error=str(goodbye_error) if goodbye_error else None)
+        # A drive that never connected (its bus missing at a re-probe) closes quietly.
+        (log.info if was_connected else log.debug)(
+            "drive_closed", drive=self.name, goodbye_error=str(goodbye_error) if goodbye_error else None)
         if goodbye_error is not None:
             raise goodbye_error
 

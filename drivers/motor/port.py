@@ -4,6 +4,9 @@
   adapters, ``virtual`` in tests, ``socketcand`` for a simulator in another process). python-can's
   :class:`can.Notifier` delivers frames into the event loop (its reader thread is used only for
   real buses).
+* :class:`LazyCanPort` opens its bus on first use, so a drive object can exist before its
+  bus does (a CAN adapter not plugged in yet, a socketcand bridge not up): the daemon's drive
+  is made at start-up and connected, or not, under the bring-up's timeout.
 * :class:`LoopbackCanBus` is an in-process, thread-free bus: every frame sent on one of its ports
   is queued on every other port in the same call, so nothing is ever "in flight" and a
   virtual-time event loop can jump safely.
@@ -12,6 +15,8 @@
 from __future__ import annotations
 
 import asyncio
+import functools
+from collections.abc import Awaitable, Callable
 from typing import Any, Protocol, runtime_checkable
 
 import can
@@ -107,6 +112,19 @@ class LoopbackPort:
         self._queue.put_nowait(_CLOSED)
 
 
+async def _bridge_answers(host: str, port: int, name: str) -> None:
+    try:
+        _, writer = await asyncio.open_connection(host, port)
+    except OSError as exc:
+        raise CanBusError(name, "closed", f"socketcand bridge {host}:{port} does not answer: "
+                                          f"{exc.strerror or exc}") from exc
+    writer.close()
+    try:
+        await writer.wait_closed()
+    except OSError:
+        pass
+
+
 class _Reader(can.AsyncBufferedReader):
     """python-can's asyncio reader, also waking ``recv`` on bus errors and on close."""
 
@@ -144,6 +162,23 @@ class PythonCanPort:
             raise CanBusError(name or channel, "closed", f"cannot open {interface} {channel}: {exc}") from exc
         return cls(bus, name=name or f"{interface}:{channel}")
 
+    @classmethod
+    async def connect(cls, interface: str, channel: str, *, name: str | None = None,
+                      **kwargs: Any) -> PythonCanPort:
+        """:meth:`open` without blocking the loop: a socketcand bridge's port is tried first (a
+        refused connection fails at once, where python-can would retry for 10 s), then the bus
+        is opened in a thread."""
+        name = name or f"{interface}:{channel}"
+        if interface == "socketcand":
+            await _bridge_answers(kwargs["host"], kwargs["port"], name)
+        loop = asyncio.get_running_loop()
+        try:
+            bus = await loop.run_in_executor(None, functools.partial(can.Bus, interface=interface,
+                                                                     channel=channel, **kwargs))
+        except (can.CanError, OSError, ValueError) as exc:
+            raise CanBusError(name, "closed", f"cannot open {interface} {channel}: {exc}") from exc
+        return cls(bus, name=name)
+
     async def send(self, msg: can.Message) -> None:
         if self.closed:
             raise CanBusError(self.name, "closed", f"cannot send 0x{msg.arbitration_id:03X}")
@@ -171,3 +206,42 @@ class PythonCanPort:
         finally:
             self._reader.wake_closed()
             self.bus.shutdown()
+
+
+class LazyCanPort:
+    """A :class:`CanPort` that opens its bus (``await opener()``, e.g. :meth:`PythonCanPort.connect`)
+    on the first send or receive; an open that fails raises its :class:`CanBusError` there, and
+    the next use tries again. Closing closes the bus for good."""
+
+    def __init__(self, opener: Callable[[], Awaitable[CanPort]], name: str) -> None:
+        self.name = name
+        self.closed = False
+        self._opener = opener
+        self._port: CanPort | None = None
+        self._opening: asyncio.Lock | None = None
+
+    async def _opened(self) -> CanPort:
+        if self._opening is None:
+            self._opening = asyncio.Lock()
+        async with self._opening:  # the first send and the first receive open one bus
+            if self.closed:
+                raise CanBusError(self.name, "closed", "port is closed")
+            if self._port is None:
+                port = await self._opener()
+                if self.closed:  # closed while opening
+                    port.close()
+                    raise CanBusError(self.name, "closed", "port closed while opening")
+                self._port = port
+            return self._port
+
+    async def send(self, msg: can.Message) -> None:
+        await (await self._opened()).send(msg)
+
+    async def recv(self) -> can.Message:
+        return await (await self._opened()).recv()
+
+    def close(self) -> None:
+        self.closed = True
+        port, self._port = self._port, None
+        if port is not None:
+            port.close()
