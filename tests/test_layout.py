@@ -46,6 +46,7 @@ times compute for reports and never decides when anything happens."""
 
 CLOCK_OWNERS = {
     "sim/clock.py",  # the virtual-time loop paces itself against the real clock
+    "sim/loopback.py",  # the loopback rig waits for real processes in real time
     "daemon/utc.py",  # calendar time for the records a scan folder keeps
 }
 

@@ -1,0 +1,436 @@
+"""The loopback rig: the real daemon, as the systemd unit starts it, against simulator processes.
+
+Every device is a separate OS process on 127.0.0.1, reached over the transport the rig PC
+uses: ``tbp sim motor`` behind its socketcand bridge (python-can's ``socketcand`` interface),
+seven ``tbp sim phone`` adbds over ADB-TCP that follow the beam's position TPDOs and
+photograph the same simulated body, ``tbp sim panel`` on a pseudo-terminal (keys on its stdin
+press its buttons), and the depth cameras as RealSense recordings of that body played through
+pyrealsense2. The harness writes the hardware file, then runs ``tbp daemon`` with the command
+line and environment of ``systemd/tbp-rig.service`` (paths moved under one folder) and plays
+systemd's part: it listens on ``NOTIFY_SOCKET`` and gives ``WATCHDOG_USEC`` and
+``STATE_DIRECTORY``. Everything runs in real time: this is the code path of a rig PC.
+
+``python -m sim.loopback`` (``./dev rig-test``) runs one scan started from the panel's START
+button and prints the finished scan folder on its last line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import grp
+import os
+import re
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import yaml
+
+from daemon.states import ScanOutcome
+from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
+
+ROOT = Path(__file__).resolve().parent.parent
+UNIT = ROOT / "systemd" / "tbp-rig.service"
+RECORDINGS_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tbp" / "recordings"
+WATCHDOG_USEC = 10_000_000
+
+
+class LoopbackError(RuntimeError):
+    """A simulator or the daemon did not come up, or a wait ran out: names which and why."""
+
+
+@dataclass
+class Notifications:
+    """systemd's side of sd_notify: every datagram on the socket, with its arrival time."""
+
+    path: Path
+    messages: list[tuple[float, dict[str, str]]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.bind(str(self.path))
+        self._sock.settimeout(0.2)
+        self._closed = False
+        self._changed = threading.Condition()
+        self._thread = threading.Thread(target=self._listen, name="notify", daemon=True)
+        self._thread.start()
+
+    def _listen(self) -> None:
+        while not self._closed:
+            try:
+                data = self._sock.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            fields = dict(line.split("=", 1) for line in data.decode(errors="replace").splitlines() if "=" in line)
+            with self._changed:
+                self.messages.append((time.monotonic(), fields))
+                self._changed.notify_all()
+
+    def count(self, key: str, value: str | None = None) -> int:
+        with self._changed:
+            return sum(1 for _, m in self.messages if key in m and (value is None or m[key] == value))
+
+    def last(self, key: str) -> str | None:
+        with self._changed:
+            return next((m[key] for _, m in reversed(self.messages) if key in m), None)
+
+    def wait(self, key: str, value: str | None = None, timeout_s: float = 60.0,
+             alive: Callable[[], bool] = lambda: True) -> float:
+        """Block until a message with ``key`` (= ``value``) arrives; its arrival time. Gives up
+        when ``alive()`` turns false (the daemon exited)."""
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while True:
+                for at, m in self.messages:
+                    if key in m and (value is None or m[key] == value):
+                        return at
+                left = deadline - time.monotonic()
+                if left <= 0 or not alive():
+                    why = "the daemon exited" if left > 0 else f"within {timeout_s:g} s"
+                    raise LoopbackError(f"no {key}={value or '*'} from the daemon: {why} "
+                                        f"(last STATUS: {self.last('STATUS')!r})")
+                self._changed.wait(min(left, 0.5))
+
+    def close(self) -> None:
+        self._closed = True
+        self._thread.join(timeout=2)
+        self._sock.close()
+
+
+@dataclass
+class Proc:
+    """One simulator or the daemon: its process and its log file."""
+
+    name: str
+    popen: subprocess.Popen[bytes]
+    log: Path
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
+        if self.alive():
+            self.popen.send_signal(sig)
+            try:
+                return self.popen.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+        return self.popen.wait()
+
+
+def _tbp(*args: str) -> list[str]:
+    return [sys.executable, "-m", "cli", *args]
+
+
+def record_depth(rig_path: Path, body_seed: int, decimation: int, log: Callable[[str], None] = print) -> Path:
+    """The simulated depth cameras' sweep of body ``body_seed`` as RealSense recordings, made once
+    and kept in ~/.cache/tbp/recordings (about a minute the first time)."""
+    folder = RECORDINGS_CACHE / f"body{body_seed}-d{decimation}"
+    if (folder / "complete").is_file():
+        return folder
+    partial = folder.with_name(folder.name + f".partial{os.getpid()}")
+    partial.mkdir(parents=True, exist_ok=True)
+    log(f"recording the simulated depth sweep of body {body_seed} into {folder} (once)")
+    subprocess.run(_tbp("depth", "--rig", str(rig_path), "record", "--sim", "--out", str(partial),
+                        "--body-seed", str(body_seed), "--decimation", str(decimation)),
+                   check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    (partial / "complete").write_text("")
+    with contextlib.suppress(OSError):  # another harness finished first: keep its copy
+        partial.rename(folder)
+    return folder
+
+
+def unit_command(unit: Path, root: Path) -> tuple[list[str], dict[str, str]]:
+    """ExecStart and Environment of the systemd unit with its paths moved under ``root``: the
+    daemon runs with the unit's own options."""
+    text = unit.read_text()
+    exec_start = re.search(r"^ExecStart=(.+)$", text, re.MULTILINE)
+    if exec_start is None:
+        raise LoopbackError(f"{unit}: no ExecStart=")
+    env: dict[str, str] = {}
+    for line in re.findall(r"^Environment=(.+)$", text, re.MULTILINE):
+        for item in shlex.split(line):
+            key, _, value = item.partition("=")
+            env[key] = value
+    moves = {"/etc/tbp-rig/": f"{root}/etc/", "/srv/tbp-rig/": f"{root}/srv/", "/run/tbp-rig/": f"{root}/run/"}
+
+    def moved(word: str) -> str:
+        for old, new in moves.items():
+            word = word.replace(old, new)
+        return word
+
+    argv = [moved(w) for w in shlex.split(exec_start[1])]
+    if not argv[0].endswith("/tbp"):
+        raise LoopbackError(f"{unit}: ExecStart= runs {argv[0]}, not tbp")
+    return _tbp(*argv[1:]), {k: moved(v) for k, v in env.items()}
+
+
+class LoopbackRig:
+    """Simulators and the daemon on this machine; ``with LoopbackRig(folder) as rig:``.
+
+    Args:
+        root: a fresh folder for etc/, srv/ (the scan store), run/, state/ and logs/.
+        body_seed: the simulated subject every simulator shows.
+        decimation: depth recordings at 1/N of the cameras' resolution.
+        http: give the daemon its web server on a free loopback port.
+        missing_phones: indices of phones whose simulator is not started (plug them in later
+            with :meth:`start_phone`).
+    """
+
+    def __init__(self, root: Path, *, body_seed: int = 0, decimation: int = 2, rig_path: Path = DEFAULT_RIG_PATH,
+                 http: bool = False, missing_phones: tuple[int, ...] = (), out: IO[str] | None = None) -> None:
+        self.root = Path(root)
+        self.body_seed = body_seed
+        self.decimation = decimation
+        self.rig_path = Path(rig_path).resolve()
+        self.rig: Rig = load_rig(self.rig_path)
+        self.http = http
+        self.missing_phones = set(missing_phones)
+        self.out = out or sys.stderr
+        self.procs: dict[str, Proc] = {}
+        self.phone_ports: dict[int, int] = {}
+        self.bridge_port = 0
+        self.panel_tty = ""
+        self.notify: Notifications | None = None
+        for sub in ("etc", "srv/scans", "run", "state", "logs"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+
+    def say(self, text: str) -> None:
+        print(f"[loopback] {text}", file=self.out, flush=True)
+
+    # ------------------------------------------------------------------ simulators
+
+    def _spawn(self, name: str, argv: list[str], *, stdin: Any = subprocess.DEVNULL,
+               env: dict[str, str] | None = None) -> Proc:
+        log = self.root / "logs" / f"{name}.log"
+        popen = subprocess.Popen(argv, stdin=stdin, stdout=subprocess.PIPE, stderr=open(log, "ab"),  # noqa: SIM115
+                                 cwd=ROOT, env=env, start_new_session=True)
+        proc = Proc(name, popen, log)
+        self.procs[name] = proc
+        return proc
+
+    def _first_line(self, proc: Proc, pattern: str, timeout_s: float = 120.0) -> re.Match[str]:
+        """Read the process's stdout until a line matches; the rest of its output goes to its log."""
+        found: list[re.Match[str]] = []
+        ready = threading.Event()
+
+        def pump() -> None:
+            assert proc.popen.stdout is not None
+            with open(proc.log, "ab") as log:
+                for raw in proc.popen.stdout:
+                    log.write(raw)
+                    log.flush()
+                    match = re.search(pattern, raw.decode(errors="replace"))
+                    if match and not found:
+                        found.append(match)
+                        ready.set()
+            ready.set()
+
+        threading.Thread(target=pump, name=f"out-{proc.name}", daemon=True).start()
+        if not ready.wait(timeout_s) or not found:
+            raise LoopbackError(f"{proc.name} did not start ({proc.log}: {self._tail(proc.log)})")
+        return found[0]
+
+    @staticmethod
+    def _tail(path: Path, lines: int = 5) -> str:
+        try:
+            return " | ".join(path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "no log"
+
+    def start_simulators(self) -> None:
+        rig = str(self.rig_path)
+        recordings = record_depth(self.rig_path, self.body_seed, self.decimation, self.say)
+        motor = self._spawn("motor", _tbp("sim", "motor", "--port", "0", "--rig", rig))
+        self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
+        for index in range(len(self.rig.phones)):
+            if index not in self.missing_phones:
+                self.start_phone(index)
+        panel = self._spawn("panel", _tbp("sim", "panel"), stdin=subprocess.PIPE)
+        self.panel_tty = self._first_line(panel, r"simulated panel on (\S+)")[1]
+        self.write_hardware(recordings)
+        self.say(f"simulators up: drive on socketcand 127.0.0.1:{self.bridge_port}, "
+                 f"{len(self.phone_ports)} phones, panel on {self.panel_tty}")
+
+    def start_phone(self, index: int) -> None:
+        """Start (or restart, on the port it had) phone ``index``'s simulator: a phone plugged in."""
+        phone = self.rig.phones[index]
+        port = self.phone_ports.get(index) or _free_port()
+        proc = self._spawn(phone.id, _tbp("sim", "phone", "--port", str(port), "--serial", phone.serial,
+                                          "--camera", phone.id, "--seed", str(index), "--rig", str(self.rig_path),
+                                          "--body-seed", str(self.body_seed),
+                                          "--follow-beam", f"127.0.0.1:{self.bridge_port}"))
+        self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")
+        self.phone_ports[index] = port
+
+    def stop_phone(self, index: int, sig: int = signal.SIGKILL) -> None:
+        """A phone that vanishes (unplugged, crashed)."""
+        self.procs[self.rig.phones[index].id].stop(sig)
+
+    def press(self, keys: str) -> None:
+        """Panel buttons: ``s`` start, ``x`` stop, ``e`` e-stop, ``r`` release the e-stop."""
+        stdin = self.procs["panel"].popen.stdin
+        assert stdin is not None
+        stdin.write(keys.encode())
+        stdin.flush()
+
+    def write_hardware(self, recordings: Path) -> Path:
+        phones = {}
+        for index, phone in enumerate(self.rig.phones):
+            port = self.phone_ports.get(index) or _free_port()
+            self.phone_ports[index] = port
+            phones[phone.id] = {"tcp": f"127.0.0.1:{port}"}
+        config = {
+            "can": {"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": self.bridge_port},
+            "phones": phones,
+            "depth_cameras": {c.id: {"recording": str(recordings / f"{c.id}.db3")} for c in self.rig.depth_cameras},
+            "panel": {"device": self.panel_tty, "baud": 115200},
+            "timeouts": {"open_s": 5.0, "phone_authorisation_s": 60.0, "reprobe_s": 1.0},
+        }
+        path = self.root / "etc" / "hardware.yaml"
+        path.write_text(yaml.safe_dump(config, sort_keys=False))
+        return path
+
+    # ------------------------------------------------------------------ the daemon
+
+    def start_daemon(self) -> Proc:
+        argv, env = unit_command(UNIT, self.root)
+        argv = [str(self.rig_path) if a == f"{self.root}/etc/rig.yaml" else a for a in argv]
+        argv += ["--http", "127.0.0.1:0" if self.http else "off"]
+        self.notify = Notifications(self.root / "run" / "notify.sock")
+        environ = {**os.environ, **env, "NOTIFY_SOCKET": str(self.notify.path),
+                   "WATCHDOG_USEC": str(WATCHDOG_USEC), "STATE_DIRECTORY": str(self.root / "state")}
+        environ.pop("TBP_CAPTURE_AGENT_JAR", None)
+        # systemd-sysusers makes the operators' group on a rig PC; here it is the user's own.
+        environ["TBP_CONTROL_GROUP"] = grp.getgrgid(os.getgid()).gr_name
+        daemon = self._spawn("daemon", argv, env=environ)
+        log = self.root / "logs" / "daemon.log"
+
+        def pump() -> None:
+            assert daemon.popen.stdout is not None
+            with open(log, "ab") as out:
+                for raw in daemon.popen.stdout:
+                    out.write(raw)
+                    out.flush()
+
+        threading.Thread(target=pump, name="out-daemon", daemon=True).start()
+        self.say(f"daemon: {shlex.join(argv)}")
+        return daemon
+
+    @property
+    def socket_path(self) -> Path:
+        return self.root / "run" / "control.sock"
+
+    @property
+    def store(self) -> Path:
+        return self.root / "srv" / "scans"
+
+    def control(self, cmd: str, **args: Any) -> Any:
+        from daemon.control import ControlClient
+
+        return asyncio.run(ControlClient(self.socket_path).request(cmd, **args))
+
+    def wait_status(self, predicate: Callable[[dict[str, Any]], bool], what: str, timeout_s: float) -> dict[str, Any]:
+        """Poll ``status`` until ``predicate(status)``; raises naming ``what`` and the last status."""
+        from daemon.control import ControlError
+
+        deadline = time.monotonic() + timeout_s
+        status: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            if not self.procs["daemon"].alive():
+                raise LoopbackError(f"daemon exited ({self.procs['daemon'].popen.returncode}) waiting for {what}")
+            with contextlib.suppress(ControlError, OSError):
+                status = self.control("status")
+                if predicate(status):
+                    return status
+            time.sleep(0.2)
+        raise LoopbackError(f"no {what} within {timeout_s:g} s; last state {status.get('state')!r}, "
+                            f"causes {status.get('fault_causes') or status.get('causes')!r}")
+
+    # ------------------------------------------------------------------ life cycle
+
+    def __enter__(self) -> LoopbackRig:
+        try:
+            self.start_simulators()
+            self.start_daemon()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if "daemon" in self.procs:
+            self.procs["daemon"].stop(signal.SIGTERM, timeout_s=30.0)
+        for proc in self.procs.values():
+            proc.stop(signal.SIGTERM, timeout_s=5.0)
+        if self.notify is not None:
+            self.notify.close()
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@contextlib.contextmanager
+def loopback_rig(root: Path, **kwargs: Any) -> Iterator[LoopbackRig]:
+    with LoopbackRig(root, **kwargs) as rig:
+        yield rig
+
+
+def scan_from_panel(rig: LoopbackRig, *, ready_timeout_s: float = 180.0, scan_timeout_s: float = 900.0) -> Path:
+    """READY, then the panel's START; waits for the scan to end and returns its folder."""
+    assert rig.notify is not None
+    rig.notify.wait("READY", "1", ready_timeout_s, alive=rig.procs["daemon"].alive)
+    rig.say("daemon READY; pressing START on the panel")
+    rig.press("s")
+    status = rig.wait_status(lambda s: s.get("state") != "idle" and bool(s.get("scan_id")), "scan start", 30.0)
+    scan_id = status["scan_id"]
+    rig.say(f"scan {scan_id} running ({status.get('state')})")
+    status = rig.wait_status(lambda s: (s.get("last_scan") or {}).get("scan_id") == scan_id,
+                             f"the end of scan {scan_id}", scan_timeout_s)
+    folder = Path(status["last_scan"]["folder"])
+    rig.say(f"scan ended in state {status.get('state')}: {folder}")
+    return folder
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tempfile
+
+    parser = argparse.ArgumentParser(prog="python -m sim.loopback", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--root", type=Path, default=None, help="folder for the run (default: a new temporary one)")
+    parser.add_argument("--body-seed", type=int, default=0, help="the simulated subject (default 0)")
+    args = parser.parse_args(argv)
+    root = args.root or Path(tempfile.mkdtemp(prefix="tbp-loopback-rig-"))
+    try:
+        with LoopbackRig(root, body_seed=args.body_seed) as rig:
+            folder = scan_from_panel(rig)
+            status = rig.control("status")
+    except (LoopbackError, subprocess.CalledProcessError) as exc:
+        print(f"rig-test: {exc} (logs in {root / 'logs'})", file=sys.stderr)
+        return 1
+    report = (status.get("last_scan") or {})
+    rig.say(f"outcome {report.get('outcome')}, {report.get('captured')} images captured; logs in {root / 'logs'}")
+    print(folder, flush=True)
+    return 0 if report.get("outcome") == ScanOutcome.COMPLETED.value else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

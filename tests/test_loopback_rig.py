@@ -1,0 +1,134 @@
+"""The real daemon, started as the systemd unit starts it, against simulator processes on loopback.
+
+Hardware in the loop without hardware: every device is its own OS process reached over the
+rig PC's transport (socketcand, ADB over TCP, a serial pty, RealSense recordings), and the
+daemon is ``tbp daemon`` with the unit's command line (sim/loopback.py). Real time: these
+tests take minutes, so each daemon session checks several behaviours in order.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from daemon.control import CommandFailed
+from daemon.manifest import ImageStatus
+from daemon.store import ScanStore
+from sim.loopback import LoopbackRig, scan_from_panel
+
+pytestmark = pytest.mark.slow
+
+UNIT_STOP_TIMEOUT_S = 30.0  # systemd/tbp-rig.service TimeoutStopSec
+
+
+def _manifest(folder: Path):  # noqa: ANN202
+    return ScanStore(folder.parent).open(folder).manifest
+
+
+def _statuses(manifest, camera_id: str) -> set[ImageStatus]:  # noqa: ANN001
+    return {image.status for image in manifest.images if image.camera_id == camera_id}
+
+
+def _device(status: dict, name: str) -> dict:
+    return next(d for d in status["devices"] if d["device"] == name)
+
+
+def _reset_once_released(rig: LoopbackRig, timeout_s: float = 10.0) -> str:
+    """The operator's reset, repeated while the panel still reports the e-stop pressed."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return rig.control("reset")["state"]
+        except CommandFailed:  # "e-stop still pressed" until the panel's release arrives
+            if time.monotonic() > deadline:
+                raise
+        time.sleep(0.5)
+
+
+def test_a_scan_started_from_the_panel_completes_on_the_real_code_path(tmp_path: Path) -> None:
+    with LoopbackRig(tmp_path) as rig:
+        folder = scan_from_panel(rig)
+        status = rig.control("status")
+        assert status["ready"] and status["state"] == "IDLE"
+        assert status["last_scan"]["outcome"] == "COMPLETED"
+        manifest = _manifest(folder)
+        assert not manifest.in_progress
+        assert manifest.counts()["verified"] == rig.rig.n_poses
+        check = subprocess.run([sys.executable, "-m", "cli", "scans", "--store", str(rig.store), "--check"],
+                               capture_output=True, text=True, timeout=120)
+        assert check.returncode == 0, check.stdout + check.stderr
+        assert rig.notify is not None
+        assert rig.notify.count("WATCHDOG", "1") >= 2  # pinged through the whole scan
+        assert rig.notify.count("READY", "1") == 1
+        daemon = rig.procs["daemon"]
+        daemon.popen.send_signal(signal.SIGTERM)
+        assert daemon.popen.wait(UNIT_STOP_TIMEOUT_S) == 0
+        assert rig.notify.count("STOPPING", "1") == 1
+
+
+def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Path) -> None:
+    missing = 2
+    with LoopbackRig(tmp_path, missing_phones=(missing,)) as rig:
+        name = rig.rig.phones[missing].id
+        assert rig.notify is not None
+        # A phone that is not there keeps the rig NOT READY, named with its address and what to check.
+        status = rig.wait_status(lambda s: not _device(s, name)["ok"] and _device(s, "drive")["ok"],
+                                 f"{name} reported missing", 120.0)
+        assert not status["ready"]
+        device = _device(status, name)
+        assert device["address"] == f"tcp:127.0.0.1:{rig.phone_ports[missing]}"
+        assert "USB" in device["check"]
+        assert rig.notify.count("READY", "1") == 0
+        with pytest.raises(CommandFailed, match=name):
+            rig.control("scan")
+        # Plugged in: found by the re-probe, READY=1.
+        rig.start_phone(missing)
+        rig.notify.wait("READY", "1", 30.0, alive=rig.procs["daemon"].alive)
+
+        # A phone that vanishes mid-capture fails its own images; every other phone completes.
+        scan_id = rig.control("scan")["scan_id"]
+        rig.wait_status(lambda s: s["state"] == "CAPTURING", "capture", 120.0)
+        time.sleep(5.0)
+        vanished = rig.rig.phones[4].id
+        rig.stop_phone(4)
+        status = rig.wait_status(lambda s: (s.get("last_scan") or {}).get("scan_id") == scan_id,
+                                 "the scan's end", 300.0)
+        manifest = _manifest(Path(status["last_scan"]["folder"]))
+        assert not manifest.in_progress
+        assert _statuses(manifest, vanished) & {ImageStatus.FAILED, ImageStatus.MISSING}
+        for phone in rig.rig.phones:
+            if phone.id != vanished:
+                assert _statuses(manifest, phone.id) == {ImageStatus.VERIFIED}, phone.id
+        rig.start_phone(4)
+
+        # The e-stop mid-rotation: FAULT, the beam stops, the images taken so far are kept.
+        scan_id = rig.control("scan")["scan_id"]
+        rig.wait_status(lambda s: s["state"] == "CAPTURING", "capture", 120.0)
+        time.sleep(3.0)
+        rig.press("e")
+        status = rig.wait_status(lambda s: s["state"] == "FAULT" and (s.get("last_scan") or {}).get("scan_id")
+                                 == scan_id, "FAULT after the e-stop", 60.0)
+        assert any(c["source"] == "estop" for c in status["fault_causes"])
+        rig.wait_status(lambda s: abs(s["beam_speed_deg_s"] or 0.0) < 0.05, "the beam at rest", 30.0)
+        manifest = _manifest(Path(status["last_scan"]["folder"]))
+        assert not manifest.in_progress
+        assert manifest.counts()["verified"] > 0
+        # Latched until the e-stop is released and someone resets.
+        with pytest.raises(CommandFailed, match="reset"):
+            rig.control("scan")
+        rig.press("r")
+        assert _reset_once_released(rig) == "IDLE"
+
+        # SIGTERM during a capture: the beam stops, the scan folder is closed, the daemon exits in time.
+        rig.control("scan")
+        rig.wait_status(lambda s: s["state"] == "CAPTURING", "capture", 120.0)
+        daemon = rig.procs["daemon"]
+        daemon.popen.send_signal(signal.SIGTERM)
+        assert daemon.popen.wait(UNIT_STOP_TIMEOUT_S) == 0
+        folders = ScanStore(rig.store).folders()
+        assert folders and not any(_manifest(f).in_progress for f in folders)
