@@ -36,9 +36,9 @@ def build_real_rig(rig: Rig, config: HardwareConfig, *, state_dir: Path) -> RigH
     key = AdbKey.load_or_create(state_dir)
 
     def new_drive() -> Any:
-        return _drive(rig, config)
+        return make_drive(rig, config)
 
-    phones = [_phone(rig, phone, config.phones[phone.id], key, config.capture_agent) for phone in rig.phones]
+    phones = [make_phone(rig, phone, config.phones[phone.id], key, config.capture_agent) for phone in rig.phones]
     cameras = [_depth_camera(rig, camera, config) for camera in rig.depth_cameras]
     panel = None
     if config.panel is not None:
@@ -53,7 +53,8 @@ def build_real_rig(rig: Rig, config: HardwareConfig, *, state_dir: Path) -> RigH
     return hardware
 
 
-def _drive(rig: Rig, config: HardwareConfig) -> Any:
+def make_drive(rig: Rig, config: HardwareConfig) -> Any:
+    """The beam drive on the hardware file's CAN bus (opened on first use)."""
     from drivers.motor import BeamDrive, LazyCanPort, PythonCanPort
 
     bus = config.can
@@ -67,7 +68,8 @@ def _drive(rig: Rig, config: HardwareConfig) -> Any:
     return BeamDrive(LazyCanPort(open_bus, bus.address), rig.motor)
 
 
-def _phone(rig: Rig, phone: Any, link: PhoneLink, key: Any, agent: Path | None) -> Any:
+def make_phone(rig: Rig, phone: Any, link: PhoneLink, key: Any, agent: Path | None) -> Any:
+    """One rig phone over its configured link (USB by serial, or ADB over TCP)."""
     from drivers.phone.camera import PhoneCamera
     from drivers.phone.focus import load_focus_calibration
     from drivers.phone.links import tcp_link, usb_link

@@ -7,7 +7,7 @@ with the simulated drive in ``drivers.sim.drive`` (``tbp sim motor``: ``sim.proc
 """
 
 from drivers.motor.cia402 import Cia402State
-from drivers.motor.drive import BeamDrive, BeamSample
+from drivers.motor.drive import BeamDrive, BeamSample, DriveIdentity
 from drivers.motor.errors import (
     CanBusError,
     DriveError,
@@ -37,6 +37,7 @@ __all__ = [
     "Cia402State",
     "DriveError",
     "DriveFault",
+    "DriveIdentity",
     "DriveNotReady",
     "DriveRebooted",
     "FollowingError",

@@ -30,6 +30,7 @@ TARGET_VELOCITY = 0x60FF  # i32, counts/s
 SUPPORTED_MODES = 0x6502  # u32
 ERROR_CODE = 0x603F  # u16
 DEVICE_TYPE = 0x1000  # u32
+IDENTITY = 0x1018  # record: 1 vendor id, 2 product code, 3 revision, 4 serial number (u32 each)
 ERROR_REGISTER = 0x1001  # u8
 HEARTBEAT_CONSUMER = 0x1016  # array of u32
 HEARTBEAT_PRODUCER = 0x1017  # u16, ms

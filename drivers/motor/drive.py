@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import AsyncIterator, Callable, Coroutine
+from dataclasses import dataclass
 from typing import Any
 
 import can
@@ -48,6 +49,25 @@ from planner.rig import Motor
 log = structlog.get_logger(__name__)
 
 _AUTOMATIC = (Cia402State.NOT_READY_TO_SWITCH_ON, Cia402State.FAULT_REACTION_ACTIVE)
+
+
+@dataclass(frozen=True)
+class DriveIdentity:
+    """CiA 301 identity: device type (low 16 bits: the profile, 402 for a drive), vendor id,
+    product code, revision and serial number."""
+
+    device_type: int
+    vendor_id: int
+    product_code: int | None = None
+    revision: int | None = None
+    serial: int | None = None
+
+    def __str__(self) -> str:
+        def hex_or_dash(value: int | None) -> str:
+            return "-" if value is None else f"0x{value:08X}"
+
+        return (f"CiA {self.device_type & 0xFFFF} vendor 0x{self.vendor_id:08X} product "
+                f"{hex_or_dash(self.product_code)} rev {hex_or_dash(self.revision)} serial {hex_or_dash(self.serial)}")
 
 
 class BeamDrive:
@@ -335,6 +355,19 @@ class BeamDrive:
             self._transition_timeout("standstill after quick stop", cia402.QUICK_STOP),
         )
         log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
+
+    async def identity(self) -> DriveIdentity:
+        """The drive's device type (0x1000) and identity object (0x1018); CiA 301 makes only the
+        vendor id mandatory, so a product code, revision or serial the drive lacks reads None."""
+        device_type = await self.sdo.read(cia402.DEVICE_TYPE, 0, "<I")
+        vendor = await self.sdo.read(cia402.IDENTITY, 1, "<I")
+        rest: list[int | None] = []
+        for sub in (2, 3, 4):
+            try:
+                rest.append(await self.sdo.read(cia402.IDENTITY, sub, "<I"))
+            except SdoAbort:
+                rest.append(None)
+        return DriveIdentity(device_type, vendor, *rest)
 
     async def reset_fault(self) -> None:
         """Clear the drive's fault (rising edge of controlword bit 7) and the latched error; after

@@ -57,6 +57,7 @@ class SimulatedNode:
     TICK_S = 0.005
     TPDO_COUNT = 4
     DEVICE_TYPE = 0
+    IDENTITY = (0x0000_0000, 0, 0, 0)  # 0x1018: vendor id, product code, revision, serial number
     DEFAULT_TPDO_MAPPING: dict[int, tuple[int, ...]] = {}  # TPDO k+1 -> power-on mapping entries
 
     def __init__(self, port: CanPort, node_id: int, *, name: str = "node") -> None:
@@ -93,6 +94,9 @@ class SimulatedNode:
                 (0x1016, 0): ObjectEntry("<B", 1, writable=False),
                 (0x1016, 1): ObjectEntry("<I", 0),
                 (0x1017, 0): ObjectEntry("<H", 0),
+                (0x1018, 0): ObjectEntry("<B", 4, writable=False),
+                **{(0x1018, sub + 1): ObjectEntry("<I", value, writable=False)
+                   for sub, value in enumerate(self.IDENTITY)},
             }
         )
         for k in range(self.TPDO_COUNT):

@@ -70,6 +70,7 @@ class SimulatedDrive(SimulatedNode):
     """
 
     DEVICE_TYPE = 0x0002_0192  # CiA 402 servo drive
+    IDENTITY = (0x0000_0544, 0x0000_7B01, 0x0001_0000, 0x0000_0001)  # an unregistered simulator's id
     SUPPORTED_MODES = 0x25  # profile position, profile velocity, homing
     DEFAULT_TPDO_MAPPING = {0: (0x6041_0010,)}  # TPDO1: statusword, as most drives ship
 

@@ -1,0 +1,202 @@
+"""``tbp check``: commissioning in one command: is every device of the hardware file there?
+
+Probes every device the hardware file names, each under the file's open timeout, all at once:
+the drive (CANopen identity object, one SDO round trip), each phone (ADB, the capture agent's
+hello, one clock round trip), each depth camera (the RealSense enumerated by serial, or the
+recording's file) and the panel (its HELLO, one acknowledged command). Prints one row per
+device: name, address, found, identity, round-trip latency, verdict with what to check.
+Exit status 0 when every device answers, 1 when any is missing, 2 for an unusable rig or
+hardware file.
+
+While the daemon runs it owns the devices (probing the drive would reset its CANopen
+communication mid-scan): ``tbp check`` then shows the daemon's own view of them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from cli import options
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser("check", help="probe every device of the hardware file and print a table",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    options.rig(parser)
+    options.hardware(parser)
+    options.socket(parser)
+    parser.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
+                        help="where the ADB key the phones authorised is kept (default $STATE_DIRECTORY, "
+                             "else ~/.local/state/tbp-rig; on a rig PC run as tbp-rig for /var/lib/tbp-rig)")
+    parser.add_argument("--json", action="store_true", help="one JSON document instead of the table")
+    parser.set_defaults(func=run)
+
+
+@dataclass
+class Probe:
+    """One device as ``tbp check`` found it."""
+
+    device: str
+    kind: str
+    address: str
+    found: bool
+    identity: str | None = None
+    latency_ms: float | None = None
+    error: str | None = None
+    check: str | None = None
+
+    @property
+    def verdict(self) -> str:
+        return "ok" if self.found else "MISSING"
+
+
+def state_dir(explicit: Path | None) -> Path:
+    """The ADB key's folder: --state-dir, $STATE_DIRECTORY (systemd), else ~/.local/state/tbp-rig."""
+    if explicit is not None:
+        return explicit
+    state = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    return Path(state) if state else Path.home() / ".local" / "state" / "tbp-rig"
+
+
+def run(args: argparse.Namespace) -> int:
+    from daemon.hardware_config import load_hardware
+    from daemon.logs import configure_logging
+    from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
+
+    configure_logging(level="error", stream=sys.stderr)
+    try:
+        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+        config = load_hardware(options.hardware_path(args), rig)
+    except (RigConfigError, OSError) as exc:
+        print(f"tbp check: {exc}", file=sys.stderr)
+        return 2
+    probes, source = asyncio.run(_probe_or_ask_daemon(rig, config, args))
+    if args.json:
+        print(json.dumps({"source": source, "hardware": config.path, "ok": all(p.found for p in probes),
+                          "devices": [{**asdict(p), "verdict": p.verdict} for p in probes]}, indent=1))
+    else:
+        print(render(probes))
+        if source == "daemon":
+            print("(the daemon is running: this is its own view of the devices; stop it to probe them directly)")
+    return 0 if all(p.found for p in probes) else 1
+
+
+async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) -> tuple[list[Probe], str]:
+    from daemon.control import ControlClient, ControlError, default_socket
+
+    try:
+        status = await ControlClient(args.socket or default_socket()).status()
+    except (ControlError, OSError):
+        return await probe_devices(rig, config, state_dir(args.state_dir)), "probe"
+    return [Probe(d["device"], d["kind"], d["address"], bool(d["ok"]), error=d.get("error"), check=d.get("check"))
+            for d in status.get("devices", [])], "daemon"
+
+
+async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
+    """Probe every device of ``config`` concurrently, each under ``config.timeouts.open_s``."""
+    from daemon.bringup import CHECK
+    from drivers.adb.auth import AdbKey
+
+    key = AdbKey.load_or_create(key_dir)
+    addresses = dict(config.devices())
+    jobs: list[tuple[str, str, Callable[[], Awaitable[tuple[str, float]]]]] = [
+        ("drive", "drive", lambda: _drive(rig, config))]
+    for phone in rig.phones:
+        jobs.append((phone.id, "phone", lambda phone=phone: _phone(rig, config, phone, key)))
+    for index, camera in enumerate(rig.depth_cameras):
+        jobs.append((camera.id, "depth", lambda index=index: _depth(rig, config, index)))
+    if config.panel is not None:
+        jobs.append(("panel", "panel", lambda: _panel(config)))
+
+    async def one(name: str, kind: str, job: Callable[[], Awaitable[tuple[str, float]]]) -> Probe:
+        probe = Probe(name, kind, addresses[name], False)
+        try:
+            async with asyncio.timeout(config.timeouts.open_s):
+                probe.identity, latency_s = await job()
+            probe.found, probe.latency_ms = True, round(latency_s * 1000.0, 2)
+        except TimeoutError:
+            probe.error, probe.check = f"no answer within {config.timeouts.open_s:g} s", CHECK[kind]
+        except Exception as exc:  # every failure of a probe is its row's verdict
+            probe.error, probe.check = f"{type(exc).__name__}: {exc}", CHECK[kind]
+        return probe
+
+    return list(await asyncio.gather(*(one(*job) for job in jobs)))
+
+
+async def _drive(rig: Any, config: Any) -> tuple[str, float]:
+    from daemon.real_rig import make_drive
+    from drivers.motor import cia402
+
+    drive = make_drive(rig, config)
+    try:
+        await drive.connect()
+        identity = await drive.identity()
+        started = time.perf_counter()
+        await drive.sdo.read(cia402.STATUSWORD, 0, "<H")
+        latency = time.perf_counter() - started
+        return f"{identity}, {drive.state.value}", latency
+    finally:
+        await drive.close()
+
+
+async def _phone(rig: Any, config: Any, phone: Any, key: Any) -> tuple[str, float]:
+    from daemon.real_rig import make_phone
+
+    camera = make_phone(rig, phone, config.phones[phone.id], key, config.capture_agent)
+    camera.CONNECT_TIMEOUT_S = config.timeouts.open_s
+    try:
+        info = await camera.connect()
+        sample = await camera.clock_sample()
+        return (f"{info.model}, serial {info.serial}, focus calibration {info.focus_calibration_quality}",
+                sample.host_recv_s - sample.host_send_s)
+    finally:
+        await camera.close()
+
+
+async def _depth(rig: Any, config: Any, index: int) -> tuple[str, float]:
+    from daemon.real_rig import probe_depth_source
+
+    camera = rig.depth_cameras[index]
+    source = config.depth_cameras[camera.id]
+    started = time.perf_counter()
+    await probe_depth_source(rig, config, index)
+    latency = time.perf_counter() - started
+    if source.recording is not None:
+        return f"recording, {source.recording.stat().st_size} bytes", latency
+    return f"RealSense serial {source.serial}", latency
+
+
+async def _panel(config: Any) -> tuple[str, float]:
+    from drivers.panel import OperatorPanel, StatusLed
+    from drivers.panel.protocol import PROTOCOL_VERSION
+
+    panel = OperatorPanel.at(config.panel.device, baudrate=config.panel.baud)
+    try:
+        await panel.connect()
+        started = time.perf_counter()
+        await panel.set_status(StatusLed.IDLE)
+        latency = time.perf_counter() - started
+        return f"panel protocol {PROTOCOL_VERSION}, e-stop {'pressed' if panel.estop_active else 'released'}", latency
+    finally:
+        await panel.close()
+
+
+def render(probes: list[Probe]) -> str:
+    """The table: one row per device; a missing device's row ends with the error and what to check."""
+    rows = [("DEVICE", "ADDRESS", "FOUND", "IDENTITY", "LATENCY", "VERDICT")]
+    for p in probes:
+        verdict = p.verdict if p.found else f"MISSING: {p.error}; {p.check}"
+        rows.append((p.device, p.address, "yes" if p.found else "no", p.identity or "-",
+                     "-" if p.latency_ms is None else f"{p.latency_ms:.1f} ms", verdict))
+    widths = [max(len(r[i]) for r in rows) for i in range(5)]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r[:5], widths, strict=True)) + "  " + r[5]
+                     for r in rows)
