@@ -44,6 +44,13 @@ def test_unit_has_the_required_directives():
     assert one["NoNewPrivileges"] == "yes" and one["ProtectSystem"] == "strict"
     assert one["StateDirectory"] == "tbp-rig"
     assert "--store /srv/tbp-rig/scans" in one["ExecStart"]
+    assert "--hardware /etc/tbp-rig/hardware.yaml" in one["ExecStart"]
+    # READY=1 waits for every device; a missing one must not make systemd kill and restart it.
+    assert one["TimeoutStartSec"] == "infinity"
+    assert one["RestartPreventExitStatus"] == "2"  # a bad configuration file: restarting cannot help
+    # Ordering after a unit nobody pulls in does nothing (and udev-settle is deprecated).
+    wanted = set(" ".join(_unit(UNIT)["Unit"].get("Wants", [])).split())
+    assert set(" ".join(_unit(UNIT)["Unit"]["After"]).split()) - {"network.target"} <= wanted
     assert "/srv/tbp-rig/scans" in one["ReadWritePaths"].split()
     assert "PrivateDevices" not in svc
     from daemon.control import ControlServer
