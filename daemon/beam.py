@@ -42,7 +42,7 @@ class BeamTracker:
 
     async def start(self) -> None:
         if self.latest is None:
-            self.latest = getattr(self.drive, "latest", None)
+            self.latest = self.drive.latest
         if self._task is None:
             self._task = asyncio.create_task(self._follow(), name=f"{self.name}-tracker")
             await asyncio.sleep(0)

@@ -65,7 +65,7 @@ class BringUp:
         self.timeouts = hw.timeouts
         addresses = hw.addresses
         self.devices: dict[str, DeviceHealth] = {
-            "drive": DeviceHealth("drive", "drive", addresses.get("drive", getattr(hw.drive, "name", "beam")))
+            "drive": DeviceHealth("drive", "drive", addresses.get("drive", hw.drive.name))
         }
         self.phone_ids = [p.id for p in controller.rig.phones][:len(hw.phones)]
         for name, phone in zip(self.phone_ids, controller.rig.phones, strict=False):

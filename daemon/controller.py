@@ -80,7 +80,7 @@ class RigController:
         """The drive to connect: the current one, or a fresh one on a new link when the current
         one was closed (a dead link) and the rig can make another."""
         drive = self.hw.drive
-        if getattr(drive, "closed", False) and self.hw.drive_factory is not None:
+        if drive.closed and self.hw.drive_factory is not None:
             drive = self.hw.drive_factory()
             self.hw.drive = self.safety.drive = self.tracker.drive = drive
             log.debug("drive_link_renewed", drive=drive.name)  # at every re-probe of a missing drive
@@ -211,7 +211,7 @@ class RigController:
     async def reset(self, cause: str = "operator reset") -> None:
         """Clear a latched fault: drive fault reset and re-enable; refused while the e-stop is held."""
         panel = self.hw.panel
-        if panel is not None and getattr(panel, "estop_active", False):
+        if panel is not None and panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop still pressed: release it before reset")
         if self.busy:
             raise ScanBusy(self.machine.state.value, "the faulted scan is still closing its folder")
@@ -220,7 +220,7 @@ class RigController:
 
         async def recover() -> None:
             drive = self.hw.drive
-            if getattr(drive, "closed", False) or self._link_lost(drive):
+            if drive.closed or self._link_lost(drive):
                 await self._reconnect_drive()
                 drive = self.hw.drive
             if drive.fault is not None:

@@ -13,6 +13,8 @@ from typing import Any
 
 import structlog
 
+from daemon.devices import DepthCamera, Drive, Panel, Phone
+
 log = structlog.get_logger("daemon.hardware")
 
 
@@ -20,8 +22,8 @@ log = structlog.get_logger("daemon.hardware")
 class RigHardware:
     """Connected-or-not device objects of one rig.
 
-    drive: ``BeamDrive``; phones: one ``PhoneCamera`` per rig phone in rig order; depth_cameras:
-    ``DepthCamera`` objects in rig order; panel: ``OperatorPanel`` or None (no panel fitted).
+    drive, phones (rig order), depth_cameras (rig order), panel (None: no panel fitted): the
+    device protocols of daemon/devices.py.
     closers: extra shutdown steps (simulator tasks, sockets), run last.
     addresses: device name -> where it is reached (shown in status and errors).
     drive_factory: a fresh ``BeamDrive`` on a fresh link, for a drive whose link died (a real rig;
@@ -30,10 +32,10 @@ class RigHardware:
     timeouts: open, phone authorisation and re-probe periods (the hardware file's).
     """
 
-    drive: Any
-    phones: Sequence[Any]
-    depth_cameras: Sequence[Any]
-    panel: Any | None = None
+    drive: Drive
+    phones: Sequence[Phone]
+    depth_cameras: Sequence[DepthCamera]
+    panel: Panel | None = None
     closers: list[Callable[[], Awaitable[None]]] = field(default_factory=list)
     addresses: dict[str, str] = field(default_factory=dict)
     drive_factory: Callable[[], Any] | None = None
@@ -53,7 +55,7 @@ class RigHardware:
         failures: list[str] = []
         steps: list[tuple[str, Callable[[], Awaitable[Any]]]] = [("drive", self.drive.close)]
         steps += [(f"phone{i}", p.close) for i, p in enumerate(self.phones)]
-        steps += [(getattr(c, "id", f"depth{i}"), c.stop) for i, c in enumerate(self.depth_cameras)]
+        steps += [(c.id, c.stop) for c in self.depth_cameras]
         if self.panel is not None:
             steps.append(("panel", self.panel.close))
         steps += [(f"closer{i}", c) for i, c in enumerate(self.closers)]

@@ -65,10 +65,10 @@ class PhonePreparer:
 
     def _focus_range_mm(self, phone: Any) -> tuple[float, float]:
         """Nearest and farthest focus (mm): the phone's focus table, else its reported minimum."""
-        table = getattr(phone, "focus_table", None)
+        table = phone.focus_table
         if table is not None:
             return float(table.near_mm), float(table.far_mm)
-        diopters = getattr(getattr(phone, "info", None), "min_focus_diopters", None)
+        diopters = phone.info.min_focus_diopters if phone.info is not None else None
         near = 1000.0 / float(diopters) if diopters else self.DEFAULT_MIN_FOCUS_MM
         return near, math.inf
 

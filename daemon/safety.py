@@ -126,12 +126,12 @@ class SafetyMonitor:
             await asyncio.sleep(self.POLL_S)
             if self.latched:
                 continue
-            device = getattr(self.drive, "name", "beam")
-            fault = getattr(self.drive, "fault", None)
+            device = self.drive.name
+            fault = self.drive.fault
             if fault is not None:
                 await self.trip(FaultCause.of_error(FaultSource.DRIVE_FAULT, device, fault))
                 continue
-            latest = getattr(self.drive, "latest", None)
+            latest = self.drive.latest
             if self.expect_samples and latest is not None:
                 age = loop.time() - latest.time_s
                 if age > self.STALE_SAMPLE_S:

@@ -316,7 +316,7 @@ class Scan:
 
     @property
     def _drive_name(self) -> str:
-        return getattr(self.hw.drive, "name", "beam")
+        return self.hw.drive.name
 
     async def _stop_beam(self) -> None:
         decel = self.rig.capture.acceleration_deg_s2 * self.ABORT_DECELERATION_FACTOR

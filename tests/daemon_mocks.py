@@ -1,7 +1,7 @@
 """Mock-tier devices for the daemon's unit tests: instant to build, analytic, recording calls.
 
-They follow the driver interfaces (BeamDrive, PhoneCamera) closely enough to exercise the
-capture executor alone, and answer with the drivers' own result and error types; the end-to-end
+They implement the daemon's device protocols (daemon/devices.py: Drive, Phone; checked by
+tests/test_device_protocols.py) to exercise the capture executor alone, and answer with the drivers' own result and error types; the end-to-end
 tests use the protocol-level simulators instead.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.motor.samples import BeamSample
-from drivers.phone.camera import CaptureDone, ClockSample, FocusDone
+from drivers.phone.camera import CaptureDone, ClockSample, FocusDone, PhoneInfo
 from drivers.phone.errors import PhoneDisconnected
 from drivers.sim.trapezoid import hold, position_move, velocity_ramp
 
@@ -37,6 +37,11 @@ class MockDrive:
         self.calls: list[tuple[str, tuple[float, ...]]] = []
         self._queues: list[asyncio.Queue[BeamSample]] = []
         self._task: asyncio.Task[None] | None = None
+        self._closed = False
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     def _now(self) -> float:
         return asyncio.get_running_loop().time()
@@ -84,6 +89,7 @@ class MockDrive:
         self.fault = None
 
     async def close(self) -> None:
+        self._closed = True
         if self._task is not None:
             self._task.cancel()
 
@@ -119,6 +125,8 @@ class MockPhone:
         self.fail_after: int | None = None
         self.connected = True
         self.reconnectable = True
+        self.focus_table = None  # no calibration: the daemon falls back to the reported range
+        self.info: PhoneInfo | None = None
 
     def _device_ns(self, host_s: float) -> int:
         return int(round((host_s + self.clock_offset_s) * 1e9))

@@ -21,6 +21,7 @@ from planner.poses import rgb_poses, rig_depth_pose, rig_rgb_poses
 from planner.rig import CALIBRATION_DIR, DEFAULT_RIG_PATH, load_rig
 from planner.sweep import BeamTrace, tag_frame
 from sim.calibration import true_rig
+from tests.daemon_mocks import MockDrive
 
 TARGET = load_target()
 
@@ -39,13 +40,9 @@ def rig_with_calibration(tmp: Path, *, drop: str | None = None, created: str = "
     return rig
 
 
-class _Drive:
-    name = "beam"
-
-
 def _controller(rig) -> RigController:
     """A controller whose (stand-in) devices all answered the bring-up."""
-    controller = RigController(rig, RigHardware(_Drive(), [], []), ScanStore(Path("/nonexistent")))
+    controller = RigController(rig, RigHardware(MockDrive(), [], []), ScanStore(Path("/nonexistent")))
     for device in controller.bringup.devices.values():
         device.ok = True
     return controller
