@@ -18,6 +18,7 @@ import structlog
 from daemon.controller import RigController
 from daemon.errors import ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
+from daemon.looplag import LoopLagMonitor
 from daemon.notify import SystemdNotifier, run_watchdog
 from daemon.states import SCAN_STATES
 from daemon.store import new_scan_id
@@ -42,9 +43,8 @@ class RigService:
         notifier: sd_notify sender (a disabled one outside systemd).
     """
 
-    LAG_PERIOD_S = 0.1
     MAX_LAG_S = 0.5
-    """The loop is unhealthy when a 0.1 s sleep wakes this much late."""
+    """The loop is unhealthy when a sleep wakes this much late (daemon/looplag.py measures it)."""
 
     def __init__(self, controller: RigController, *, socket_path: Path | None = None,
                  group: str | None = None, notifier: SystemdNotifier | None = None) -> None:
@@ -53,7 +53,7 @@ class RigService:
         self.group = group
         self.notifier = notifier or SystemdNotifier()
         self.recovered: list[dict[str, Any]] = []
-        self.loop_lag_s = 0.0
+        self.lag = LoopLagMonitor(lambda: controller.machine.state.value)
         self._tasks: list[asyncio.Task[Any]] = []
         self._server: Any = None
         self.attached: list[Any] = []
@@ -84,7 +84,7 @@ class RigService:
         for server in self.attached:
             await server.start()
         self._tasks += [
-            asyncio.create_task(self._measure_lag(), name="loop-lag"),
+            asyncio.create_task(self.lag.run(), name="loop-lag"),
             asyncio.create_task(run_watchdog(self.notifier, self.healthy), name="watchdog"),
             asyncio.create_task(self._mirror_status(), name="notify-status"),
             asyncio.create_task(ctl.bringup.run(self._readiness_changed), name="reprobe"),
@@ -161,19 +161,12 @@ class RigService:
         phone back, it would only lose the status the operator reads. A drive whose heartbeat
         stops latches FAULT (the safety monitor), a missing device keeps the rig NOT READY and
         is re-probed; the watchdog is for a wedged daemon."""
-        if self.loop_lag_s > self.MAX_LAG_S:
+        if self.lag.last_s > self.MAX_LAG_S:
             return False
         if self.controller.machine.state in SCAN_STATES and not self.controller.busy:
             return False  # a scan state nobody will leave: the watchdog restarts the daemon
         reprobe = next((t for t in self._tasks if t.get_name() == "reprobe"), None)
         return reprobe is None or not reprobe.done()
-
-    async def _measure_lag(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            before = loop.time()
-            await asyncio.sleep(self.LAG_PERIOD_S)
-            self.loop_lag_s = max(loop.time() - before - self.LAG_PERIOD_S, 0.0)
 
     async def _mirror_status(self) -> None:
         async for event in self.controller.machine.subscribe():
@@ -206,6 +199,7 @@ class RigService:
         status = self.controller.status()
         status["recovered_scans"] = list(self.recovered)
         status["healthy"] = self.healthy()
+        status["loop_lag"] = self.lag.summary()
         return status
 
     def scan(self, **args: Any) -> dict[str, Any]:

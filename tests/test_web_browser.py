@@ -117,6 +117,10 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
             driver.get(url)
             wait_for(driver, "window.tbpConsole.status && window.tbpConsole.status.state === 'IDLE'")
             assert driver.find_element("id", "start").is_enabled()
+            # Device health: the bring-up's view, every phone by name (as tbp status and tbp check).
+            devices = driver.find_element("id", "devices").text
+            assert "ready" in devices and "NOT READY" not in devices
+            assert all(f"cam{i} answers" in devices for i in range(7)), devices
             driver.find_element("id", "start").click()
             wait_for(driver, "window.tbpConsole.events.some(e => e.state === 'CAPTURING')", 300)
             driver.save_screenshot(str(SHOTS / "console-capturing.png"))

@@ -30,10 +30,13 @@ function showStatus(s) {
   const devices = $("devices");
   devices.replaceChildren(
     el("div", {}, "Daemon ", pill(s.healthy ? "healthy" : "unhealthy", s.healthy ? "ok" : "bad")),
+    el("div", {}, "Rig ", pill(s.ready ? "ready" : "NOT READY", s.ready ? "ok" : "bad")),
     el("div", {}, "Beam drive ", pill(s.beam_angle_deg === null ? "no encoder" : "encoder live", s.beam_angle_deg === null ? "bad" : "ok")),
-    el("div", {}, "Phones ", pill(s.phones_failed.length ? `${s.phones_failed.length} failed` : "all connected", s.phones_failed.length ? "bad" : "ok")));
-  $("faults").replaceChildren(...s.fault_causes.map((c) => el("div", {}, `Fault: ${c}`)),
-    ...s.phones_failed.map((c) => el("div", {}, `Phone: ${c}`)),
+    ...(s.devices || []).map((d) => el("div", { class: "device", title: d.address },
+      `${d.device} `, pill(d.ok ? "answers" : "missing", d.ok ? "ok" : "bad"))));
+  const missing = (s.devices || []).filter((d) => !d.ok);
+  $("faults").replaceChildren(...s.fault_causes.map((c) => el("div", {}, `Fault: ${c.text || c.detail || c}`)),
+    ...missing.map((d) => el("div", {}, `${d.device} (${d.address}): ${d.error || "not answering"}; ${d.check}`)),
     ...(s.recovered_scans || []).map((r) => el("div", { class: "muted" }, `Recovered interrupted scan ${r.scan_id}: ${r.reason}`)));
   showLast(s.last_scan);
 }

@@ -1,0 +1,74 @@
+"""How late the event loop runs, per scan state: the daemon's real-time budget, measured.
+
+The drive's heartbeat (100 ms, lost after 300 ms) and the panel's are produced on the event
+loop, so anything that holds the loop (compute on its interpreter lock, a large write, an
+fsync) shows here first. A sleep of ``period_s`` that wakes late by more than ``warn_s`` is
+logged as ``loop_lag`` with the state it happened in; leaving a state logs that state's
+``loop_lag_summary`` (samples, p50, p99, max); ``tbp status`` shows the same per state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import structlog
+
+log = structlog.get_logger("daemon.looplag")
+
+
+@dataclass
+class StateLag:
+    """Lag samples (s) of one state; kept as a bounded reservoir of the newest ones."""
+
+    MAX_SAMPLES = 20_000
+
+    samples: list[float] = field(default_factory=list)
+    count: int = 0
+    max_s: float = 0.0
+
+    def add(self, lag_s: float) -> None:
+        self.count += 1
+        self.max_s = max(self.max_s, lag_s)
+        self.samples.append(lag_s)
+        if len(self.samples) > self.MAX_SAMPLES:
+            del self.samples[: len(self.samples) - self.MAX_SAMPLES]
+
+    def summary(self) -> dict[str, float | int]:
+        values = np.asarray(self.samples) if self.samples else np.zeros(1)
+        return {"samples": self.count, "p50_ms": round(float(np.percentile(values, 50)) * 1000, 2),
+                "p99_ms": round(float(np.percentile(values, 99)) * 1000, 2), "max_ms": round(self.max_s * 1000, 2)}
+
+
+class LoopLagMonitor:
+    """Samples the loop's lateness every ``period_s`` under the state ``state()`` names."""
+
+    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = 0.05) -> None:
+        self.state = state
+        self.period_s = period_s
+        self.warn_s = warn_s
+        self.last_s = 0.0
+        self.by_state: dict[str, StateLag] = {}
+        self._current: str | None = None
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            before = loop.time()
+            await asyncio.sleep(self.period_s)
+            self.record(self.state(), max(loop.time() - before - self.period_s, 0.0))
+
+    def record(self, state: str, lag_s: float) -> None:
+        if state != self._current:
+            if self._current is not None and self._current in self.by_state:
+                log.info("loop_lag_summary", lag_state=self._current, **self.by_state[self._current].summary())
+            self._current = state
+        self.last_s = lag_s
+        self.by_state.setdefault(state, StateLag()).add(lag_s)
+        if lag_s > self.warn_s:
+            log.warning("loop_lag", lag_state=state, lag_ms=round(lag_s * 1000, 1))
+
+    def summary(self) -> dict[str, dict[str, float | int]]:
+        return {state: lag.summary() for state, lag in self.by_state.items()}

@@ -1,0 +1,53 @@
+"""The event loop's lateness, per scan state (daemon/looplag.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import structlog
+from hypothesis import given
+from hypothesis import strategies as st
+
+from daemon.looplag import LoopLagMonitor
+
+
+def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -> None:
+    state = ["IDLE"]
+    monitor = LoopLagMonitor(lambda: state[0], period_s=0.01, warn_s=0.05)
+
+    async def scenario() -> None:
+        task = asyncio.create_task(monitor.run())
+        await asyncio.sleep(0.05)
+        state[0] = "PLANNING"
+        await asyncio.sleep(0.02)
+        time.sleep(0.12)  # compute on the loop: what the worker process exists to prevent
+        await asyncio.sleep(0.03)
+        state[0] = "CAPTURING"
+        await asyncio.sleep(0.03)
+        task.cancel()
+
+    with structlog.testing.capture_logs() as logs:
+        asyncio.run(scenario())
+    summary = monitor.summary()
+    assert summary["PLANNING"]["max_ms"] >= 100.0
+    assert summary["IDLE"]["max_ms"] < summary["PLANNING"]["max_ms"]
+    stalls = [e for e in logs if e["event"] == "loop_lag"]
+    assert stalls and all(e["lag_state"] == "PLANNING" for e in stalls)
+    summaries = [e["lag_state"] for e in logs if e["event"] == "loop_lag_summary"]
+    assert summaries == ["IDLE", "PLANNING"]  # each state summarised when the loop leaves it
+
+
+@given(st.lists(st.tuples(st.sampled_from(["IDLE", "DEPTH_SWEEP", "PLANNING"]),
+                          st.floats(0.0, 2.0, allow_nan=False)), min_size=1, max_size=200))
+def test_per_state_figures_are_those_of_the_state_samples(samples: list[tuple[str, float]]) -> None:
+    monitor = LoopLagMonitor(lambda: "IDLE", warn_s=10.0)
+    for state, lag in samples:
+        monitor.record(state, lag)
+    summary = monitor.summary()
+    for state in {s for s, _ in samples}:
+        lags = [lag for s, lag in samples if s == state]
+        assert summary[state]["samples"] == len(lags)
+        assert summary[state]["max_ms"] == round(max(lags) * 1000, 2)
+        assert summary[state]["p50_ms"] <= summary[state]["p99_ms"] <= summary[state]["max_ms"] + 1e-9
+    assert monitor.last_s == samples[-1][1]
