@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,12 +29,12 @@ from daemon.depth_sweep import DepthSweeper
 from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
 from daemon.hardware import RigHardware
-from daemon.manifest import ImageStatus, ScanEnd
+from daemon.manifest import ImageStatus, ScanEnd, json_bytes, json_safe
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import ScanFolder
+from daemon.store import ScanFolder, mesh_bytes, trace_bytes
 from planner.calibration.model import Calibration
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
@@ -372,7 +372,8 @@ class Scan:
             trace = self.tracker.trace(self._trace_mark)
             first = "trace" not in self.folder.manifest.files
             try:
-                self.folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2])
+                await self.folder.write_off_loop(
+                    "trace", "trace.npz", lambda trace=trace: trace_bytes(trace[:, 0], trace[:, 1], trace[:, 2]))
                 if first:
                     self.folder.save()  # lists trace.npz at once, not only at the next image
             except Exception as exc:  # the end of the scan writes it again; the scan goes on
@@ -402,7 +403,7 @@ class Scan:
         reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
         try:
             fused, report.compute_s["tsdf"] = await self._fuse(list(sweep.sweep.frames))
-            self.folder.write_mesh(fused.mesh)
+            await self.folder.write_off_loop("mesh", "mesh.ply", lambda: mesh_bytes(fused.mesh))
 
             # PLANNING
             self.machine.transition(ScanState.PLANNING, "subject mesh ready",
@@ -413,7 +414,8 @@ class Scan:
             plan_json = plan.to_json()
             focus = self._reachable(np.asarray(plan.focus_mm, dtype=float))
             angles = plan.capture_angles_deg
-            self.folder.write_plan(plan_json, _plan_summary(plan_json))
+            self.folder.manifest.plan_summary = json_safe(_plan_summary(plan_json))
+            await self.folder.write_off_loop("plan", "plan.json", lambda: json_bytes(plan_json))
             self.folder.plan_images(angles, focus)
             timings = [
                 PhoneTiming(rig.capture.capture_cycle_s, rig.capture.lens_settle_s,
@@ -531,16 +533,22 @@ class Scan:
         records = self.runner.records if self.runner is not None else []
         self._summarise(report, records)
         trace = self.tracker.trace(self._trace_mark)
-        steps: list[tuple[str, Callable[[], Any]]] = [
-            ("missing", lambda: self._record_missing(records)),
-            ("trace", lambda: folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2])),
-            ("captures", lambda: folder.write_json("captures", "captures.json",
-                                                   [r.as_dict() for r in records], save=False)),
-            ("qa", lambda: folder.write_json("qa", "qa.json", report.as_dict(), save=False)),
+        captures, qa = [r.as_dict() for r in records], report.as_dict()
+
+        async def missing() -> None:
+            self._record_missing(records)
+
+        steps: list[tuple[str, Callable[[], Awaitable[Any]]]] = [
+            ("missing", missing),
+            ("trace", lambda: folder.write_off_loop(
+                "trace", "trace.npz", lambda: trace_bytes(trace[:, 0], trace[:, 1], trace[:, 2]), save=False)),
+            ("captures", lambda: folder.write_off_loop("captures", "captures.json", lambda: json_bytes(captures),
+                                                       save=False)),
+            ("qa", lambda: folder.write_off_loop("qa", "qa.json", lambda: json_bytes(qa), save=False)),
         ]
         for name, step in steps:
             try:
-                step()
+                await step()
             except Exception as exc:  # a full disk, too many open files: recorded, the next step runs
                 report.errors.append(f"{name}: {type(exc).__name__}: {exc}")
                 log.error("store_step_failed", step=name, error=f"{type(exc).__name__}: {exc}")

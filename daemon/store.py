@@ -23,6 +23,7 @@ is identified only by an opaque scan id: no patient data is written here.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import io
 import json
@@ -31,7 +32,8 @@ import os
 import re
 import secrets
 import shutil
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -81,6 +83,32 @@ def calibration_digest(rig: Rig) -> str:
         h.update(name.encode() + b"\0")
         h.update(path.read_bytes() if path.is_file() else b"<missing>")
     return h.hexdigest()
+
+
+def mesh_bytes(mesh: Any) -> bytes:
+    """PLY bytes of a mesh (PLY bytes pass through)."""
+    return mesh if isinstance(mesh, bytes) else mesh.export(file_type="ply")
+
+
+def trace_bytes(time_s: np.ndarray, angle_deg: np.ndarray, speed_deg_s: np.ndarray | None = None) -> bytes:
+    """trace.npz bytes: host loop time (s), beam angle (deg) and, if given, speed (deg/s)."""
+    arrays = {"time_s": np.asarray(time_s, float), "angle_deg": np.asarray(angle_deg, float)}
+    if speed_deg_s is not None:
+        arrays["speed_deg_s"] = np.asarray(speed_deg_s, float)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+_WRITER: ThreadPoolExecutor | None = None
+
+
+def _writer_thread() -> ThreadPoolExecutor:
+    """The store's one writer thread: large files are written in the order they are asked for."""
+    global _WRITER
+    if _WRITER is None:
+        _WRITER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="store-writer")
+    return _WRITER
 
 
 class ScanFolder:
@@ -143,18 +171,25 @@ class ScanFolder:
 
     def write_mesh(self, mesh: Any) -> Path:
         """mesh.ply from PLY bytes or any object with ``export(file_type="ply") -> bytes``."""
-        data = mesh if isinstance(mesh, bytes) else mesh.export(file_type="ply")
-        return self._write_file("mesh", "mesh.ply", data)
+        return self._write_file("mesh", "mesh.ply", mesh_bytes(mesh))
 
     def write_trace(self, time_s: np.ndarray, angle_deg: np.ndarray,
                     speed_deg_s: np.ndarray | None = None) -> Path:
         """trace.npz: (N,) encoder samples, host loop time s and beam angle deg."""
-        arrays = {"time_s": np.asarray(time_s, float), "angle_deg": np.asarray(angle_deg, float)}
-        if speed_deg_s is not None:
-            arrays["speed_deg_s"] = np.asarray(speed_deg_s, float)
-        buffer = io.BytesIO()
-        np.savez(buffer, **arrays)
-        return self._write_file("trace", "trace.npz", buffer.getvalue())
+        return self._write_file("trace", "trace.npz", trace_bytes(time_s, angle_deg, speed_deg_s))
+
+    async def write_off_loop(self, key: str, name: str, make: Callable[[], bytes], *, save: bool = True) -> Path:
+        """:meth:`_write_file` for the daemon: the bytes are made (``make()``: export, compress,
+        serialise) and written with their fsyncs in the store's writer thread, one file at a time
+        in the order asked, so the event loop and the heartbeats it carries never wait for the
+        disk. Only listing the file in the manifest (and saving it) runs on the loop. ``make``
+        must read values nobody changes meanwhile (a finished mesh, a copied trace)."""
+        path = self.path / name
+        await asyncio.get_running_loop().run_in_executor(_writer_thread(), lambda: self.writer.write(path, make()))
+        self.manifest.files[key] = name
+        if save:
+            self.save()
+        return path
 
     def write_depth_sweep(self, metadata: dict[str, Any]) -> Path:
         return self._write_file("depth_sweep", "depth_sweep.json", json_bytes(metadata))

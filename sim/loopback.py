@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parent.parent
 UNIT = ROOT / "systemd" / "tbp-rig.service"
 RECORDINGS_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tbp" / "recordings"
 WATCHDOG_USEC = 10_000_000
+PHONE_NICENESS = 10
 
 
 class LoopbackError(RuntimeError):
@@ -272,6 +273,10 @@ class LoopbackRig:
                                           "--camera", phone.id, "--seed", str(index), "--rig", str(self.rig_path),
                                           "--body-seed", str(self.body_seed),
                                           "--follow-beam", f"127.0.0.1:{self.bridge_port}"))
+        # A phone is its own computer; here seven renderers share the rig PC's cores, so they run
+        # at a lower priority, as the daemon's compute worker does, to leave the daemon and the
+        # drive's simulator the real-time share a rig PC gives them.
+        os.setpriority(os.PRIO_PROCESS, proc.popen.pid, PHONE_NICENESS)
         self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")
         self.phone_ports[index] = port
 
