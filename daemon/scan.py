@@ -81,6 +81,9 @@ class ScanReport:
     min_speed_ratio: float | None = None
     phase_s: dict[str, float] = field(default_factory=dict)
     compute_s: dict[str, float] = field(default_factory=dict)
+    compute_stops_clock: bool = False
+    """The loop's clock stands still during compute (the virtual-time loop): rig-time phases then
+    exclude the compute time, and sweep_to_capture_s adds it back."""
     errors: list[str] = field(default_factory=list)
 
     @property
@@ -90,8 +93,9 @@ class ScanReport:
 
     @property
     def sweep_to_capture_s(self) -> float:
-        """End of the depth sweep to the start of the capture rotation: rig time + compute time."""
-        return self.phase_s.get("sweep_to_capture", 0.0) + sum(self.compute_s.values())
+        """End of the depth sweep to the start of the capture rotation, compute included."""
+        compute = sum(self.compute_s.values()) if self.compute_stops_clock else 0.0
+        return self.phase_s.get("sweep_to_capture", 0.0) + compute
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -343,6 +347,7 @@ class Scan:
             self.folder.write_calibration(Path(self.calibration.path).read_bytes())
         # PREPARING: beam to the sweep start, phones' clocks and trigger latency measured.
         self._mark("start")
+        self.report.compute_stops_clock = bool(getattr(asyncio.get_running_loop(), "compute_stops_clock", False))
         self._trace_mark = self.tracker.mark()
         keeper = asyncio.create_task(self._keep_trace(), name="trace-keeper")
         try:

@@ -81,12 +81,17 @@ class _PacedSelector:
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """A selector event loop on a virtual clock (seconds, starting at ``start``).
 
+    ``compute_stops_clock``: jobs in the executor take no virtual time (a scan report adds their
+    measured compute time back where it reports wall durations).
+
     Args:
         time_scale: None runs as fast as possible; X paces virtual time at X times real time.
         start: the virtual clock's reading when the loop is created, s.
         idle_real_timeout: with nothing scheduled, how long (real s) to wait for outside I/O before
             raising :class:`VirtualTimeStall`; None waits for ever (a daemon waiting for commands).
     """
+
+    compute_stops_clock = True
 
     def __init__(
         self,

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import asyncio
 import time
+from pathlib import Path
 
 import structlog
 from hypothesis import given
 from hypothesis import strategies as st
 
 from daemon.looplag import LoopLagMonitor
+from daemon.scan import ScanReport
+from daemon.states import ScanOutcome
 
 
 def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -> None:
@@ -51,3 +54,14 @@ def test_per_state_figures_are_those_of_the_state_samples(samples: list[tuple[st
         assert summary[state]["max_ms"] == round(max(lags) * 1000, 2)
         assert summary[state]["p50_ms"] <= summary[state]["p99_ms"] <= summary[state]["max_ms"] + 1e-9
     assert monitor.last_s == samples[-1][1]
+
+
+@given(st.floats(0.0, 30.0), st.floats(0.0, 10.0), st.floats(0.0, 10.0), st.booleans())
+def test_sweep_to_capture_counts_compute_once_on_either_clock(rig_s: float, tsdf_s: float, plan_s: float,
+                                                              virtual: bool) -> None:
+    """On the real loop the rig-time gap already contains the compute; on the virtual-time loop
+    (clock frozen during compute) it is added back."""
+    report = ScanReport("s", Path("/x"), ScanOutcome.COMPLETED, phase_s={"sweep_to_capture": rig_s},
+                        compute_s={"tsdf": tsdf_s, "planning": plan_s}, compute_stops_clock=virtual)
+    expected = rig_s + (tsdf_s + plan_s if virtual else 0.0)
+    assert abs(report.sweep_to_capture_s - expected) < 1e-9
