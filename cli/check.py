@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import sys
 import time
 from collections.abc import Awaitable, Callable
@@ -59,26 +58,14 @@ class Probe:
         return "ok" if self.found else "MISSING"
 
 
-def state_dir(explicit: Path | None) -> Path:
-    """The ADB key's folder: --state-dir, $STATE_DIRECTORY (systemd), else ~/.local/state/tbp-rig."""
-    if explicit is not None:
-        return explicit
-    state = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
-    return Path(state) if state else Path.home() / ".local" / "state" / "tbp-rig"
-
-
 def run(args: argparse.Namespace) -> int:
-    from daemon.hardware_config import load_hardware
     from daemon.logs import configure_logging
-    from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
     configure_logging(level="error", stream=sys.stderr)
-    try:
-        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
-        config = load_hardware(options.hardware_path(args), rig)
-    except (RigConfigError, OSError) as exc:
-        print(f"tbp check: {exc}", file=sys.stderr)
+    loaded = options.rig_and_hardware(args, "check")
+    if loaded is None:
         return 2
+    rig, config = loaded
     probes, source = asyncio.run(_probe_or_ask_daemon(rig, config, args))
     if args.json:
         print(json.dumps({"source": source, "hardware": config.path, "ok": all(p.found for p in probes),
@@ -96,7 +83,7 @@ async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) 
     try:
         status = await ControlClient(args.socket or default_socket()).status()
     except (ControlError, OSError):
-        return await probe_devices(rig, config, state_dir(args.state_dir)), "probe"
+        return await probe_devices(rig, config, options.state_dir(args.state_dir)), "probe"
     return [Probe(d["device"], d["kind"], d["address"], bool(d["ok"]), error=d.get("error"), check=d.get("check"))
             for d in status.get("devices", [])], "daemon"
 

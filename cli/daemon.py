@@ -87,21 +87,15 @@ def _real(args: argparse.Namespace, socket_path: Path, group: str | None, qa_rep
     """The daemon on the real rig the rig and hardware files describe; a bad file exits 2
     (systemd's RestartPreventExitStatus: restarting would not fix it)."""
     import asyncio
-    import os
 
     from daemon.control import ControlError
-    from daemon.hardware_config import load_hardware
     from daemon.real_rig import real_service
-    from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
-    try:
-        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
-        config = load_hardware(options.hardware_path(args), rig)
-    except (RigConfigError, OSError) as exc:
-        print(f"tbp daemon: {exc}", file=sys.stderr)
+    loaded = options.rig_and_hardware(args, "daemon")
+    if loaded is None:
         return 2
-    state = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
-    state_dir = Path(state) if state else Path.home() / ".local" / "state" / "tbp-rig"
+    rig, config = loaded
+    state_dir = options.state_dir()
     try:
         return asyncio.run(real_service(
             rig=rig, config=config, store=options.store_root(args), socket_path=socket_path,

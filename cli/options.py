@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
+from typing import Any
 
 INSTALLED_STORE = Path("/srv/tbp-rig/scans")
 """The rig PC's scan store (systemd/tbp-rig.tmpfiles)."""
@@ -31,6 +33,29 @@ def hardware_path(args: argparse.Namespace) -> Path:
     from planner.rig import DEFAULT_RIG_PATH
 
     return args.hardware or default_hardware_path(args.rig or DEFAULT_RIG_PATH)
+
+
+def rig_and_hardware(args: argparse.Namespace, command: str) -> tuple[Any, Any] | None:
+    """The rig file and its hardware file (--rig, --hardware); None, after one line on stderr
+    naming the file and the key, when either is unusable (the caller exits 2)."""
+    from daemon.hardware_config import load_hardware
+    from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
+
+    try:
+        rig = load_rig(args.rig or DEFAULT_RIG_PATH)
+        return rig, load_hardware(hardware_path(args), rig)
+    except (RigConfigError, OSError) as exc:
+        print(f"tbp {command}: {exc}", file=sys.stderr)
+        return None
+
+
+def state_dir(explicit: Path | None = None) -> Path:
+    """Where the daemon keeps its ADB key: ``explicit``, $STATE_DIRECTORY (systemd's
+    StateDirectory=), else ~/.local/state/tbp-rig."""
+    if explicit is not None:
+        return explicit
+    state = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    return Path(state) if state else Path.home() / ".local" / "state" / "tbp-rig"
 
 
 def store(parser: argparse.ArgumentParser, default: Path | None = None) -> None:

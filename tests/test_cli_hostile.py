@@ -191,3 +191,23 @@ def test_simulated_scan_with_unusable_input_is_one_line_and_exit_2(tmp_path: Pat
     extra = [str(tmp_path / e) if e.endswith((".ply", ".yaml")) else e for e in extra]
     assert tbp(["scan", "--sim", "--store", str(tmp_path / "s"), *extra]) == 2
     assert problem in _one_line(capsys)
+
+
+@pytest.mark.parametrize("text, problem", [
+    (None, "cannot read"),
+    ("can: {interface: socketcan, channel: can0}\nphones: {}\ndepth_cameras: {}\npanel: null\n", "phones.cam0"),
+    ("can: {interface: socketcan, channel: can0, bitrate: 500000}\nphones: {}\ndepth_cameras: {}\npanel: null\n",
+     "can.bitrate"),
+])
+def test_the_real_daemon_with_an_unusable_hardware_file_exits_2_naming_the_key(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str | None, problem: str) -> None:
+    """Exit status 2 is the unit's RestartPreventExitStatus: systemd does not restart into the same error."""
+    hardware = tmp_path / "hardware.yaml"
+    if text is not None:
+        hardware.write_text(text)
+    argv = ["daemon", "--hardware", str(hardware), "--store", str(tmp_path / "scans"),
+            "--socket", str(tmp_path / "c.sock"), "--http", "off"]
+    assert tbp(argv) == 2
+    line = _one_line(capsys)
+    assert line.startswith("tbp daemon: ") and str(hardware) in line and problem in line
+    assert not (tmp_path / "c.sock").exists()  # refused before serving anything
