@@ -10,10 +10,10 @@ logged as ``loop_lag`` with the state it happened in; leaving a state logs that 
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numpy as np
 import structlog
 
 log = structlog.get_logger("daemon.looplag")
@@ -21,25 +21,38 @@ log = structlog.get_logger("daemon.looplag")
 
 @dataclass
 class StateLag:
-    """Lag samples (s) of one state; kept as a bounded reservoir of the newest ones."""
+    """Lag samples (s) of one state as a histogram on a geometric scale (bins 5 % wide from
+    50 us to 20 s): constant memory however long the state lasts, and a summary that costs
+    no more than the bins, cheap enough for every ``tbp status``. Percentiles are the upper
+    edge of the bin holding them (at most 5 % high), never above the exact maximum."""
 
-    MAX_SAMPLES = 20_000
+    FLOOR_S = 5e-5
+    RATIO = 1.05
+    BINS = 270  # FLOOR_S * RATIO ** BINS is about 25 s
 
-    samples: list[float] = field(default_factory=list)
+    counts: list[int] = field(default_factory=lambda: [0] * (StateLag.BINS + 1))
     count: int = 0
     max_s: float = 0.0
 
     def add(self, lag_s: float) -> None:
         self.count += 1
         self.max_s = max(self.max_s, lag_s)
-        self.samples.append(lag_s)
-        if len(self.samples) > self.MAX_SAMPLES:
-            del self.samples[: len(self.samples) - self.MAX_SAMPLES]
+        index = 0 if lag_s <= self.FLOOR_S else 1 + int(math.log(lag_s / self.FLOOR_S) / math.log(self.RATIO))
+        self.counts[min(index, self.BINS)] += 1
+
+    def percentile_s(self, q: float) -> float:
+        """The q-quantile (0 < q <= 1, nearest rank), as its bin's upper edge capped at the maximum."""
+        rank = max(1, math.ceil(q * self.count))
+        seen = 0
+        for index, n in enumerate(self.counts):
+            seen += n
+            if seen >= rank:
+                return min(self.FLOOR_S * self.RATIO ** index, self.max_s)
+        return self.max_s
 
     def summary(self) -> dict[str, float | int]:
-        values = np.asarray(self.samples) if self.samples else np.zeros(1)
-        return {"samples": self.count, "p50_ms": round(float(np.percentile(values, 50)) * 1000, 2),
-                "p99_ms": round(float(np.percentile(values, 99)) * 1000, 2), "max_ms": round(self.max_s * 1000, 2)}
+        return {"samples": self.count, "p50_ms": round(self.percentile_s(0.5) * 1000, 2),
+                "p99_ms": round(self.percentile_s(0.99) * 1000, 2), "max_ms": round(self.max_s * 1000, 2)}
 
 
 class LoopLagMonitor:
