@@ -348,6 +348,10 @@ class Scan:
         # PREPARING: beam to the sweep start, phones' clocks and trigger latency measured.
         self._mark("start")
         self.report.compute_stops_clock = bool(getattr(asyncio.get_running_loop(), "compute_stops_clock", False))
+        if not self.report.compute_stops_clock:
+            # Real time: manifest writes leave the loop (the virtual-time loop keeps them in line,
+            # so simulated scans stay deterministic to the byte, faults included).
+            self.folder.save_in_background()
         self._trace_mark = self.tracker.mark()
         keeper = asyncio.create_task(self._keep_trace(), name="trace-keeper")
         try:

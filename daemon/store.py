@@ -32,8 +32,9 @@ import os
 import re
 import secrets
 import shutil
+import threading
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -111,6 +112,49 @@ def _writer_thread() -> ThreadPoolExecutor:
     return _WRITER
 
 
+class ManifestSaver:
+    """Writes the newest manifest bytes in the store's writer thread; bytes submitted while a
+    write waits replace it. A failed write is kept and raised by the next submit or flush."""
+
+    def __init__(self, write: Callable[[bytes], None]) -> None:
+        self._write = write
+        self._lock = threading.Lock()
+        self._pending: bytes | None = None
+        self._queued: Future[None] | None = None
+        self._last: Future[None] | None = None
+        self._error: BaseException | None = None
+
+    def submit(self, data: bytes) -> None:
+        with self._lock:
+            error, self._error = self._error, None
+            self._pending = data
+            if self._queued is None:
+                self._queued = self._last = _writer_thread().submit(self._run)
+        if error is not None:
+            raise error
+
+    def _run(self) -> None:
+        with self._lock:
+            data, self._pending, self._queued = self._pending, None, None
+        if data is None:
+            return
+        try:
+            self._write(data)
+        except BaseException as exc:  # raised on the loop by the next submit or flush
+            with self._lock:
+                self._error = exc
+
+    def flush(self) -> None:
+        """Wait for the last write (blocking, milliseconds) and raise its error, if any."""
+        last = self._last
+        if last is not None:
+            last.result()
+        with self._lock:
+            error, self._error = self._error, None
+        if error is not None:
+            raise error
+
+
 class ScanFolder:
     """One scan's folder. All writes go through the store's AtomicWriter."""
 
@@ -120,6 +164,7 @@ class ScanFolder:
         self.writer = writer
         self._index = {(i.camera_index, i.angle_index): i for i in manifest.images}
         self._renderer = ManifestRenderer()
+        self._saver: ManifestSaver | None = None
 
     @property
     def scan_id(self) -> str:
@@ -142,6 +187,12 @@ class ScanFolder:
         record what was captured; without a reserve StoreFull leaves the previous manifest.
         """
         data = self._renderer.render(self.manifest)
+        if self._saver is not None:
+            self._saver.submit(data)
+        else:
+            self._write_manifest(data)
+
+    def _write_manifest(self, data: bytes) -> None:
         try:
             self.writer.write(self.path / MANIFEST, data)
         except StoreFull as exc:
@@ -151,6 +202,19 @@ class ScanFolder:
             log.warning("store_reserve_released", scan_id=self.scan_id, path=exc.path,
                         bytes_needed=exc.bytes_needed)
             self.writer.write(self.path / MANIFEST, data)
+
+    def save_in_background(self, enabled: bool = True) -> None:
+        """From now on :meth:`save` renders the manifest here (a consistent snapshot) and leaves
+        writing it to the store's writer thread, where saves asked for while one waits are
+        coalesced: a capture rotation saves twice per image, 14 times at each angle, and each
+        write is an fdatasync and a folder fsync the event loop should not wait for. A failed
+        write is raised by the next save. Turning it off (and :meth:`finish`) waits for the
+        last write and raises its error."""
+        if enabled and self._saver is None:
+            self._saver = ManifestSaver(self._write_manifest)
+        elif not enabled and self._saver is not None:
+            saver, self._saver = self._saver, None
+            saver.flush()
 
     def _write_file(self, key: str, name: str, data: bytes) -> Path:
         """Write a whole file of the scan, list it in the manifest as key, save the manifest."""
@@ -374,6 +438,12 @@ class ScanFolder:
         self.manifest.reason = "; ".join(map(str, causes)) or None
         self.manifest.in_progress = False
         self.manifest.ended_utc = utc_stamp()
+        saver, self._saver = self._saver, None
+        if saver is not None:
+            try:
+                saver.flush()
+            except Exception as exc:  # the final save below writes the whole manifest again
+                log.warning("manifest_background_write_failed", scan_id=self.scan_id, error=str(exc))
         self.save()
         self.reserve_path.unlink(missing_ok=True)
         log.info("scan_stored", scan_id=self.scan_id, state=state.value, path=str(self.path),

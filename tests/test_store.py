@@ -340,3 +340,50 @@ def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
     assert tbp_main(["scans", "--store", str(tmp_path), "--check", "--json"]) == 1
     rows = [json.loads(x) for x in capsys.readouterr().out.splitlines() if x.startswith("{")]
     assert {r["scan_id"]: len(r["problems"]) for r in rows} == {"good": 2, "live": 1}
+
+
+class CountingWriter(AtomicWriter):
+    """Counts manifest writes and can fail the next one like a full disk."""
+
+    def __init__(self) -> None:
+        self.manifest_writes = 0
+        self.fail_next = False
+
+    def write(self, path: Path, data: bytes) -> None:
+        if path.name == "manifest.json":
+            if self.fail_next:
+                self.fail_next = False
+                raise StoreFull(path, len(data), 0)
+            self.manifest_writes += 1
+        super().write(path, data)
+
+
+def test_background_saves_coalesce_and_the_closed_manifest_holds_the_last_state(tmp_path, rig):
+    writer = CountingWriter()
+    folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
+    before = writer.manifest_writes
+    folder.save_in_background()
+    for angle in range(rig.n_angles):
+        for camera in range(rig.n_cameras):
+            folder.update_image(camera, angle, status="verified", size_bytes=angle * 10 + camera)
+    folder.finish(ScanEnd.COMPLETE)
+    on_disk = _manifest(folder)
+    assert on_disk["in_progress"] is False and on_disk["state"] == "complete"
+    sizes = sorted(i["size_bytes"] for i in on_disk["images"])
+    assert sizes == sorted(a * 10 + c for a in range(rig.n_angles) for c in range(rig.n_cameras))
+    # every save rendered a snapshot, far fewer reached the disk (each an fdatasync and a folder fsync)
+    assert writer.manifest_writes - before < rig.n_poses
+
+
+def test_a_failed_background_write_is_raised_by_the_next_save_and_the_close_writes_again(tmp_path, rig):
+    writer = CountingWriter()
+    folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
+    folder.save_in_background()
+    writer.fail_next = True
+    folder.update_image(0, 0, status="verified")
+    folder._saver._last.result()  # the failing write has run in the writer thread
+    with pytest.raises(StoreFull):
+        folder.update_image(0, 1, status="verified")
+    folder.finish(ScanEnd.COMPLETE)  # the final, synchronous save writes the whole manifest
+    status = {(i["camera_index"], i["angle_index"]): i["status"] for i in _manifest(folder)["images"]}
+    assert status[0, 0] == status[0, 1] == "verified" and _manifest(folder)["in_progress"] is False
