@@ -29,12 +29,12 @@ from daemon.depth_sweep import DepthSweeper
 from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
 from daemon.hardware import RigHardware
-from daemon.manifest import ImageStatus, ScanEnd, json_bytes, json_safe
+from daemon.manifest import ImageStatus, ScanEnd
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import ScanFolder, mesh_bytes, trace_bytes
+from daemon.store import ScanFolder
 from planner.calibration.model import Calibration
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
@@ -381,8 +381,7 @@ class Scan:
             trace = self.tracker.trace(self._trace_mark)
             first = "trace" not in self.folder.manifest.files
             try:
-                await self.folder.write_off_loop(
-                    "trace", "trace.npz", lambda trace=trace: trace_bytes(trace[:, 0], trace[:, 1], trace[:, 2]))
+                await self.folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2])
                 if first:
                     self.folder.save()  # lists trace.npz at once, not only at the next image
             except Exception as exc:  # the end of the scan writes it again; the scan goes on
@@ -412,7 +411,7 @@ class Scan:
         reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
         try:
             fused, report.compute_s["tsdf"] = await self._fuse(list(sweep.sweep.frames))
-            await self.folder.write_off_loop("mesh", "mesh.ply", lambda: mesh_bytes(fused.mesh))
+            await self.folder.write_mesh(fused.mesh)
 
             # PLANNING
             self.machine.transition(ScanState.PLANNING, "subject mesh ready",
@@ -423,8 +422,7 @@ class Scan:
             plan_json = plan.to_json()
             focus = self._reachable(np.asarray(plan.focus_mm, dtype=float))
             angles = plan.capture_angles_deg
-            self.folder.manifest.plan_summary = json_safe(_plan_summary(plan_json))
-            await self.folder.write_off_loop("plan", "plan.json", lambda: json_bytes(plan_json))
+            await self.folder.write_plan(plan_json, _plan_summary(plan_json))
             self.folder.plan_images(angles, focus)
             timings = [
                 PhoneTiming(rig.capture.capture_cycle_s, rig.capture.lens_settle_s,
@@ -549,11 +547,9 @@ class Scan:
 
         steps: list[tuple[str, Callable[[], Awaitable[Any]]]] = [
             ("missing", missing),
-            ("trace", lambda: folder.write_off_loop(
-                "trace", "trace.npz", lambda: trace_bytes(trace[:, 0], trace[:, 1], trace[:, 2]), save=False)),
-            ("captures", lambda: folder.write_off_loop("captures", "captures.json", lambda: json_bytes(captures),
-                                                       save=False)),
-            ("qa", lambda: folder.write_off_loop("qa", "qa.json", lambda: json_bytes(qa), save=False)),
+            ("trace", lambda: folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2], save=False)),
+            ("captures", lambda: folder.write_json("captures", "captures.json", captures, save=False)),
+            ("qa", lambda: folder.write_json("qa", "qa.json", qa, save=False)),
         ]
         for name, step in steps:
             try:

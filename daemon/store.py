@@ -228,22 +228,27 @@ class ScanFolder:
         """calibration.yaml: the system calibration the scan planned and reconstructed with."""
         return self._write_file("calibration", "calibration.yaml", data)
 
-    def write_plan(self, plan: dict[str, Any], summary: dict[str, Any]) -> Path:
+    async def write_plan(self, plan: dict[str, Any], summary: dict[str, Any]) -> Path:
         """plan.json (the whole plan, JSON-able) and its summary into the manifest."""
         self.manifest.plan_summary = json_safe(summary)
-        return self._write_file("plan", "plan.json", json_bytes(plan))
+        return await self._write_off_loop("plan", "plan.json", lambda: json_bytes(plan))
 
-    def write_mesh(self, mesh: Any) -> Path:
+    async def write_mesh(self, mesh: Any) -> Path:
         """mesh.ply from PLY bytes or any object with ``export(file_type="ply") -> bytes``."""
-        return self._write_file("mesh", "mesh.ply", mesh_bytes(mesh))
+        return await self._write_off_loop("mesh", "mesh.ply", lambda: mesh_bytes(mesh))
 
-    def write_trace(self, time_s: np.ndarray, angle_deg: np.ndarray,
-                    speed_deg_s: np.ndarray | None = None) -> Path:
+    async def write_trace(self, time_s: np.ndarray, angle_deg: np.ndarray,
+                          speed_deg_s: np.ndarray | None = None, *, save: bool = True) -> Path:
         """trace.npz: (N,) encoder samples, host loop time s and beam angle deg."""
-        return self._write_file("trace", "trace.npz", trace_bytes(time_s, angle_deg, speed_deg_s))
+        return await self._write_off_loop("trace", "trace.npz",
+                                          lambda: trace_bytes(time_s, angle_deg, speed_deg_s), save=save)
 
-    async def write_off_loop(self, key: str, name: str, make: Callable[[], bytes], *, save: bool = True) -> Path:
-        """:meth:`_write_file` for the daemon: the bytes are made (``make()``: export, compress,
+    async def write_json(self, key: str, name: str, value: Any, *, save: bool = True) -> Path:
+        """Any other JSON file of the scan (captures, QA report), listed in the manifest as key."""
+        return await self._write_off_loop(key, name, lambda: json_bytes(value), save=save)
+
+    async def _write_off_loop(self, key: str, name: str, make: Callable[[], bytes], *, save: bool = True) -> Path:
+        """The large files of a scan: their bytes are made (``make()``: export, compress,
         serialise) and written with their fsyncs in the store's writer thread, one file at a time
         in the order asked, so the event loop and the heartbeats it carries never wait for the
         disk. Only listing the file in the manifest (and saving it) runs on the loop. ``make``
@@ -267,15 +272,6 @@ class ScanFolder:
         except OSError as exc:
             raise_for(path.parent, exc, 0)
         self.writer.write(path, data)
-        return path
-
-    def write_json(self, key: str, name: str, value: Any, *, save: bool = True) -> Path:
-        """Any other JSON file of the scan (captures, QA report), listed in the manifest as key."""
-        path = self.path / name
-        self.writer.write(path, json_bytes(value))
-        self.manifest.files[key] = name
-        if save:
-            self.save()
         return path
 
     def log_event(self, event: str, **fields: Any) -> None:

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 import daemon.scan
+import daemon.store
 from daemon.controller import RigController
 from daemon.errors import ScanRefused
 from daemon.faults import AbortSource, FaultSource
@@ -98,7 +99,7 @@ def test_an_oserror_in_any_phase_aborts_the_scan_on_record_within_5_s(
 def test_an_oserror_while_storing_is_recorded_and_the_rig_goes_idle(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """The probe: EMFILE in the storing steps left the rig in STORING for good."""
-    monkeypatch.setattr(daemon.scan, "trace_bytes", _emfile)
+    monkeypatch.setattr(daemon.store, "trace_bytes", _emfile)
     report, controller, _ = run_scan(tmp_path)
     assert controller.machine.state is ScanState.IDLE
     assert report.outcome is ScanOutcome.COMPLETED and report.captured == RIG.n_poses

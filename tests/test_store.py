@@ -71,11 +71,11 @@ def test_scan_id_must_be_opaque_token(tmp_path, rig):
 
 def test_full_lifecycle_writes_every_file(tmp_path, rig):
     folder = _planned(ScanStore(tmp_path), rig)
-    folder.write_plan({"focus_mm": [500.0] * rig.n_poses}, {"in_focus_fraction": 0.8})
-    folder.write_mesh(b"ply\nformat ascii 1.0\nend_header\n")
-    folder.write_trace(np.arange(5.0), np.arange(5.0) * 3)
+    asyncio.run(folder.write_plan({"focus_mm": [500.0] * rig.n_poses}, {"in_focus_fraction": 0.8}))
+    asyncio.run(folder.write_mesh(b"ply\nformat ascii 1.0\nend_header\n"))
+    asyncio.run(folder.write_trace(np.arange(5.0), np.arange(5.0) * 3))
     folder.write_depth_sweep({"frames": 120})
-    folder.write_json("qa", "qa.json", {"captured": 1, "angle_error_deg": [0.01, float("inf")]})
+    asyncio.run(folder.write_json("qa", "qa.json", {"captured": 1, "angle_error_deg": [0.01, float("inf")]}))
     folder.log_event("capture_start", angle_index=0)
     folder.log_event("capture_end", value=float("nan"))
     folder.record_capture(2, 7, sensor_timestamp_ns=123, host_time_s=4.5, actual_angle_deg=48.01,
@@ -134,7 +134,7 @@ def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
     live.update_image(0, 0, status="pulled", file="images/cam0-a00.jpg", size_bytes=3,
                       sha256=hashlib.sha256(b"abc").hexdigest())
     (live.path / ".manifest.json.tmp").write_bytes(b"{torn")
-    live.write_trace(np.array([0.0, 0.1]), np.array([-40.0, -39.1]))  # saved mid-scan, not yet listed
+    asyncio.run(live.write_trace(np.array([0.0, 0.1]), np.array([-40.0, -39.1])))  # saved mid-scan, not yet listed
     del live.manifest.files["trace"]
     live.save()
     done = store.create(rig, scan_id="done", now=NOW)
@@ -292,7 +292,7 @@ def test_real_enospc_on_a_tiny_tmpfs(tiny_tmpfs, rig):
     folder.record_capture(0, 0, sensor_timestamp_ns=5, host_time_s=1.0, actual_angle_deg=-40.0,
                           phone_path="/p.jpg", size_bytes=1)
     with pytest.raises(StoreFull) as info:
-        folder.write_mesh(os.urandom(800_000))
+        asyncio.run(folder.write_mesh(os.urandom(800_000)))
     assert info.value.path.endswith("mesh.ply") and info.value.bytes_needed == 800_000
     assert not list(folder.path.glob(".*.tmp"))
     # fill the disk to the last block, then the scan still ends with a valid manifest
@@ -330,7 +330,7 @@ def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
     assert "complete" in capsys.readouterr().out
 
     image.write_bytes(b"pixelz")  # bit rot
-    folder.write_plan({}, {})
+    asyncio.run(folder.write_plan({}, {}))
     (folder.path / "plan.json").unlink()
     live = _planned(store, rig, "live")
     assert live.check() == ["still marked in progress (running, or left by a killed daemon)"]
