@@ -29,7 +29,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -268,7 +268,7 @@ class LoopbackRig:
     def start_phone(self, index: int) -> None:
         """Start (or restart, on the port it had) phone ``index``'s simulator: a phone plugged in."""
         phone = self.rig.phones[index]
-        port = self.phone_ports.get(index) or _free_port()
+        port = self.phone_ports.get(index) or free_port()
         proc = self._spawn(phone.id, _tbp("sim", "phone", "--port", str(port), "--serial", phone.serial,
                                           "--camera", phone.id, "--seed", str(index), "--rig", str(self.rig_path),
                                           "--body-seed", str(self.body_seed),
@@ -294,7 +294,7 @@ class LoopbackRig:
     def write_hardware(self, recordings: Path) -> Path:
         phones = {}
         for index, phone in enumerate(self.rig.phones):
-            port = self.phone_ports.get(index) or _free_port()
+            port = self.phone_ports.get(index) or free_port()
             self.phone_ports[index] = port
             phones[phone.id] = {"tcp": f"127.0.0.1:{port}"}
         config = {
@@ -387,16 +387,11 @@ class LoopbackRig:
             self.notify.close()
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return int(probe.getsockname()[1])
-
-
-@contextlib.contextmanager
-def loopback_rig(root: Path, **kwargs: Any) -> Iterator[LoopbackRig]:
-    with LoopbackRig(root, **kwargs) as rig:
-        yield rig
 
 
 def scan_from_panel(rig: LoopbackRig, *, ready_timeout_s: float = 180.0, scan_timeout_s: float = 900.0) -> Path:

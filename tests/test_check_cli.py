@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +15,7 @@ import yaml
 
 from cli import main
 from planner.rig import DEFAULT_RIG_PATH, load_rig
+from sim.loopback import free_port
 
 RIG = load_rig(DEFAULT_RIG_PATH)
 
@@ -52,7 +52,7 @@ class Simulators:
         self.closers.append(self.bridge.close)
         for phone in RIG.phones:
             if phone.id in self.missing_phones:
-                self.phone_ports[phone.id] = _free_port()
+                self.phone_ports[phone.id] = free_port()
                 continue
             sim = SimulatedPhone(phone.serial, optics=RIG.optics)
             server = await asyncio.start_server(sim.accept, "127.0.0.1", 0)
@@ -98,12 +98,6 @@ def _closer(server: asyncio.Server) -> Any:
         server.close()
 
     return close
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 @pytest.fixture

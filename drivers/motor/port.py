@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 from collections.abc import Awaitable, Callable
 from typing import Any, Protocol, runtime_checkable
@@ -119,10 +120,8 @@ async def _bridge_answers(host: str, port: int, name: str) -> None:
         raise CanBusError(name, "closed", f"socketcand bridge {host}:{port} does not answer: "
                                           f"{exc.strerror or exc}") from exc
     writer.close()
-    try:
+    with contextlib.suppress(OSError):  # the probe's own hang-up
         await writer.wait_closed()
-    except OSError:
-        pass
 
 
 class _Reader(can.AsyncBufferedReader):
