@@ -18,24 +18,93 @@ from daemon.errors import BeamTimeout
 
 if TYPE_CHECKING:
     from drivers.motor.samples import BeamSample
+    from planner.rig import Rig
 
 log = structlog.get_logger("daemon.beam")
+
+
+TRACE_KEPT_S = 3600.0
+"""The tracker keeps the last hour of encoder samples: every scan's trace, bounded memory."""
+
+
+def trace_capacity(rig: Rig) -> int:
+    """Rows of encoder trace the tracker keeps for ``rig``'s position rate (:data:`TRACE_KEPT_S`)."""
+    return max(2, int(rig.motor.position_rate_hz * TRACE_KEPT_S))
+
+
+class TraceBuffer:
+    """The encoder trace as rows (time_s, angle_deg, speed_deg_s) in a NumPy array, bounded.
+
+    The drive sends its position at ``position_rate_hz`` (200 Hz) whether or not the beam moves,
+    for as long as the service runs: a Python list would grow by gigabytes a day and hand every
+    lookup an O(n) conversion. Rows are numbered from the service's start (:attr:`end`); only the
+    newest ``capacity`` rows are kept (:func:`trace_capacity`: an hour, far longer than a scan), so once
+    the array is full the older half is dropped in one copy.
+    """
+
+    def __init__(self, capacity: int = 1 << 19) -> None:
+        if capacity < 2:
+            raise ValueError(f"trace capacity must be at least 2 rows, got {capacity}")
+        self.capacity = capacity
+        self._rows = np.empty((min(capacity, 4096), 3))
+        self._first = 0  # number of the oldest kept row
+        self._count = 0  # rows kept
+
+    @property
+    def end(self) -> int:
+        """Number of the next row (rows appended since the start)."""
+        return self._first + self._count
+
+    @property
+    def first(self) -> int:
+        """Number of the oldest row still kept."""
+        return self._first
+
+    def append(self, time_s: float, angle_deg: float, speed_deg_s: float) -> None:
+        if self._count == len(self._rows):
+            if len(self._rows) < self.capacity:  # grow by doubling up to the capacity
+                grown = np.empty((min(2 * len(self._rows), self.capacity), 3))
+                grown[: self._count] = self._rows[: self._count]
+                self._rows = grown
+            else:  # full: keep the newer half
+                drop = self._count // 2
+                self._rows[: self._count - drop] = self._rows[drop: self._count]
+                self._first += drop
+                self._count -= drop
+        self._rows[self._count] = (time_s, angle_deg, speed_deg_s)
+        self._count += 1
+
+    def rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """(N, 3) copy of rows ``start:stop`` (row numbers; rows already dropped are not returned)."""
+        stop = self.end if stop is None else min(stop, self.end)
+        lo, hi = max(start, self._first) - self._first, max(stop, self._first) - self._first
+        return self._rows[lo:max(lo, hi)].copy()
+
+    def interpolate(self, time_s: float | np.ndarray, column: int) -> float | np.ndarray:
+        """``column`` (1 angle, 2 speed) at time(s) ``time_s``, linear between rows; the first or
+        last kept value outside them. O(log n): only the rows around the asked times are read."""
+        times = self._rows[: self._count, 0]
+        if self._count == 0:
+            raise ValueError("the encoder trace is empty")
+        t = np.asarray(time_s, dtype=float)
+        lo = max(int(np.searchsorted(times, np.min(t), "right")) - 1, 0)
+        hi = min(int(np.searchsorted(times, np.max(t), "left")) + 1, self._count)
+        return np.interp(time_s, times[lo:hi], self._rows[lo:hi, column])
 
 
 class BeamTracker:
     """Subscribes to ``drive.samples()`` and keeps the encoder trace of the current run.
 
     The trace is (time_s, angle_deg, speed_deg_s) per sample, the event-loop clock and the
-    unwrapped beam angle; :meth:`mark` starts a fresh trace segment for each phase of a scan.
+    unwrapped beam angle (:class:`TraceBuffer`); :meth:`mark` starts a fresh trace segment for
+    each phase of a scan.
     """
 
-    def __init__(self, drive: Any, *, name: str = "beam") -> None:
+    def __init__(self, drive: Any, *, name: str = "beam", capacity: int = 1 << 19) -> None:
         self.drive = drive
         self.name = name
         self.latest: BeamSample | None = None
-        self._times: list[float] = []
-        self._angles: list[float] = []
-        self._speeds: list[float] = []
+        self._trace = TraceBuffer(capacity)
         self._waiters: list[tuple[float, int, asyncio.Future[BeamSample]]] = []
         self._task: asyncio.Task[None] | None = None
         self._new_sample = asyncio.Event()
@@ -59,9 +128,7 @@ class BeamTracker:
     async def _follow(self) -> None:
         async for sample in self.drive.samples():
             self.latest = sample
-            self._times.append(sample.time_s)
-            self._angles.append(sample.angle_deg)
-            self._speeds.append(sample.speed_deg_s)
+            self._trace.append(sample.time_s, sample.angle_deg, sample.speed_deg_s)
             self._new_sample.set()
             if self._waiters:
                 self._resolve(sample)
@@ -81,22 +148,19 @@ class BeamTracker:
 
     def mark(self) -> int:
         """Index of the next sample: slice the trace from here with :meth:`trace`."""
-        return len(self._times)
+        return self._trace.end
 
     def trace(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """(N, 3) float [time_s, angle_deg, speed_deg_s] of samples ``start:stop``."""
-        sl = slice(start, stop)
-        return np.column_stack(
-            [np.asarray(self._times[sl]), np.asarray(self._angles[sl]), np.asarray(self._speeds[sl])]
-        ).reshape(-1, 3)
+        return self._trace.rows(start, stop)
 
     def angle_at(self, time_s: float | np.ndarray) -> float | np.ndarray:
         """Beam angle (deg) at event-loop time(s), linear between encoder samples."""
-        return np.interp(time_s, self._times, self._angles)
+        return self._trace.interpolate(time_s, 1)
 
     def speed_at(self, time_s: float | np.ndarray) -> float | np.ndarray:
         """Beam speed (deg/s) at event-loop time(s), linear between encoder samples."""
-        return np.interp(time_s, self._times, self._speeds)
+        return self._trace.interpolate(time_s, 2)
 
     # ------------------------------------------------------------------ live
 

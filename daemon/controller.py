@@ -11,7 +11,7 @@ from typing import Any
 
 import structlog
 
-from daemon.beam import BeamTracker
+from daemon.beam import BeamTracker, trace_capacity
 from daemon.bringup import BringUp
 from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
@@ -54,7 +54,7 @@ class RigController:
         self.settings = settings
         self.machine = machine or ScanStateMachine()
         self.safety = SafetyMonitor(self.machine, hardware.drive)
-        self.tracker = BeamTracker(hardware.drive)
+        self.tracker = BeamTracker(hardware.drive, capacity=trace_capacity(rig))
         self.scan_task: asyncio.Task[ScanReport] | None = None
         self.current: Scan | None = None
         self.last_report: ScanReport | None = None
