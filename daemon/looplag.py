@@ -10,6 +10,7 @@ logged as ``loop_lag`` with the state it happened in; leaving a state logs that 
 from __future__ import annotations
 
 import asyncio
+import gc
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,6 +18,21 @@ from dataclasses import dataclass, field
 import structlog
 
 log = structlog.get_logger("daemon.looplag")
+
+
+def freeze_startup_heap() -> int:
+    """Move every object alive now (modules, classes, drivers, the rig) out of the collector's
+    reach; returns how many. Call once the daemon is built, before it serves.
+
+    A full (generation 2) collection walks every tracked object, and the daemon's imports alone
+    are 80,000 to 140,000: about 20 ms on a quiet core, measured at 67-178 ms with the other core busy,
+    on the loop, at whatever moment allocation tips the threshold (a capture, a heartbeat). What
+    lives from the start lives until the end, so collecting it is wasted work: frozen, a full
+    collection walks only what scans made since.
+    """
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
 
 
 @dataclass

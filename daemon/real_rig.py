@@ -125,6 +125,7 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
     from daemon.controller import RigController
     from daemon.notify import SystemdNotifier
     from daemon.scan import ScanSettings
+    from daemon.looplag import freeze_startup_heap
     from daemon.service import RigService
     from daemon.store import ScanStore
 
@@ -141,4 +142,6 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                              notifier=SystemdNotifier.from_env())
         if attach is not None:
             attach(service)
+        frozen = freeze_startup_heap()
+        log.info("startup_heap_frozen", objects=frozen)
         return await service.run(stop)

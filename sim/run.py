@@ -96,6 +96,7 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
     from daemon.notify import SystemdNotifier
+    from daemon.looplag import freeze_startup_heap
     from daemon.service import RigService
     from planner.plan import load_subject_mesh
 
@@ -115,4 +116,6 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                              notifier=SystemdNotifier.from_env())
         if attach is not None:
             attach(service)
+        frozen = freeze_startup_heap()
+        log.info("startup_heap_frozen", objects=frozen)
         return await service.run(stop)

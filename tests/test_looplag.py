@@ -70,3 +70,17 @@ def test_sweep_to_capture_counts_compute_once_on_either_clock(rig_s: float, tsdf
                         compute_s={"tsdf": tsdf_s, "planning": plan_s}, compute_stops_clock=virtual)
     expected = rig_s + (tsdf_s + plan_s if virtual else 0.0)
     assert abs(report.sweep_to_capture_s - expected) < 1e-9
+
+
+def test_the_startup_heap_is_frozen_so_full_collections_skip_it() -> None:
+    import gc
+
+    from daemon.looplag import freeze_startup_heap
+
+    kept = [object() for _ in range(10)]  # alive at start-up: frozen with the rest
+    try:
+        frozen = freeze_startup_heap()
+        assert frozen == gc.get_freeze_count() > len(kept)
+        assert not any(o is kept for o in gc.get_objects())  # the collector no longer walks them
+    finally:
+        gc.unfreeze()
