@@ -18,6 +18,8 @@ import dataclasses
 import mmap
 import multiprocessing
 import os
+import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
@@ -37,6 +39,13 @@ def compute_pool() -> ProcessPoolExecutor:
                                initializer=_warm_up)
     pool.submit(_started)
     return pool
+
+
+def timed(func: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """Run ``func`` (in the executor) and measure its duration there: compute time, not rig time."""
+    started = time.perf_counter()
+    result = func(*args)
+    return result, time.perf_counter() - started
 
 
 def _started() -> None:

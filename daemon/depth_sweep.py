@@ -8,12 +8,16 @@ a sweep recording at the angle it was recorded at (``DepthFrame.beam_angle_deg``
 replays as the sweep it was whatever its playback pace. A camera silent for ``FRAME_TIMEOUT_S``
 ends the sweep with ``DepthStreamStalled``; a recording that ends before the beam does is done.
 Whatever ends the sweep, every camera is stopped before ``run()`` returns or raises.
+
+With a ``sink`` (the scan's TSDF, daemon/fusion.py), frames are posed while the beam turns:
+every ``FEED_PERIOD_S`` the kept frames the encoder trace already covers go to the sink, so the
+fusion keeps up with the sweep; the few posed at its end are left in ``SweepRecord.unfed``.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,6 +47,8 @@ class SweepRecord:
     angle_source: dict[str, str]
     started_s: float
     ended_s: float
+    unfed: tuple[PosedDepth, ...] = ()
+    """Posed frames the sink has not had yet (each camera's in time order; all of them without a sink)."""
 
 
 class DepthSweeper:
@@ -54,15 +60,23 @@ class DepthSweeper:
     """Longer than a RealSense stream's own stop timeout, so its typed error arrives first."""
     FRAME_TIMEOUT_S = 1.0
     """A camera silent this long during the sweep has stalled."""
+    FEED_PERIOD_S = 0.5
+    """How often posed frames go to the sink during the sweep."""
 
     def __init__(self, rig: Rig, drive: Any, tracker: BeamTracker, cameras: Sequence[DepthCamera],
-                 calibration: Calibration | None = None) -> None:
+                 calibration: Calibration | None = None,
+                 sink: Callable[[list[PosedDepth]], Awaitable[None]] | None = None) -> None:
         self.rig = rig
         self.calibration = calibration
         self.drive = drive
         self.tracker = tracker
         self.cameras = list(cameras)
-        self._kept: list[DepthFrame] = []
+        self.sink = sink
+        self._unposed: list[DepthFrame] = []
+        self._posed: list[PosedDepth] = []
+        self._fed = 0  # self._posed[:_fed] went to the sink
+        self._outside = 0
+        self._source: dict[str, str] = {}
         self._seen: dict[str, int] = {}
         self._spacing = AngleSpacing(self.SPACING_DEG)
 
@@ -72,11 +86,15 @@ class DepthSweeper:
         stopped; a camera that also fails to stop is named in the error's notes."""
         loop = asyncio.get_running_loop()
         sweep = self.rig.depth_sweep
-        self._kept, self._seen = [], {c.id: 0 for c in self.cameras}
+        self._unposed, self._posed, self._fed, self._outside = [], [], 0, 0
+        self._source = {c.id: "encoder" for c in self.cameras}
+        self._seen = {c.id: 0 for c in self.cameras}
         self._spacing = AngleSpacing(self.SPACING_DEG)
         mark = self.tracker.mark()
         started = loop.time()
         tasks: list[asyncio.Task[Any]] = []
+        feeding = asyncio.Event()  # set: the beam stopped, the feeder ends after its current batch
+        feeder: asyncio.Task[None] | None = None
         try:
             for camera in self.cameras:
                 await camera.start()
@@ -84,11 +102,17 @@ class DepthSweeper:
             motion = asyncio.create_task(self.drive.move_to(
                 sweep.end_deg, sweep.speed_deg_s, self.rig.motor.max_acceleration_deg_s2), name="sweep-motion")
             tasks.append(motion)
+            if self.sink is not None:
+                feeder = asyncio.create_task(self._feed(self.sink, mark, feeding), name="sweep-feed")
+                tasks.append(feeder)
             pending: set[asyncio.Task[Any]] = set(tasks)
             while not motion.done():
                 done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
                 for task in done:
-                    task.result()  # a stalled camera or a drive error ends the sweep here
+                    task.result()  # a stalled camera, a drive error or a failed fusion ends the sweep here
+            feeding.set()
+            if feeder is not None:
+                await feeder  # its batch in flight is fused; nothing is fed twice or concurrently
         except BaseException as error:
             await self._wind_down(tasks, error)
             raise
@@ -116,7 +140,41 @@ class DepthSweeper:
             if angle is None or not np.any(frame.depth):
                 continue
             if self._spacing.keep(camera.id, angle):
-                self._kept.append(frame)
+                self._unposed.append(frame)
+
+    async def _feed(self, sink: Callable[[list[PosedDepth]], Awaitable[None]], mark: int,
+                    stopped: asyncio.Event) -> None:
+        """Every FEED_PERIOD_S until ``stopped``: pose what the trace covers, hand it to the sink."""
+        while not stopped.is_set():
+            try:
+                async with asyncio.timeout(self.FEED_PERIOD_S):
+                    await stopped.wait()
+                return
+            except TimeoutError:
+                pass
+            trace = self.tracker.trace(mark)
+            if len(trace) >= 2:
+                self._pose_ready(BeamTrace.from_columns(trace[:, 0], trace[:, 1]), final=False)
+            batch = self._posed[self._fed:]
+            if batch:
+                self._fed = len(self._posed)
+                await sink(batch)
+
+    def _pose_ready(self, beam: BeamTrace, *, final: bool) -> None:
+        """Pose the kept frames ``beam`` covers (recorded ones at their own angle); a frame before
+        the trace, or at the end (``final``) after it, is dropped; the rest wait for more trace."""
+        waiting: list[DepthFrame] = []
+        for frame in self._unposed:
+            if frame.beam_angle_deg is not None:
+                self._posed.append(pose_frame(frame, frame.beam_angle_deg, self.rig, self.calibration))
+                self._source[frame.camera_id] = "recording"
+            elif beam.covers(frame.timestamp_s):
+                self._posed.append(tag_frame(frame, beam, self.rig, self.calibration))
+            elif final or frame.timestamp_s < beam.start_s:
+                self._outside += 1  # streamed before the first or after the last encoder sample
+            else:
+                waiting.append(frame)
+        self._unposed = waiting
 
     async def _wind_down(self, tasks: list[asyncio.Task[Any]], error: BaseException | None) -> None:
         """Cancel what still runs and stop every camera (idempotent stops), even those never started."""
@@ -145,23 +203,14 @@ class DepthSweeper:
 
     def _pose(self, trace: np.ndarray, started: float, ended: float) -> SweepRecord:
         beam = BeamTrace.from_columns(trace[:, 0], trace[:, 1])
-        posed: list[PosedDepth] = []
-        source: dict[str, str] = {c.id: "encoder" for c in self.cameras}
-        outside = 0
-        for frame in self._kept:
-            if frame.beam_angle_deg is not None:
-                posed.append(pose_frame(frame, frame.beam_angle_deg, self.rig, self.calibration))
-                source[frame.camera_id] = "recording"
-            elif beam.covers(frame.timestamp_s):
-                posed.append(tag_frame(frame, beam, self.rig, self.calibration))
-            else:
-                outside += 1  # streamed before the first or after the last encoder sample
-        posed.sort(key=lambda f: (f.camera_id, f.timestamp_s))
+        self._pose_ready(beam, final=True)
+        unfed = sorted(self._posed[self._fed:], key=lambda f: (f.camera_id, f.timestamp_s))
+        posed = sorted(self._posed, key=lambda f: (f.camera_id, f.timestamp_s))
         sweep = Sweep(tuple(posed), beam)
         counts = sweep.per_camera()
         for camera in self.cameras:
             if counts.get(camera.id, 0) < self.MIN_FRAMES_PER_CAMERA:
                 raise SweepFailed(camera.id, counts.get(camera.id, 0), self.MIN_FRAMES_PER_CAMERA)
-        if outside:
-            log.info("depth_sweep_frames_outside_trace", frames=outside)
-        return SweepRecord(sweep, trace, dict(self._seen), source, started, ended)
+        if self._outside:
+            log.info("depth_sweep_frames_outside_trace", frames=self._outside)
+        return SweepRecord(sweep, trace, dict(self._seen), dict(self._source), started, ended, tuple(unfed))

@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import time
 from collections.abc import Awaitable, Callable, Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,10 +23,11 @@ import structlog
 from daemon.atomic import StoreError
 from daemon.beam import BeamTracker
 from daemon.capture import CaptureRecord, CaptureRunner
-from daemon.compute import SharedFrames, release, share_frames, unshare_frames
+from daemon.compute import timed
 from daemon.depth_sweep import DepthSweeper
 from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
+from daemon.fusion import FusionSession
 from daemon.hardware import RigHardware
 from daemon.manifest import ImageStatus, ScanEnd
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
@@ -81,6 +81,7 @@ class ScanReport:
     min_speed_ratio: float | None = None
     phase_s: dict[str, float] = field(default_factory=dict)
     compute_s: dict[str, float] = field(default_factory=dict)
+    """Compute time per step, measured where it ran: tsdf_during_sweep, tsdf, planning."""
     compute_stops_clock: bool = False
     """The loop's clock stands still during compute (the virtual-time loop): rig-time phases then
     exclude the compute time, and sweep_to_capture_s adds it back."""
@@ -91,10 +92,14 @@ class ScanReport:
         """The causes in words (None for a completed scan)."""
         return "; ".join(map(str, self.causes)) or None
 
+    AFTER_SWEEP = ("tsdf", "planning")
+    """The compute steps between the end of the sweep and the capture (``tsdf``: the last frames
+    and the mesh; ``tsdf_during_sweep`` ran while the beam turned)."""
+
     @property
     def sweep_to_capture_s(self) -> float:
         """End of the depth sweep to the start of the capture rotation, compute included."""
-        compute = sum(self.compute_s.values()) if self.compute_stops_clock else 0.0
+        compute = sum(self.compute_s.get(k, 0.0) for k in self.AFTER_SWEEP) if self.compute_stops_clock else 0.0
         return self.phase_s.get("sweep_to_capture", 0.0) + compute
 
     def as_dict(self) -> dict[str, Any]:
@@ -109,46 +114,6 @@ class ScanReport:
             "compute_s": dict(self.compute_s), "sweep_to_capture_s": self.sweep_to_capture_s,
             "errors": list(self.errors),
         }
-
-
-def _timed(func: Callable[..., Any], *args: Any) -> tuple[Any, float]:
-    """Run ``func`` in a worker thread and measure its real duration (compute time, not rig time)."""
-    start = time.perf_counter()
-    result = func(*args)
-    return result, time.perf_counter() - start
-
-
-def _reconstruct(frames: list[Any], rig: Rig) -> Any:
-    import dataclasses
-
-    from planner.tsdf import fuse
-
-    fused = fuse(frames, rig)
-    return dataclasses.replace(fused, mesh=canonical_mesh(fused.mesh))
-
-
-def _reconstruct_shared(shared: SharedFrames, rig: Rig) -> Any:
-    """In a worker process: the sweep's images come out of shared memory (daemon/compute.py)."""
-    return _reconstruct(unshare_frames(shared), rig)
-
-
-def canonical_mesh(mesh: Any) -> Any:
-    """The same surface with vertices and faces in a canonical order.
-
-    Open3D's parallel voxel hash map hands out blocks in a run-dependent order; sorting makes
-    the planner's seeded surface sampling, and so the whole scan, reproducible.
-    """
-    import trimesh
-
-    vertices = np.asarray(mesh.vertices, dtype=float)
-    order = np.lexsort(vertices.T[::-1])
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    faces = rank[np.asarray(mesh.faces)]
-    first = np.argmin(faces, axis=1)
-    faces = np.take_along_axis(faces, (np.arange(3)[None, :] + first[:, None]) % 3, axis=1)
-    faces = faces[np.lexsort(faces.T[::-1])]
-    return trimesh.Trimesh(vertices[order], faces, process=False)
 
 
 def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None) -> Any:
@@ -394,30 +359,40 @@ class Scan:
         a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
         self._mark("prepared")
 
-        # DEPTH_SWEEP
+        # DEPTH_SWEEP, fusing the frames into the TSDF as the beam turns
         self.safety.expect_samples = True
         self.machine.transition(ScanState.DEPTH_SWEEP, "beam at the sweep start")
-        sweep = await DepthSweeper(rig, drive, self.tracker, self.hw.depth_cameras, self.calibration).run()
-        self._mark("sweep_end")
-        self.folder.write_depth_sweep({
-            "frames_used": len(sweep.sweep.frames), "frames_seen": sweep.frames_seen,
-            "start_deg": rig.depth_sweep.start_deg, "end_deg": rig.depth_sweep.end_deg,
-            "duration_s": sweep.ended_s - sweep.started_s,
-        })
+        async with FusionSession(self.settings.executor, rig, self.folder.scan_id) as fusion:
+            sweep = await DepthSweeper(rig, drive, self.tracker, self.hw.depth_cameras, self.calibration,
+                                       sink=fusion.add).run()
+            self._mark("sweep_end")
+            report.compute_s["tsdf_during_sweep"] = fusion.seconds
+            self.folder.write_depth_sweep({
+                "frames_used": len(sweep.sweep.frames), "frames_seen": sweep.frames_seen,
+                "start_deg": rig.depth_sweep.start_deg, "end_deg": rig.depth_sweep.end_deg,
+                "duration_s": sweep.ended_s - sweep.started_s,
+                "fused_during_sweep": len(sweep.sweep.frames) - len(sweep.unfed),
+            })
 
-        # RECONSTRUCTING, while the beam repositions to the capture run-up.
-        self.machine.transition(ScanState.RECONSTRUCTING, "depth sweep done",
-                                frames=len(sweep.sweep.frames))
-        reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
+            # RECONSTRUCTING (the last frames, the mesh), while the beam repositions to the capture run-up.
+            self.machine.transition(ScanState.RECONSTRUCTING, "depth sweep done",
+                                    frames=len(sweep.sweep.frames))
+            reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
+            try:
+                await fusion.add(list(sweep.unfed))
+                fused = await fusion.result()
+                report.compute_s["tsdf"] = fusion.seconds - report.compute_s["tsdf_during_sweep"]
+            except BaseException:  # the beam finishes its move, as it does after a planning error
+                await asyncio.gather(reposition, return_exceptions=True)
+                raise
         try:
-            fused, report.compute_s["tsdf"] = await self._fuse(list(sweep.sweep.frames))
             await self.folder.write_mesh(fused.mesh)
 
             # PLANNING
             self.machine.transition(ScanState.PLANNING, "subject mesh ready",
                                     vertices=len(fused.mesh.vertices))
             plan, report.compute_s["planning"] = await loop.run_in_executor(
-                self.settings.executor, _timed, _plan, fused.mesh, rig, self.settings.seed,
+                self.settings.executor, timed, _plan, fused.mesh, rig, self.settings.seed,
                 self.settings.plan_points, self.calibration)
             plan_json = plan.to_json()
             focus = self._reachable(np.asarray(plan.focus_mm, dtype=float))
@@ -456,19 +431,6 @@ class Scan:
             if record.status != "captured":
                 record.status = "missing"
         self.safety.expect_samples = False
-
-    async def _fuse(self, frames: list[Any]) -> tuple[Any, float]:
-        """The TSDF of the sweep, and its compute time; a worker process gets the images through
-        shared memory, never pickled on the loop's interpreter lock."""
-        loop = asyncio.get_running_loop()
-        executor = self.settings.executor
-        if not isinstance(executor, ProcessPoolExecutor):
-            return await loop.run_in_executor(executor, _timed, _reconstruct, frames, self.rig)
-        block, shared = await asyncio.to_thread(share_frames, frames)
-        try:
-            return await loop.run_in_executor(executor, _timed, _reconstruct_shared, shared, self.rig)
-        finally:
-            release(block)
 
     def _reachable(self, focus: np.ndarray) -> np.ndarray:
         """(P,) focus clipped to each phone's lens range: beyond its far end means 'focus far'."""

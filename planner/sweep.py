@@ -185,14 +185,6 @@ class AngleSpacing:
         return True
 
 
-def select_by_spacing(frames: Sequence[PosedDepth], spacing_deg: float) -> list[PosedDepth]:
-    """Per camera, keep frames at least spacing_deg of beam rotation apart (:class:`AngleSpacing`);
-    empty frames are skipped so a later frame can take their place."""
-    spacing = AngleSpacing(spacing_deg)
-    return [f for f in sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s))
-            if f.valid_pixels and spacing.keep(f.camera_id, f.beam_angle_deg)]
-
-
 def observed(points: np.ndarray, frames: Sequence[PosedDepth], tolerance_mm: float = 10.0) -> np.ndarray:
     """(N,) bool: which of (N, 3) world points some frame measured (valid depth within tolerance_mm).
 

@@ -1,7 +1,8 @@
 """TSDF shape estimate: fuse a posed depth sweep into an Open3D VoxelBlockGrid and extract the subject.
 
 Steps: pick frames a fixed beam-angle step apart per camera; integrate them on the CPU (units mm:
-voxel size, truncation and weight threshold from ``rig.tsdf``); extract the zero-level triangle mesh;
+voxel size, truncation and weight threshold from ``rig.tsdf``) as they arrive (:class:`TsdfFusion`;
+the daemon fuses during the sweep); extract the zero-level triangle mesh;
 keep the subject only (inside the scan-volume cylinder, above the floor, largest connected
 component); validate that it is a plausible, fully contained person. The result is a trimesh in mm.
 """
@@ -9,8 +10,9 @@ component); validate that it is a plausible, fully contained person. The result 
 from __future__ import annotations
 
 import math
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +29,7 @@ from planner.shape_errors import (
     SubjectTouchesBoundary,
     TooFewFrames,
 )
-from planner.sweep import PosedDepth, select_by_spacing
+from planner.sweep import AngleSpacing, PosedDepth
 
 log = structlog.get_logger(__name__)
 
@@ -109,45 +111,114 @@ def _mask_outside_volume(depth: np.ndarray, k: np.ndarray, camera_to_world: np.n
     return np.where(keep, depth, 0).astype(depth.dtype)
 
 
-def integrate(frames: Sequence[PosedDepth], rig: Rig) -> object:
-    """Fuse posed frames into a VoxelBlockGrid (mm units); only depth inside the scan volume is used."""
+def _new_grid(rig: Rig) -> object:
+    """An empty VoxelBlockGrid (mm units) on the CPU for ``rig.tsdf``."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    return o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight"),
+        attr_dtypes=(o3c.float32, o3c.float32),
+        attr_channels=((1), (1)),
+        voxel_size=rig.tsdf.voxel_mm,
+        block_resolution=BLOCK_RESOLUTION,
+        block_count=BLOCK_COUNT,
+        device=o3c.Device("CPU:0"),
+    )
+
+
+def _integrate_frame(vbg: object, f: PosedDepth, rig: Rig) -> bool:
+    """Fuse one posed frame (only depth inside the scan volume); False when nothing of it was inside."""
     import open3d as o3d
     import open3d.core as o3c
 
     cfg = rig.tsdf
-    device = o3c.Device("CPU:0")
-    vbg = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight"),
-        attr_dtypes=(o3c.float32, o3c.float32),
-        attr_channels=((1), (1)),
-        voxel_size=cfg.voxel_mm,
-        block_resolution=BLOCK_RESOLUTION,
-        block_count=BLOCK_COUNT,
-        device=device,
+    factor = max(1, int(cfg.voxel_mm * min(f.intrinsics[0, 0], f.intrinsics[1, 1]) / DECIMATION_DEPTH_MM))
+    depth, k = _decimate(f.depth, f.intrinsics, factor)
+    depth = _mask_outside_volume(depth * np.float32(f.depth_unit_mm), k, f.camera_to_world, rig)
+    if np.count_nonzero(depth) < MIN_FRAME_PIXELS:
+        return False
+    image = o3d.t.geometry.Image(o3c.Tensor(depth))
+    intrinsic = o3c.Tensor(k, dtype=o3c.float64)
+    extrinsic = o3c.Tensor(np.linalg.inv(f.camera_to_world), dtype=o3c.float64)
+    depth_max, scale = rig.depth_camera_model.max_range_mm, 1.0
+    blocks = vbg.compute_unique_block_coordinates(  # type: ignore[attr-defined]
+        image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels
     )
-    depth_max = rig.depth_camera_model.max_range_mm
-    integrated = 0
-    for f in frames:
-        factor = max(1, int(cfg.voxel_mm * min(f.intrinsics[0, 0], f.intrinsics[1, 1]) / DECIMATION_DEPTH_MM))
-        depth, k = _decimate(f.depth, f.intrinsics, factor)
-        depth = _mask_outside_volume(depth * np.float32(f.depth_unit_mm), k, f.camera_to_world, rig)
-        if np.count_nonzero(depth) < MIN_FRAME_PIXELS:
-            continue
-        integrated += 1
-        image = o3d.t.geometry.Image(o3c.Tensor(depth))
-        intrinsic = o3c.Tensor(k, dtype=o3c.float64)
-        extrinsic = o3c.Tensor(np.linalg.inv(f.camera_to_world), dtype=o3c.float64)
-        scale = 1.0
-        blocks = vbg.compute_unique_block_coordinates(
-            image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels
-        )
-        vbg.integrate(blocks, image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels)
-    if integrated == 0:
-        raise NoSubject(
-            f"none of {len(frames)} frames measured anything within radius {cfg.volume_radius_mm:g} mm "
-            f"and height {cfg.volume_height_mm:g} mm above the floor"
-        )
-    return vbg
+    vbg.integrate(blocks, image, intrinsic, extrinsic, scale, depth_max, cfg.truncation_voxels)  # type: ignore[attr-defined]
+    return True
+
+
+class TsdfFusion:
+    """A TSDF fused frame by frame as the sweep delivers them; :meth:`result` extracts the subject.
+
+    Frames are chosen as :func:`fuse` chooses them (per camera, :data:`FRAME_SPACING_DEG` of beam
+    rotation apart, empty frames skipped), so each camera's frames must come in time order; the
+    cameras may interleave. One fusion is used from one thread at a time (a lock makes sure).
+    """
+
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self.offered = 0
+        self.per_camera: dict[str, int] = {}
+        self.integrated = 0
+        self.integrate_s = 0.0
+        self._spacing = AngleSpacing(FRAME_SPACING_DEG)
+        self._vbg: object | None = None
+        self._lock = threading.Lock()
+
+    def add(self, frames: Iterable[PosedDepth]) -> int:
+        """Fuse the chosen ones of ``frames``; returns how many were chosen."""
+        with self._lock:
+            started = time.perf_counter()
+            chosen = 0
+            for f in frames:
+                self.offered += 1
+                if not f.valid_pixels or not self._spacing.keep(f.camera_id, f.beam_angle_deg):
+                    continue
+                chosen += 1
+                self.per_camera[f.camera_id] = self.per_camera.get(f.camera_id, 0) + 1
+                if self._vbg is None:
+                    self._vbg = _new_grid(self.rig)
+                self.integrated += _integrate_frame(self._vbg, f, self.rig)
+            self.integrate_s += time.perf_counter() - started
+            return chosen
+
+    def result(self, *, validate: bool = True) -> TsdfResult:
+        """The subject's surface mesh (mm) from the frames fused so far.
+
+        validate=False skips the person-size and containment checks (analytic test shapes); a
+        missing subject and too few frames are refused either way.
+        """
+        with self._lock:
+            return self._result(validate)
+
+    def _result(self, validate: bool) -> TsdfResult:
+        cfg = self.rig.tsdf
+        chosen = sum(self.per_camera.values())
+        if chosen < MIN_FRAMES:
+            raise TooFewFrames(chosen, MIN_FRAMES, dict(self.per_camera))
+        if self.integrated == 0 or self._vbg is None:
+            raise NoSubject(
+                f"none of {self.offered} frames measured anything within radius {cfg.volume_radius_mm:g} mm "
+                f"and height {cfg.volume_height_mm:g} mm above the floor"
+            )
+        t1 = time.perf_counter()
+        tmesh = self._vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold)  # type: ignore[attr-defined]
+        vertices = tmesh.vertex.positions.numpy().astype(np.float64)
+        triangles = tmesh.triangle.indices.numpy().astype(np.int64)
+        t2 = time.perf_counter()
+        if len(triangles) == 0:
+            raise NoSubject(f"the fused volume holds no surface ({chosen} frames)")
+        subject = _subject(vertices, triangles, self.rig)
+        if validate:
+            _validate(subject, self.rig)
+        t3 = time.perf_counter()
+        timings = {"integrate": self.integrate_s, "extract": t2 - t1, "clean": t3 - t2,
+                   "total": self.integrate_s + t3 - t1}
+        log.info("tsdf.fused", frames=chosen, vertices=len(subject.vertices),
+                 **{f"{k}_s": round(v, 3) for k, v in timings.items()})
+        return TsdfResult(subject, chosen, dict(self.per_camera), timings)
 
 
 def _used(indices: np.ndarray, count: int) -> np.ndarray:
@@ -286,30 +357,12 @@ def _validate(subject: trimesh.Trimesh, rig: Rig) -> None:
 
 
 def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True) -> TsdfResult:
-    """Fuse a depth sweep into the subject's surface mesh (mm).
+    """Fuse a whole depth sweep into the subject's surface mesh (mm): :class:`TsdfFusion` with
+    every frame at once, each camera's in time order.
 
     validate=False skips the person-size and containment checks (analytic test shapes); a missing
     subject and too few frames are refused either way.
     """
-    t0 = time.perf_counter()
-    chosen = select_by_spacing(frames, FRAME_SPACING_DEG)
-    per_camera: dict[str, int] = {}
-    for f in chosen:
-        per_camera[f.camera_id] = per_camera.get(f.camera_id, 0) + 1
-    if len(chosen) < MIN_FRAMES:
-        raise TooFewFrames(len(chosen), MIN_FRAMES, per_camera)
-    vbg = integrate(chosen, rig)
-    t1 = time.perf_counter()
-    tmesh = vbg.extract_triangle_mesh(weight_threshold=rig.tsdf.weight_threshold)
-    vertices = tmesh.vertex.positions.numpy().astype(np.float64)
-    triangles = tmesh.triangle.indices.numpy().astype(np.int64)
-    t2 = time.perf_counter()
-    if len(triangles) == 0:
-        raise NoSubject(f"the fused volume holds no surface ({len(chosen)} frames)")
-    subject = _subject(vertices, triangles, rig)
-    if validate:
-        _validate(subject, rig)
-    t3 = time.perf_counter()
-    timings = {"integrate": t1 - t0, "extract": t2 - t1, "clean": t3 - t2, "total": t3 - t0}
-    log.info("tsdf.fused", frames=len(chosen), vertices=len(subject.vertices), **{f"{k}_s": round(v, 3) for k, v in timings.items()})
-    return TsdfResult(subject, len(chosen), per_camera, timings)
+    fusion = TsdfFusion(rig)
+    fusion.add(sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s)))
+    return fusion.result(validate=validate)

@@ -60,3 +60,41 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     assert [(c, s) for c, s, _ in got] == [(f.camera_id, int(f.depth.astype(np.int64).sum())) for f in frames]
     assert {pid for _, _, pid in got} != {os.getpid()}  # another process
     assert niceness >= os.nice(0) + 10  # below the daemon's priority
+
+
+def _open_sessions() -> int:
+    """Runs in the worker process."""
+    from daemon.fusion import _OPEN
+
+    return len(_OPEN)
+
+
+def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh() -> None:
+    """daemon/fusion.py: the TSDF lives in the worker between jobs; images go through shared memory."""
+    import asyncio
+
+    from daemon.fusion import _OPEN, FusionSession
+    from drivers.sim.depth import simulate_sweep
+    from planner.mesh_metrics import shape_metrics
+    from planner.tsdf import fuse
+    from tests.depth_helpers import cylinder, small_rig
+
+    rig = small_rig(scale=2)
+    frames = sorted(simulate_sweep(cylinder(150.0, 1700.0), rig, seed=0, frame_spacing_deg=9.0).frames,
+                    key=lambda f: f.timestamp_s)
+
+    async def fused(pool: object) -> object:
+        async with FusionSession(pool, rig, "scan-1") as fusion:
+            for start in range(0, len(frames), 7):
+                await fusion.add(frames[start:start + 7])
+            return await fusion.result(), fusion.seconds
+
+    with compute_pool() as pool:
+        live, seconds = asyncio.run(fused(pool))
+        left = pool.submit(_open_sessions).result(timeout=30)  # the worker keeps nothing once it ends
+    whole = fuse(frames, rig)
+    assert live.per_camera == whole.per_camera and seconds > 0 and left == 0
+    assert "scan-1" not in _OPEN  # it lived in the worker, never here
+    metrics = shape_metrics(whole.mesh, live.mesh, samples=20_000)
+    assert metrics.true_to_estimate_mean_mm < 0.05 and metrics.estimate_to_true_mean_mm < 0.05
+    assert not [p for p in SHM_DIR.glob("psm_*")]  # every batch's block released

@@ -21,7 +21,8 @@ from drivers.motor.samples import BeamSample
 from drivers.sim.depth import DepthFaults, SimulatedDepthCamera
 from planner.poses import depth_camera_pose
 from planner.shape_errors import BadTrace, FrameOutsideTrace, UnknownDepthCamera
-from planner.sweep import BeamTrace, observed, select_by_spacing, tag_frame, tag_frames
+from planner.sweep import BeamTrace, observed, tag_frame, tag_frames
+from planner.tsdf import FRAME_SPACING_DEG, TsdfFusion
 from sim.clock import run_virtual
 from tests.daemon_mocks import MockDrive
 from tests.depth_helpers import small_rig, sphere
@@ -102,13 +103,14 @@ def test_trace_from_motor_samples_sorts_and_drops_duplicate_times():
     assert list(trace.time_s) == [0.0, 1.0]
 
 
-def test_selection_keeps_frames_a_fixed_angle_apart_and_skips_empty_ones():
+def test_fusion_keeps_frames_a_fixed_angle_apart_and_skips_empty_ones():
     trace = BeamTrace(np.array([0.0, 10.0]), np.array([0.0, 100.0]))
-    frames = [_frame(k * 0.1, "depth0", k) for k in range(40)]
-    empty = _frame(0.05, "depth0", 99, np.zeros((4, 4), dtype=np.uint16))
-    posed = tag_frames(frames + [empty], trace, RIG).frames
-    kept = select_by_spacing(posed, 3.0)
-    assert [f.frame_number for f in kept] == list(range(0, 40, 3))
+    frames = tag_frames([_frame(k * 0.1, "depth0", k) for k in range(40)], trace, RIG).frames
+    empty = tag_frames([_frame(0.0, "depth0", 99, np.zeros((4, 4), dtype=np.uint16))], trace, RIG).frames
+    fusion = TsdfFusion(RIG)
+    assert fusion.add(empty) == 0  # an empty frame does not take the place of the next one
+    assert fusion.add(frames) == len(range(0, 40, int(FRAME_SPACING_DEG)))  # 1 deg between frames
+    assert fusion.per_camera == {"depth0": 5} and fusion.offered == 41
 
 
 # ---------------------------------------------------------------------- the daemon's sweep
@@ -159,13 +161,13 @@ def _sim_camera(index: int, drive: MockDrive, faults: DepthFaults | None = None,
                                 faults=faults)
 
 
-async def _sweep(drive: MockDrive, cameras, *, rig=SHORT, sweeper=Sweeper) -> SweepRecord:
+async def _sweep(drive: MockDrive, cameras, *, rig=SHORT, sweeper=Sweeper, sink=None) -> SweepRecord:
     await drive.connect()
     await drive.set_zero(rig.depth_sweep.start_deg)
     tracker = BeamTracker(drive)
     await tracker.start()
     try:
-        return await sweeper(rig, drive, tracker, cameras).run()
+        return await sweeper(rig, drive, tracker, cameras, sink=sink).run()
     finally:
         await tracker.stop()
         await drive.close()
@@ -294,3 +296,35 @@ def test_observed_counts_only_points_a_frame_measured():
     assert 0.1 < seen.mean() < 0.9
     inside = (on_surface - [0, 0, 1000.0]) * 0.5 + [0, 0, 1000.0]
     assert not observed(inside, record.sweep.frames).any()
+
+
+def test_frames_go_to_the_sink_while_the_beam_turns_each_once_in_time_order() -> None:
+    drive = _beam()
+    batches: list[tuple[float, float, list]] = []
+
+    async def sink(frames: list) -> None:
+        loop = asyncio.get_running_loop()
+        batches.append((loop.time(), drive.trajectory.at(loop.time())[1], frames))
+
+    cameras = [_sim_camera(i, drive) for i in range(len(SHORT.depth_cameras))]
+    record = run_virtual(_sweep(drive, cameras, sink=sink))
+    fed = [f for _, _, frames in batches for f in frames]
+    assert len(batches) >= 3 and all(speed > 0 for _, speed, _ in batches)  # during the motion
+    assert len(fed) > len(record.unfed)  # most frames were fused before the beam stopped
+    ids = lambda frames: [(f.camera_id, f.frame_number) for f in frames]  # noqa: E731
+    assert sorted(ids(fed) + ids(record.unfed)) == sorted(ids(record.sweep.frames))
+    for camera in {f.camera_id for f in record.sweep.frames}:
+        times = [f.timestamp_s for f in fed + list(record.unfed) if f.camera_id == camera]
+        assert times == sorted(times)
+
+
+def test_a_sink_that_fails_ends_the_sweep_with_its_error_and_every_camera_stopped() -> None:
+    drive = _beam()
+
+    async def sink(frames: list) -> None:
+        raise MemoryError("no room for the voxel blocks")
+
+    cameras = [_sim_camera(i, drive) for i in range(len(SHORT.depth_cameras))]
+    with pytest.raises(MemoryError, match="voxel blocks"):
+        run_virtual(_sweep(drive, cameras, sink=sink))
+    assert all(c._t0 is None for c in cameras)  # stopped

@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 
+import daemon.fusion
 import daemon.scan
 import daemon.store
 from daemon.controller import RigController
@@ -73,7 +74,7 @@ class _Failure:
 @pytest.mark.parametrize("phase, owner, name", [
     ("PREPARING", daemon.scan, "prepare_phones"),
     ("DEPTH_SWEEP", daemon.scan.DepthSweeper, "run"),
-    ("RECONSTRUCTING", daemon.scan, "_reconstruct"),
+    ("RECONSTRUCTING", daemon.fusion, "fused_mesh"),
     ("PLANNING", daemon.scan, "_plan"),
     ("CAPTURING", daemon.scan.CaptureRunner, "main_pass"),
 ])

@@ -1,0 +1,92 @@
+"""The TSDF fused while the depth sweep runs, in the compute executor.
+
+The sweep delivers posed frames in batches (daemon/depth_sweep.py); each batch is fused at once
+in the compute worker (daemon/compute.py: images through shared memory, never pickled on the
+loop), so when the beam stops only the last frames, the mesh extraction and the cleaning are
+left before planning. The fusion lives in the process that fuses: the worker keeps it in
+:data:`_OPEN` under the scan's key between jobs (the pool has one worker; a thread executor keeps
+it in this process). Jobs of one session are awaited one after the other, never concurrently.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from typing import Any
+
+from daemon.compute import SharedFrames, release, share_frames, timed, unshare_frames
+from planner.rig import Rig
+from planner.sweep import PosedDepth
+from planner.tsdf import TsdfFusion, TsdfResult
+
+_OPEN: dict[str, TsdfFusion] = {}
+
+
+def _open(key: str, rig: Rig) -> None:
+    _OPEN[key] = TsdfFusion(rig)
+
+
+def _add(key: str, frames: Sequence[PosedDepth] | SharedFrames) -> int:
+    batch = unshare_frames(frames) if isinstance(frames, SharedFrames) else frames
+    return _OPEN[key].add(batch)
+
+
+def fused_mesh(key: str) -> TsdfResult:
+    """In the executor: the subject mesh of the session ``key`` (vertices and faces in the TSDF's
+    canonical order, so a seeded scan plans the same)."""
+    return _OPEN[key].result()
+
+
+def _close(key: str) -> None:
+    _OPEN.pop(key, None)
+
+
+class FusionSession:
+    """One scan's TSDF in ``executor`` (None: the loop's default thread pool).
+
+    ``async with`` opens it and drops the worker's copy at the end, whatever happened;
+    :meth:`add` fuses a batch, :meth:`result` extracts the subject. ``seconds`` sums the compute
+    time of every job, measured where it ran.
+    """
+
+    def __init__(self, executor: Executor | None, rig: Rig, key: str) -> None:
+        self.executor = executor
+        self.rig = rig
+        self.key = key
+        self.seconds = 0.0
+        self.frames = 0
+        self._lock = asyncio.Lock()
+
+    async def __aenter__(self) -> FusionSession:
+        await self._run(_open, self.key, self.rig)
+        return self
+
+    async def __aexit__(self, *_exc: object) -> None:
+        await self._run(_close, self.key)
+
+    async def add(self, frames: Sequence[PosedDepth]) -> None:
+        """Fuse ``frames`` (each camera's in time order, after the ones already added)."""
+        if not frames:
+            return
+        self.frames += len(frames)
+        if not isinstance(self.executor, ProcessPoolExecutor):
+            await self._run(_add, self.key, list(frames))
+            return
+        block, shared = await asyncio.to_thread(share_frames, list(frames))
+        try:
+            await self._run(_add, self.key, shared)
+        finally:
+            release(block)
+
+    async def result(self) -> TsdfResult:
+        """The subject's mesh from every frame added (raises the TSDF's typed refusals)."""
+        result: TsdfResult = await self._run(fused_mesh, self.key)
+        return result
+
+    async def _run(self, func: Any, *args: Any) -> Any:
+        async with self._lock:  # one job of this session at a time, in the order asked
+            result, seconds = await asyncio.get_running_loop().run_in_executor(self.executor, timed, func, *args)
+            self.seconds += seconds
+            return result
+
