@@ -41,10 +41,13 @@ from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_pro
 
 log = structlog.get_logger("daemon.scan")
 
-PLAN_METHODS = ("average", "shape-aware", "robust")
-"""Planned per scan: the seed's usual baseline and the seed's method for the QA report, and the
-robust plan the capture uses; with per-subject angles (rig planner.per_subject_angles) also
-"robust-angles", which then captures (the plan names its capture method and angles)."""
+CAPTURE_METHODS = ("robust",)
+"""Planned before the capture: the robust plan it uses; with per-subject angles (rig
+planner.per_subject_angles) also "robust-angles", which then captures (the plan names its capture
+method and angles)."""
+BASELINES = ("average", "shape-aware")
+"""Planned while the beam turns, for the QA report: the seed's usual baseline and the seed's method,
+on the same samples; plan.json gets them as soon as they are done."""
 
 
 @dataclass(frozen=True)
@@ -116,10 +119,13 @@ class ScanReport:
         }
 
 
-def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None) -> Any:
+def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None,
+          methods: tuple[str, ...] | None = None) -> Any:
+    """The capture's plan (default ``methods``: :data:`CAPTURE_METHODS`, robust-angles when the rig asks)."""
     from planner.plan import plan_focus
 
-    methods = PLAN_METHODS + (("robust-angles",) if rig.planner.per_subject_angles else ())
+    if methods is None:
+        methods = CAPTURE_METHODS + (("robust-angles",) if rig.planner.per_subject_angles else ())
     return plan_focus(mesh, rig, seed=seed, points=points, methods=methods, calibration=calibration)
 
 
@@ -168,6 +174,7 @@ class Scan:
         self._body: asyncio.Task[None] | None = None
         self._marks: dict[str, float] = {}
         self.pulls: PullQueue | None = None
+        self.baselines: asyncio.Task[None] | None = None
         self.store_error: StoreError | None = None
         self._trace_mark = 0
 
@@ -398,6 +405,7 @@ class Scan:
             focus = self._reachable(np.asarray(plan.focus_mm, dtype=float))
             angles = plan.capture_angles_deg
             await self.folder.write_plan(plan_json, _plan_summary(plan_json))
+            self.baselines = asyncio.create_task(self._plan_baselines(fused.mesh, plan_json), name="plan-baselines")
             self.folder.plan_images(angles, focus)
             timings = [
                 PhoneTiming(rig.capture.capture_cycle_s, rig.capture.lens_settle_s,
@@ -431,6 +439,35 @@ class Scan:
             if record.status != "captured":
                 record.status = "missing"
         self.safety.expect_samples = False
+
+    async def _plan_baselines(self, mesh: Any, plan_json: dict[str, Any]) -> None:
+        """The QA report's baselines (:data:`BASELINES`) on the capture plan's samples, planned while
+        the beam turns; plan.json is rewritten with them beside the capture's. A failure is logged:
+        the capture's plan stands on its own."""
+        s = self.settings
+        try:
+            baselines, self.report.compute_s["baselines"] = await asyncio.get_running_loop().run_in_executor(
+                s.executor, timed, _plan, mesh, self.rig, s.seed, s.plan_points, self.calibration, BASELINES)
+            both = {**plan_json, "methods": {**baselines.to_json()["methods"], **plan_json["methods"]}}
+            await self.folder.write_plan(both, _plan_summary(both))
+        except Exception as exc:  # the QA report then compares what it has
+            log.error("plan_baselines_failed", error=f"{type(exc).__name__}: {exc}")
+
+    async def _settle_baselines(self, report: ScanReport) -> None:
+        """A completed scan waits for its baselines (done long before the capture ends); a scan that
+        stopped early does not."""
+        task = self.baselines
+        if task is None or task.done():
+            return
+        if report.outcome is not ScanOutcome.COMPLETED:
+            task.cancel()  # plan.json's writes are atomic: it holds the capture's plan, or both
+        try:
+            async with asyncio.timeout(self.PULL_TIMEOUT_S):
+                await asyncio.gather(task, return_exceptions=True)
+        except TimeoutError:
+            task.cancel()
+        if task.cancelled():
+            log.warning("plan_baselines_dropped", outcome=report.outcome.value)
 
     def _reachable(self, focus: np.ndarray) -> np.ndarray:
         """(P,) focus clipped to each phone's lens range: beyond its far end means 'focus far'."""
@@ -488,6 +525,7 @@ class Scan:
         """
         assert self.folder is not None
         folder = self.folder
+        await self._settle_baselines(report)
         if self.pulls is not None:
             try:
                 async with asyncio.timeout(self.PULL_TIMEOUT_S):

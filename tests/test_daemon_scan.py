@@ -54,6 +54,10 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
     # The rig asks for per-subject angles: the scan fired at the angles its plan chose.
     plan = json.loads((report.folder / "plan.json").read_text())
     assert plan["capture_method"] == "robust-angles"
+    # planned before the capture: the capture's plans; while the beam turned: the QA baselines
+    assert list(plan["methods"]) == ["average", "shape-aware", "robust", "robust-angles"]
+    assert set(manifest["plan_summary"]["methods"]) == set(plan["methods"])
+    assert {"tsdf_during_sweep", "tsdf", "planning", "baselines"} <= set(report.compute_s)
     planned = {image["angle_index"]: image["planned_angle_deg"] for image in manifest["images"]}
     assert [planned[k] for k in range(RIG.n_angles)] == pytest.approx(plan["capture_angles_deg"])
     assert plan["capture_angles_deg"] != RIG.capture.angles_deg.tolist()
