@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.compute import SHM_DIR, compute_pool, release, share_frames, unshare_frames
+from daemon.compute import SHM_DIR, compute_pool, compute_threads, release, share_frames, unshare_frames
 from planner.sweep import PosedDepth
 
 
@@ -46,20 +46,31 @@ def _digest(shared: object) -> list[tuple[str, int, int]]:
     return [(f.camera_id, int(f.depth.astype(np.int64).sum()), os.getpid()) for f in unshare_frames(shared)]
 
 
+def _omp_threads() -> str | None:
+    """Runs in the worker process."""
+    import os
+
+    return os.environ.get("OMP_NUM_THREADS")
+
+
 def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     import os
 
     frames = _frames([(360, 640)] * 4 + [(180, 320)], seed=7)
+    ours = os.environ.get("OMP_NUM_THREADS")
     block, shared = share_frames(frames)
     try:
         with compute_pool() as pool:
             got = pool.submit(_digest, shared).result(timeout=120)
             niceness = pool.submit(os.nice, 0).result(timeout=30)
+            threads = pool.submit(_omp_threads).result(timeout=30)
     finally:
         release(block)
     assert [(c, s) for c, s, _ in got] == [(f.camera_id, int(f.depth.astype(np.int64).sum())) for f in frames]
     assert {pid for _, _, pid in got} != {os.getpid()}  # another process
     assert niceness >= os.nice(0) + 10  # below the daemon's priority
+    assert threads == str(compute_threads()) and int(threads) < max(2, len(os.sched_getaffinity(0)))
+    assert os.environ.get("OMP_NUM_THREADS") == ours  # this process's environment is left as it was
 
 
 def _open_sessions() -> int:
