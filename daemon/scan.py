@@ -119,14 +119,28 @@ class ScanReport:
         }
 
 
+@dataclass(frozen=True)
+class PlannedCapture:
+    """What the scan keeps of a plan: plan.json's content, the focus (P,) mm and angles (A,) deg to
+    capture with. The plan's cost table (tens of MB) stays where it was computed: unpickling it
+    in the daemon would hold the interpreter lock the heartbeats need."""
+
+    json: dict[str, Any]
+    focus_mm: np.ndarray
+    angles_deg: np.ndarray
+
+
 def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None,
-          methods: tuple[str, ...] | None = None) -> Any:
-    """The capture's plan (default ``methods``: :data:`CAPTURE_METHODS`, robust-angles when the rig asks)."""
+          methods: tuple[str, ...] | None = None) -> PlannedCapture:
+    """In the executor: the capture's plan (default ``methods``: :data:`CAPTURE_METHODS`,
+    robust-angles when the rig asks)."""
     from planner.plan import plan_focus
 
     if methods is None:
         methods = CAPTURE_METHODS + (("robust-angles",) if rig.planner.per_subject_angles else ())
-    return plan_focus(mesh, rig, seed=seed, points=points, methods=methods, calibration=calibration)
+    plan = plan_focus(mesh, rig, seed=seed, points=points, methods=methods, calibration=calibration)
+    return PlannedCapture(plan.to_json(), np.asarray(plan.focus_mm, dtype=float),
+                          np.asarray(plan.capture_angles_deg, dtype=float))
 
 
 class Scan:
@@ -393,17 +407,19 @@ class Scan:
                 await asyncio.gather(reposition, return_exceptions=True)
                 raise
         try:
-            await self.folder.write_mesh(fused.mesh)
-
-            # PLANNING
+            # PLANNING, while mesh.ply is written
             self.machine.transition(ScanState.PLANNING, "subject mesh ready",
                                     vertices=len(fused.mesh.vertices))
-            plan, report.compute_s["planning"] = await loop.run_in_executor(
-                self.settings.executor, timed, _plan, fused.mesh, rig, self.settings.seed,
-                self.settings.plan_points, self.calibration)
-            plan_json = plan.to_json()
-            focus = self._reachable(np.asarray(plan.focus_mm, dtype=float))
-            angles = plan.capture_angles_deg
+            writing = asyncio.create_task(self.folder.write_mesh(fused.mesh), name="write-mesh")
+            try:
+                plan, report.compute_s["planning"] = await loop.run_in_executor(
+                    self.settings.executor, timed, _plan, fused.mesh, rig, self.settings.seed,
+                    self.settings.plan_points, self.calibration)
+            finally:
+                await writing  # the mesh lands whole, whatever happened to the plan
+            plan_json = plan.json
+            focus = self._reachable(plan.focus_mm)
+            angles = plan.angles_deg
             await self.folder.write_plan(plan_json, _plan_summary(plan_json))
             self.baselines = asyncio.create_task(self._plan_baselines(fused.mesh, plan_json), name="plan-baselines")
             self.folder.plan_images(angles, focus)
@@ -448,7 +464,7 @@ class Scan:
         try:
             baselines, self.report.compute_s["baselines"] = await asyncio.get_running_loop().run_in_executor(
                 s.executor, timed, _plan, mesh, self.rig, s.seed, s.plan_points, self.calibration, BASELINES)
-            both = {**plan_json, "methods": {**baselines.to_json()["methods"], **plan_json["methods"]}}
+            both = {**plan_json, "methods": {**baselines.json["methods"], **plan_json["methods"]}}
             await self.folder.write_plan(both, _plan_summary(both))
         except Exception as exc:  # the QA report then compares what it has
             log.error("plan_baselines_failed", error=f"{type(exc).__name__}: {exc}")
