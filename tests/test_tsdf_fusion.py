@@ -191,3 +191,16 @@ def test_punched_holes_are_closed_watertight_with_consistent_winding(seed, holes
     closed = trimesh.Trimesh(vertices, closed_faces, process=False)
     assert closed.is_watertight and closed.is_winding_consistent
     assert closed.volume == pytest.approx(ball.volume, rel=0.01)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.integers(0, 40)] * 3), min_size=1, max_size=60))
+def test_canonical_faces_start_at_their_lowest_vertex_and_sort_lexicographically(faces: list) -> None:
+    from planner.tsdf import _face_keys, _lowest_first
+
+    f = np.array(faces, dtype=np.int64)
+    first = np.argmin(f, axis=1)  # the reference: rotate to the first lowest index, then lexsort
+    rotated = np.take_along_axis(f, (np.arange(3)[None, :] + first[:, None]) % 3, axis=1)
+    np.testing.assert_array_equal(_lowest_first(f), rotated)
+    order = np.argsort(_face_keys(rotated, 41), kind="stable")
+    np.testing.assert_array_equal(rotated[order], rotated[np.lexsort(rotated.T[::-1])])
