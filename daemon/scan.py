@@ -388,12 +388,12 @@ class Scan:
                                        sink=fusion.add).run()
             self._mark("sweep_end")
             report.compute_s["tsdf_during_sweep"] = fusion.seconds
-            self.folder.write_depth_sweep({
+            sweep_file = asyncio.create_task(self.folder.write_depth_sweep({
                 "frames_used": len(sweep.sweep.frames), "frames_seen": sweep.frames_seen,
                 "start_deg": rig.depth_sweep.start_deg, "end_deg": rig.depth_sweep.end_deg,
                 "duration_s": sweep.ended_s - sweep.started_s,
                 "fused_during_sweep": len(sweep.sweep.frames) - len(sweep.unfed),
-            })
+            }), name="write-depth-sweep")
 
             # RECONSTRUCTING (the last frames, the mesh), while the beam repositions to the capture run-up.
             self.machine.transition(ScanState.RECONSTRUCTING, "depth sweep done",
@@ -403,8 +403,9 @@ class Scan:
                 await fusion.add(list(sweep.unfed))
                 fused = await fusion.result()
                 report.compute_s["tsdf"] = fusion.seconds - report.compute_s["tsdf_during_sweep"]
+                await sweep_file
             except BaseException:  # the beam finishes its move, as it does after a planning error
-                await asyncio.gather(reposition, return_exceptions=True)
+                await asyncio.gather(reposition, sweep_file, return_exceptions=True)
                 raise
         try:
             # PLANNING, while mesh.ply is written

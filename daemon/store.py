@@ -260,8 +260,10 @@ class ScanFolder:
             self.save()
         return path
 
-    def write_depth_sweep(self, metadata: dict[str, Any]) -> Path:
-        return self._write_file("depth_sweep", "depth_sweep.json", json_bytes(metadata))
+    async def write_depth_sweep(self, metadata: dict[str, Any]) -> Path:
+        """depth_sweep.json: what the sweep delivered and fused (written off the loop: its fsync
+        would land right where the fusion's last step and the reposition start)."""
+        return await self._write_off_loop("depth_sweep", "depth_sweep.json", lambda: json_bytes(metadata))
 
     def write_derived(self, relative: str, data: bytes) -> Path:
         """A file derived from the scan's data (the QA report under ``report/``): written

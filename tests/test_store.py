@@ -74,7 +74,7 @@ def test_full_lifecycle_writes_every_file(tmp_path, rig):
     asyncio.run(folder.write_plan({"focus_mm": [500.0] * rig.n_poses}, {"in_focus_fraction": 0.8}))
     asyncio.run(folder.write_mesh(b"ply\nformat ascii 1.0\nend_header\n"))
     asyncio.run(folder.write_trace(np.arange(5.0), np.arange(5.0) * 3))
-    folder.write_depth_sweep({"frames": 120})
+    asyncio.run(folder.write_depth_sweep({"frames": 120}))
     asyncio.run(folder.write_json("qa", "qa.json", {"captured": 1, "angle_error_deg": [0.01, float("inf")]}))
     folder.log_event("capture_start", angle_index=0)
     folder.log_event("capture_end", value=float("nan"))
