@@ -180,11 +180,9 @@ class RigService:
         ctl = self.controller
         async for event in ctl.hw.panel.events():
             log.info("panel_event", panel_event=event.name)
-            if event is PanelEvent.START_PRESSED:
-                try:
-                    ctl.start_scan(new_scan_id())
-                except (ScanBusy, ScanRefused) as exc:  # logged and streamed by the controller too
-                    log.warning("panel_start_refused", reason=str(exc))
+            if event is PanelEvent.START_PRESSED:  # started aside: a STOP or e-stop right after is read at once
+                self._tasks = [t for t in self._tasks if not t.done()]
+                self._tasks.append(asyncio.create_task(self._start_from_panel(), name="panel-start"))
             elif event is PanelEvent.STOP_PRESSED:
                 ctl.abort(AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button"))
             elif event is PanelEvent.ESTOP_PRESSED:
@@ -192,6 +190,12 @@ class RigService:
             elif event is PanelEvent.HEARTBEAT_LOST:
                 await ctl.trip(FaultCause(FaultSource.PANEL_LOST, "panel",
                                           "panel heartbeat lost (e-stop state unknown)"))
+
+    async def _start_from_panel(self) -> None:
+        try:
+            await self.controller.start_scan(new_scan_id())
+        except (ScanBusy, ScanRefused) as exc:  # logged and streamed by the controller too
+            log.warning("panel_start_refused", reason=str(exc))
 
     # ------------------------------------------------------------------ control API handler
 
@@ -202,9 +206,9 @@ class RigService:
         status["loop_lag"] = self.lag.summary()
         return status
 
-    def scan(self, **args: Any) -> dict[str, Any]:
+    async def scan(self, **args: Any) -> dict[str, Any]:
         scan_id = args.get("scan_id") or new_scan_id()
-        self.controller.start_scan(scan_id)
+        await self.controller.start_scan(scan_id)
         return {"scan_id": scan_id, "state": self.controller.machine.state.value}
 
     def abort(self) -> dict[str, Any]:

@@ -3,6 +3,8 @@ manifest, navigation; a calibration for other cameras refuses the scan, an old o
 
 from __future__ import annotations
 
+import asyncio
+
 import dataclasses
 import json
 import math
@@ -85,7 +87,7 @@ def test_poses_and_depth_frames_come_from_the_calibration(tmp_path: Path) -> Non
 def test_a_calibration_for_other_cameras_refuses_the_scan(tmp_path: Path) -> None:
     rig = rig_with_calibration(tmp_path, drop="depth2")
     with pytest.raises(CalibrationRefused) as info:
-        _controller(rig).start_scan("x")
+        asyncio.run(_controller(rig).start_scan("x"))
     assert "no pose for the rig's depth2" in str(info.value) and "calibration.yaml" in str(info.value)
 
 

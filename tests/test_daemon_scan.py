@@ -77,7 +77,7 @@ def test_estop_during_capture_latches_fault_and_keeps_images(tmp_path: Path) -> 
         assert controller.machine.state is ScanState.FAULT
         assert abs(world.sim_drive.true_speed_deg_s) < 0.01
         with pytest.raises(ScanBusy):
-            controller.start_scan("again")
+            await controller.start_scan("again")
         with pytest.raises(StateTransitionTimeout):  # the drive cannot enable under the e-stop
             await controller.reset("estop still pressed")
         assert controller.machine.state is ScanState.FAULT

@@ -135,7 +135,7 @@ def test_a_missing_phone_keeps_the_rig_not_ready_until_it_is_plugged_in(tmp_path
             assert all(d["ok"] for d in status["devices"] if d["device"] != "cam3")
             assert any(line.startswith("STATUS=NOT READY: cam3 (usb:TBPSIM03)") for line in notes.sent)
             with pytest.raises(ScanRefused, match="cam3"):
-                service.scan(scan_id="too-early")
+                await service.scan(scan_id="too-early")
             await asyncio.sleep(10.0)
             assert not service.status()["ready"]  # still unplugged: re-probed, still named
             phone.reconnectable = True  # plugged back in

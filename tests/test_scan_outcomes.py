@@ -18,8 +18,8 @@ import daemon.fusion
 import daemon.scan
 import daemon.store
 from daemon.controller import RigController
-from daemon.errors import ScanRefused
-from daemon.faults import AbortSource, FaultSource
+from daemon.errors import ScanBusy, ScanRefused
+from daemon.faults import AbortCause, AbortSource, FaultSource
 from daemon.scan import ScanSettings
 from daemon.states import ScanOutcome, ScanState
 from daemon.store import ScanFolder, ScanStore
@@ -202,7 +202,7 @@ def test_a_scan_that_cannot_be_stored_is_refused_before_the_answer(tmp_path: Pat
 
     async def scenario(controller: RigController, events: Any) -> None:
         with pytest.raises(ScanRefused, match=problem):
-            controller.start_scan(scan_id)
+            await controller.start_scan(scan_id)
         assert not controller.busy and controller.machine.state is ScanState.IDLE
         event = await asyncio.wait_for(anext(events), 1.0)
         assert event.kind == "progress" and event.cause == "scan refused" and problem in event.data["error"]
@@ -227,3 +227,22 @@ def test_a_scan_state_left_without_its_scan_makes_the_daemon_unhealthy(tmp_path:
         return before, after
 
     assert run_virtual(main()) == (True, False)
+
+
+def test_a_second_start_while_the_first_scan_s_folder_is_made_is_refused_as_busy(tmp_path: Path) -> None:
+    """The folder is made in a thread (its fsyncs stay off the loop): a START arriving meanwhile
+    (panel and console at once) must not make a second folder or a second scan."""
+    store = ScanStore(tmp_path / "store")
+
+    async def scenario(controller: RigController, events: Any) -> None:
+        first = asyncio.create_task(controller.start_scan("first"))
+        await asyncio.sleep(0)  # the first is making its folder now
+        assert controller.busy
+        with pytest.raises(ScanBusy):
+            await controller.start_scan("second")
+        task = await first
+        controller.abort(AbortCause(AbortSource.CONTROL_API, "test", "enough"))
+        await task
+        assert [p.name.endswith("first") for p in (tmp_path / "store").iterdir() if p.is_dir()] == [True]
+
+    _controller_run(tmp_path, store, scenario)

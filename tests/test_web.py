@@ -157,7 +157,7 @@ class RecordingService:
     def status(self):
         return {"state": "IDLE"}
 
-    def scan(self, **args):
+    async def scan(self, **args):
         self.calls.append("scan")
         return {"scan_id": "x", "state": "PREPARING"}
 

@@ -86,7 +86,7 @@ async def _act(request: web.Request, action: str) -> web.Response:
             scan_id = body.get("scan_id")
             if scan_id is not None and not isinstance(scan_id, str):
                 raise json_error(web.HTTPBadRequest, f"scan_id {scan_id!r}: a string or absent")
-            result = service.scan(**({"scan_id": scan_id} if scan_id else {}))
+            result = await service.scan(**({"scan_id": scan_id} if scan_id else {}))
         elif action == "abort":
             result = service.abort()
         else:
