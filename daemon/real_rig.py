@@ -90,8 +90,9 @@ def _depth_camera(rig: Rig, camera: Any, config: HardwareConfig) -> Any:
 
 
 async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int) -> None:
-    """Raise when depth camera ``index`` cannot be found: its RealSense is not enumerated (a
-    :class:`DepthCameraNotFound` listing the serials that are), or its recording is not a file.
+    """Raise when depth camera ``index`` cannot be found: pyrealsense2 is missing
+    (DepthBackendMissing), its RealSense is not enumerated (a :class:`DepthCameraNotFound` listing
+    the serials that are), or its recording is not a file.
 
     The probe does not stream: the sweep starts the camera when the scan needs it."""
     from drivers.depth.errors import RecordingUnreadable
@@ -99,11 +100,14 @@ async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int) -> No
 
     camera = rig.depth_cameras[index]
     source = config.depth_cameras[camera.id]
+    # Live or played back, the camera streams through pyrealsense2: imported here, at bring-up,
+    # not by the sweep's first start (loading the library held the loop 75-130 ms mid-scan),
+    # and a missing backend is named before READY.
+    rs = await asyncio.to_thread(import_pyrealsense2, camera.id)
     if source.recording is not None:
         if not source.recording.is_file():
             raise RecordingUnreadable(camera.id, source.recording, "no recording at this path")
         return
-    rs = import_pyrealsense2(camera.id)
 
     def serials() -> list[str]:
         return [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
