@@ -372,9 +372,11 @@ class StreamMux:
             await stream.close()
 
     async def close(self) -> None:
-        """Close every stream and the transport."""
+        """Close every stream and the transport; returns once the service handlers have ended."""
         for stream in list(self.streams.values()):
             await stream.close()
-        for task in list(self._handlers):
+        handlers = [task for task in self._handlers if task is not asyncio.current_task()]
+        for task in handlers:
             task.cancel()
         await self.transport.close()
+        await asyncio.gather(*handlers, return_exceptions=True)

@@ -12,6 +12,7 @@ closed: the rest of the answer would be misread), the connection stays up.
 
 from __future__ import annotations
 
+import asyncio
 import ctypes
 import hashlib
 import os
@@ -119,6 +120,17 @@ class _FileSink:
         os.fsync(self.fd)
 
 
+async def _in_thread(func: Callable[[], None]) -> None:
+    """``func()`` in a worker thread; a cancellation still waits for it to end (it uses a file
+    descriptor the caller closes next)."""
+    job = asyncio.ensure_future(asyncio.to_thread(func))
+    try:
+        await asyncio.shield(job)
+    except asyncio.CancelledError:
+        await asyncio.wait([job])
+        raise
+
+
 class SyncClient:
     """A sync session on one 'sync:' stream. Requests run one at a time."""
 
@@ -208,7 +220,7 @@ class SyncClient:
         sink = _FileSink(os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
         try:
             size = await self._receive(path, sink, max_bytes)
-            sink.finish()
+            await _in_thread(sink.finish)  # an image's fsync held the event loop up to tens of ms
         except BaseException:
             os.close(sink.fd)
             part.unlink(missing_ok=True)

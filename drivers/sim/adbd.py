@@ -176,7 +176,7 @@ class SimulatedAdbd:
             await mux.run()
         finally:
             self.links.discard(mux)
-            await transport.close()
+            await mux.close()  # the session ends once its services (the agent's shell) have
 
     async def _handshake(self, transport: StreamTransport) -> tuple[int, int]:
         msg = await transport.recv(MAX_PAYLOAD_LEGACY)
