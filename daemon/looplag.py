@@ -4,7 +4,9 @@ The drive's heartbeat (100 ms, lost after 300 ms) and the panel's are produced o
 loop, so anything that holds the loop (compute on its interpreter lock, a large write, an
 fsync) shows here first. A sleep of ``period_s`` that wakes late by more than ``warn_s`` is
 logged as ``loop_lag`` with the state it happened in; leaving a state logs that state's
-``loop_lag_summary`` (samples, p50, p99, max); ``tbp status`` shows the same per state.
+``loop_lag_summary`` (samples, p50, p99, max); ``tbp status`` shows the same per state. A
+garbage collection that long is logged as ``gc_pause``: the two together say whether a stall
+was the collector or something else.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -81,13 +84,30 @@ class LoopLagMonitor:
         self.last_s = 0.0
         self.by_state: dict[str, StateLag] = {}
         self._current: str | None = None
+        self._gc_started = 0.0
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
-        while True:
-            before = loop.time()
-            await asyncio.sleep(self.period_s)
-            self.record(self.state(), max(loop.time() - before - self.period_s, 0.0))
+        gc.callbacks.append(self._collection)
+        try:
+            while True:
+                before = loop.time()
+                await asyncio.sleep(self.period_s)
+                self.record(self.state(), max(loop.time() - before - self.period_s, 0.0))
+        finally:
+            gc.callbacks.remove(self._collection)
+
+    def _collection(self, phase: str, info: dict[str, int]) -> None:
+        """gc callback: a collection that holds the loop longer than ``warn_s`` is logged as
+        ``gc_pause`` (generation, objects collected), so a ``loop_lag`` can be told from it."""
+        now = time.perf_counter()
+        if phase == "start":
+            self._gc_started = now
+            return
+        held = now - self._gc_started
+        if held > self.warn_s:
+            log.warning("gc_pause", lag_state=self.state(), generation=info.get("generation"),
+                        collected=info.get("collected"), pause_ms=round(held * 1000, 1))
 
     def record(self, state: str, lag_s: float) -> None:
         if state != self._current:

@@ -84,3 +84,22 @@ def test_the_startup_heap_is_frozen_so_full_collections_skip_it() -> None:
         assert not any(o is kept for o in gc.get_objects())  # the collector no longer walks them
     finally:
         gc.unfreeze()
+
+
+def test_a_long_collection_is_logged_as_a_gc_pause_under_its_state() -> None:
+    import gc
+
+    monitor = LoopLagMonitor(lambda: "CAPTURING", period_s=0.01, warn_s=0.0)  # every collection is "long"
+
+    async def scenario() -> None:
+        task = asyncio.create_task(monitor.run())
+        await asyncio.sleep(0.02)
+        gc.collect()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+    with structlog.testing.capture_logs() as logs:
+        asyncio.run(scenario())
+    pauses = [e for e in logs if e["event"] == "gc_pause"]
+    assert any(e["generation"] == 2 and e["lag_state"] == "CAPTURING" and e["pause_ms"] >= 0 for e in pauses)
+    assert monitor._collection not in gc.callbacks  # gone with the monitor
