@@ -127,9 +127,9 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
     the drive's heartbeat."""
     from daemon.compute import compute_pool
     from daemon.controller import RigController
+    from daemon.looplag import freeze_startup_heap
     from daemon.notify import SystemdNotifier
     from daemon.scan import ScanSettings
-    from daemon.looplag import freeze_startup_heap
     from daemon.service import RigService
     from daemon.store import ScanStore
 

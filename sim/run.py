@@ -95,8 +95,8 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       panel: bool = True, qa_report: Callable[..., Path] | None = None,
                       attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
-    from daemon.notify import SystemdNotifier
     from daemon.looplag import freeze_startup_heap
+    from daemon.notify import SystemdNotifier
     from daemon.service import RigService
     from planner.plan import load_subject_mesh
 

@@ -4,7 +4,6 @@ manifest, navigation; a calibration for other cameras refuses the scan, an old o
 from __future__ import annotations
 
 import asyncio
-
 import dataclasses
 import json
 import math
