@@ -189,6 +189,7 @@ class Scan:
         self._marks: dict[str, float] = {}
         self.pulls: PullQueue | None = None
         self.baselines: asyncio.Task[None] | None = None
+        self.fusion: FusionSession | None = None
         self.store_error: StoreError | None = None
         self._trace_mark = 0
 
@@ -383,7 +384,8 @@ class Scan:
         # DEPTH_SWEEP, fusing the frames into the TSDF as the beam turns
         self.safety.expect_samples = True
         self.machine.transition(ScanState.DEPTH_SWEEP, "beam at the sweep start")
-        async with FusionSession(self.settings.executor, rig, self.folder.scan_id) as fusion:
+        self.fusion = FusionSession(self.settings.executor, rig, self.folder.scan_id)
+        async with self.fusion as fusion:
             sweep = await DepthSweeper(rig, drive, self.tracker, self.hw.depth_cameras, self.calibration,
                                        sink=fusion.add).run()
             self._mark("sweep_end")
@@ -404,20 +406,21 @@ class Scan:
                 fused = await fusion.result()
                 report.compute_s["tsdf"] = fusion.seconds - report.compute_s["tsdf_during_sweep"]
                 await sweep_file
-            except BaseException:  # the beam finishes its move, as it does after a planning error
+
+                # PLANNING, while mesh.ply is written (the worker frees the TSDF after the plan)
+                self.machine.transition(ScanState.PLANNING, "subject mesh ready",
+                                        vertices=len(fused.mesh.vertices))
+                writing = asyncio.create_task(self.folder.write_mesh(fused.mesh), name="write-mesh")
+                try:
+                    plan, report.compute_s["planning"] = await loop.run_in_executor(
+                        self.settings.executor, timed, _plan, fused.mesh, rig, self.settings.seed,
+                        self.settings.plan_points, self.calibration)
+                finally:
+                    await writing  # the mesh lands whole, whatever happened to the plan
+            except BaseException:  # the beam finishes its move, as it does after any step's error
                 await asyncio.gather(reposition, sweep_file, return_exceptions=True)
                 raise
         try:
-            # PLANNING, while mesh.ply is written
-            self.machine.transition(ScanState.PLANNING, "subject mesh ready",
-                                    vertices=len(fused.mesh.vertices))
-            writing = asyncio.create_task(self.folder.write_mesh(fused.mesh), name="write-mesh")
-            try:
-                plan, report.compute_s["planning"] = await loop.run_in_executor(
-                    self.settings.executor, timed, _plan, fused.mesh, rig, self.settings.seed,
-                    self.settings.plan_points, self.calibration)
-            finally:
-                await writing  # the mesh lands whole, whatever happened to the plan
             plan_json = plan.json
             focus = self._reachable(plan.focus_mm)
             angles = plan.angles_deg
@@ -543,6 +546,8 @@ class Scan:
         assert self.folder is not None
         folder = self.folder
         await self._settle_baselines(report)
+        if self.fusion is not None and self.fusion.closed is not None:  # asked for long ago: done
+            await asyncio.gather(self.fusion.closed, return_exceptions=True)
         if self.pulls is not None:
             try:
                 async with asyncio.timeout(self.PULL_TIMEOUT_S):

@@ -98,7 +98,10 @@ def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh
         async with FusionSession(pool, rig, "scan-1") as fusion:
             for start in range(0, len(frames), 7):
                 await fusion.add(frames[start:start + 7])
-            return await fusion.result(), fusion.seconds
+            result = await fusion.result()
+        assert fusion.closed is not None
+        await fusion.closed  # asked for at the end of the session, not waited for there
+        return result, fusion.seconds
 
     with compute_pool() as pool:
         live, seconds = asyncio.run(fused(pool))
