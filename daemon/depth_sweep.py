@@ -17,6 +17,7 @@ fusion keeps up with the sweep; the few posed at its end are left in ``SweepReco
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -145,13 +146,12 @@ class DepthSweeper:
     async def _feed(self, sink: Callable[[list[PosedDepth]], Awaitable[None]], mark: int,
                     stopped: asyncio.Event) -> None:
         """Every FEED_PERIOD_S until ``stopped``: pose what the trace covers, hand it to the sink."""
-        while not stopped.is_set():
-            try:
+        while True:
+            with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(self.FEED_PERIOD_S):
                     await stopped.wait()
+            if stopped.is_set():
                 return
-            except TimeoutError:
-                pass
             trace = self.tracker.trace(mark)
             if len(trace) >= 2:
                 self._pose_ready(BeamTrace.from_columns(trace[:, 0], trace[:, 1]), final=False)

@@ -56,7 +56,6 @@ class FusionSession:
         self.rig = rig
         self.key = key
         self.seconds = 0.0
-        self.frames = 0
         self._lock = asyncio.Lock()
         self.closed: asyncio.Future[Any] | None = None
         """The worker's drop of this fusion, once asked for (awaitable; nothing waits for it)."""
@@ -72,7 +71,6 @@ class FusionSession:
         """Fuse ``frames`` (each camera's in time order, after the ones already added)."""
         if not frames:
             return
-        self.frames += len(frames)
         if not isinstance(self.executor, ProcessPoolExecutor):
             await self._run(_add, self.key, list(frames))
             return
