@@ -35,7 +35,9 @@ def freeze_startup_heap() -> int:
     """
     gc.collect()
     gc.freeze()
-    return gc.get_freeze_count()
+    frozen = gc.get_freeze_count()
+    log.info("startup_heap_frozen", objects=frozen)
+    return frozen
 
 
 @dataclass

@@ -146,6 +146,5 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                              notifier=SystemdNotifier.from_env())
         if attach is not None:
             attach(service)
-        frozen = freeze_startup_heap()
-        log.info("startup_heap_frozen", objects=frozen)
+        freeze_startup_heap()
         return await service.run(stop)

@@ -13,16 +13,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TextIO
 
-import structlog
-
 from daemon.controller import RigController
 from daemon.scan import ScanReport, ScanSettings
 from daemon.states import StatusEvent
 from daemon.store import ScanStore
 from planner.rig import DEFAULT_RIG_PATH, load_rig
 from sim.rig import SimOptions, build_sim_rig
-
-log = structlog.get_logger("sim.run")
 
 
 def sim_scan_id(seed: int) -> str:
@@ -116,6 +112,5 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                              notifier=SystemdNotifier.from_env())
         if attach is not None:
             attach(service)
-        frozen = freeze_startup_heap()
-        log.info("startup_heap_frozen", objects=frozen)
+        freeze_startup_heap()
         return await service.run(stop)
