@@ -359,3 +359,33 @@ async def test_concurrent_pulls_over_tcp_keep_their_bytes_apart(tmp_path: Path) 
         assert results[2] == b"side\n" and device.fs.read("/sdcard/c.bin") == files["b"]
         assert (tmp_path / "b.bin").read_bytes() == files["b"]
         await conn.close()
+
+
+def test_a_pull_cancelled_during_its_fsync_waits_for_it_before_closing_the_file() -> None:
+    """The pulled image's fsync runs in a thread; a cancellation (abort, timeout) must not
+    close the descriptor under it: the caller's cleanup comes only after the fsync ended."""
+    import threading
+
+    from drivers.adb.sync import _in_thread
+
+    entered, release = threading.Event(), threading.Event()
+    order: list[str] = []
+
+    def fsync() -> None:
+        entered.set()
+        release.wait(5.0)
+        order.append("fsync done")
+
+    async def scenario() -> None:
+        job = asyncio.create_task(_in_thread(fsync))
+        await asyncio.to_thread(entered.wait, 5.0)
+        job.cancel()
+        await asyncio.sleep(0.05)
+        assert not job.done()  # still waiting for the thread, not raised yet
+        release.set()
+        with pytest.raises(asyncio.CancelledError):
+            await job
+        order.append("cleanup")
+
+    asyncio.run(scenario())
+    assert order == ["fsync done", "cleanup"]
