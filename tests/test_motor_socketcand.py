@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator, Iterator
 
 import can
@@ -23,6 +24,7 @@ from drivers.motor import BeamDrive, Cia402State, LoopbackCanBus, PythonCanPort
 from drivers.sim.drive import SimulatedDrive
 from drivers.sim.socketcand import SocketcandProtocolError, SocketcandServer, format_frame, parse_send
 from planner.rig import load_rig
+from sim.processes.beam_follower import BeamFollower
 
 MOTOR = load_rig().motor
 
@@ -267,3 +269,27 @@ def test_served_drive_injects_the_e_stop_it_was_told_to(capsys: pytest.CaptureFi
         bus = ["motor", "--interface", "socketcand", "--port", str(tcp_port)]
         assert main([*bus, "enable"]) == 1
         assert "0x5441 (emergency stop input" in capsys.readouterr().err
+
+
+async def test_a_simulated_phone_follows_the_angle_the_daemon_drives(
+    bridge: tuple[SocketcandServer, SimulatedDrive],
+) -> None:
+    """``tbp sim phone --follow-beam``: its listening thread decodes the drive's position TPDOs."""
+    server, _ = bridge
+    follower = BeamFollower(MOTOR, "127.0.0.1", server.port, fallback_deg=-90.0)
+    assert follower.angle_at(time.monotonic()) == -90.0  # nothing streamed yet
+    follower.start()
+    drive = BeamDrive(await _client_port(server), MOTOR)
+    try:
+        await drive.connect()
+        await drive.enable()
+        await drive.move_to(3.0, 30.0, 60.0)
+        for _ in range(500):  # until the follower has read a sample at the end of the move
+            if abs(follower.angle_at(time.monotonic()) - 3.0) < 0.01:
+                break
+            await asyncio.sleep(0.01)
+        assert follower.angle_at(time.monotonic()) == pytest.approx(3.0, abs=0.01)
+        await drive.disable()
+    finally:
+        await drive.close()
+        await asyncio.to_thread(follower.stop)

@@ -99,5 +99,5 @@ async def serve(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
     if follower is not None:
-        await follower.stop()
+        follower.stop()
     return 0
