@@ -158,17 +158,29 @@ def refine_focus(
             redundancy.miss_probability ** np.arange(int(np.diff(table.point_ptr).max(initial=0)) + 2)
         )
     ends = PresortedIntervals(table.lo, table.hi, vis.pose_ptr)
-    dirty = np.diff(vis.pose_ptr) > 0
+    has_pairs = np.diff(vis.pose_ptr) > 0
+    # A pose needs another look when one of its points changed after its last look: points carry
+    # the step of their last change, poses the step of their last look (one reduction per pass
+    # finds them, where marking every pose of every changed point cost more than the descent).
+    changed_at = np.zeros(table.n_points, dtype=np.int64)
+    looked_at = np.full(table.n_poses, -1, dtype=np.int64)
+    step = 0
     pair_index = np.arange(len(vis), dtype=np.int64)
     base_all, lo_all, hi_all = table.base, table.lo, table.hi
     ptr = vis.pose_ptr.tolist()
     slices = [slice(a, b) for a, b in zip(ptr[:-1], ptr[1:])]
     sweeps = updates = 0
-    while sweeps < max_sweeps and dirty.any():
+    while sweeps < max_sweeps:
+        latest = np.full(table.n_poses, -1, dtype=np.int64)
+        latest[has_pairs] = np.maximum.reduceat(changed_at[vis.point], vis.pose_ptr[:-1][has_pairs])
+        dirty = np.flatnonzero(latest > looked_at)
+        if len(dirty) == 0:
+            break
         sweeps += 1
         changed_any = False
-        for c in np.flatnonzero(dirty).tolist():
-            dirty[c] = False
+        for c in dirty.tolist():
+            step += 1
+            looked_at[c] = step
             sl = slices[c]
             points = vis.point[sl]
             # other_p: the point's best cost without this pose.
@@ -202,8 +214,7 @@ def refine_focus(
             changed = state.update(moved_pairs, points[moved], old_cost)
             if redundancy is not None:  # every pose seeing a point whose sharp views changed
                 changed = np.concatenate([changed, points[moved]])
-            dirty[state.poses_seeing(changed)] = True
-            dirty[c] = False
+            changed_at[changed] = step  # this pose's own changes: not newer than its look
         if not changed_any:
             break
     total = float(state.best.sum())
