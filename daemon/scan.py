@@ -31,6 +31,7 @@ from daemon.fusion import FusionSession
 from daemon.hardware import RigHardware
 from daemon.manifest import ImageStatus, ScanEnd
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
+from daemon.planning import BASELINES, plan_capture
 from daemon.pulls import PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
@@ -40,15 +41,6 @@ from planner.rig import Rig
 from planner.schedule import CaptureSchedule, PhoneTiming, compile_plan, rig_profile
 
 log = structlog.get_logger("daemon.scan")
-
-CAPTURE_METHODS = ("robust",)
-"""Planned before the capture: the robust plan it uses; with per-subject angles (rig
-planner.per_subject_angles) also "robust-angles", which then captures (the plan names its capture
-method and angles)."""
-BASELINES = ("average", "shape-aware")
-"""Planned while the beam turns, for the QA report: the seed's usual baseline and the seed's method,
-on the same samples; plan.json gets them as soon as they are done."""
-
 
 @dataclass(frozen=True)
 class ScanSettings:
@@ -117,30 +109,6 @@ class ScanReport:
             "compute_s": dict(self.compute_s), "sweep_to_capture_s": self.sweep_to_capture_s,
             "errors": list(self.errors),
         }
-
-
-@dataclass(frozen=True)
-class PlannedCapture:
-    """What the scan keeps of a plan: plan.json's content, the focus (P,) mm and angles (A,) deg to
-    capture with. The plan's cost table (tens of MB) stays where it was computed: unpickling it
-    in the daemon would hold the interpreter lock the heartbeats need."""
-
-    json: dict[str, Any]
-    focus_mm: np.ndarray
-    angles_deg: np.ndarray
-
-
-def _plan(mesh: Any, rig: Rig, seed: int, points: int | None, calibration: Calibration | None,
-          methods: tuple[str, ...] | None = None) -> PlannedCapture:
-    """In the executor: the capture's plan (default ``methods``: :data:`CAPTURE_METHODS`,
-    robust-angles when the rig asks)."""
-    from planner.plan import plan_focus
-
-    if methods is None:
-        methods = CAPTURE_METHODS + (("robust-angles",) if rig.planner.per_subject_angles else ())
-    plan = plan_focus(mesh, rig, seed=seed, points=points, methods=methods, calibration=calibration)
-    return PlannedCapture(plan.to_json(), np.asarray(plan.focus_mm, dtype=float),
-                          np.asarray(plan.capture_angles_deg, dtype=float))
 
 
 class Scan:
@@ -413,7 +381,7 @@ class Scan:
                 writing = asyncio.create_task(self.folder.write_mesh(fused.mesh), name="write-mesh")
                 try:
                     plan, report.compute_s["planning"] = await loop.run_in_executor(
-                        self.settings.executor, timed, _plan, fused.mesh, rig, self.settings.seed,
+                        self.settings.executor, timed, plan_capture, fused.mesh, rig, self.settings.seed,
                         self.settings.plan_points, self.calibration)
                 finally:
                     await writing  # the mesh lands whole, whatever happened to the plan
@@ -467,7 +435,7 @@ class Scan:
         s = self.settings
         try:
             baselines, self.report.compute_s["baselines"] = await asyncio.get_running_loop().run_in_executor(
-                s.executor, timed, _plan, mesh, self.rig, s.seed, s.plan_points, self.calibration, BASELINES)
+                s.executor, timed, plan_capture, mesh, self.rig, s.seed, s.plan_points, self.calibration, BASELINES)
             both = {**plan_json, "methods": {**baselines.json["methods"], **plan_json["methods"]}}
             await self.folder.write_plan(both, _plan_summary(both))
         except Exception as exc:  # the QA report then compares what it has

@@ -64,6 +64,7 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
             got = pool.submit(_digest, shared).result(timeout=120)
             niceness = pool.submit(os.nice, 0).result(timeout=30)
             threads = pool.submit(_omp_threads).result(timeout=30)
+            imported = pool.submit(_imported, "daemon.fusion", "daemon.planning", "daemon.scan").result(timeout=30)
     finally:
         release(block)
     assert [(c, s) for c, s, _ in got] == [(f.camera_id, int(f.depth.astype(np.int64).sum())) for f in frames]
@@ -71,6 +72,15 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     assert niceness >= os.nice(0) + 10  # below the daemon's priority
     assert threads == str(compute_threads()) and int(threads) < max(2, len(os.sched_getaffinity(0)))
     assert os.environ.get("OMP_NUM_THREADS") == ours  # this process's environment is left as it was
+    # the jobs' modules are loaded before the first scan, and not the daemon's
+    assert imported == {"daemon.fusion": True, "daemon.planning": True, "daemon.scan": False}
+
+
+def _imported(*names: str) -> dict[str, bool]:
+    """Runs in the worker process."""
+    import sys
+
+    return {name: name in sys.modules for name in names}
 
 
 def _open_sessions() -> int:

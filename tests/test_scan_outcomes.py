@@ -75,7 +75,7 @@ class _Failure:
     ("PREPARING", daemon.scan, "prepare_phones"),
     ("DEPTH_SWEEP", daemon.scan.DepthSweeper, "run"),
     ("RECONSTRUCTING", daemon.fusion, "fused_mesh"),
-    ("PLANNING", daemon.scan, "_plan"),
+    ("PLANNING", daemon.scan, "plan_capture"),
     ("CAPTURING", daemon.scan.CaptureRunner, "main_pass"),
 ])
 def test_an_oserror_in_any_phase_aborts_the_scan_on_record_within_5_s(
