@@ -345,7 +345,6 @@ class Scan:
     async def _after_prepare(self, profile: Any) -> None:
         assert self.folder is not None and self.report is not None and self.prep is not None
         rig, drive, report = self.rig, self.hw.drive, self.report
-        loop = asyncio.get_running_loop()
         a_max, v_max = rig.motor.max_acceleration_deg_s2, rig.motor.max_speed_deg_s
         self._mark("prepared")
 
@@ -369,24 +368,28 @@ class Scan:
             self.machine.transition(ScanState.RECONSTRUCTING, "depth sweep done",
                                     frames=len(sweep.sweep.frames))
             reposition = asyncio.create_task(drive.move_to(profile.start_deg, v_max, a_max))
+            planning: asyncio.Future[Any] | None = None
             try:
                 await fusion.add(list(sweep.unfed))
-                fused = await fusion.result()
+                # the plan is asked for with the mesh: the worker plans on its own copy at once
+                fused, planning = await fusion.result_then(
+                    plan_capture, rig, self.settings.seed, self.settings.plan_points, self.calibration)
                 report.compute_s["tsdf"] = fusion.seconds - report.compute_s["tsdf_during_sweep"]
-                await sweep_file
 
                 # PLANNING, while mesh.ply is written (the worker frees the TSDF after the plan)
                 self.machine.transition(ScanState.PLANNING, "subject mesh ready",
                                         vertices=len(fused.mesh.vertices))
                 writing = asyncio.create_task(self.folder.write_mesh(fused.mesh), name="write-mesh")
                 try:
-                    plan, report.compute_s["planning"] = await loop.run_in_executor(
-                        self.settings.executor, timed, plan_capture, fused.mesh, rig, self.settings.seed,
-                        self.settings.plan_points, self.calibration)
+                    await sweep_file
+                    plan, report.compute_s["planning"] = await planning
                 finally:
                     await writing  # the mesh lands whole, whatever happened to the plan
             except BaseException:  # the beam finishes its move, as it does after any step's error
-                await asyncio.gather(reposition, sweep_file, return_exceptions=True)
+                if planning is not None:
+                    planning.cancel()
+                await asyncio.gather(reposition, sweep_file, *([planning] if planning else []),
+                                     return_exceptions=True)
                 raise
         try:
             plan_json = plan.json

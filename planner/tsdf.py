@@ -166,6 +166,7 @@ class TsdfFusion:
         self._spacing = AngleSpacing(FRAME_SPACING_DEG)
         self._vbg: object | None = None
         self._lock = threading.Lock()
+        self._result: tuple[bool, TsdfResult] | None = None  # (validated, result) until the next add
 
     def add(self, frames: Iterable[PosedDepth]) -> int:
         """Fuse the chosen ones of ``frames``; returns how many were chosen."""
@@ -182,18 +183,23 @@ class TsdfFusion:
                     self._vbg = _new_grid(self.rig)
                 self.integrated += _integrate_frame(self._vbg, f, self.rig)
             self.integrate_s += time.perf_counter() - started
+            if chosen:
+                self._result = None
             return chosen
 
     def result(self, *, validate: bool = True) -> TsdfResult:
         """The subject's surface mesh (mm) from the frames fused so far.
 
         validate=False skips the person-size and containment checks (analytic test shapes); a
-        missing subject and too few frames are refused either way.
+        missing subject and too few frames are refused either way. The mesh is extracted once:
+        asked again before another frame is fused, the same result is returned.
         """
         with self._lock:
-            return self._result(validate)
+            if self._result is None or self._result[0] != validate:
+                self._result = (validate, self._extract(validate))
+            return self._result[1]
 
-    def _result(self, validate: bool) -> TsdfResult:
+    def _extract(self, validate: bool) -> TsdfResult:
         cfg = self.rig.tsdf
         chosen = sum(self.per_camera.values())
         if chosen < MIN_FRAMES:

@@ -83,6 +83,19 @@ def _imported(*names: str) -> dict[str, bool]:
     return {name: name in sys.modules for name in names}
 
 
+def _mesh_digest(mesh: object, tag: str) -> tuple[str, int, float, int]:
+    """Runs in the worker process, on the fusion's own mesh."""
+    import os
+
+    return tag, len(mesh.faces), float(mesh.vertices.sum()), os.getpid()  # type: ignore[attr-defined]
+
+
+def worker_pid(pool: object) -> int:
+    import os
+
+    return int(pool.submit(os.getpid).result(timeout=30))  # type: ignore[attr-defined]
+
+
 def _open_sessions() -> int:
     """Runs in the worker process."""
     from daemon.fusion import _OPEN
@@ -108,8 +121,10 @@ def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh
         async with FusionSession(pool, rig, "scan-1") as fusion:
             for start in range(0, len(frames), 7):
                 await fusion.add(frames[start:start + 7])
-            result = await fusion.result()
-        assert fusion.closed is not None
+            result, then = await fusion.result_then(_mesh_digest, "plan")
+            digest, seconds = await then
+        assert digest == ("plan", len(result.mesh.faces), float(result.mesh.vertices.sum()), worker_pid(pool))
+        assert seconds >= 0 and fusion.closed is not None
         await fusion.closed  # asked for at the end of the session, not waited for there
         return result, fusion.seconds
 

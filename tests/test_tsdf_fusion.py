@@ -56,6 +56,19 @@ def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
     assert metrics.true_to_estimate_mean_mm < 0.05 and metrics.estimate_to_true_mean_mm < 0.05
 
 
+def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
+    """The plan asks the worker's fusion for the mesh the daemon was given: no second extraction."""
+    frames = sorted(simulate_sweep(cylinder(150.0, 1700.0), RIG, seed=0, frame_spacing_deg=9.0).frames,
+                    key=lambda f: f.timestamp_s)
+    fusion = TsdfFusion(RIG)
+    fusion.add(frames[:-3])
+    first = fusion.result()
+    assert fusion.result() is first
+    assert fusion.result(validate=False) is not first  # asked with other checks: extracted again
+    fusion.add(frames[-3:])
+    assert fusion.result() is not first and fusion.result().frames_used >= first.frames_used
+
+
 def test_standing_cylinder_is_recovered_and_passes_validation():
     truth = cylinder(150.0, 1700.0)
     result = _fuse(truth, rig=RIG, spacing=9.0)
