@@ -108,9 +108,12 @@ async def test_each_start_replays_the_recording_from_its_beginning(sweep_recordi
     path, _ = sweep_recording
     bag = BagPlayback(path, camera_id="depth1")
     first = await play(bag, limit=5)  # stopped mid-file: the reader thread must let go
+    context = bag._context
     again = await play(bag)
     assert [f.frame_number for f in first] == [0, 1, 2, 3, 4]
     assert [f.frame_number for f in again] == list(range(40))
+    # one SDK context for the stream's life: destroying one at every stop held the loop 70-100 ms
+    assert context is not None and bag._context is context
 
 
 async def test_stopping_mid_file_again_and_again_never_crashes_the_sdk(sweep_recording) -> None:

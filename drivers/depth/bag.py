@@ -57,7 +57,7 @@ class BagPlayback(RealSenseStream):
         self.beam_angles = read_beam_angles(angles_file, self.id) if angles_file.is_file() else None
         self.realtime = self.beam_angles is None if self.requested_realtime is None else self.requested_realtime
         self._offset_s = None
-        context = rs.context()
+        context = self._sdk_context(rs)
         try:
             playback = context.load_device(str(self.path))
         except RuntimeError as exc:

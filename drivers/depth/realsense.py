@@ -134,6 +134,7 @@ class RealSenseStream(ABC):
         self.timestamp_domain: str | None = None
         self.dropped_frames = 0
         self._close_source: Callable[[], None] | None = None
+        self._context: Any = None  # the SDK context, made at the first start and kept (see _sdk_context)
         self._queue: asyncio.Queue[Any] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping = False
@@ -228,6 +229,14 @@ class RealSenseStream(ABC):
         if not job.cancelled() and job.exception() is None:
             self._log.warning("realsense_late_start_stopped")
             loop.run_in_executor(None, job.result().close)
+
+    def _sdk_context(self, rs: ModuleType) -> Any:
+        """This stream's ``rs.context``, made once (in the executor, by :meth:`_open`) and kept for
+        the stream's life: destroying a context joins the SDK's threads with the interpreter lock
+        held, which stopped three depth cameras' event loop for 70-100 ms at every sweep's end."""
+        if self._context is None:
+            self._context = rs.context()
+        return self._context
 
     # ------------------------------------------------------------------ subclass hooks
 
@@ -347,7 +356,7 @@ class RealSenseCamera(RealSenseStream):
         self._clock = HostClockMap()
 
     def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
-        context = rs.context()
+        context = self._sdk_context(rs)
         serials = [d.get_info(rs.camera_info.serial_number) for d in context.query_devices()]
         if self.serial not in serials:
             raise DepthCameraNotFound(self.id, self.serial, serials)
