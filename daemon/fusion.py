@@ -5,7 +5,9 @@ in the compute worker (daemon/compute.py: images through shared memory, never pi
 loop), so when the beam stops only the last frames, the mesh extraction and the cleaning are
 left before planning. The fusion lives in the process that fuses: the worker keeps it in
 :data:`_OPEN` under the scan's key between jobs (the pool has one worker; a thread executor keeps
-it in this process). Jobs of one session are awaited one after the other, never concurrently.
+it in this process). Jobs of one session are awaited one after the other, never concurrently;
+the one exception, :meth:`FusionSession.result_then`, only reads the extracted mesh, which the
+fusion keeps (and extracts once) until the session closes.
 """
 
 from __future__ import annotations
