@@ -12,7 +12,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import AsyncIterator, Iterator
 
 import can
@@ -277,7 +276,8 @@ async def test_a_simulated_phone_follows_the_angle_the_daemon_drives(
     """``tbp sim phone --follow-beam``: its listening thread decodes the drive's position TPDOs."""
     server, _ = bridge
     follower = BeamFollower(MOTOR, "127.0.0.1", server.port, fallback_deg=-90.0)
-    assert follower.angle_at(time.monotonic()) == -90.0  # nothing streamed yet
+    loop = asyncio.get_running_loop()
+    assert follower.angle_at(loop.time()) == -90.0  # nothing streamed yet
     follower.start()
     drive = BeamDrive(await _client_port(server), MOTOR)
     try:
@@ -285,10 +285,10 @@ async def test_a_simulated_phone_follows_the_angle_the_daemon_drives(
         await drive.enable()
         await drive.move_to(3.0, 30.0, 60.0)
         for _ in range(500):  # until the follower has read a sample at the end of the move
-            if abs(follower.angle_at(time.monotonic()) - 3.0) < 0.01:
+            if abs(follower.angle_at(loop.time()) - 3.0) < 0.01:
                 break
             await asyncio.sleep(0.01)
-        assert follower.angle_at(time.monotonic()) == pytest.approx(3.0, abs=0.01)
+        assert follower.angle_at(loop.time()) == pytest.approx(3.0, abs=0.01)
         await drive.disable()
     finally:
         await drive.close()

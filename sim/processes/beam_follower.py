@@ -18,8 +18,9 @@ difference is a quarter of the core the daemon's compute worker shares on the lo
 
 from __future__ import annotations
 
+import asyncio
 import threading
-import time
+from collections.abc import Callable
 
 import can
 import structlog
@@ -34,7 +35,7 @@ log = structlog.get_logger(__name__)
 class BeamFollower:
     """The beam angle from the drive's position TPDOs on a socketcand bridge at ``host:port``.
 
-    Times are ``time.monotonic()`` seconds, the clock of asyncio's default event loop.
+    Times are the phone's event-loop clock (``loop.time()``, which the thread may read too).
     """
 
     MAX_EXTRAPOLATION_S = 0.1
@@ -47,13 +48,14 @@ class BeamFollower:
         self.motor = motor
         self.host, self.port, self.channel = host, port, channel
         self.fallback_deg = fallback_deg
-        self._latest: tuple[float, float, float] | None = None  # monotonic s, angle deg, speed deg/s
+        self._latest: tuple[float, float, float] | None = None  # loop time s, angle deg, speed deg/s
+        self._clock: Callable[[], float] | None = None
         self._cob_id = nmt.tpdo_cob_id(1, motor.node_id)
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
 
     def angle_at(self, time_s: float) -> float:
-        """Beam angle (deg) at monotonic time ``time_s``: the latest TPDO carried forward at its speed."""
+        """Beam angle (deg) at loop time ``time_s``: the latest TPDO carried forward at its speed."""
         latest = self._latest  # read once: the thread replaces the whole tuple
         if latest is None:
             return self.fallback_deg
@@ -61,6 +63,8 @@ class BeamFollower:
         return angle + speed * min(max(time_s - received, 0.0), self.MAX_EXTRAPOLATION_S)
 
     def start(self) -> None:
+        """Start listening (from the phone's event loop, whose clock stamps the samples)."""
+        self._clock = asyncio.get_running_loop().time
         self._thread = threading.Thread(target=self._run, name="beam-follower", daemon=True)
         self._thread.start()
 
@@ -89,6 +93,7 @@ class BeamFollower:
             self._stopping.wait(self.RECONNECT_S)
 
     def _listen(self, bus: can.BusABC) -> None:
+        assert self._clock is not None
         per_degree = self.motor.counts_per_degree
         while not self._stopping.is_set():
             msg = bus.recv(timeout=self.RECEIVE_CYCLE_S)
@@ -99,4 +104,4 @@ class BeamFollower:
             except ValueError as exc:  # not the mapping the daemon configures: say so, keep listening
                 log.warning("beam_follower_bad_tpdo", data=bytes(msg.data).hex(), error=str(exc))
                 continue
-            self._latest = (time.monotonic(), position / per_degree, velocity / per_degree)
+            self._latest = (self._clock(), position / per_degree, velocity / per_degree)
