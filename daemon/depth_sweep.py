@@ -155,7 +155,9 @@ class DepthSweeper:
             trace = self.tracker.trace(mark)
             if len(trace) >= 2:
                 self._pose_ready(BeamTrace.from_columns(trace[:, 0], trace[:, 1]), final=False)
-            batch = self._posed[self._fed:]
+            # In time order, cameras by id at equal times: frames that arrive together reach this
+            # list in whichever order their tasks ran, and the TSDF's sums depend on the order.
+            batch = sorted(self._posed[self._fed:], key=lambda f: (f.timestamp_s, f.camera_id))
             if batch:
                 self._fed = len(self._posed)
                 await sink(batch)
