@@ -100,7 +100,7 @@ class FusionSession:
     async def result_then(self, func: Callable[..., Any], *args: Any) -> tuple[TsdfResult, asyncio.Future[Any]]:
         """:meth:`result`, and ``func(mesh, *args)`` on the mesh where it was made, both asked for
         at once: the worker goes from the extraction to ``func`` without sending the mesh back and
-        forth (tens of MB pickled twice, and a wait for this loop in between). Returns the mesh
+        forth (megabytes pickled twice, and a wait for this loop in between). Returns the mesh
         and the future of (``func``'s result, its compute seconds); when the extraction fails, that
         future is dropped and the extraction's error raised."""
         loop = asyncio.get_running_loop()

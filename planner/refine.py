@@ -66,10 +66,6 @@ class _PointBest:
         np.cumsum(counts[:-1], out=seg_starts[1:])
         return np.repeat(starts - seg_starts, counts) + np.arange(int(counts.sum())), seg_starts
 
-    def poses_seeing(self, points: np.ndarray) -> np.ndarray:
-        """Poses (with repeats) of all pairs of ``points``."""
-        return self.table.by_point[0][self.positions(points)[0]]
-
     def recompute(self, points: np.ndarray) -> np.ndarray:
         """Refresh ``points`` (each with >= 1 pair) from pair_cost.
 

@@ -90,7 +90,8 @@ def _mesh_digest(mesh: object, tag: str) -> tuple[str, int, float, int]:
     return tag, len(mesh.faces), float(mesh.vertices.sum()), os.getpid()  # type: ignore[attr-defined]
 
 
-def worker_pid(pool: object) -> int:
+def _worker_pid(pool: object) -> int:
+    """The worker process's id (asked of the worker)."""
     import os
 
     return int(pool.submit(os.getpid).result(timeout=30))  # type: ignore[attr-defined]
@@ -123,7 +124,7 @@ def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh
                 await fusion.add(frames[start:start + 7])
             result, then = await fusion.result_then(_mesh_digest, "plan")
             digest, seconds = await then
-        assert digest == ("plan", len(result.mesh.faces), float(result.mesh.vertices.sum()), worker_pid(pool))
+        assert digest == ("plan", len(result.mesh.faces), float(result.mesh.vertices.sum()), _worker_pid(pool))
         assert seconds >= 0 and fusion.closed is not None
         await fusion.closed  # asked for at the end of the session, not waited for there
         return result, fusion.seconds

@@ -99,5 +99,5 @@ async def serve(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
     if follower is not None:
-        follower.stop()
+        await asyncio.to_thread(follower.stop)  # the join may wait out a reconnection attempt
     return 0
