@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from planner.order import stable_argsort
+
 
 def best_focus(
     lo: np.ndarray, hi: np.ndarray, weights: np.ndarray | None = None
@@ -42,7 +44,7 @@ def sweep(lo: np.ndarray, hi: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     coords = np.concatenate([lo, hi])
     # A stable sort keeps starts (first half) before ends at the same coordinate: closed
     # intervals touching at a point overlap there.
-    order = np.argsort(coords, kind="stable")
+    order = stable_argsort(coords)
     running = np.cumsum(np.concatenate([w, -w])[order])
     # The last coordinate closes every interval: no cell starts there. Excluding it also keeps
     # a rounding residue (weights that are differences of costs) from electing it.
@@ -84,7 +86,7 @@ def best_focus_per_group(
     # 16-bit keys let NumPy use a radix sort for the group pass.
     key = groups.astype(np.int16) if n_groups <= np.iinfo(np.int16).max else groups
     # Stable sorts: by coordinate (starts, the first half, before ends on ties), then by group.
-    order = np.argsort(coords, kind="stable")
+    order = stable_argsort(coords)
     order = order[np.argsort(key[order], kind="stable")]
     steps = np.where(order < n, 1, -1)
     # Each group's +1/-1 steps sum to zero, so a global running sum restarts at 0 per group.
@@ -121,7 +123,7 @@ class PresortedIntervals:
         # Pose by pose: many small sorts are several times faster than one sort of every end.
         for a, b in zip(ptr[:-1].tolist(), ptr[1:].tolist()):
             if b > a:
-                order = np.argsort(np.concatenate([lo[a:b], hi[a:b]]), kind="stable")
+                order = stable_argsort(np.concatenate([lo[a:b], hi[a:b]]))
                 n = b - a
                 is_start[2 * a : 2 * b] = order < n
                 local[2 * a : 2 * b] = np.where(order < n, order, order - n)

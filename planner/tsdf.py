@@ -21,6 +21,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from planner.order import stable_argsort
 from planner.rig import Rig
 from planner.shape_errors import (
     ImplausibleSubject,
@@ -281,7 +282,7 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
     remap[used] = np.arange(len(used))
     keep = remap[keep]
     keep = _lowest_first(keep)
-    keep = keep[np.argsort(_face_keys(keep, len(used)), kind="stable")]
+    keep = keep[stable_argsort(_face_keys(keep, len(used)))]
     vertices, faces = close_openings(v[used], keep, FLOOR_BAND_MM + cfg.floor_clearance_mm)
     return trimesh.Trimesh(vertices, faces, process=False)
 
