@@ -36,7 +36,7 @@ from planner.poses import Poses, rgb_poses, rig_rgb_poses
 from planner.redundancy import Redundancy
 from planner.refine import refine_focus
 from planner.rig import PLAN_MEMORY_BUDGET_BYTES, Rig, planning_memory_bytes
-from planner.sampling import SurfaceSamples, sample_surface
+from planner.sampling import SurfaceSamples, Triangles, sample_surface
 from planner.visibility import RayScene, visible_pairs
 
 if TYPE_CHECKING:
@@ -185,13 +185,6 @@ def load_subject_mesh(path: Path | str, max_bytes: int = MAX_MESH_BYTES) -> trim
     return mesh
 
 
-def signed_volume_mm3(mesh: trimesh.Trimesh) -> float:
-    """Signed enclosed volume: negative when the triangles wind inward (normals into the body)."""
-    v = np.asarray(mesh.vertices, dtype=float)
-    f = np.asarray(mesh.faces, dtype=np.int64)
-    return float(np.einsum("ij,ij->", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])) / 6.0)
-
-
 def _samples(
     mesh: trimesh.Trimesh, rig: Rig, points: int | SurfaceSamples | None, seed: int, name: str
 ) -> SurfaceSamples:
@@ -200,7 +193,8 @@ def _samples(
     if len(mesh.faces) == 0:
         raise EmptyMesh(name, 0, 0.0)
     check_inside_ring(mesh, rig, name)
-    volume = signed_volume_mm3(mesh)
+    triangles = Triangles.of(mesh)
+    volume = triangles.signed_volume_mm3
     if volume < 0:
         raise InvertedMesh(name, volume)
     if isinstance(points, SurfaceSamples):
@@ -210,7 +204,7 @@ def _samples(
     if need > PLAN_MEMORY_BUDGET_BYTES:
         raise PlanTooLarge(count, rig.n_poses, need, PLAN_MEMORY_BUDGET_BYTES)
     try:
-        return sample_surface(mesh, count, seed=seed)
+        return sample_surface(mesh, count, seed=seed, triangles=triangles)
     except EmptyMesh as exc:
         raise EmptyMesh(name, exc.faces, exc.area_mm2) from exc
 

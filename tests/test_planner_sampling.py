@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from planner.focus_errors import EmptyMesh
-from planner.sampling import SurfaceSamples, sample_surface
+from planner.sampling import SurfaceSamples, Triangles, sample_surface
 from tests.planner_standin import sphere
 
 
@@ -44,3 +44,14 @@ def test_bad_requests_are_refused() -> None:
         SurfaceSamples.from_arrays(np.zeros((2, 3)), np.ones((1, 3)))
     with pytest.raises(ValueError, match="zero length"):
         SurfaceSamples.from_arrays(np.zeros((1, 3)), np.zeros((1, 3)))
+
+
+def test_triangles_give_areas_and_the_signed_volume() -> None:
+    ball = sphere(100.0, (0.0, 0.0, 0.0))
+    triangles = Triangles.of(ball)
+    np.testing.assert_allclose(triangles.doubled_areas, 2.0 * ball.area_faces, rtol=1e-12)
+    assert triangles.signed_volume_mm3 == pytest.approx(ball.volume, rel=1e-9)
+    inverted = trimesh.Trimesh(ball.vertices, ball.faces[:, ::-1], process=False)
+    assert Triangles.of(inverted).signed_volume_mm3 == pytest.approx(-ball.volume, rel=1e-9)
+    given = sample_surface(ball, 500, seed=4, triangles=triangles)
+    np.testing.assert_array_equal(given.points, sample_surface(ball, 500, seed=4).points)
