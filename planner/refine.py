@@ -56,15 +56,15 @@ class _PointBest:
         self.best_pair = np.full(n, -1, dtype=np.int64)
         self.recompute(np.flatnonzero(table.seen))
 
-    def positions(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions in point order (``table.order``) of all pairs of ``points``, and where each
-        point's run starts."""
+    def positions(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions in point order (``table.order``) of all pairs of ``points``, where each
+        point's run starts, and how many pairs each has."""
         t = self.table
         starts = t.point_ptr[points]
         counts = t.point_ptr[points + 1] - starts
         seg_starts = np.zeros(len(points), dtype=np.int64)
         np.cumsum(counts[:-1], out=seg_starts[1:])
-        return np.repeat(starts - seg_starts, counts) + np.arange(int(counts.sum())), seg_starts
+        return np.repeat(starts - seg_starts, counts) + np.arange(int(counts.sum())), seg_starts, counts
 
     def recompute(self, points: np.ndarray) -> np.ndarray:
         """Refresh ``points`` (each with >= 1 pair) from pair_cost.
@@ -74,13 +74,14 @@ class _PointBest:
         """
         if len(points) == 0:
             return points
-        positions, seg_starts = self.positions(points)
+        positions, seg_starts, counts = self.positions(points)
         pairs = self.table.order[positions]
-        segment = np.repeat(np.arange(len(points)), np.diff(np.r_[seg_starts, len(positions)]))
+        segment = np.repeat(np.arange(len(points)), counts)
         costs = self.pair_cost[pairs]
         mins = np.minimum.reduceat(costs, seg_starts)
         hits = np.flatnonzero(costs == mins[segment])
-        first = hits[np.r_[True, segment[hits[1:]] != segment[hits[:-1]]]]
+        # every point has a hit (its minimum); its first one is where its segment number starts
+        first = hits[np.searchsorted(segment[hits], np.arange(len(points)))]
         rest = costs.copy()
         rest[first] = np.inf
         seconds = np.minimum.reduceat(rest, seg_starts)
@@ -110,23 +111,20 @@ class _PointBest:
         is_best = best_pair == index
         fell = new < old
         rose = new > old
-        nb, ns, nbp = best.copy(), second.copy(), best_pair.copy()
+        other_fell = fell & ~is_best
         # A best pair that fell or rose no higher than the second stays best at its new cost.
         keep_best = is_best & (fell | (rose & (new <= second)))
-        nb[keep_best] = new[keep_best]
-        takes_over = fell & ~is_best & (new < best)
-        ns[takes_over] = best[takes_over]
-        nb[takes_over] = new[takes_over]
-        nbp[takes_over] = index[takes_over]
-        below_second = fell & ~is_best & ~takes_over
-        ns[below_second] = np.minimum(second[below_second], new[below_second])
-        redo = rose & ((is_best & (new > second)) | (~is_best & (old <= second)))
-        changed = (nb != best) | (ns != second) | (nbp != best_pair)
-        direct = points[changed & ~redo]
-        self.best[direct] = nb[changed & ~redo]
-        self.second[direct] = ns[changed & ~redo]
-        self.best_pair[direct] = nbp[changed & ~redo]
-        return np.concatenate([direct, self.recompute(points[redo])])
+        takes_over = other_fell & (new < best)
+        nb = np.where(keep_best | takes_over, new, best)
+        ns = np.where(takes_over, best, np.where(other_fell, np.minimum(second, new), second))
+        nbp = np.where(takes_over, index, best_pair)
+        redo = rose & np.where(is_best, new > second, old <= second)
+        direct = ((nb != best) | (ns != second) | (nbp != best_pair)) & ~redo
+        at = points[direct]
+        self.best[at] = nb[direct]
+        self.second[at] = ns[direct]
+        self.best_pair[at] = nbp[direct]
+        return np.concatenate([at, self.recompute(points[redo])])
 
 
 def refine_focus(
