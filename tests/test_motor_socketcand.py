@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from drivers.motor import BeamDrive, Cia402State, LoopbackCanBus, PythonCanPort
 from drivers.sim.drive import SimulatedDrive
-from drivers.sim.socketcand import SocketcandProtocolError, SocketcandServer, format_frame, parse_send
+from drivers.sim.socketcand import SocketcandProtocolError, SocketcandServer, _bus_to_tcp, format_frame, parse_send
 from planner.rig import load_rig
 from sim.processes.beam_follower import BeamFollower
 
@@ -117,6 +117,43 @@ async def _client_port(server: SocketcandServer, channel: str = "can0") -> Pytho
         can.Bus, interface="socketcand", host="127.0.0.1", port=server.port, channel=channel
     )
     return PythonCanPort(bus, name="socketcand")
+
+
+class _RecordingWriter:
+    """A StreamWriter's write/drain, keeping each write."""
+
+    def __init__(self) -> None:
+        self.writes: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.writes.append(data)
+
+    async def drain(self) -> None:
+        await asyncio.sleep(0)
+
+
+async def test_frames_put_on_the_bus_together_go_out_in_one_write() -> None:
+    bus = LoopbackCanBus("sim")
+    drive, client = bus.port("drive"), bus.port("client")
+    writer = _RecordingWriter()
+    pump = asyncio.create_task(_bus_to_tcp(client, writer))  # type: ignore[arg-type]
+    frames = [can.Message(arbitration_id=0x181 + k, data=bytes([k]), is_extended_id=False) for k in range(3)]
+    try:
+        for frame in frames[:2]:  # one drive cycle: TPDO1 and TPDO2 back to back
+            await drive.send(frame)
+        while not writer.writes:
+            await asyncio.sleep(0)
+        await drive.send(frames[2])  # the next cycle
+        while len(writer.writes) < 2:
+            await asyncio.sleep(0)
+        first, second = (w.decode("ascii") for w in writer.writes)
+        assert re.findall(r"< frame (\w+) ", first) == ["181", "182"]
+        assert re.findall(r"< frame (\w+) ", second) == ["183"]
+        client.close()
+        await asyncio.wait_for(pump, 1.0)  # a closed port ends the pump
+    finally:
+        pump.cancel()
+        await asyncio.gather(pump, return_exceptions=True)
 
 
 # python-can's client raises from its constructor without closing the socket it connected.

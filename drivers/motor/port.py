@@ -105,6 +105,17 @@ class LoopbackPort:
             raise CanBusError(self.name, "closed", "port closed while receiving")
         return item
 
+    def recv_ready(self) -> list[can.Message]:
+        """The frames already waiting, without waiting for more (a bridge sends them in one write)."""
+        frames = []
+        while not self._queue.empty():
+            item = self._queue.get_nowait()
+            if item is _CLOSED:  # nothing follows it: left for the next recv to raise
+                self._queue.put_nowait(item)
+                break
+            frames.append(item)
+        return frames
+
     def close(self) -> None:
         if self.closed:
             return

@@ -155,10 +155,13 @@ async def _command(reader: asyncio.StreamReader) -> str:
 
 
 async def _bus_to_tcp(port: LoopbackPort, writer: asyncio.StreamWriter) -> None:
+    """Forward the bus to one client. Frames put on the bus together (a drive's TPDOs of one
+    cycle) go out in one write: one send per client instead of one per frame, which on loopback
+    was most of the simulated drive's CPU with eight clients at 400 frames a second."""
     try:
         while True:
-            msg = await port.recv()
-            writer.write(format_frame(msg).encode("ascii"))
+            frames = [await port.recv(), *port.recv_ready()]
+            writer.write("".join(format_frame(msg) for msg in frames).encode("ascii"))
             await writer.drain()
     except (CanBusError, ConnectionError):
         return
