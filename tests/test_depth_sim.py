@@ -128,6 +128,36 @@ def test_camera_streams_at_fps_on_the_loop_clock_with_the_beam_angle_of_each_fra
     assert np.array_equal(frames[0].intrinsics, MODEL.intrinsic_matrix)
 
 
+def test_a_frame_rendered_on_the_loop_gives_the_loop_turns_and_the_same_image(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr("drivers.sim.depth.RAYS_PER_STEP", 1000)
+    steps = -(-MODEL.width_px * MODEL.height_px // 1000)
+
+    async def render_with_a_ticker() -> tuple[DepthFrame, int]:
+        turns = 0
+        done = asyncio.Event()
+
+        async def ticker() -> None:
+            nonlocal turns
+            while not done.is_set():
+                turns += 1
+                await asyncio.sleep(0)
+
+        task = asyncio.create_task(ticker())
+        await asyncio.sleep(0)
+        turns = 0
+        frame = await _camera().render_frame_async(0, 0.5)
+        done.set()
+        await task
+        return frame, turns
+
+    frame, turns = run_virtual(render_with_a_ticker())
+    assert turns >= steps  # the ticker ran between the ray-casting steps, not only after the frame
+    whole = _camera().render_frame(0, 0.5)
+    assert np.array_equal(frame.depth, whole.depth) and np.count_nonzero(frame.depth) > 0
+
+
 def test_dropped_and_empty_frames_are_injected():
     camera = _camera(DepthFaults(drop_frames={1, 2}, empty_frames={4}))
     frames = run_virtual(_take(camera, 4))

@@ -17,10 +17,10 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import math
-from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import structlog
@@ -41,6 +41,10 @@ EDGE_JUMP_RELATIVE = 0.03
 EDGE_WIDTH_PX = 2
 #: Half the side of the square floor put under the subject (mm).
 FLOOR_HALF_SIDE_MM = 2500.0
+#: Rays cast between two turns of the event loop when a frame is rendered in steps (~10 ms here).
+RAYS_PER_STEP = 1 << 15
+
+T = TypeVar("T")
 
 
 class DepthScene:
@@ -88,18 +92,36 @@ class DepthRenderer:
 
     def true_depth(self, camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) float z-depth in mm (inf where nothing is hit) and (H, W) cos of incidence."""
+        return _finish(self.true_depth_steps(camera_to_world))
+
+    def true_depth_steps(self, camera_to_world: np.ndarray) -> Generator[None, None, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`true_depth` in steps of at most :data:`RAYS_PER_STEP` rays (a yield between
+        steps), so an event loop rendering frames keeps answering in between; same result."""
         m = self.model
         rays = self._rays
         rays[:, :3] = camera_to_world[:3, 3]
         np.matmul(self._rays_camera, camera_to_world[:3, :3].T.astype(np.float32), out=rays[:, 3:])
-        t_hit, normals = self.scene.cast(rays)
+        t_hit = np.empty(len(rays), dtype=np.float32)
+        normals = np.empty((len(rays), 3), dtype=np.float32)
+        for start in range(0, len(rays), RAYS_PER_STEP):
+            if start:
+                yield
+            stop = start + RAYS_PER_STEP
+            t_hit[start:stop], normals[start:stop] = self.scene.cast(rays[start:stop])
         cos_incidence = np.abs(np.einsum("ij,ij->i", normals, rays[:, 3:])) * self._inverse_length
         return t_hit.reshape(m.height_px, m.width_px), cos_incidence.reshape(m.height_px, m.width_px)
 
     def render(self, camera_to_world: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
         """(H, W) uint16 depth in depth units, 0 = hole. rng None renders without noise (still quantised)."""
+        return _finish(self.render_steps(camera_to_world, rng))
+
+    def render_steps(
+        self, camera_to_world: np.ndarray, rng: np.random.Generator | None
+    ) -> Generator[None, None, np.ndarray]:
+        """:meth:`render` in steps (see :meth:`true_depth_steps`); the generator returns the image."""
         m = self.model
-        z, cos_incidence = self.true_depth(camera_to_world)
+        z, cos_incidence = yield from self.true_depth_steps(camera_to_world)
+        yield
         valid = np.isfinite(z) & (z >= m.min_range_mm) & (z <= m.max_range_mm)
         valid &= cos_incidence >= math.cos(math.radians(m.grazing_limit_deg))
         valid &= ~silhouette_edges(z)
@@ -108,6 +130,15 @@ class DepthRenderer:
             z = z + rng.standard_normal(z.shape) * sigma
         units = np.where(valid, np.rint(z / m.depth_unit_mm), 0.0)
         return np.clip(units, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
+
+def _finish(steps: Generator[None, None, T]) -> T:
+    """Run a stepwise computation to its end; its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
 
 
 def silhouette_edges(z: np.ndarray) -> np.ndarray:
@@ -209,16 +240,31 @@ class SimulatedDepthCamera:
             if k in self.faults.drop_frames:
                 continue
             t = loop.time()
-            yield self.render_frame(k, t)
+            yield await self.render_frame_async(k, t)
 
     def render_frame(self, frame_number: int, time_s: float) -> DepthFrame:
         """The frame exposed at event-loop time time_s (beam angle from the angle source)."""
+        return _finish(self._frame_steps(frame_number, time_s))
+
+    async def render_frame_async(self, frame_number: int, time_s: float) -> DepthFrame:
+        """:meth:`render_frame`, giving the event loop a turn between steps of the ray casting (a
+        whole frame held a loop that also serves the console for 30-90 ms). The pose is taken
+        before the first step; the frame is the same."""
+        steps = self._frame_steps(frame_number, time_s)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return done.value
+            await asyncio.sleep(0)
+
+    def _frame_steps(self, frame_number: int, time_s: float) -> Generator[None, None, DepthFrame]:
         m = self.model
         if frame_number in self.faults.empty_frames:
             depth = np.zeros((m.height_px, m.width_px), dtype=np.uint16)
         else:
             pose = depth_camera_pose(self.camera, math.radians(self.beam_angle_deg(time_s)))
-            depth = self.renderer.render(pose, self._rng)
+            depth = yield from self.renderer.render_steps(pose, self._rng)
         return DepthFrame(
             camera_id=self.id,
             frame_number=frame_number,
