@@ -90,7 +90,11 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       group: str | None = None, subject_path: Path | None = None,
                       panel: bool = True, qa_report: Callable[..., Path] | None = None,
                       attach: Callable[[Any], None] | None = None) -> int:
-    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
+    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
+
+    Compute runs in a worker process as on the real rig (daemon/compute.py): in a thread, the
+    TSDF extraction held the interpreter lock the console's events and the panel wait for."""
+    from daemon.compute import compute_pool
     from daemon.looplag import freeze_startup_heap
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
@@ -104,7 +108,7 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
+    with compute_pool() as executor:
         controller = RigController(rig, hardware, ScanStore(store),
                                    settings=ScanSettings(seed=seed, plan_points=plan_points,
                                                          executor=executor, qa_report=qa_report))

@@ -74,9 +74,9 @@ def _clicks(store: Path, folder: str, mesh_vertices: int, pause_s: float) -> tup
 
 def _event_latency(root: Path, subject: object) -> list[tuple[float, str]]:
     """ms from the state machine publishing an event to the console page receiving it, over one scan
-    of the simulated rig (daemon in this process, paced at 10x real time, browser in a thread)."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    of the simulated rig (daemon in this process, paced at 10x real time, compute in its worker
+    process as ``tbp daemon --sim`` runs it, browser in a thread)."""
+    from daemon.compute import compute_pool
     from daemon.controller import RigController
     from daemon.scan import ScanSettings
     from daemon.service import RigService
@@ -106,7 +106,7 @@ def _event_latency(root: Path, subject: object) -> list[tuple[float, str]]:
     async def daemon() -> None:
         rig = load_rig()
         hardware, _ = await build_sim_rig(rig, SimOptions(seed=5, depth_decimation=2, panel=True), subject=subject)
-        with ThreadPoolExecutor(max_workers=1) as executor:
+        with compute_pool() as executor:
             controller = RigController(rig, hardware, ScanStore(root / "console-scans"),
                                        settings=ScanSettings(seed=5, plan_points=1500, executor=executor))
             machine = controller.machine
