@@ -90,13 +90,10 @@ class DepthRenderer:
         self._inverse_length = 1.0 / np.linalg.norm(self._rays_camera, axis=1)
         self._rays = np.empty((len(self._rays_camera), 6), dtype=np.float32)
 
-    def true_depth(self, camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(H, W) float z-depth in mm (inf where nothing is hit) and (H, W) cos of incidence."""
-        return _finish(self.true_depth_steps(camera_to_world))
-
     def true_depth_steps(self, camera_to_world: np.ndarray) -> Generator[None, None, tuple[np.ndarray, np.ndarray]]:
-        """:meth:`true_depth` in steps of at most :data:`RAYS_PER_STEP` rays (a yield between
-        steps), so an event loop rendering frames keeps answering in between; same result."""
+        """(H, W) float z-depth in mm (inf where nothing is hit) and (H, W) cos of incidence, cast
+        in steps of at most :data:`RAYS_PER_STEP` rays with a yield between steps, so an event
+        loop rendering frames keeps answering in between."""
         m = self.model
         rays = self._rays
         rays[:, :3] = camera_to_world[:3, 3]
