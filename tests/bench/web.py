@@ -185,7 +185,7 @@ def run() -> None:
               f"p99 {np.percentile(latency, 99):.1f} ms, max {max(latency):.1f} ms (goal <= 100 ms) "
               f"{_mark(max(latency), 100)}; slowest: "
               + ", ".join(f"{t:.0f} ms ({what})" for t, what in worst)
-              + f"; max outside the depth sweep (its simulated cameras ray-cast inside the event loop): "
+              + f"; max outside the depth sweep (its simulated cameras ray-cast on the event loop, in steps): "
               f"{max(t for t, what in timed if not what.startswith('DEPTH_SWEEP')):.1f} ms")
 
         started = time.perf_counter()
