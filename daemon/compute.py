@@ -79,12 +79,17 @@ def _started() -> None:
 def _warm_up() -> None:
     """In the worker: yield the CPU to the daemon and import what every scan's jobs need, so the
     first scan's do not (their modules, not the daemon's: importing ``daemon.scan`` here took
-    0.3 s of the first scan's gap between the sweep and the capture)."""
+    0.3 s of the first scan's gap between the sweep and the capture), and compile the planner's
+    descent loop (seconds the first time, from numba's cache after)."""
     os.nice(WORKER_NICENESS)
     import open3d  # noqa: F401
 
     import daemon.fusion
     import daemon.planning  # noqa: F401
+    from planner.refine import warm_up
+    from planner.rig import load_rig
+
+    warm_up(load_rig())
 
 
 @dataclass(frozen=True)

@@ -162,3 +162,23 @@ def test_redundancy_parameters_are_checked() -> None:
         Redundancy(1.0, 1.0)
     with pytest.raises(ValueError, match="weight"):
         Redundancy(-1.0, 0.2)
+
+
+def test_descent_loop_compiles_where_no_cache_directory_is_writable(monkeypatch) -> None:
+    import numba
+
+    from planner import descent
+
+    asked: list[bool] = []
+    real_njit = numba.njit
+
+    def njit(**options):
+        asked.append(bool(options.get("cache")))
+        if options.get("cache"):
+            raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
+        return real_njit(**options)
+
+    monkeypatch.setattr(descent.numba, "njit", njit)
+    double = descent._jit(lambda x: 2 * x)
+    assert double(21) == 42
+    assert asked == [True, False]

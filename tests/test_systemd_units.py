@@ -43,6 +43,10 @@ def test_unit_has_the_required_directives():
     assert set(one["SupplementaryGroups"].split()) >= {"plugdev", "dialout"}
     assert one["NoNewPrivileges"] == "yes" and one["ProtectSystem"] == "strict"
     assert one["StateDirectory"] == "tbp-rig"
+    # numba's cache of the planner's compiled loop: writable under ProtectSystem=strict
+    assert one["CacheDirectory"] == "tbp-rig"
+    assert "NUMBA_CACHE_DIR=/var/cache/tbp-rig/numba" in " ".join(svc["Environment"]).split()
+    assert "MemoryDenyWriteExecute" not in svc
     assert "--store /srv/tbp-rig/scans" in one["ExecStart"]
     assert "--hardware /etc/tbp-rig/hardware.yaml" in one["ExecStart"]
     # READY=1 waits for every device; a missing one must not make systemd kill and restart it.
