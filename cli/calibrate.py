@@ -6,16 +6,19 @@
                                             DIR gets calibration.yaml, truth.yaml (the simulated rig's true
                                             poses, same format), the pictures and report/index.html
   tbp calibrate --pictures FILE --out DIR   calibrate from a calibration rotation's captures.json
+  tbp calibrate focus [--phone ID] --out DIR each phone of the hardware file (daemon stopped) sweeps its lens
+                                            over a board the operator stands at known distances (Enter at
+                                            each); DIR/<phone>.yaml is its focus table (name it in the rig
+                                            file's phones[].focus_calibration), DIR/<phone>.png the sweeps
   tbp calibrate focus --sim --seed S --out DIR
-                                            each simulated phone sweeps its focus over a board at known
-                                            distances; DIR/<phone>.yaml is its focus table (name it in the
-                                            rig file's phones[].focus_calibration)
+                                            the same procedure, through the phone driver, on the simulated
+                                            phones (a simulated board stand; each lens off by a seeded error)
 
 Install the result as the rig's calibration by copying DIR/calibration.yaml next to the rig file
 (``calibration_data/`` or ``/etc/tbp-rig/``; the rig file's ``calibration.file`` names it).
-Not built yet: the calibration rotation through the daemon on the real rig, and the focus sweep
-of real phones (board stand + sweep over ADB); both pipelines take their pictures as above. Pictures that cannot be used are listed with the
-reason and the rest still calibrates; the exit status is 1 when no calibration could be made.
+Not built yet: the calibration rotation through the daemon on the real rig; the pose pipeline takes
+its pictures as above. Pictures that cannot be used are listed with the reason and the rest still
+calibrates; the exit status is 1 when no calibration could be made.
 """
 
 from __future__ import annotations
@@ -42,6 +45,16 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--target", type=Path, default=None,
                         help="target file (default calibration_data/target/cuboid.yaml)")
     parser.add_argument("--jobs", type=int, default=2, help="worker threads/processes (default 2)")
+    options.hardware(parser)
+    options.socket(parser)
+    parser.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
+                        help="focus: where the ADB key the phones authorised is kept (as tbp check)")
+    parser.add_argument("--phone", action="append", default=[], metavar="ID",
+                        help="focus on the rig: only this phone (repeatable; default every phone)")
+    parser.add_argument("--distances", type=lambda v: [float(x) for x in v.split(",")], default=None,
+                        metavar="MM,MM,...", help="focus: board distances, mm (default 180,220,...,1100)")
+    parser.add_argument("--yes", action="store_true",
+                        help="focus on the rig: do not wait for Enter at each distance (a motorised stand)")
     parser.set_defaults(func=run)
 
 
@@ -126,17 +139,123 @@ def _calibrate(args: argparse.Namespace, rig: Any, target: Any) -> int:
 
 
 def _focus(args: argparse.Namespace, rig: Any, target: Any) -> int:
-    if not args.sim:
-        print("tbp calibrate focus: only --sim is built (the real phones' sweep needs the board stand "
-              "procedure over ADB, not built yet)", file=sys.stderr)
-        return 2
-    from sim.focus_calibration import CHECK_MM, calibrate_sim_focus
+    from analysis.focus_report import write_focus_figure
+    from daemon.focus_sweep import SweepSettings
+    from planner.calibration.focus_fit import FocusFitError
 
-    print(f"focus sweeps of the simulated phones (seed {args.seed}) over a board at known distances", flush=True)
-    results = calibrate_sim_focus(rig, target, args.seed, args.out)
+    try:
+        board_mm = min(target.squares) * target.square_mm  # the board of face 0: the sweeps' board
+        distances = tuple(args.distances) if args.distances else SweepSettings.distances_mm
+        settings = SweepSettings(distances_mm=distances, board_width_mm=board_mm)
+    except ValueError as exc:
+        print(f"tbp calibrate focus: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.sim:
+            return _focus_sim(args, rig, target, settings, write_focus_figure)
+        return _focus_rig(args, rig, settings, write_focus_figure)
+    except FocusFitError as exc:
+        print(f"tbp calibrate focus: {exc}", file=sys.stderr)
+        return 1
+
+
+def _focus_sim(args: argparse.Namespace, rig: Any, target: Any, settings: Any, figure: Any) -> int:
+    from planner.calibration.focus_fit import CHECK_MM
+    from sim.focus_calibration import calibrate_sim_focus
+
+    print(f"focus sweeps of the simulated phones (seed {args.seed}) over a board at known distances, "
+          "through the phone driver", flush=True)
+    results = calibrate_sim_focus(rig, target, args.seed, args.out, settings=settings,
+                                  progress=lambda phone, done, total: _progress(f"{phone} pictures", done, total))
     print(f"focus error against each phone's true lens at {', '.join(f'{d:g}' for d in CHECK_MM)} mm "
           "(worst, mm): measured table / shared default table")
     for r in results:
+        figure(r.table, r.previous, args.out / f"{r.phone}.png")
         print(f"  {r.phone}: {abs(r.error_mm).max():6.2f} / {abs(r.default_error_mm).max():6.2f}   "
-              f"fit residual {r.rms_diopters:.4f} D  -> {args.out / (r.phone + '.yaml')}")
+              f"fit residual {r.table.rms_diopters:.4f} D, {r.pictures} pictures  -> {r.table.path}")
     return 0
+
+
+def _focus_rig(args: argparse.Namespace, rig: Any, settings: Any, figure: Any) -> int:
+    import asyncio
+
+    from daemon.hardware_config import HardwareConfigError, load_hardware
+    from drivers.phone.errors import PhoneError
+
+    try:
+        config = load_hardware(options.hardware_path(args), rig)
+    except HardwareConfigError as exc:
+        print(f"tbp calibrate focus: {exc}", file=sys.stderr)
+        return 2
+    known = [p.id for p in rig.phones]
+    unknown = [p for p in args.phone if p not in known]
+    if unknown:
+        print(f"tbp calibrate focus: no phone {unknown[0]!r} in the rig file; phones: {', '.join(known)}",
+              file=sys.stderr)
+        return 2
+    if _daemon_running(args):
+        print("tbp calibrate focus: the daemon is running and owns the phones; stop it first "
+              "(sudo systemctl stop tbp-rig)", file=sys.stderr)
+        return 2
+    phones = [p for p in rig.phones if not args.phone or p.id in args.phone]
+    failed = 0
+    for phone in phones:
+        try:
+            asyncio.run(_focus_one_phone(args, rig, config, phone, settings, figure))
+        except (PhoneError, OSError) as exc:
+            print(f"  {phone.id}: {exc}", file=sys.stderr, flush=True)
+            failed += 1
+    return 1 if failed else 0
+
+
+def _daemon_running(args: argparse.Namespace) -> bool:
+    import asyncio
+
+    from daemon.control import ControlClient, ControlError, default_socket
+
+    try:
+        asyncio.run(ControlClient(args.socket or default_socket()).status())
+    except (ControlError, OSError):
+        return False
+    return True
+
+
+async def _focus_one_phone(args: argparse.Namespace, rig: Any, config: Any, phone: Any, settings: Any,
+                           figure: Any) -> None:
+    import asyncio
+
+    from daemon.focus_sweep import calibrate_focus
+    from daemon.real_rig import make_phone
+    from daemon.utc import utc_stamp
+    from drivers.adb.auth import AdbKey
+    from drivers.phone.focus import FocusCalibration
+    from planner.calibration.focus_fit import CHECK_MM
+
+    link = config.phones[phone.id]
+    camera = make_phone(rig, phone, link, AdbKey.load_or_create(options.state_dir(args.state_dir)),
+                        config.capture_agent)
+    camera.CONNECT_TIMEOUT_S = config.timeouts.open_s
+    loop = asyncio.get_running_loop()
+
+    async def place_board(distance_mm: float) -> None:
+        place = (f"{phone.id} ({link.address}): stand the board square-on, its centre on the phone's "
+                 f"optical axis, {distance_mm:g} mm from the lens")
+        if args.yes:
+            print(place, flush=True)
+        else:
+            await loop.run_in_executor(None, input, place + "; press Enter ")
+
+    print(f"{phone.id}: connecting ({link.address})", flush=True)
+    await camera.connect()
+    try:
+        table = await calibrate_focus(camera, rig.optics, settings, place_board, args.out,
+                                      measured=f"{utc_stamp()} by tbp calibrate focus",
+                                      progress=lambda done, total: _progress(f"{phone.id} pictures", done, total))
+    finally:
+        await camera.close()
+    previous = camera.focus_table
+    figure(table, previous, args.out / f"{phone.id}.png")
+    measured = FocusCalibration(table.diopters, table.distance_mm, source=phone.id)
+    moved = max(abs(previous.focus_mm(measured.diopters_for(x)) - x) for x in CHECK_MM)
+    print(f"  {phone.id}: fit residual {table.rms_diopters:.4f} D; the table it used was off by up to "
+          f"{moved:.1f} mm at {CHECK_MM[0]:g}-{CHECK_MM[-1]:g} mm  -> {table.path}", flush=True)

@@ -1,6 +1,7 @@
-"""Focus calibration on the simulated phones: each phone sweeps its focus over a board placed at
-known distances (the procedure an operator runs with a board on a stand), the sharpness peaks
-give the phone's focus table (planner/calibration/focus_fit.py).
+"""Focus calibration on the simulated phones, through the real phone driver: each phone's sweep
+(daemon/focus_sweep.py, the procedure a rig's phones go through) runs over ADB against a simulated
+phone that photographs a board on a stand in front of it (drivers/sim/focus_target.py), moved to
+each distance the procedure asks for. Virtual time: a phone's ~250 pictures take no real waiting.
 
 The simulated phones' lenses carry a seeded per-phone error (drivers/sim/phone.py), so the table
 has something to recover; the truth is each phone's own lens.
@@ -8,60 +9,106 @@ has something to recover; the truth is each phone's own lens.
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from planner.calibration.focus_fit import FocusSweep, fit_focus_table, table_yaml
+from daemon.focus_sweep import FocusTable, SweepSettings, calibrate_focus
+from drivers.phone.focus import FocusCalibration
+from planner.calibration.focus_fit import CHECK_MM
 from planner.calibration.target import CuboidTarget
 from planner.rig import Rig
 
-DISTANCES_MM = (180.0, 220.0, 270.0, 330.0, 420.0, 550.0, 750.0, 1100.0)
-SWEEP_DIOPTERS = np.round(np.arange(0.3, 10.01, 0.1), 2)
-TABLE_DIOPTERS = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0)
-CHECK_MM = (200.0, 250.0, 300.0, 400.0, 500.0, 700.0, 1000.0)
-"""Planned focus distances at which the table's error is reported (the rig plans 200-1000 mm)."""
+TEXTURE_PX_PER_MM = 4.0
 
 
 @dataclass(frozen=True)
 class PhoneFocusResult:
-    """One phone: its table, the fit residual (D) and the focus error (mm) at CHECK_MM with the
-    measured table and with the shared default table, both against the phone's true lens."""
+    """One phone: its measured table, the shared default table it replaces, and the focus error (mm)
+    at CHECK_MM with each, against the phone's true lens; pictures: how many the sweeps took."""
 
-    phone: str
-    diopters: np.ndarray
-    distance_mm: np.ndarray
-    rms_diopters: float
+    table: FocusTable
+    previous: Any
     error_mm: np.ndarray
     default_error_mm: np.ndarray
+    pictures: int
+
+    @property
+    def phone(self) -> str:
+        return self.table.phone
 
 
-def calibrate_sim_focus(rig: Rig, target: CuboidTarget, seed: int, out: Path) -> list[PhoneFocusResult]:
-    """Sweep every simulated phone of the rig (phones seeded as sim/rig.py seeds them), write
-    ``out/<phone id>.yaml`` focus tables; returns the per-phone results."""
-    from drivers.phone.focus import FocusCalibration, load_focus_calibration
-    from drivers.sim.focus_target import board_patch, sharpness
-    from drivers.sim.phone import SimulatedPhone
+def calibrate_sim_focus(rig: Rig, target: CuboidTarget, seed: int, out: Path, *,
+                        settings: SweepSettings = SweepSettings(),
+                        progress: Callable[[str, int, int], None] | None = None) -> list[PhoneFocusResult]:
+    """Sweep every simulated phone of the rig (seeded as sim/rig.py seeds them) and write
+    ``out/<phone id>.yaml`` focus tables (with ``out/<phone id>/``: sweeps and sharpest pictures)."""
+    from sim.clock import run_virtual
 
+    return run_virtual(_calibrate_all(rig, target, seed, out, settings, progress))
+
+
+async def _calibrate_all(rig: Rig, target: CuboidTarget, seed: int, out: Path, settings: SweepSettings,
+                         progress: Callable[[str, int, int], None] | None) -> list[PhoneFocusResult]:
+    from drivers.adb.auth import AdbKey
+
+    key = AdbKey.generate()
     out.mkdir(parents=True, exist_ok=True)
-    texture_ppm = 4.0
-    texture = target.board_image(0, texture_ppm).astype(np.float32)
     results = []
-    for i, phone in enumerate(rig.phones):
-        sim = SimulatedPhone(phone.serial, seed=seed * 100 + i, optics=rig.optics)
-        rng = np.random.default_rng([seed, i, 0xF0C])
-        sweeps = []
-        for distance in DISTANCES_MM:
-            values = [sharpness(board_patch(texture, texture_ppm, distance, sim.sharp_distance_mm(d), rig.optics, rng))
-                      for d in SWEEP_DIOPTERS]
-            sweeps.append(FocusSweep(distance, SWEEP_DIOPTERS, np.array(values)))
-        grid, mm, rms = fit_focus_table(sweeps, TABLE_DIOPTERS, phone.id)
-        (out / f"{phone.id}.yaml").write_text(table_yaml("TBP Simulated Phone", f"simulated, seed {seed}", grid, mm))
-        table = FocusCalibration(grid, mm, source=phone.id)
-        default = load_focus_calibration(rig.resolve(phone.focus_calibration))
-        check = np.array(CHECK_MM)
-        error = np.array([sim.sharp_distance_mm(table.diopters_for(x)) - x for x in check])
-        default_error = np.array([sim.sharp_distance_mm(default.diopters_for(x)) - x for x in check])
-        results.append(PhoneFocusResult(phone.id, grid, mm, rms, error, default_error))
+    for index, phone in enumerate(rig.phones):
+        async with focus_bench(rig, target, index, seed, key, settings.distances_mm[0]) as bench:
+            table = await calibrate_focus(
+                bench.camera, rig.optics, settings, bench.place_board, out, measured=f"simulated, seed {seed}",
+                progress=None if progress is None else lambda done, total: progress(phone.id, done, total))
+        measured = FocusCalibration(table.diopters, table.distance_mm, source=phone.id)
+        lens = bench.phone.sharp_distance_mm
+        error = np.array([lens(measured.diopters_for(x)) - x for x in CHECK_MM])
+        default_error = np.array([lens(bench.default.diopters_for(x)) - x for x in CHECK_MM])
+        results.append(PhoneFocusResult(table, bench.default, error, default_error, len(bench.phone.captures)))
     return results
+
+
+@dataclass
+class FocusBench:
+    """A simulated phone with a board stand in front of it, and the phone driver connected to it
+    (its focus table: the rig file's). ``place_board`` moves the stand, as the operator does."""
+
+    phone: Any
+    stand: Any
+    camera: Any
+    default: Any
+
+    async def place_board(self, distance_mm: float) -> None:
+        self.stand.distance_mm = distance_mm
+
+
+@asynccontextmanager
+async def focus_bench(rig: Rig, target: CuboidTarget, index: int, seed: int, key: Any,
+                      distance_mm: float) -> AsyncIterator[FocusBench]:
+    """Rig phone ``index`` (seeded as sim/rig.py seeds it) on a focus bench, the board at distance_mm."""
+    from drivers.phone.camera import PhoneCamera
+    from drivers.phone.focus import load_focus_calibration
+    from drivers.sim.focus_target import BoardStand
+    from drivers.sim.phone import SimulatedPhone
+    from sim.rig import sim_phone_link
+
+    phone = rig.phones[index]
+    sim = SimulatedPhone(phone.serial, seed=seed * 100 + index, optics=rig.optics, known_keys=[key.public_blob()])
+    sim.board = BoardStand(target.board_image(0, TEXTURE_PX_PER_MM).astype(np.float32), TEXTURE_PX_PER_MM,
+                           distance_mm)
+    tasks: list[asyncio.Task[Any]] = []
+    default = load_focus_calibration(rig.resolve(phone.focus_calibration))
+    camera = PhoneCamera(sim_phone_link(sim, tasks), phone, default, key=key)
+    try:
+        await camera.connect()
+        yield FocusBench(sim, sim.board, camera, default)
+    finally:
+        await camera.close()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)

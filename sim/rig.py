@@ -157,15 +157,21 @@ async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
             seed=options.seed * 100 + i, optics=rig.optics, known_keys=[key.public_blob()],
         )
         world.phones.append(sim)
-
-        async def transport(sim: Any = sim) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-            (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
-            world.tasks.append(asyncio.create_task(sim.accept(dev_r, dev_w), name=f"sim-{sim.serial}"))
-            return host_r, host_w
-
         focus = load_focus_calibration(rig.resolve(phone.focus_calibration))
-        phones.append(PhoneCamera(transport, phone, focus, key=key))
+        phones.append(PhoneCamera(sim_phone_link(sim, world.tasks), phone, focus, key=key))
     return phones
+
+
+def sim_phone_link(sim: Any, tasks: list[asyncio.Task[Any]]) -> Callable[[], Any]:
+    """The host's ADB link to a simulated phone: each connect is a fresh socket pair whose far
+    end the phone serves (its task goes into ``tasks``)."""
+
+    async def transport() -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
+        tasks.append(asyncio.create_task(sim.accept(dev_r, dev_w), name=f"sim-{sim.serial}"))
+        return host_r, host_w
+
+    return transport
 
 
 async def _sim_panel(world: SimWorld) -> Any:

@@ -275,7 +275,12 @@ class PhoneCamera:
         if self.info is not None and diopters > self.info.min_focus_diopters:
             near = self.focus_table.focus_mm(self.info.min_focus_diopters)
             raise FocusOutOfRange(self.serial, self.state, focus_mm, near, self.focus_table.far_mm)
-        answer = await self._request("focus", self.FOCUS_TIMEOUT_S, diopters=round(diopters, 6))
+        return await self.set_lens_diopters(diopters)
+
+    async def set_lens_diopters(self, diopters: float) -> FocusDone:
+        """Command the lens setting itself (LENS_FOCUS_DISTANCE, diopters), whatever the focus table
+        says it focuses at: the focus calibration's sweep; returns when the lens is still."""
+        answer = await self._request("focus", self.FOCUS_TIMEOUT_S, diopters=round(float(diopters), 6))
         used = float(answer.number("diopters", device=self.serial))
         return FocusDone(used, self.focus_table.focus_mm(used),
                          int(answer.number("stationary_at_ns", device=self.serial, integer=True)))

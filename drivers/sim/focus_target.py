@@ -6,6 +6,8 @@ the optics' point spread and sensor noise.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
@@ -14,7 +16,9 @@ from planner.rig import Optics
 
 PATCH_PX = 160
 RENDER_SCALE = 1 / 8
-"""The sweep's pictures are rendered at 1/8 of the sensor (the whole field would be wasted work)."""
+"""The sweep's pictures are rendered at 1/8 of the sensor, and only the board's centre in detail
+(the rest of the field would be wasted work)."""
+SURROUND_GREY = 128.0
 
 
 def board_patch(texture: np.ndarray, texture_px_per_mm: float, distance_mm: float, sharp_mm: float,
@@ -36,8 +40,27 @@ def board_patch(texture: np.ndarray, texture_px_per_mm: float, distance_mm: floa
     return blurred + rng.standard_normal(blurred.shape).astype(np.float32) * np.float32(noise)
 
 
-def sharpness(picture: np.ndarray) -> float:
-    """Variance of the Laplacian (what the pipeline's blur check uses too)."""
-    import cv2
+@dataclass
+class BoardStand:
+    """A board on a stand, square-on in front of one phone, its centre on the optical axis:
+    ``distance_mm`` from the lens is where the operator (or a test) has put it. texture: the
+    board's grey image at texture_px_per_mm."""
 
-    return float(cv2.Laplacian(picture.astype(np.float32), cv2.CV_32F).var())
+    texture: np.ndarray
+    texture_px_per_mm: float
+    distance_mm: float
+    _surround: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def picture(self, sharp_mm: float, optics: Optics, rng: np.random.Generator) -> np.ndarray:
+        """(H, W, 3) uint8, the phone's whole field at RENDER_SCALE, lens sharp at sharp_mm: the
+        board's centre (PATCH_PX square, rendered) in the middle of a plain, noisy surround."""
+        width, height = round(optics.image_width_px * RENDER_SCALE), round(optics.image_height_px * RENDER_SCALE)
+        if self._surround is None or self._surround.shape != (height, width):  # the same noisy card every time
+            card = np.random.default_rng(0x5C2D).standard_normal((height, width)).astype(np.float32)
+            self._surround = np.float32(SURROUND_GREY) + np.float32(2.0) * card
+        frame = self._surround.copy()
+        patch = board_patch(self.texture, self.texture_px_per_mm, self.distance_mm, sharp_mm, optics, rng)
+        ph, pw = patch.shape
+        y0, x0 = (height - ph) // 2, (width - pw) // 2
+        frame[y0:y0 + ph, x0:x0 + pw] = patch
+        return np.repeat(np.clip(frame, 0, 255).astype(np.uint8)[:, :, None], 3, axis=2)

@@ -11,7 +11,9 @@ CAPTURE_LATENCY_S (+ seeded jitter) after the request and the file is written EN
 exposure. The sensor clock has its own offset and drift (seeded); a clock ping reads it after a
 seeded one-way delay, so round trips are not zero. Each image is the subject ray
 cast from ``pose(t)`` (time -> (4, 4) camera-to-world, provided by the sim wiring so the phone
-knows nothing of the motor) and blurred by its distance from the focal plane.
+knows nothing of the motor) and blurred by its distance from the focal plane; with a
+``board`` (drivers/sim/focus_target.py: a board on a stand in front of the phone, for the focus
+calibration's sweep) the picture is that board instead.
 
 Faults: those of the adbd (refuse_auth, vanish(), disconnect_after_bytes) plus crash_agent()
 (the agent process dies; adbd stays up, so a reconnect starts it again), lens_slowdown,
@@ -35,6 +37,7 @@ from drivers.adb.streams import AdbStream
 from drivers.phone import protocol
 from drivers.phone.errors import AgentProtocolError
 from drivers.sim.adbd import SimulatedAdbd
+from drivers.sim.focus_target import BoardStand
 from drivers.sim.phone_render import PhoneRenderer, SubjectScene, empty_rig_picture, encode_jpeg
 from planner.rig import Optics, load_rig
 
@@ -74,6 +77,8 @@ class SimulatedPhone(SimulatedAdbd):
                          accept_new_keys=accept_new_keys, seed=seed)
         self.subject = subject
         self.pose = pose
+        self.seed = seed
+        self.board: BoardStand | None = None
         self.optics = optics or load_rig().optics  # the default rig's phones
         self.render_size = render_size
         self.min_focus_diopters = min_focus_diopters
@@ -256,6 +261,9 @@ class SimulatedPhone(SimulatedAdbd):
         return self.render_size or (self.optics.image_width_px // 32, self.optics.image_height_px // 32)
 
     def _picture(self, pose: np.ndarray | None, focus_diopters: float, index: int) -> bytes:
+        if self.board is not None:
+            rng = np.random.default_rng([self.seed, index, 0xB0A2D])
+            return encode_jpeg(self.board.picture(self.sharp_distance_mm(focus_diopters), self.optics, rng))
         width, height = self._image_size()
         if self.subject is None or pose is None or self.render_size is None:
             return encode_jpeg(empty_rig_picture(width, height, seed=index))

@@ -17,6 +17,13 @@ import numpy as np
 
 from planner.picklable import PicklableError
 
+DISTANCES_MM = (180.0, 220.0, 270.0, 330.0, 420.0, 550.0, 750.0, 1100.0)
+"""Where the board stands for the sweeps: the rig plans focus from 200 to 1000 mm."""
+TABLE_DIOPTERS = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0)
+"""Commanded settings at which the fitted lens is written into the focus table."""
+CHECK_MM = (200.0, 250.0, 300.0, 400.0, 500.0, 700.0, 1000.0)
+"""Planned focus distances at which a table's error is reported (the rig plans 200-1000 mm)."""
+
 
 class FocusFitError(PicklableError, ValueError):
     """The sweeps do not determine a focus table (named: phone, distance, problem)."""
