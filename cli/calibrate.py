@@ -51,11 +51,19 @@ def register(subparsers: Any) -> None:
                         help="focus: where the ADB key the phones authorised is kept (as tbp check)")
     parser.add_argument("--phone", action="append", default=[], metavar="ID",
                         help="focus on the rig: only this phone (repeatable; default every phone)")
-    parser.add_argument("--distances", type=lambda v: [float(x) for x in v.split(",")], default=None,
+    parser.add_argument("--distances", type=_distances, default=None,
                         metavar="MM,MM,...", help="focus: board distances, mm (default 180,220,...,1100)")
     parser.add_argument("--yes", action="store_true",
                         help="focus on the rig: do not wait for Enter at each distance (a motorised stand)")
     parser.set_defaults(func=run)
+
+
+def _distances(text: str) -> list[float]:
+    """--distances: comma-separated millimetres."""
+    try:
+        return [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of millimetres") from None
 
 
 def _progress(stage: str, done: int, total: int) -> None:
@@ -179,8 +187,10 @@ def _focus_sim(args: argparse.Namespace, rig: Any, target: Any, settings: Any, f
 def _focus_rig(args: argparse.Namespace, rig: Any, settings: Any, figure: Any) -> int:
     import asyncio
 
+    from daemon.focus_sweep import SweepPictureError
     from daemon.hardware_config import HardwareConfigError, load_hardware
     from drivers.phone.errors import PhoneError
+    from planner.calibration.focus_fit import FocusFitError
 
     try:
         config = load_hardware(options.hardware_path(args), rig)
@@ -202,7 +212,7 @@ def _focus_rig(args: argparse.Namespace, rig: Any, settings: Any, figure: Any) -
     for phone in phones:
         try:
             asyncio.run(_focus_one_phone(args, rig, config, phone, settings, figure))
-        except (PhoneError, OSError) as exc:
+        except (PhoneError, OSError, FocusFitError, SweepPictureError) as exc:  # the next phone still goes
             print(f"  {phone.id}: {exc}", file=sys.stderr, flush=True)
             failed += 1
     return 1 if failed else 0

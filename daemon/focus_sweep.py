@@ -6,9 +6,9 @@ confirms). At each distance the lens setting itself (Camera2's LENS_FOCUS_DISTAN
 the focus table's millimetres) is stepped coarsely over the lens' range, then finely around the
 sharpest coarse setting; every picture is pulled, measured (variance of the Laplacian over the
 centre of the picture that the board covers at that distance, so the background's blur does not
-count) and deleted from the phone. The sharpest picture of
-each distance is kept in ``workdir`` for the report. ``planner/calibration/focus_fit.py`` turns
-the sweeps into the phone's focus table. The same code sweeps a real phone and a simulated one.
+count) and deleted from the phone. The sharpest picture of each distance is kept in ``workdir``
+for the report. ``planner/calibration/focus_fit.py`` turns the sweeps into the phone's focus
+table. The same code sweeps a real phone and a simulated one.
 """
 
 from __future__ import annotations
@@ -109,7 +109,7 @@ async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
         keep = workdir / f"d{distance:04.0f}.jpg"
 
         def board_px(picture: Path) -> float:
-            """The board's width in this picture (pixels), of a share of it."""
+            """The side (pixels) of the centre square measured: board_share of the board's width here."""
             from PIL import Image
 
             with Image.open(picture) as image:

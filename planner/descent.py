@@ -47,12 +47,16 @@ def _refresh_point(p, order, point_ptr, pair_cost, best, second, best_pair, invi
         pair = order[j]
         if pair != lowest_pair and pair_cost[pair] < runner_up:
             runner_up = pair_cost[pair]
-    b = min(lowest, invisible)
-    s = min(runner_up, invisible)
-    changed = b != best[p] or s != second[p] or lowest_pair != best_pair[p]
+    return _store(p, min(lowest, invisible), min(runner_up, invisible), lowest_pair, best, second, best_pair)
+
+
+@_jit
+def _store(p, b, s, bp, best, second, best_pair):  # type: ignore[no-untyped-def]
+    """Set point p's best and second-best cost and best pair; True when any of them changed."""
+    changed = b != best[p] or s != second[p] or bp != best_pair[p]
     best[p] = b
     second[p] = s
-    best_pair[p] = lowest_pair
+    best_pair[p] = bp
     return changed
 
 
@@ -85,11 +89,7 @@ def _pair_changed(i, p, old, order, point_ptr, pair_cost, best, second, best_pai
         nb, ns, nbp = b, min(s, new), bp
     else:
         nb, ns, nbp = b, s, bp
-    changed = nb != b or ns != s or nbp != bp
-    best[p] = nb
-    second[p] = ns
-    best_pair[p] = nbp
-    return changed
+    return _store(p, nb, ns, nbp, best, second, best_pair)
 
 
 @_jit
