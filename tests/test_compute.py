@@ -62,14 +62,14 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     try:
         with compute_pool() as pool:
             got = pool.submit(_digest, shared).result(timeout=120)
-            niceness = pool.submit(os.nice, 0).result(timeout=30)
+            policy = pool.submit(os.sched_getscheduler, 0).result(timeout=30)
             threads = pool.submit(_omp_threads).result(timeout=30)
             imported = pool.submit(_imported, "daemon.fusion", "daemon.planning", "daemon.scan").result(timeout=30)
     finally:
         release(block)
     assert [(c, s) for c, s, _ in got] == [(f.camera_id, int(f.depth.astype(np.int64).sum())) for f in frames]
     assert {pid for _, _, pid in got} != {os.getpid()}  # another process
-    assert niceness >= os.nice(0) + 10  # below the daemon's priority
+    assert policy == os.SCHED_BATCH  # never preempts the daemon on wake-up
     assert threads == str(compute_threads()) and int(threads) < max(2, len(os.sched_getaffinity(0)))
     assert os.environ.get("OMP_NUM_THREADS") == ours  # this process's environment is left as it was
     # the jobs' modules are loaded before the first scan, and not the daemon's
