@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from daemon.errors import DaemonError
 from planner.calibration.detect import sharpness
 from planner.calibration.focus_fit import DISTANCES_MM, TABLE_DIOPTERS, FocusSweep, fit_focus_table, table_yaml
 from planner.rig import Optics
@@ -29,7 +30,7 @@ from planner.rig import Optics
 log = structlog.get_logger(__name__)
 
 
-class SweepPictureError(ValueError):
+class SweepPictureError(DaemonError, ValueError):
     """A sweep picture the host cannot read (named: phone, file)."""
 
     def __init__(self, phone: str, path: Path) -> None:
