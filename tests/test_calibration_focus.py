@@ -183,3 +183,33 @@ def test_focus_command_names_a_phone_that_does_not_answer(tmp_path: Path, capsys
     err = capsys.readouterr().err
     assert "cam2:" in err
     assert not (tmp_path / "out" / "cam2.yaml").exists()
+
+
+def test_focus_command_leaves_the_phones_to_a_running_daemon(tmp_path: Path, capsys) -> None:
+    import asyncio
+    import threading
+
+    from cli import main
+    from daemon.control import ControlServer
+
+    class Daemon:
+        def status(self) -> dict:
+            return {"state": "IDLE", "devices": []}
+
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    sock = tmp_path / "control.sock"
+    server = ControlServer(sock, Daemon())  # type: ignore[arg-type]
+    asyncio.run_coroutine_threadsafe(server.start(), loop).result(10)
+    try:
+        hardware = Path(__file__).resolve().parent.parent / "calibration_data" / "hardware.loopback.yaml"
+        argv = ["calibrate", "focus", "--out", str(tmp_path / "out"), "--hardware", str(hardware), "--yes",
+                "--socket", str(sock), "--state-dir", str(tmp_path)]
+        assert main(argv) == 2
+        assert "the daemon is running and owns the phones" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()  # no phone was touched
+    finally:
+        asyncio.run_coroutine_threadsafe(server.close(), loop).result(10)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(5)
