@@ -8,8 +8,11 @@ tests use the protocol-level simulators instead.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
+import threading
+from collections.abc import AsyncIterator, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -178,3 +181,26 @@ class MockPhone:
 
     async def close(self) -> None:
         self.connected = False
+
+
+@contextmanager
+def answering_daemon(sock: Path, status: dict[str, Any]) -> Iterator[None]:
+    """A stand-in daemon answering ``status`` on the control socket ``sock``, served by the real
+    ControlServer from its own event loop in a thread (the command under test runs its own loop)."""
+    from daemon.control import ControlServer
+
+    class Daemon:
+        def status(self) -> dict[str, Any]:
+            return status
+
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    server = ControlServer(sock, Daemon())  # type: ignore[arg-type]
+    asyncio.run_coroutine_threadsafe(server.start(), loop).result(10)
+    try:
+        yield
+    finally:
+        asyncio.run_coroutine_threadsafe(server.close(), loop).result(10)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(5)

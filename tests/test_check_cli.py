@@ -152,23 +152,13 @@ def test_a_bad_hardware_file_is_one_line_and_exit_2(tmp_path: Path, capsys: pyte
 
 def test_while_the_daemon_runs_the_check_shows_its_view_without_touching_the_devices(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from daemon.control import ControlServer
+    from tests.daemon_mocks import answering_daemon
 
     devices = [{"device": "drive", "kind": "drive", "address": "socketcan:can0", "ok": True, "error": None,
                 "check": None},
                {"device": "cam0", "kind": "phone", "address": "usb:X", "ok": False, "error": "gone", "check": "cable"}]
-
-    class Daemon:
-        def status(self) -> dict[str, Any]:
-            return {"state": "IDLE", "devices": devices}
-
-    sims_loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=sims_loop.run_forever, daemon=True)
-    thread.start()
     sock = tmp_path / "control.sock"
-    server = ControlServer(sock, Daemon())  # type: ignore[arg-type]
-    asyncio.run_coroutine_threadsafe(server.start(), sims_loop).result(10)
-    try:
+    with answering_daemon(sock, {"state": "IDLE", "devices": devices}):
         hardware = tmp_path / "hw.yaml"
         hardware.write_text(yaml.safe_dump({
             "can": {"interface": "socketcan", "channel": "can0"},
@@ -180,7 +170,3 @@ def test_while_the_daemon_runs_the_check_shows_its_view_without_touching_the_dev
         report = json.loads(out[out.index("{\n"):])  # after the stand-in daemon's own log line
         assert report["source"] == "daemon"
         assert [(d["device"], d["found"]) for d in report["devices"]] == [("drive", True), ("cam0", False)]
-    finally:
-        asyncio.run_coroutine_threadsafe(server.close(), sims_loop).result(10)
-        sims_loop.call_soon_threadsafe(sims_loop.stop)
-        thread.join(5)
