@@ -76,15 +76,16 @@ class SweepSettings:
         return np.array([d for d in around if not np.any(np.isclose(done, d, atol=1e-6))])
 
 
-def board_sharpness(path: Path, board_px: float, phone: str) -> float:
-    """Sharpness of the centre square of a picture file, ``board_px`` on a side at most."""
+def board_sharpness(path: Path, width_share: float, phone: str) -> float:
+    """Sharpness of the centre square of a picture file whose side is ``width_share`` of the
+    picture's width (at most its shorter side)."""
     import cv2
 
     grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if grey is None:
         raise SweepPictureError(phone, path)
     h, w = grey.shape
-    side = int(np.clip(board_px, 8, min(h, w)))
+    side = int(np.clip(width_share * w, 8, min(h, w)))
     y0, x0 = (h - side) // 2, (w - side) // 2
     return sharpness(grey[y0:y0 + side, x0:x0 + side])
 
@@ -108,14 +109,9 @@ async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
         measured: dict[float, float] = {}
         best = -1.0
         keep = workdir / f"d{distance:04.0f}.jpg"
-
-        def board_px(picture: Path) -> float:
-            """The side (pixels) of the centre square measured: board_share of the board's width here."""
-            from PIL import Image
-
-            with Image.open(picture) as image:
-                focal_px = optics.focal_length_px * image.width / optics.image_width_px
-            return settings.board_share * settings.board_width_mm * focal_px / distance
+        # the centre square measured: board_share of the board's width at this distance
+        width_share = (settings.board_share * settings.board_width_mm * optics.focal_length_px
+                       / (optics.image_width_px * distance))
 
         async def measure(diopters: float) -> None:
             nonlocal best, done
@@ -124,7 +120,7 @@ async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
             picture = workdir / "sweep.jpg"
             await camera.pull(shot.path, picture)
             await camera.delete(shot.path)
-            value = board_sharpness(picture, board_px(picture), phone)
+            value = board_sharpness(picture, width_share, phone)
             measured[float(diopters)] = value
             if value > best:
                 best = value

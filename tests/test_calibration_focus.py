@@ -148,7 +148,7 @@ def test_an_unreadable_sweep_picture_is_named(tmp_path: Path) -> None:
     bad = tmp_path / "sweep.jpg"
     bad.write_bytes(b"not a jpeg")
     with pytest.raises(SweepPictureError, match="cam3: .*sweep.jpg is not a readable picture"):
-        board_sharpness(bad, 100.0, "cam3")
+        board_sharpness(bad, 0.5, "cam3")
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -186,30 +186,14 @@ def test_focus_command_names_a_phone_that_does_not_answer(tmp_path: Path, capsys
 
 
 def test_focus_command_leaves_the_phones_to_a_running_daemon(tmp_path: Path, capsys) -> None:
-    import asyncio
-    import threading
-
     from cli import main
-    from daemon.control import ControlServer
+    from tests.daemon_mocks import answering_daemon
 
-    class Daemon:
-        def status(self) -> dict:
-            return {"state": "IDLE", "devices": []}
-
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, daemon=True)
-    thread.start()
     sock = tmp_path / "control.sock"
-    server = ControlServer(sock, Daemon())  # type: ignore[arg-type]
-    asyncio.run_coroutine_threadsafe(server.start(), loop).result(10)
-    try:
+    with answering_daemon(sock, {"state": "IDLE", "devices": []}):
         hardware = Path(__file__).resolve().parent.parent / "calibration_data" / "hardware.loopback.yaml"
         argv = ["calibrate", "focus", "--out", str(tmp_path / "out"), "--hardware", str(hardware), "--yes",
                 "--socket", str(sock), "--state-dir", str(tmp_path)]
         assert main(argv) == 2
         assert "the daemon is running and owns the phones" in capsys.readouterr().err
         assert not (tmp_path / "out").exists()  # no phone was touched
-    finally:
-        asyncio.run_coroutine_threadsafe(server.close(), loop).result(10)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(5)
