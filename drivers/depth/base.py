@@ -23,6 +23,9 @@ class DepthFrame:
     beam_angle_deg: the beam angle recorded with the frame when it is played back from a sweep
         recording (the sweep poses it there); None for a live camera, whose frame the sweep tags
         with the live encoder's angle at ``timestamp_s``.
+    infrared: (H, W) uint8, the left infrared imager's picture, pixel-aligned with ``depth`` (the
+        depth image is in the left imager's frame, so ``intrinsics`` are its intrinsics too); None
+        unless the camera was started with ``infrared`` on.
     """
 
     camera_id: str
@@ -33,6 +36,7 @@ class DepthFrame:
     depth_unit_mm: float
     intrinsics: np.ndarray
     beam_angle_deg: float | None = None
+    infrared: np.ndarray | None = None
 
     def depth_mm(self) -> np.ndarray:
         """(H, W) float32 depth in mm, 0 where there is no measurement."""

@@ -30,3 +30,11 @@ class RecordingUnreadable(DepthCameraError):
     def __init__(self, camera_id: str, path: object, problem: str) -> None:
         self.path = str(path)
         super().__init__(camera_id, f"{path}: {problem}")
+
+
+class InfraredUnavailable(DepthCameraError):
+    """A camera asked for its infrared image cannot stream one (why: ``reason``)."""
+
+    def __init__(self, camera_id: str, reason: str) -> None:
+        self.reason = reason
+        super().__init__(camera_id, f"no infrared stream: {reason}")
