@@ -4,7 +4,8 @@ recordings are played back with the real pyrealsense2, tests/test_depth_playback
 ``FakeRealSense`` holds scripted devices; ``module()`` builds the module object a
 test injects as ``sys.modules["pyrealsense2"]``. Streaming runs on a thread, as librealsense's
 does, calling the pipeline's frame callback; timestamps come from a device clock that runs from
-an arbitrary origin.
+an arbitrary origin. With an infrared stream enabled every frame comes in a frameset with the left
+imager's Y8 picture (``infrared_image``), as a pipeline's syncer delivers them.
 """
 
 from __future__ import annotations
@@ -23,11 +24,18 @@ import numpy as np
 class stream(enum.Enum):  # noqa: N801 - pyrealsense2's spelling
     depth = 1
     color = 2
+    infrared = 3
 
 
 class format(enum.Enum):  # noqa: N801,A001
     z16 = 1
     rgb8 = 2
+    y8 = 3
+
+
+class option(enum.Enum):  # noqa: N801
+    emitter_enabled = 1
+    laser_power = 2
 
 
 class camera_info(enum.Enum):  # noqa: N801
@@ -74,9 +82,12 @@ class FakeDevice:
     size: tuple[int, int] | None = None  # (height, width); None: as configured
     fail_start: str | None = None
     start_delay_s: float = 0.0
+    options: set[option] = field(default_factory=lambda: {option.emitter_enabled, option.laser_power})
+    infrared_missing: set[int] = field(default_factory=set)  # framesets that come without infrared
     stopped: threading.Event = field(default_factory=threading.Event)
     # what the driver asked for
     configured: list[tuple[Any, ...]] = field(default_factory=list)
+    options_set: list[tuple[option, float]] = field(default_factory=list)
     delivered: int = 0
 
     def get_info(self, info: camera_info) -> str:
@@ -89,6 +100,13 @@ class FakeDevice:
     def get_depth_scale(self) -> float:
         return self.depth_scale
 
+    def supports(self, which: option) -> bool:
+        return which in self.options
+
+    def set_option(self, which: option, value: float) -> None:
+        if which not in self.options:
+            raise RuntimeError(f"object doesn't support option #{which.value}")
+        self.options_set.append((which, value))
 
 
 class FakeDepthFrame:
@@ -126,9 +144,22 @@ class FakeDepthFrame:
         return self._domain
 
 
+class FakeInfraredFrame(FakeDepthFrame):
+    def is_depth_frame(self) -> bool:
+        return False
+
+
+class FakeNoFrame:
+    """What a frameset hands out for a stream it does not hold: an empty frame, false."""
+
+    def __bool__(self) -> bool:
+        return False
+
+
 class FakeFrameset:
-    def __init__(self, depth: FakeDepthFrame) -> None:
+    def __init__(self, depth: FakeDepthFrame, infrared: dict[int, FakeInfraredFrame] | None = None) -> None:
         self._depth = depth
+        self._infrared = infrared or {}
 
     def is_frameset(self) -> bool:
         return True
@@ -139,10 +170,21 @@ class FakeFrameset:
     def get_depth_frame(self) -> FakeDepthFrame:
         return self._depth
 
+    def get_infrared_frame(self, index: int = 0) -> FakeInfraredFrame | FakeNoFrame:
+        if index == 0:  # the SDK's "first infrared frame"
+            return next(iter(self._infrared.values()), FakeNoFrame())
+        return self._infrared.get(index, FakeNoFrame())
+
 
 def depth_value(frame_number: int) -> int:
     """The depth (units) every pixel of scripted frame ``frame_number`` holds."""
     return 1000 + frame_number
+
+
+def infrared_image(frame_number: int, height: int, width: int) -> np.ndarray:
+    """(height, width) uint8 left infrared picture of scripted frame ``frame_number``: a ramp, every
+    pixel and every frame different from its neighbours."""
+    return ((np.arange(height * width) + 7 * frame_number) % 251).astype(np.uint8).reshape(height, width)
 
 
 class FakeRealSense:
@@ -154,7 +196,7 @@ class FakeRealSense:
     def module(self) -> types.ModuleType:
         world = self
         rs = types.ModuleType("pyrealsense2")
-        for enum_type in (stream, format, camera_info, timestamp_domain, intrinsics):
+        for enum_type in (stream, format, option, camera_info, timestamp_domain, intrinsics):
             setattr(rs, enum_type.__name__, enum_type)
 
         class context:  # noqa: N801
@@ -215,6 +257,8 @@ class FakeRealSense:
                 else:
                     _, width, height, _, _ = cfg.streams[0]
                 buffer = np.zeros((height, width), dtype=device.dtype)  # reused, as the SDK does
+                infrared = [s for s in cfg.streams if s[0] is stream.infrared]
+                infrared_buffer = np.zeros((height, width), dtype=np.uint8)
                 started = time.monotonic()
                 for k in range(device.frames):
                     if device.stop_after is not None and k >= device.stop_after:
@@ -226,8 +270,16 @@ class FakeRealSense:
                     ms = device.device_ms0 + (k * step if step is not None
                                               else (time.monotonic() - started) * 1000.0)
                     frame = FakeDepthFrame(k, ms, buffer, device.domain)
-                    callback(FakeFrameset(frame) if k % 2 else frame)
+                    if infrared:
+                        infrared_buffer[...] = infrared_image(k, height, width)
+                        index = infrared[0][1]
+                        found = {} if k in device.infrared_missing else {
+                            index: FakeInfraredFrame(k, ms, infrared_buffer, device.domain)}
+                        callback(FakeFrameset(frame, found))
+                    else:
+                        callback(FakeFrameset(frame) if k % 2 else frame)
                     buffer[...] = 0  # the next use of the buffer overwrites the frame
+                    infrared_buffer[...] = 0
                     device.delivered += 1
                     time.sleep(device.period_s)
 

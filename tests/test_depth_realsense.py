@@ -15,11 +15,15 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from drivers.depth.bag import BagPlayback
 from drivers.depth.base import DepthCamera
-from drivers.depth.errors import DepthCameraError, DepthStreamStalled
+from drivers.depth.errors import DepthCameraError, DepthStreamStalled, InfraredUnavailable
 from drivers.depth.realsense import DepthBackendMissing, DepthCameraNotFound, HostClockMap, RealSenseCamera
 from planner.rig import load_rig
-from tests.depth_fake_realsense import FakeDevice, FakeRealSense, depth_value, intrinsics
+from tests.depth_fake_realsense import FakeDevice, FakeRealSense, depth_value, infrared_image, intrinsics
+from tests.depth_fake_realsense import format as rs_format
+from tests.depth_fake_realsense import option as rs_option
+from tests.depth_fake_realsense import stream as rs_stream
 
 RIG = load_rig()
 CAMERA = RIG.depth_cameras[0]
@@ -138,6 +142,74 @@ async def test_stop_ends_a_waiting_reader_and_is_idempotent(world: FakeRealSense
     assert len(await asyncio.wait_for(reader, 5.0)) <= 2
     with pytest.raises(DepthCameraError, match="frames\\(\\) before start"):
         await collect(RealSenseCamera(CAMERA), 1)
+
+
+# ---------------------------------------------------------------------- infrared (calibration)
+
+
+async def run_camera(camera: RealSenseCamera, n: int) -> list:
+    await camera.start()
+    try:
+        return await collect(camera, n)
+    finally:
+        await camera.stop()
+
+
+async def test_infrared_streams_the_left_imager_with_the_projector_off(world: FakeRealSense) -> None:
+    device = FakeDevice(CAMERA.serial, frames=4)
+    world.devices.append(device)
+    camera = RealSenseCamera(CAMERA, fps=30.0)
+    camera.infrared = True
+    frames = await run_camera(camera, 4)
+    assert device.configured == [(rs_stream.depth, 1280, 720, rs_format.z16, 30),
+                                 (rs_stream.infrared, 1, 1280, 720, rs_format.y8, 30)]
+    assert device.options_set == [(rs_option.emitter_enabled, 0.0)]
+    assert [f.frame_number for f in frames] == [0, 1, 2, 3]
+    for n, frame in enumerate(frames):
+        assert frame.infrared.dtype == np.uint8 and frame.infrared.shape == (720, 1280)
+        # copied before the SDK reused its buffer
+        np.testing.assert_array_equal(frame.infrared, infrared_image(n, 720, 1280))
+        assert (frame.depth == depth_value(n)).all()
+
+
+async def test_without_infrared_the_projector_is_switched_back_on(world: FakeRealSense) -> None:
+    device = FakeDevice(CAMERA.serial, frames=4)
+    world.devices.append(device)
+    camera = RealSenseCamera(CAMERA, fps=30.0)
+    camera.infrared = True
+    await run_camera(camera, 2)  # a calibration left the projector off
+    camera.infrared = False
+    frames = await run_camera(camera, 4)
+    assert device.configured == [(rs_stream.depth, 1280, 720, rs_format.z16, 30)]
+    assert device.options_set == [(rs_option.emitter_enabled, 0.0), (rs_option.emitter_enabled, 1.0)]
+    assert len(frames) == 4 and all(f.infrared is None for f in frames)
+
+
+async def test_a_camera_without_an_emitter_option_is_left_alone(world: FakeRealSense) -> None:
+    device = FakeDevice(CAMERA.serial, frames=2, options=set())
+    world.devices.append(device)
+    camera = RealSenseCamera(CAMERA)
+    camera.infrared = True
+    frames = await run_camera(camera, 2)
+    assert device.options_set == [] and all(f.infrared is not None for f in frames)
+
+
+async def test_a_frameset_without_its_infrared_image_is_a_typed_error(world: FakeRealSense) -> None:
+    world.devices.append(FakeDevice(CAMERA.serial, frames=6, infrared_missing={2}))
+    camera = RealSenseCamera(CAMERA)
+    camera.infrared = True
+    with pytest.raises(DepthCameraError, match="depth frame 2 came without its left infrared image") as info:
+        await run_camera(camera, 6)
+    assert info.value.camera_id == CAMERA.id
+
+
+async def test_a_recording_has_no_infrared(world: FakeRealSense, tmp_path: Path) -> None:
+    path = tmp_path / "depth1.db3"
+    bag = BagPlayback(path, camera_id="depth1")
+    bag.infrared = True
+    with pytest.raises(InfraredUnavailable) as info:
+        await bag.start()
+    assert info.value.camera_id == "depth1" and str(path) in str(info.value)
 
 
 # ---------------------------------------------------------------------- host clock mapping

@@ -9,7 +9,8 @@ spacing: the device timestamps are moved onto the event-loop clock by one offset
 first frame. ``frames()`` ends at the end of the file.
 
 A sweep recording has a beam-angle file beside it (``drivers.depth.beam_angles``): every frame
-then carries the angle it was recorded at in ``DepthFrame.beam_angle_deg``.
+then carries the angle it was recorded at in ``DepthFrame.beam_angle_deg``. A sweep recording holds
+depth only: with ``infrared`` on, ``start()`` raises InfraredUnavailable.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from types import ModuleType
 from typing import Any
 
 from drivers.depth.beam_angles import BeamAngles, beam_angles_path, read_beam_angles
-from drivers.depth.errors import RecordingUnreadable
+from drivers.depth.errors import InfraredUnavailable, RecordingUnreadable
 from drivers.depth.realsense import END_OF_STREAM, Opened, RawFrame, RealSenseStream
 
 
@@ -49,6 +50,13 @@ class BagPlayback(RealSenseStream):
         self._offset_s: float | None = None
         self._ended: list[asyncio.Task[None]] = []
         self._playing = 0  # which start() the SDK's status callbacks belong to
+
+    async def start(self) -> None:
+        """Replay the recording from its start; InfraredUnavailable with ``infrared`` on (a depth
+        sweep's recording has no infrared stream)."""
+        if self.infrared:
+            raise InfraredUnavailable(self.id, f"the recording {self.path} holds depth only")
+        await super().start()
 
     def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
         if not self.path.is_file():

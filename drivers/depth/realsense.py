@@ -1,10 +1,11 @@
 """Intel RealSense depth cameras through pyrealsense2 (the optional extra ``realsense``).
 
 :class:`RealSenseStream` holds what live cameras and ``.bag`` playback share: the lazy import
-of pyrealsense2, Z16 frames copied out of librealsense's callback thread and handed to the
-event loop with ``call_soon_threadsafe``, the depth scale read from the device, the intrinsics
-from the stream profile, and device timestamps mapped onto the host event-loop clock.
-:class:`RealSenseCamera` opens one camera by serial at 1280 x 720 Z16;
+of pyrealsense2, Z16 frames (and with ``infrared`` on, the left imager's Y8 picture) copied out
+of librealsense's callback thread and handed to the event loop with ``call_soon_threadsafe``, the
+depth scale read from the device, the intrinsics from the stream profile, and device timestamps
+mapped onto the host event-loop clock.
+:class:`RealSenseCamera` opens one camera by serial at 1280 x 720 Z16 (plus Y8 infrared);
 :class:`drivers.depth.bag.BagPlayback` replays a recording through the same interface.
 """
 
@@ -41,6 +42,7 @@ class RawFrame(NamedTuple):
     domain: str
     depth: np.ndarray  # (H, W) uint16 depth units
     beam_angle_deg: float | None  # recorded with the frame (a sweep recording), else None
+    infrared: np.ndarray | None  # (H, W) uint8 left infrared image when infrared is on, else None
 
 
 class DepthBackendMissing(DepthCameraError):
@@ -66,6 +68,16 @@ def import_pyrealsense2(camera_id: str) -> ModuleType:
         return importlib.import_module("pyrealsense2")
     except ImportError as exc:
         raise DepthBackendMissing(camera_id, "pyrealsense2", exc) from exc
+
+
+def copy_image(frame: Any, dtype: type, kind: str) -> np.ndarray:
+    """(H, W) copy of a video frame's pixels (the SDK recycles the frame's buffer); ValueError
+    naming ``kind`` when they are not H x W of ``dtype``."""
+    height, width = frame.get_height(), frame.get_width()
+    data = np.asanyarray(frame.get_data())
+    if data.dtype != dtype or data.size != height * width:
+        raise ValueError(f"expected {width}x{height} {kind}, got {data.dtype} x {data.size}")
+    return data.reshape(height, width).copy()
 
 
 def intrinsics_matrix(intrinsics: Any) -> np.ndarray:
@@ -119,6 +131,8 @@ class RealSenseStream(ABC):
 
     Subclasses say which device or file to open (:meth:`_open`) and how frames reach the
     loop. ``FRAME_TIMEOUT_S``: no frame for this long -> DepthStreamStalled from ``frames()``.
+    ``infrared``: set before ``start()``; when True every frame carries the left infrared image
+    (a source that has none raises InfraredUnavailable from ``start()``).
     """
 
     FRAME_TIMEOUT_S = 1.0
@@ -129,6 +143,8 @@ class RealSenseStream(ABC):
 
     def __init__(self, camera_id: str) -> None:
         self.id = camera_id
+        self.infrared = False
+        self._infrared_streaming = False  # infrared as start() found it, for the SDK's thread
         self.depth_unit_mm: float | None = None
         self.intrinsics: np.ndarray | None = None
         self.timestamp_domain: str | None = None
@@ -158,6 +174,7 @@ class RealSenseStream(ABC):
         self._early = []
         self._described = asyncio.Event()
         self.depth_unit_mm = self.intrinsics = None
+        self._infrared_streaming = self.infrared
         starting = loop.run_in_executor(None, self._open, rs, self._on_frame)
         try:
             async with asyncio.timeout(self.START_TIMEOUT_S):
@@ -274,23 +291,30 @@ class RealSenseStream(ABC):
             self._hand_over(loop, raw)
 
     def _convert(self, frame: Any) -> RawFrame | None:
+        infrared_frame = None
         if frame.is_frameset():
-            frame = frame.as_frameset().get_depth_frame()
+            frameset = frame.as_frameset()
+            frame = frameset.get_depth_frame()
             if not frame:
                 return None
+            if self._infrared_streaming:
+                infrared_frame = frameset.get_infrared_frame(1)
         elif frame.is_depth_frame():
             frame = frame.as_depth_frame()
         else:
             return None
-        height, width = frame.get_height(), frame.get_width()
-        data = np.asanyarray(frame.get_data())
-        if data.dtype != np.uint16 or data.size != height * width:
-            raise ValueError(f"expected {width}x{height} Z16 depth, got {data.dtype} x {data.size}")
-        depth = data.reshape(height, width).copy()  # the SDK recycles the frame's buffer
+        depth = copy_image(frame, np.uint16, "Z16 depth")
+        infrared = None
+        if self._infrared_streaming:
+            if not infrared_frame:
+                raise ValueError(f"depth frame {frame.get_frame_number()} came without its left infrared image")
+            infrared = copy_image(infrared_frame, np.uint8, "Y8 infrared")
+            if infrared.shape != depth.shape:
+                raise ValueError(f"infrared image {infrared.shape} is not pixel-aligned with depth {depth.shape}")
         domain = frame.get_frame_timestamp_domain()
         number, device_ms = int(frame.get_frame_number()), float(frame.get_timestamp())
         return RawFrame(number, device_ms, getattr(domain, "name", str(domain)), depth,
-                        self._recorded_angle(number, device_ms))
+                        self._recorded_angle(number, device_ms), infrared)
 
     def _recorded_angle(self, frame_number: int, device_ms: float) -> float | None:
         """The beam angle recorded with this frame (SDK thread); a live camera has none."""
@@ -325,6 +349,7 @@ class RealSenseStream(ABC):
             depth_unit_mm=depth_unit_mm,
             intrinsics=intrinsics,
             beam_angle_deg=raw.beam_angle_deg,
+            infrared=raw.infrared,
         )
 
     def _failed(self, exc: BaseException) -> None:
@@ -342,6 +367,9 @@ class RealSenseStream(ABC):
 class RealSenseCamera(RealSenseStream):
     """A live RealSense camera of the rig, selected by serial: 1280 x 720 Z16 at ``fps``.
 
+    With ``infrared`` on it also streams the left imager's 1280 x 720 Y8 picture (the depth image's
+    own frame) and switches the projector off, so its dot pattern does not cover the calibration
+    target; with ``infrared`` off the projector is switched on (a calibration may have left it off).
     Device timestamps (hardware clock, or whatever domain the camera reports) are mapped onto
     the event-loop clock by :class:`HostClockMap`.
     """
@@ -362,13 +390,21 @@ class RealSenseCamera(RealSenseStream):
             raise DepthCameraNotFound(self.id, self.serial, serials)
         config = rs.config()
         config.enable_device(self.serial)
-        config.enable_stream(rs.stream.depth, self.WIDTH_PX, self.HEIGHT_PX, rs.format.z16,
-                             int(round(self.fps)))
+        fps = int(round(self.fps))
+        config.enable_stream(rs.stream.depth, self.WIDTH_PX, self.HEIGHT_PX, rs.format.z16, fps)
+        if self._infrared_streaming:
+            config.enable_stream(rs.stream.infrared, 1, self.WIDTH_PX, self.HEIGHT_PX, rs.format.y8, fps)
         self._clock = HostClockMap()
         pipeline = rs.pipeline(context)
         profile = pipeline.start(config, on_frame)
-        return Opened(profile.get_device().first_depth_sensor(), profile.get_stream(rs.stream.depth),
-                      pipeline.stop)
+        try:
+            sensor = profile.get_device().first_depth_sensor()
+            if sensor.supports(rs.option.emitter_enabled):
+                sensor.set_option(rs.option.emitter_enabled, 0.0 if self._infrared_streaming else 1.0)
+        except BaseException:
+            pipeline.stop()  # start() reports the failure; the device must not stay claimed
+            raise
+        return Opened(sensor, profile.get_stream(rs.stream.depth), pipeline.stop)
 
     def _host_time(self, device_ms: float, arrival_s: float) -> float:
         return self._clock.host_time(device_ms, arrival_s)
