@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 from drivers.depth.base import DepthCamera, DepthFrame
+from drivers.depth.errors import InfraredUnavailable
 from drivers.sim.depth import DepthFaults, DepthRenderer, DepthScene, SimulatedDepthCamera, simulate_sweep
 from planner.poses import depth_camera_pose
 from sim.clock import run_virtual
@@ -95,8 +96,21 @@ def test_simulated_sweep_frames_are_posed_at_constant_speed():
     assert last == pytest.approx(s.end_deg)
 
 
-def _camera(faults: DepthFaults | None = None, angle=lambda t: 10.0 * t) -> SimulatedDepthCamera:
-    return SimulatedDepthCamera(RIG.depth_cameras[2], MODEL, sphere(), angle, seed=1, faults=faults)
+def _camera(faults: DepthFaults | None = None, angle=lambda t: 10.0 * t, infrared_source=None) -> SimulatedDepthCamera:
+    return SimulatedDepthCamera(RIG.depth_cameras[2], MODEL, sphere(), angle, seed=1, faults=faults,
+                                infrared_source=infrared_source)
+
+
+class InfraredSource:
+    """Records what it is asked for; frame k's picture is uniform grey 40 + k."""
+
+    def __init__(self, shape: tuple[int, ...] = (MODEL.height_px, MODEL.width_px), dtype=np.uint8) -> None:
+        self.shape, self.dtype = shape, dtype
+        self.calls: list[tuple[int, float]] = []
+
+    def __call__(self, frame_number: int, angle_deg: float) -> np.ndarray:
+        self.calls.append((frame_number, angle_deg))
+        return np.full(self.shape, 40 + frame_number, dtype=self.dtype)
 
 
 async def _take(camera: SimulatedDepthCamera, count: int) -> list[DepthFrame]:
@@ -200,3 +214,48 @@ def test_a_stopped_camera_delivers_nothing_more():
         return first.frame_number, False
 
     assert run_virtual(main()) == (0, True)
+
+
+def test_frames_carry_the_infrared_source_picture_at_the_angle_of_the_depth_render():
+    returned: list[float] = []
+
+    def angle(t: float) -> float:  # a different angle at every call: a second call would show
+        returned.append(10.0 * t + 0.001 * len(returned))
+        return returned[-1]
+
+    source = InfraredSource()
+    camera = _camera(angle=angle, infrared_source=source)
+    camera.infrared = True
+    frames = run_virtual(_take(camera, 3))
+    assert len(returned) == 3  # one angle per frame, for the depth render and the infrared picture
+    assert source.calls == [(0, returned[0]), (1, returned[1]), (2, returned[2])]
+    for k, frame in enumerate(frames):
+        assert frame.infrared.dtype == np.uint8 and frame.infrared.shape == (MODEL.height_px, MODEL.width_px)
+        assert (frame.infrared == 40 + k).all()
+        assert np.count_nonzero(frame.depth) > 0
+
+
+def test_infrared_without_a_source_is_unavailable():
+    camera = _camera()
+    camera.infrared = True
+    with pytest.raises(InfraredUnavailable, match="no infrared source") as info:
+        run_virtual(camera.start())
+    assert info.value.camera_id == RIG.depth_cameras[2].id
+
+
+def test_infrared_off_leaves_frames_without_it_and_the_source_unasked():
+    source = InfraredSource()
+    frames = run_virtual(_take(_camera(infrared_source=source), 2))
+    assert [f.infrared for f in frames] == [None, None] and source.calls == []
+
+
+@pytest.mark.parametrize("shape, dtype", [((MODEL.height_px, MODEL.width_px), np.uint16),
+                                          ((MODEL.height_px, MODEL.width_px + 1), np.uint8),
+                                          ((MODEL.height_px, MODEL.width_px, 3), np.uint8)])
+def test_an_infrared_picture_of_the_wrong_size_or_type_is_refused(shape, dtype):
+    camera = _camera(infrared_source=InfraredSource(shape, dtype))
+    camera.infrared = True
+    with pytest.raises(ValueError) as info:
+        run_virtual(_take(camera, 1))
+    message = str(info.value)
+    assert RIG.depth_cameras[2].id in message and str(shape) in message and np.dtype(dtype).name in message

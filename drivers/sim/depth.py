@@ -27,6 +27,7 @@ import structlog
 import trimesh
 
 from drivers.depth.base import DepthFrame
+from drivers.depth.errors import InfraredUnavailable
 from drivers.sim.trapezoid import Trajectory, position_move
 from planner.poses import depth_camera_pose
 from planner.rig import DepthCamera as DepthCameraConfig
@@ -177,6 +178,10 @@ class SimulatedDepthCamera:
 
     beam_angle_deg: callable event-loop time (s) -> beam angle (deg), supplied by the sim wiring
     (e.g. the simulated drive's true angle). Frames come at ``model.fps`` from ``start()``.
+    infrared_source: callable (frame number, beam angle in deg at the frame's time) -> (H, W) uint8
+    infrared picture at the model's resolution, supplied by the sim wiring (the camera does not know
+    what it looks at). With ``infrared`` on at ``start()`` every frame carries it; without a source
+    ``start()`` raises InfraredUnavailable.
     """
 
     def __init__(
@@ -189,8 +194,12 @@ class SimulatedDepthCamera:
         seed: int = 0,
         noise: bool = True,
         faults: DepthFaults | None = None,
+        infrared_source: Callable[[int, float], np.ndarray] | None = None,
     ) -> None:
         self.id = camera.id
+        self.infrared = False
+        self.infrared_source = infrared_source
+        self._streaming_infrared: Callable[[int, float], np.ndarray] | None = None  # set by start()
         self.camera = camera
         self.model = model
         scene = subject if isinstance(subject, DepthScene) else DepthScene(subject)
@@ -202,7 +211,11 @@ class SimulatedDepthCamera:
         self._frame_number = 0
 
     async def start(self) -> None:
-        """Start streaming: frame k is exposed at start time + k / fps."""
+        """Start streaming: frame k is exposed at start time + k / fps. InfraredUnavailable when
+        ``infrared`` is on and there is no infrared source."""
+        if self.infrared and self.infrared_source is None:
+            raise InfraredUnavailable(self.id, "the simulated camera was given no infrared source")
+        self._streaming_infrared = self.infrared_source if self.infrared else None
         self._t0 = asyncio.get_running_loop().time()
         self._frame_number = 0
         log.info("depth_sim.start", camera=self.id, fps=self.model.fps)
@@ -257,11 +270,17 @@ class SimulatedDepthCamera:
 
     def _frame_steps(self, frame_number: int, time_s: float) -> Generator[None, None, DepthFrame]:
         m = self.model
+        angle = self.beam_angle_deg(time_s)
         if frame_number in self.faults.empty_frames:
             depth = np.zeros((m.height_px, m.width_px), dtype=np.uint16)
         else:
-            pose = depth_camera_pose(self.camera, math.radians(self.beam_angle_deg(time_s)))
+            pose = depth_camera_pose(self.camera, math.radians(angle))
             depth = yield from self.renderer.render_steps(pose, self._rng)
+        infrared = None
+        source = self._streaming_infrared
+        if source is not None:
+            yield
+            infrared = self._checked_infrared(source(frame_number, angle))
         return DepthFrame(
             camera_id=self.id,
             frame_number=frame_number,
@@ -270,7 +289,17 @@ class SimulatedDepthCamera:
             depth=depth,
             depth_unit_mm=m.depth_unit_mm,
             intrinsics=m.intrinsic_matrix,
+            infrared=infrared,
         )
+
+    def _checked_infrared(self, picture: np.ndarray) -> np.ndarray:
+        """The infrared source's picture if it is (H, W) uint8 at the model's resolution, else ValueError."""
+        image = np.asarray(picture)
+        wanted = (self.model.height_px, self.model.width_px)
+        if image.shape != wanted or image.dtype != np.uint8:
+            raise ValueError(f"depth camera {self.id}: the infrared source gave a {image.shape} {image.dtype} "
+                             f"image, not {wanted} uint8")
+        return image
 
 
 def sweep_frame_times(rig: Rig) -> np.ndarray:
