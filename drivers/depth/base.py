@@ -48,9 +48,15 @@ class DepthCamera(Protocol):
     """A streaming depth camera: start it, iterate frames, stop it.
 
     A live camera's ``frames()`` ends only after ``stop()``; a recording's also ends at its end.
+
+    infrared: set before ``start()``. When True every frame carries ``infrared`` (the left infrared
+    imager's picture, for calibration) and the projector (emitter) is switched off so its pattern
+    does not cover the target; a camera that cannot stream infrared raises InfraredUnavailable
+    from ``start()``.
     """
 
     id: str
+    infrared: bool
 
     async def start(self) -> None:
         """Open the device and start streaming."""
