@@ -200,3 +200,13 @@ class BeamTracker:
             return await asyncio.wait_for(future, timeout_s)
         except TimeoutError as exc:
             raise BeamTimeout(self.name, angle_deg, self.angle_deg, timeout_s) from exc
+
+
+async def rebase_angle(tracker: BeamTracker, drive: Any, near_deg: float) -> None:
+    """Renumber the resting beam's angle by whole turns to within half a turn of ``near_deg``."""
+    angle = tracker.angle_deg
+    if angle is None:
+        angle = (await tracker.next_sample()).angle_deg
+    turns = round((angle - near_deg) / 360.0)
+    if turns:
+        await drive.set_zero(angle - 360.0 * turns)

@@ -36,6 +36,20 @@ class PhonePrep:
     errors: list[str | None]
 
 
+DEFAULT_MIN_FOCUS_MM = 100.0
+"""A phone's nearest focus when it has neither a focus table nor a reported minimum."""
+
+
+def focus_range_mm(phone: Any) -> tuple[float, float]:
+    """Nearest and farthest focus (mm) of a phone: its focus table, else its reported minimum."""
+    table = phone.focus_table
+    if table is not None:
+        return float(table.near_mm), float(table.far_mm)
+    diopters = phone.info.min_focus_diopters if phone.info is not None else None
+    near = 1000.0 / float(diopters) if diopters else DEFAULT_MIN_FOCUS_MM
+    return near, math.inf
+
+
 class PhonePreparer:
     """Clock round trips and warm-up captures for every phone, concurrently."""
 
@@ -44,7 +58,6 @@ class PhonePreparer:
     """Clock pings spread out: a drift fit over a few ms of pings would be all jitter."""
     WARMUP_CAPTURES = 2
     STEP_TIMEOUT_S = 2.0
-    DEFAULT_MIN_FOCUS_MM = 100.0
 
     def __init__(self, phones: Sequence[Any], rig: Rig) -> None:
         self.phones = list(phones)
@@ -55,22 +68,13 @@ class PhonePreparer:
         prep = PhonePrep(
             clocks=[ClockSync(self.rig.phones[c].id) for c in range(n)],
             latency=[TriggerLatency() for _ in range(n)],
-            min_focus_mm=[self._focus_range_mm(p)[0] for p in self.phones],
-            max_focus_mm=[self._focus_range_mm(p)[1] for p in self.phones],
+            min_focus_mm=[focus_range_mm(p)[0] for p in self.phones],
+            max_focus_mm=[focus_range_mm(p)[1] for p in self.phones],
             ready=[False] * n,
             errors=[None] * n,
         )
         await asyncio.gather(*(self._one(c, prep) for c in range(n)))
         return prep
-
-    def _focus_range_mm(self, phone: Any) -> tuple[float, float]:
-        """Nearest and farthest focus (mm): the phone's focus table, else its reported minimum."""
-        table = phone.focus_table
-        if table is not None:
-            return float(table.near_mm), float(table.far_mm)
-        diopters = phone.info.min_focus_diopters if phone.info is not None else None
-        near = 1000.0 / float(diopters) if diopters else self.DEFAULT_MIN_FOCUS_MM
-        return near, math.inf
 
     async def _one(self, c: int, prep: PhonePrep) -> None:
         phone, loop = self.phones[c], asyncio.get_running_loop()

@@ -60,7 +60,8 @@ from planner.rig import Rig
 
 RESERVE = ".reserve"
 MAX_MANIFEST_BYTES = 64 * 1024 * 1024  # a 336-image manifest is ~150 KB
-_SCAN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+SCAN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+"""A scan (or calibration rotation) id: opaque, never patient data."""
 _FOLDER = re.compile(r"^\d{8}-\d{6}-(?P<scan_id>[A-Za-z0-9][A-Za-z0-9_-]{0,63})$")
 
 log = structlog.get_logger(__name__)
@@ -469,7 +470,7 @@ class ScanStore:
         "in progress".
         """
         scan_id = scan_id or new_scan_id()
-        if not isinstance(scan_id, str) or not _SCAN_ID.match(scan_id):
+        if not isinstance(scan_id, str) or not SCAN_ID.match(scan_id):
             shown = repr(scan_id)[:80] if isinstance(scan_id, str) else f"a {type(scan_id).__name__}"
             raise StoreError(self.root, f"scan id {shown} must be 1-64 of [A-Za-z0-9_-]")
         now = now or utc_now()
