@@ -1,7 +1,7 @@
 """The daemon's local control API: JSON lines over a Unix socket.
 
-Requests, one JSON object a line: ``{"id": 1, "cmd": "status"|"scan"|"abort"|"reset"|
-"subscribe", "args": {...}}``. Replies: ``{"id": 1, "ok": true, "result": {...}}`` or
+Requests, one JSON object a line: ``{"id": 1, "cmd": "status"|"scan"|"calibrate"|"abort"|"reset"|
+"subscribe", "args": {...}}`` (``calibrate`` starts a calibration rotation: the cuboid in place). Replies: ``{"id": 1, "ok": true, "result": {...}}`` or
 ``{"id": 1, "ok": false, "error": {"type": "ScanRefused", "message": "..."}}``.
 ``subscribe`` replies with the current status and then streams ``{"event": {...}}`` lines
 (state changes, progress, faults) until the client hangs up; that connection carries
@@ -39,7 +39,7 @@ from drivers.noise import NoiseLog
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
 SOCKET_ENV = "TBP_CONTROL_SOCKET"
 GROUP_ENV = "TBP_CONTROL_GROUP"
-COMMANDS = ("status", "scan", "abort", "reset", "subscribe")
+COMMANDS = ("status", "scan", "calibrate", "abort", "reset", "subscribe")
 
 log = structlog.get_logger(__name__)
 
@@ -91,6 +91,8 @@ class ControlHandler(Protocol):
     def status(self) -> Any: ...
 
     def scan(self, **args: Any) -> Any: ...
+
+    def calibrate(self, **args: Any) -> Any: ...
 
     def abort(self) -> Any: ...
 
@@ -297,7 +299,7 @@ class ControlServer:
         cmd, args = request["cmd"], request["args"]
         try:
             method = getattr(self.handler, cmd)
-            result = await _resolve(method(**args) if cmd == "scan" else method())
+            result = await _resolve(method(**args) if cmd in ("scan", "calibrate") else method())
         except Exception as exc:  # reported to the client with its type, and logged
             log.warning("control_command_failed", cmd=cmd, error_type=type(exc).__name__,
                         error=str(exc))
@@ -394,6 +396,9 @@ class ControlClient:
 
     async def scan(self, **args: Any) -> dict[str, Any]:
         return await self.request("scan", **args)
+
+    async def calibrate(self, **args: Any) -> dict[str, Any]:
+        return await self.request("calibrate", **args)
 
     async def abort(self) -> dict[str, Any]:
         return await self.request("abort")

@@ -7,7 +7,7 @@ both run exactly the same scan code against whatever hardware they were given.
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
@@ -19,9 +19,12 @@ from daemon.hardware import RigHardware
 from daemon.safety import SafetyMonitor
 from daemon.scan import Scan, ScanReport, ScanSettings
 from daemon.states import ScanState, ScanStateMachine
-from daemon.store import ScanStore
+from daemon.store import ScanStore, StoreError
 from planner.calibration.model import Calibration
 from planner.rig import Rig
+
+if TYPE_CHECKING:
+    from daemon.calibration_rotation import CalibrationRotation, RotationReport
 
 log = structlog.get_logger("daemon.controller")
 
@@ -57,8 +60,9 @@ class RigController:
         self.tracker = BeamTracker(hardware.drive, capacity=trace_capacity(rig))
         self.scan_task: asyncio.Task[ScanReport] | None = None
         self._starting = False
-        self.current: Scan | None = None
+        self.current: Scan | CalibrationRotation | None = None
         self.last_report: ScanReport | None = None
+        self.last_calibration: RotationReport | None = None
         self.safety.add_handler("beam quick stop", self._quick_stop)
         if hardware.panel is not None:
             self.safety.add_handler("panel fault light", self._panel_fault)
@@ -124,19 +128,7 @@ class RigController:
         """Start a scan in the background once its folder exists; refuses while busy or while a
         fault is latched. The folder is made (mkdir, manifest, fsyncs) in a thread: on a busy disk
         that took 90 ms, on the loop that carries the heartbeats."""
-        if self.busy:
-            raise ScanBusy(self.machine.state.value, "a scan is already running")
-        if self.safety.latched or self.machine.state is not ScanState.IDLE:
-            raise ScanBusy(self.machine.state.value,
-                           "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")
-        if not self.bringup.ready:
-            refused = ScanRefused(scan_id, self.bringup.summary())
-            log.warning("scan_refused", scan_id=str(scan_id)[:80], error=str(refused))
-            self.machine.progress("scan refused", error=str(refused))
-            raise refused
-        if self.hw.panel is not None and self.hw.panel.estop_active:
-            raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
-        self._close_left_open()
+        self._check_startable(scan_id)
         calibration = self.calibration(scan_id)
         # The folder exists before anyone is told the scan started (docs/hardening.md, rule 2).
         self._starting = True  # a second START meanwhile is refused as busy
@@ -153,6 +145,54 @@ class RigController:
                             settings=self.settings, calibration=calibration)
         self.scan_task = asyncio.create_task(self._run_scan(self.current), name="scan")
         return self.scan_task
+
+    def _check_startable(self, job_id: str | None) -> None:
+        """Refuse a scan or calibration rotation while busy, faulted, not ready or e-stopped."""
+        if self.busy:
+            raise ScanBusy(self.machine.state.value, "a scan is already running")
+        if self.safety.latched or self.machine.state is not ScanState.IDLE:
+            raise ScanBusy(self.machine.state.value,
+                           "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")
+        if not self.bringup.ready:
+            refused = ScanRefused(job_id, self.bringup.summary())
+            log.warning("scan_refused", scan_id=str(job_id)[:80], error=str(refused))
+            self.machine.progress("scan refused", error=str(refused))
+            raise refused
+        if self.hw.panel is not None and self.hw.panel.estop_active:
+            raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
+        self._close_left_open()
+
+    async def start_calibration(self, rotation_id: str | None = None) -> asyncio.Task[RotationReport]:
+        """Start a calibration rotation (the cuboid in place) in the background once its folder
+        exists; refused like a scan (busy, fault latched, devices missing, e-stop)."""
+        from daemon.calibration_rotation import CalibrationRotation, create_rotation_folder
+        from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_target
+
+        self._check_startable(rotation_id)
+        self._starting = True
+        try:
+            target = await asyncio.to_thread(load_target, self.settings.calibration_target or DEFAULT_TARGET_PATH)
+            rotation_id, folder = await asyncio.to_thread(create_rotation_folder, self.store.root, rotation_id)
+        except (TargetError, StoreError, OSError) as exc:
+            refused = ScanRefused(rotation_id, f"calibration rotation: {type(exc).__name__}: {exc}")
+            log.warning("calibration_refused", error=str(refused))
+            self.machine.progress("calibration refused", error=str(refused))
+            raise refused from exc
+        finally:
+            self._starting = False
+        self.current = CalibrationRotation(self.rig, self.hw, self.machine, self.safety, self.tracker, target,
+                                           rotation_id, folder)
+        self.scan_task = asyncio.create_task(self._run_calibration(self.current), name="calibration")
+        return self.scan_task
+
+    async def _run_calibration(self, rotation: Any) -> RotationReport:
+        await self._panel("SCANNING", light=True)
+        try:
+            report = await rotation.run()
+        finally:
+            await self._panel("FAULT" if self.safety.latched else "IDLE", light=False)
+        self.last_calibration = report
+        return report
 
     def _close_left_open(self) -> None:
         """Close the last scan's folder if the disk did not let the scan close it."""
@@ -294,4 +334,5 @@ class RigController:
             "ready": self.bringup.ready,
             "devices": [d.as_dict() for d in self.bringup.devices.values()],
             "last_scan": None if self.last_report is None else self.last_report.as_dict(),
+            "last_calibration_rotation": None if self.last_calibration is None else self.last_calibration.as_dict(),
         }

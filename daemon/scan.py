@@ -21,7 +21,7 @@ import numpy as np
 import structlog
 
 from daemon.atomic import StoreError
-from daemon.beam import BeamTracker
+from daemon.beam import BeamTracker, rebase_angle
 from daemon.capture import CaptureRecord, CaptureRunner
 from daemon.compute import timed
 from daemon.depth_sweep import DepthSweeper
@@ -51,12 +51,15 @@ class ScanSettings:
     executor: where the compute steps run (None: the loop's default thread pool).
     qa_report: ``(scan folder, rig_path=rig file) -> page`` writes the scan's QA report once the folder
         is closed (None: no report; ``tbp report`` can write it later).
+    calibration_target: the ChArUco cuboid's file for calibration rotations (None: the default,
+        calibration_data/target/cuboid.yaml).
     """
 
     seed: int = 0
     plan_points: int | None = None
     executor: Executor | None = None
     qa_report: Callable[..., Path] | None = None
+    calibration_target: Path | None = None
 
 
 @dataclass
@@ -310,7 +313,7 @@ class Scan:
         self._trace_mark = self.tracker.mark()
         keeper = asyncio.create_task(self._keep_trace(), name="trace-keeper")
         try:
-            await self._rebase_angle(rig.depth_sweep.start_deg)
+            await rebase_angle(self.tracker, drive, rig.depth_sweep.start_deg)
             move = asyncio.create_task(drive.move_to(rig.depth_sweep.start_deg, v_max, a_max))
             try:
                 self.prep = await prepare_phones(self.hw.phones, rig)
@@ -469,15 +472,6 @@ class Scan:
         clipped = np.clip(focus, near, far)
         self.report.focus_clipped = int(np.count_nonzero(clipped != focus))
         return clipped
-
-    async def _rebase_angle(self, near_deg: float) -> None:
-        """Renumber the resting beam's angle by whole turns to within half a turn of ``near_deg``."""
-        angle = self.tracker.angle_deg
-        if angle is None:
-            angle = (await self.tracker.next_sample()).angle_deg
-        turns = round((angle - near_deg) / 360.0)
-        if turns:
-            await self.hw.drive.set_zero(angle - 360.0 * turns)
 
     # ------------------------------------------------------------------ capture callbacks
 

@@ -211,6 +211,14 @@ class RigService:
         await self.controller.start_scan(scan_id)
         return {"scan_id": scan_id, "state": self.controller.machine.state.value}
 
+    async def calibrate(self, **args: Any) -> dict[str, Any]:
+        """Start a calibration rotation (the cuboid in place); its folder is in the answer."""
+        rotation_id = args.get("rotation_id") or new_scan_id()
+        await self.controller.start_calibration(rotation_id)
+        rotation = self.controller.current
+        return {"rotation_id": rotation_id, "folder": str(rotation.folder) if rotation else None,
+                "state": self.controller.machine.state.value}
+
     def abort(self) -> dict[str, Any]:
         return {"aborted": self.controller.abort(AbortCause(AbortSource.CONTROL_API, "control API", "abort")),
                 "state": self.controller.machine.state.value}

@@ -130,6 +130,7 @@ class MockPhone:
         self.reconnectable = True
         self.focus_table = None  # no calibration: the daemon falls back to the reported range
         self.info: PhoneInfo | None = None
+        self.deleted: list[str] = []
 
     def _device_ns(self, host_s: float) -> int:
         return int(round((host_s + self.clock_offset_s) * 1e9))
@@ -178,6 +179,10 @@ class MockPhone:
         data = b"x" * 1000
         dest.write_bytes(data)
         return len(data), hashlib.sha256(data).hexdigest()
+
+    async def delete(self, phone_path: str) -> None:
+        self._check()
+        self.deleted.append(phone_path)
 
     async def close(self) -> None:
         self.connected = False

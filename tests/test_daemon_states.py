@@ -40,8 +40,9 @@ EDGES = {
     (S.RECONSTRUCTING, S.PLANNING), (S.PLANNING, S.CAPTURING),
     (S.CAPTURING, S.RETAKING), (S.CAPTURING, S.STORING), (S.RETAKING, S.STORING),
     (S.STORING, S.IDLE),
+    (S.IDLE, S.CALIBRATING), (S.CALIBRATING, S.STORING),  # the calibration rotation
     *((s, S.ABORTING) for s in (S.PREPARING, S.DEPTH_SWEEP, S.RECONSTRUCTING, S.PLANNING,
-                                 S.CAPTURING, S.RETAKING)),
+                                 S.CAPTURING, S.RETAKING, S.CALIBRATING)),
     (S.ABORTING, S.STORING), (S.ABORTING, S.IDLE),
     *((s, S.FAULT) for s in S if s is not S.FAULT),
 }

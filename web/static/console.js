@@ -2,7 +2,7 @@
 // same control handler as the panel's buttons and `tbp scan` / `tbp abort` / `tbp reset`.
 import { getJSON, send, el, fmt } from "/static/common.js";
 
-const ACTIVE = ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "RETAKING", "STORING", "ABORTING"];
+const ACTIVE = ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "RETAKING", "CALIBRATING", "STORING", "ABORTING"];
 const $ = (id) => document.getElementById(id);
 const hooks = { events: [], status: null };
 window.tbpConsole = hooks;

@@ -1,0 +1,435 @@
+"""The calibration rotation: the beam stops at every capture angle with the ChArUco cuboid in place,
+and every phone and depth camera takes a picture of it while the beam stands still.
+
+Stop and go, not the scan's continuous turn: at a stop every camera sees the cuboid from one beam
+pose (the bundle adjustment has one beam angle and wobble per capture, docs/calibration.md), the
+phones' pictures have no motion blur and the depth cameras' infrared frames (emitter off, so its
+dot pattern does not cover the boards) come from the same pose. The encoder angle of a capture is
+the mean of the encoder samples while the pictures were taken.
+
+The rotation's folder (``<store>/calibration/<YYYYmmdd-HHMMSS>-<id>/``) is what ``tbp calibrate
+--pictures`` reads: ``captures.json`` (rewritten atomically after every stop, so it always lists
+exactly the pictures that are safely on disk) and one picture per camera and stop,
+``<camera>/a<index>.jpg`` pulled from the phone and checked by size, ``<depth camera>/a<index>.png``
+its infrared frame. ``captures.json`` says ``in progress`` until the rotation ends, then
+``complete``, ``aborted`` or ``fault`` with the reason. A phone that fails or vanishes is named and
+the rotation goes on with the others; a depth camera that cannot stream infrared is named and the
+rotation goes on with the phones.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from daemon.atomic import AtomicWriter, fsync_dir, raise_for
+from daemon.beam import BeamTracker, rebase_angle
+from daemon.errors import DaemonError, FaultLatched
+from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
+from daemon.hardware import RigHardware
+from daemon.phones import focus_range_mm
+from daemon.safety import SafetyMonitor
+from daemon.states import ScanOutcome, ScanState, ScanStateMachine
+from daemon.store import SCAN_ID, StoreError, new_scan_id
+from daemon.utc import utc_now
+from planner.calibration.target import CuboidTarget
+from planner.poses import rgb_poses
+from planner.rig import Rig
+
+log = structlog.get_logger("daemon.calibration_rotation")
+
+FOLDER = "calibration"
+"""The store's sub-folder of calibration rotations (scans never match its name)."""
+
+
+class CalibrationRotationError(DaemonError):
+    """A step of the calibration rotation failed (named: what, which device, why)."""
+
+
+@dataclass(frozen=True)
+class RotationSettings:
+    """speed_deg_s / acceleration_deg_s2: the moves between stops. settle_s: wait after a stop for
+    the beam to ring down. depth_timeout_s: longest wait for a depth camera's frame at a stop."""
+
+    speed_deg_s: float = 20.0
+    acceleration_deg_s2: float = 40.0
+    settle_s: float = 0.5
+    depth_timeout_s: float = 3.0
+    pull_timeout_s: float = 60.0
+
+
+@dataclass
+class RotationReport:
+    """How a calibration rotation ended and what it holds."""
+
+    rotation_id: str
+    folder: Path
+    outcome: ScanOutcome = ScanOutcome.COMPLETED
+    pictures: int = 0
+    missing: int = 0
+    problems: list[str] = field(default_factory=list)
+    causes: list[Any] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"rotation_id": self.rotation_id, "folder": str(self.folder), "outcome": self.outcome.value,
+                "pictures": self.pictures, "missing": self.missing, "problems": list(self.problems),
+                "causes": [str(c) for c in self.causes]}
+
+
+def create_rotation_folder(store_root: Path, rotation_id: str | None = None, *,
+                           now: datetime | None = None) -> tuple[str, Path]:
+    """A new, empty calibration rotation folder under the store; (rotation id, folder).
+
+    Raises StoreError naming the path when it cannot be made."""
+    rotation_id = rotation_id or new_scan_id()
+    if not isinstance(rotation_id, str) or not SCAN_ID.match(rotation_id):
+        shown = repr(rotation_id)[:80] if isinstance(rotation_id, str) else f"a {type(rotation_id).__name__}"
+        raise StoreError(store_root, f"calibration rotation id {shown} must be 1-64 of [A-Za-z0-9_-]")
+    now = now or utc_now()
+    parent = Path(store_root) / FOLDER
+    path = parent / f"{now:%Y%m%d-%H%M%S}-{rotation_id}"
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        path.mkdir()
+        fsync_dir(parent)
+    except FileExistsError:
+        raise StoreError(path, "calibration rotation folder already exists") from None
+    except OSError as exc:
+        raise_for(path, exc, 0)
+    return rotation_id, path
+
+
+def focus_on_cuboid_mm(rig: Rig, target: CuboidTarget, angle_deg: float) -> np.ndarray:
+    """(C,) each phone's focus distance at a beam angle: along its optical axis to the cuboid's near
+    face, the cuboid standing upright at the rig's centre (an axis-aligned box: the target's size);
+    a phone whose axis passes above or beside the cuboid focuses at the distance to its axis."""
+    poses = rgb_poses(rig, np.array([angle_deg]))
+    half = np.array([target.size_mm[0] / 2, target.size_mm[1] / 2])
+    low = np.array([-half[0], -half[1], 0.0])
+    high = np.array([half[0], half[1], target.size_mm[2]])
+    out = np.empty(rig.n_cameras)
+    for c in range(rig.n_cameras):
+        pose = poses.camera_to_world(c)
+        origin, forward = pose[:3, 3], pose[:3, 2]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            t1, t2 = (low - origin) / forward, (high - origin) / forward
+        near = np.nanmax(np.minimum(t1, t2))
+        far = np.nanmin(np.maximum(t1, t2))
+        if near <= far and near > 0:
+            out[c] = near  # forward is a unit vector: t is distance along the axis
+        else:
+            out[c] = float(np.hypot(*origin[:2]) * max(abs(forward[:2] @ (-origin[:2] / np.hypot(*origin[:2]))), 0.3))
+    return out
+
+
+@dataclass
+class _Capture:
+    """One picture of the rotation, as captures.json lists it."""
+
+    camera: str
+    kind: str
+    angle_index: int
+    encoder_deg: float
+    file: str
+    focus_mm: float | None = None
+    size_bytes: int | None = None
+    sha256: str | None = None
+    intrinsics: dict[str, float] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {"camera": self.camera, "kind": self.kind, "angle_index": self.angle_index,
+               "encoder_deg": self.encoder_deg, "file": self.file, "focus_mm": self.focus_mm,
+               "size_bytes": self.size_bytes, "sha256": self.sha256}
+        if self.intrinsics is not None:
+            out["intrinsics"] = self.intrinsics
+        return out
+
+
+class CalibrationRotation:
+    """One calibration rotation on connected hardware (the controller runs it like a scan: abort,
+    a latched fault and the folder's consistency follow the same rules)."""
+
+    def __init__(self, rig: Rig, hardware: RigHardware, machine: ScanStateMachine, safety: SafetyMonitor,
+                 tracker: BeamTracker, target: CuboidTarget, rotation_id: str, folder: Path, *,
+                 settings: RotationSettings = RotationSettings(), writer: AtomicWriter | None = None) -> None:
+        self.rig, self.hw, self.machine, self.safety, self.tracker = rig, hardware, machine, safety, tracker
+        self.target = target
+        self.settings = settings
+        self.folder = folder
+        self.writer = writer or AtomicWriter()
+        self.report = RotationReport(rotation_id, folder)
+        self.captures: list[_Capture] = []
+        self._state = "in progress"
+        self._abort_cause: AbortCause | None = None
+        self._body: asyncio.Task[None] | None = None
+        self._pulls: set[asyncio.Task[None]] = set()
+        self._streams: dict[int, AsyncIterator[Any]] = {}
+
+    # ------------------------------------------------------------------ control
+
+    def abort(self, cause: AbortCause) -> None:
+        if self._abort_cause is None:
+            self._abort_cause = cause
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+
+    def cancel_for_fault(self) -> None:
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+
+    def close_folder(self) -> bool:
+        """Write the final captures.json if not done yet; False (logged) when the disk refuses."""
+        if self._state != "in progress":
+            return True
+        state = {ScanOutcome.COMPLETED: "complete", ScanOutcome.ABORTED: "aborted",
+                 ScanOutcome.FAULTED: "fault"}[self.report.outcome]
+        try:
+            self._save(state)
+        except Exception as exc:  # retried at the next reset or rotation
+            self.report.problems.append(f"captures.json: {type(exc).__name__}: {exc}")
+            log.error("calibration_folder_not_closed", folder=str(self.folder), error=str(exc))
+            return False
+        self._state = state
+        return True
+
+    # ------------------------------------------------------------------ run
+
+    async def run(self) -> RotationReport:
+        error: BaseException | None = None
+        self.machine.scan_id = self.report.rotation_id
+        if self.safety.latched:
+            error = FaultLatched(self.safety.causes)
+        else:
+            self.machine.transition(ScanState.CALIBRATING, "calibration rotation requested",
+                                    folder=str(self.folder), stops=len(self.rig.capture.angles_deg))
+            self._save("in progress")
+            self._body = asyncio.create_task(self._sequence(), name=f"calibration-{self.report.rotation_id}")
+            try:
+                await asyncio.shield(self._body)
+            except asyncio.CancelledError:
+                if not (self._body.done() or self._abort_cause is not None or self.safety.latched):
+                    self._body.cancel()
+                    raise
+            except Exception as exc:  # every step's error ends in the report and captures.json
+                error = exc
+        await self._finish(error)
+        return self.report
+
+    async def _finish(self, error: BaseException | None) -> None:
+        report = self.report
+        self.safety.expect_samples = False
+        if self._body is not None and not self._body.done():
+            self._body.cancel()
+            await asyncio.gather(self._body, return_exceptions=True)
+        await self._stop_depth_cameras()
+        if error is not None:
+            report.problems.append(f"{type(error).__name__}: {error}")
+        if not self.safety.latched and (self._abort_cause is not None or error is not None):
+            cause = self._abort_cause or AbortCause.of_error(AbortSource.SCAN_ERROR, "calibration", error)
+            report.outcome, report.causes = ScanOutcome.ABORTED, [cause]
+            self.machine.transition(ScanState.ABORTING, cause)
+            try:
+                await self.hw.drive.stop(self.settings.acceleration_deg_s2)
+            except Exception as exc:  # a drive that cannot stop is a rig fault
+                await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self.hw.drive.name, exc,
+                                                           "controlled stop failed"))
+        if self.safety.latched:
+            await self.safety.settled()
+            report.outcome, report.causes = ScanOutcome.FAULTED, list(self.safety.causes)
+        elif self.machine.state is not ScanState.STORING:
+            self.machine.transition(ScanState.STORING, "storing the calibration pictures")
+        await self._join_pulls()
+        report.pictures = len(self.captures)
+        expected = (len(self.rig.phones) + len(self.hw.depth_cameras)) * len(self.rig.capture.angles_deg)
+        report.missing = expected - report.pictures
+        self.close_folder()
+        if self.machine.state is not ScanState.FAULT:
+            self.machine.transition(ScanState.IDLE, f"calibration rotation {report.outcome.value.lower()}",
+                                    pictures=report.pictures, folder=str(self.folder))
+        self.machine.scan_id = None
+        log.info("calibration_rotation_ended", outcome=report.outcome.value, pictures=report.pictures,
+                 problems=len(report.problems), folder=str(self.folder))
+
+    # ------------------------------------------------------------------ the sequence
+
+    async def _sequence(self) -> None:
+        rig, drive, s = self.rig, self.hw.drive, self.settings
+        self.safety.expect_samples = True
+        await rebase_angle(self.tracker, drive, min(rig.capture.angles_deg))
+        await self._start_depth_cameras()
+        phones = list(range(len(self.hw.phones)))
+        for index, angle in sorted(enumerate(rig.capture.angles_deg), key=lambda x: x[1]):
+            await drive.move_to(float(angle), s.speed_deg_s, s.acceleration_deg_s2)
+            await asyncio.sleep(s.settle_s)
+            mark = self.tracker.mark()
+            settled = asyncio.get_running_loop().time()
+            focus = focus_on_cuboid_mm(rig, self.target, float(angle))
+            shots = await asyncio.gather(*(self._shoot(c, float(focus[c])) for c in phones))
+            failed = [c for c, shot in zip(phones, shots) if shot is None]
+            frames = await asyncio.gather(*(self._infrared(d, settled) for d in list(self._streams)))
+            encoder = self._encoder_deg(mark)
+            for c, shot in zip(phones, shots):
+                if shot is not None:
+                    self._pull(c, index, encoder, shot, float(focus[c]))
+            phones = [c for c in phones if c not in failed]
+            for d, frame in zip(list(self._streams), frames):
+                if frame is not None:
+                    await self._keep_infrared(d, index, encoder, frame)
+            self._save("in progress")
+            self.machine.progress("calibration stop", angle_index=index, encoder_deg=round(encoder, 4),
+                                  pictures=len(self.captures))
+        self.safety.expect_samples = False
+
+    def _encoder_deg(self, mark: int) -> float:
+        """Mean encoder angle since ``mark`` (the stop's pictures), the latest sample if none."""
+        rows = self.tracker.trace(mark)
+        if len(rows):
+            return float(np.mean(rows[:, 1]))
+        angle = self.tracker.angle_deg
+        if angle is None:
+            raise CalibrationRotationError("the encoder has given no angle at a calibration stop")
+        return float(angle)
+
+    async def _shoot(self, c: int, focus_mm: float) -> Any:
+        """Focus phone ``c`` on the cuboid and take one picture; None on failure: the phone is named and
+        left out of the rest of the rotation (its pictures so far stay)."""
+        phone = self.hw.phones[c]
+        near, far = focus_range_mm(phone)
+        try:
+            await phone.set_focus_mm(float(np.clip(focus_mm, near, far if math.isfinite(far) else focus_mm)))
+            return await phone.capture()
+        except DaemonError:
+            raise
+        except Exception as exc:  # the phone's typed error; the other cameras go on
+            self._problem(f"phone {self.rig.phones[c].id}: {type(exc).__name__}: {exc}; left out of the rest "
+                          "of the rotation")
+            return None
+
+    def _pull(self, c: int, index: int, encoder: float, shot: Any, focus_mm: float) -> None:
+        """Pull the picture in the background (the beam moves on), check its size, delete it on the phone."""
+        camera = self.rig.phones[c].id
+        name = f"{camera}/a{index:02d}.jpg"
+
+        async def pull() -> None:
+            phone = self.hw.phones[c]
+            dest = self.folder / name
+            try:
+                dest.parent.mkdir(exist_ok=True)
+                size, digest = await phone.pull(shot.path, dest)
+                if size != shot.size_bytes:
+                    dest.unlink(missing_ok=True)
+                    raise CalibrationRotationError(f"{name}: pulled {size} bytes, the phone wrote {shot.size_bytes}")
+            except Exception as exc:  # named; the picture stays on the phone
+                self._problem(f"phone {camera}: {name}: {type(exc).__name__}: {exc}")
+                return
+            self.captures.append(_Capture(camera, "phone", index, encoder, name, focus_mm, size, digest))
+            try:
+                await phone.delete(shot.path)
+            except Exception as exc:  # the picture is safe here; the phone keeps a copy
+                self._problem(f"phone {camera}: {shot.path} not deleted on the phone: {type(exc).__name__}: {exc}")
+
+        task = asyncio.create_task(pull(), name=f"pull-{name}")
+        self._pulls.add(task)
+        task.add_done_callback(self._pulls.discard)
+
+    async def _join_pulls(self) -> None:
+        if not self._pulls:
+            return
+        try:
+            async with asyncio.timeout(self.settings.pull_timeout_s):
+                await asyncio.gather(*self._pulls, return_exceptions=True)
+        except TimeoutError:
+            for task in self._pulls:
+                task.cancel()
+            self._problem(f"pulls: {len(self._pulls)} not done within {self.settings.pull_timeout_s:g} s")
+
+    # ------------------------------------------------------------------ depth cameras
+
+    async def _start_depth_cameras(self) -> None:
+        for d, camera in enumerate(self.hw.depth_cameras):
+            camera.infrared = True
+            try:
+                await camera.start()
+            except Exception as exc:  # InfraredUnavailable (a recording), a camera gone: named, phones go on
+                camera.infrared = False
+                self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}")
+                continue
+            self._streams[d] = camera.frames()
+
+    async def _stop_depth_cameras(self) -> None:
+        for d in list(self._streams):
+            camera = self.hw.depth_cameras[d]
+            try:
+                await camera.stop()
+            except Exception as exc:  # named; the next scan starts it afresh
+                self._problem(f"depth camera {camera.id}: stop: {type(exc).__name__}: {exc}")
+            finally:
+                camera.infrared = False
+        self._streams.clear()
+
+    async def _infrared(self, d: int, settled_s: float) -> Any:
+        """The first frame of depth camera ``d`` taken after the beam settled (older queued frames are
+        skipped); None (named) when it has no infrared image or does not come in time."""
+        camera = self.hw.depth_cameras[d]
+        stream = self._streams[d]
+        try:
+            async with asyncio.timeout(self.settings.depth_timeout_s):
+                while True:
+                    frame = await anext(stream)
+                    if frame.timestamp_s >= settled_s:
+                        break
+        except (TimeoutError, StopAsyncIteration):
+            self._problem(f"depth camera {camera.id}: no frame within {self.settings.depth_timeout_s:g} s of a stop")
+            return None
+        except DaemonError:
+            raise
+        except Exception as exc:  # the camera's typed error (stalled, unplugged)
+            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}")
+            self._streams.pop(d, None)
+            return None
+        if frame.infrared is None:
+            self._problem(f"depth camera {camera.id}: frame {frame.frame_number} has no infrared image")
+            return None
+        return frame
+
+    async def _keep_infrared(self, d: int, index: int, encoder: float, frame: Any) -> None:
+        import cv2
+
+        camera = self.hw.depth_cameras[d].id
+        name = f"{camera}/a{index:02d}.png"
+        loop = asyncio.get_running_loop()
+        ok, png = await loop.run_in_executor(None, cv2.imencode, ".png", frame.infrared)
+        if not ok:
+            raise CalibrationRotationError(f"{name}: the infrared frame could not be encoded as PNG")
+        (self.folder / camera).mkdir(exist_ok=True)
+        await loop.run_in_executor(None, self.writer.write, self.folder / name, png.tobytes())
+        k = frame.intrinsics
+        self.captures.append(_Capture(camera, "depth", index, encoder, name, size_bytes=len(png),
+                                      intrinsics={"fx": float(k[0, 0]), "fy": float(k[1, 1]),
+                                                  "cx": float(k[0, 2]), "cy": float(k[1, 2])}))
+
+    # ------------------------------------------------------------------ folder
+
+    def _problem(self, text: str) -> None:
+        self.report.problems.append(text)
+        log.warning("calibration_rotation_problem", problem=text)
+        self.machine.progress("calibration problem", problem=text)
+
+    def _save(self, state: str) -> None:
+        order = {c: i for i, c in enumerate([p.id for p in self.rig.phones] + [d.id for d in self.rig.depth_cameras])}
+        captures = sorted(self.captures, key=lambda x: (order.get(x.camera, len(order)), x.angle_index))
+        doc = {"format": "tbp-rig calibration rotation 1", "rotation_id": self.report.rotation_id,
+               "rig_digest": self.rig.digest, "target": self.target.name, "state": state,
+               "reason": [str(c) for c in self.report.causes], "problems": list(self.report.problems),
+               "captures": [c.as_dict() for c in captures]}
+        self.writer.write(self.folder / "captures.json", json.dumps(doc, indent=1).encode())
+
