@@ -15,7 +15,7 @@ import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import structlog
@@ -23,6 +23,9 @@ import structlog
 from daemon.hardware import RigHardware
 from planner.poses import rgb_poses
 from planner.rig import DepthCameraModel, Rig
+
+if TYPE_CHECKING:
+    from sim.cuboid_stage import CuboidStage
 
 log = structlog.get_logger("sim.rig")
 
@@ -103,15 +106,20 @@ def phone_pose_source(rig: Rig, camera_index: int,
     return pose
 
 
-async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *,
-                        subject: Any | None = None) -> tuple[RigHardware, SimWorld]:
-    """Start every simulator and return the daemon-side device objects wired to them."""
+async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *, subject: Any | None = None,
+                        stage: CuboidStage | None = None) -> tuple[RigHardware, SimWorld]:
+    """Start every simulator and return the daemon-side device objects wired to them.
+
+    stage: the calibration cuboid in place of a subject (sim/cuboid_stage.py): the phones and the
+    depth cameras' infrared imagers see it from the rig's true poses."""
     from drivers.motor.drive import BeamDrive
     from drivers.motor.port import LoopbackCanBus
     from drivers.sim.depth import DepthScene, SimulatedDepthCamera
     from drivers.sim.drive import SimulatedDrive
 
-    if subject is None:
+    if stage is not None:
+        subject = stage.mesh()
+    elif subject is None:
         loop = asyncio.get_running_loop()
         subject = await loop.run_in_executor(None, default_subject, options.seed)
     bus = LoopbackCanBus("sim")
@@ -124,10 +132,11 @@ async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *,
     scene = DepthScene(subject)
     model = sim_depth_model(rig.depth_camera_model, options.depth_decimation, options.depth_fps)
     world.depth_cameras = [
-        SimulatedDepthCamera(cam, model, scene, angle, seed=options.seed * 100 + i)
+        SimulatedDepthCamera(cam, model, scene, angle, seed=options.seed * 100 + i,
+                             infrared_source=None if stage is None else stage.infrared(cam.id, model))
         for i, cam in enumerate(rig.depth_cameras)
     ]
-    phones = await _sim_phones(rig, options, world, angle)
+    phones = await _sim_phones(rig, options, world, angle, stage)
     panel = await _sim_panel(world) if options.panel else None
     hardware = RigHardware(drive=drive, phones=phones, depth_cameras=world.depth_cameras, panel=panel)
     hardware.closers.append(world.close)
@@ -143,7 +152,7 @@ async def _stream_pair() -> tuple[tuple[asyncio.StreamReader, asyncio.StreamWrit
 
 
 async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
-                      angle: Callable[..., float]) -> list[Any]:
+                      angle: Callable[..., float], stage: CuboidStage | None) -> list[Any]:
     from drivers.adb.auth import AdbKey
     from drivers.phone.camera import PhoneCamera
     from drivers.phone.focus import load_focus_calibration
@@ -152,10 +161,13 @@ async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
     key = AdbKey.generate() if options.state_dir is None else AdbKey.load_or_create(options.state_dir)
     phones = []
     for i, phone in enumerate(rig.phones):
+        pose = phone_pose_source(rig, i, angle) if stage is None else stage.pose(phone.id, angle)
         sim = SimulatedPhone(
-            phone.serial, subject=world.subject, pose=phone_pose_source(rig, i, angle),
+            phone.serial, subject=world.subject, pose=pose,
             seed=options.seed * 100 + i, optics=rig.optics, known_keys=[key.public_blob()],
         )
+        if stage is not None:
+            sim.picture_source = stage.phone_picture(phone.id)
         world.phones.append(sim)
         focus = load_focus_calibration(rig.resolve(phone.focus_calibration))
         phones.append(PhoneCamera(sim_phone_link(sim, world.tasks), phone, focus, key=key))

@@ -11,14 +11,18 @@ import signal
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from daemon.controller import RigController
 from daemon.scan import ScanReport, ScanSettings
 from daemon.states import StatusEvent
 from daemon.store import ScanStore
-from planner.rig import DEFAULT_RIG_PATH, load_rig
+from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 from sim.rig import SimOptions, build_sim_rig
+
+if TYPE_CHECKING:
+    from daemon.calibration_rotation import RotationReport
+    from sim.cuboid_stage import CuboidStage
 
 
 def sim_scan_id(seed: int) -> str:
@@ -118,3 +122,38 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
             attach(service)
         freeze_startup_heap()
         return await service.run(stop)
+
+
+async def sim_calibration_rotation(rig: Rig, stage: CuboidStage, *, store: Path, target: Path | None = None,
+                                   seed: int = 0, depth_decimation: int = 1, rotation_id: str | None = None,
+                                   out: TextIO | None = None,
+                                   on_ready: Callable[[RigController, Any], None] | None = None) -> RotationReport:
+    """The daemon's calibration rotation on the simulated rig with the cuboid in place (``stage``);
+    its folder goes under ``store``/calibration. Returns the rotation's report. The depth cameras
+    stream at full resolution (the corners of a half-resolution infrared image are too coarse to
+    calibrate from)."""
+    hardware, world = await build_sim_rig(
+        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=False), stage=stage)
+    controller = RigController(rig, hardware, ScanStore(store), settings=ScanSettings(calibration_target=target))
+    printer = asyncio.create_task(_print_stops(controller, out)) if out is not None else None
+    try:
+        await controller.start()
+        if on_ready is not None:
+            on_ready(controller, world)
+        return await (await controller.start_calibration(rotation_id or f"sim-seed{seed}"))
+    finally:
+        if printer is not None:
+            printer.cancel()
+            await asyncio.gather(printer, return_exceptions=True)
+        await controller.close()
+
+
+async def _print_stops(controller: RigController, out: TextIO) -> None:
+    async for event in controller.machine.subscribe():
+        if event.kind == "transition":
+            print(f"[{event.time_s:8.2f} s] {event.state.value:<14} {event.cause}", file=out, flush=True)
+        elif event.cause == "calibration stop" and event.data.get("angle_index", 0) % 8 == 7:
+            print(f"[{event.time_s:8.2f} s] {'':<14} stop {event.data['angle_index'] + 1}: "
+                  f"{event.data['pictures']} pictures", file=out, flush=True)
+        elif event.cause == "calibration problem":
+            print(f"[{event.time_s:8.2f} s] {'':<14} {event.data.get('problem')}", file=out, flush=True)

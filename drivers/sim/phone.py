@@ -13,7 +13,8 @@ seeded one-way delay, so round trips are not zero. Each image is the subject ray
 cast from ``pose(t)`` (time -> (4, 4) camera-to-world, provided by the sim wiring so the phone
 knows nothing of the motor) and blurred by its distance from the focal plane; with a
 ``board`` (drivers/sim/focus_target.py: a board on a stand in front of the phone, for the focus
-calibration's sweep) the picture is that board instead.
+calibration's sweep) the picture is that board instead, and with a ``picture_source`` (the sim
+wiring's calibration cuboid, seen from ``pose(t)``) it is what the source renders.
 
 Faults: those of the adbd (refuse_auth, vanish(), disconnect_after_bytes) plus crash_agent()
 (the agent process dies; adbd stays up, so a reconnect starts it again), lens_slowdown,
@@ -44,6 +45,9 @@ from planner.rig import Optics, load_rig
 log = structlog.get_logger("drivers.sim.phone")
 
 PoseSource = Callable[[float], np.ndarray]
+PictureSource = Callable[[np.ndarray | None, float, np.random.Generator], np.ndarray]
+"""(camera-to-world pose at the exposure, sharpest distance of the lens in mm, noise) -> (H, W[, 3])
+uint8: what the phone photographs when it is not the subject (the calibration cuboid)."""
 _SCENES: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
 
 
@@ -79,6 +83,7 @@ class SimulatedPhone(SimulatedAdbd):
         self.pose = pose
         self.seed = seed
         self.board: BoardStand | None = None
+        self.picture_source: PictureSource | None = None
         self.optics = optics or load_rig().optics  # the default rig's phones
         self.render_size = render_size
         self.min_focus_diopters = min_focus_diopters
@@ -261,6 +266,10 @@ class SimulatedPhone(SimulatedAdbd):
         return self.render_size or (self.optics.image_width_px // 32, self.optics.image_height_px // 32)
 
     def _picture(self, pose: np.ndarray | None, focus_diopters: float, index: int) -> bytes:
+        if self.picture_source is not None:
+            rng = np.random.default_rng([self.seed, index, 0x5CE7E])
+            picture = self.picture_source(pose, self.sharp_distance_mm(focus_diopters), rng)
+            return encode_jpeg(picture if picture.ndim == 3 else np.repeat(picture[:, :, None], 3, axis=2))
         if self.board is not None:
             rng = np.random.default_rng([self.seed, index, 0xB0A2D])
             return encode_jpeg(self.board.picture(self.sharp_distance_mm(focus_diopters), self.optics, rng))
