@@ -1,11 +1,15 @@
 """``tbp calibrate``: every camera's pose and lens from pictures of the ChArUco cuboid.
 
-  tbp calibrate target --out DIR            printable boards of the cuboid (PNG + true-size PDF per face)
-  tbp calibrate --sim --seed S --out DIR    the simulated rig (true poses off nominal by a seeded error)
-                                            photographs the cuboid on a stop-and-go rotation, then calibrates;
+  tbp calibrate --out DIR                   on the rig: the running daemon turns the beam stop by stop
+                                            with the cuboid in place, every phone and depth camera
+                                            (infrared) photographs it at each stop; then this command
+                                            calibrates from the rotation's pictures
+  tbp calibrate --sim --seed S --out DIR    the same through the daemon's code on the simulated rig (true
+                                            poses off nominal by a seeded error, in this process);
                                             DIR gets calibration.yaml, truth.yaml (the simulated rig's true
-                                            poses, same format), the pictures and report/index.html
+                                            poses, same format), the rotation's folder and report/index.html
   tbp calibrate --pictures FILE --out DIR   calibrate from a calibration rotation's captures.json
+  tbp calibrate target --out DIR            printable boards of the cuboid (PNG + true-size PDF per face)
   tbp calibrate focus [--phone ID] --out DIR each phone of the hardware file (daemon stopped) sweeps its lens
                                             over a board the operator stands at known distances (Enter at
                                             each); DIR/<phone>.yaml is its focus table (name it in the rig
@@ -16,9 +20,8 @@
 
 Install the result as the rig's calibration by copying DIR/calibration.yaml next to the rig file
 (``calibration_data/`` or ``/etc/tbp-rig/``; the rig file's ``calibration.file`` names it).
-Not built yet: the calibration rotation through the daemon on the real rig; the pose pipeline takes
-its pictures as above. Pictures that cannot be used are listed with the reason and the rest still
-calibrates; the exit status is 1 when no calibration could be made.
+Pictures that cannot be used are listed with the reason and the rest still calibrates; the exit
+status is 1 when no calibration could be made.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("action", nargs="?", choices=["target", "focus"], default=None,
                         help="'target': write the printable boards; 'focus': the phones' focus tables")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--sim", action="store_true", help="simulated rig and pictures, in this process")
+    parser.add_argument("--sim", action="store_true", help="the simulated rig, in this process")
     options.seed(parser, "simulated rig errors and picture noise (--sim)")
     parser.add_argument("--pictures", type=Path, default=None, metavar="FILE",
                         help="captures.json of a calibration rotation to calibrate from")
@@ -90,9 +93,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.action == "focus":
         return _focus(args, rig, target)
-    if args.sim == (args.pictures is not None):
-        print("tbp calibrate: give either --sim or --pictures FILE (calibrating on the rig through the daemon "
-              "is not built yet: run the calibration rotation's pictures through --pictures)", file=sys.stderr)
+    if args.sim and args.pictures is not None:
+        print("tbp calibrate: give --sim or --pictures FILE, not both", file=sys.stderr)
         return 2
     return _calibrate(args, rig, target)
 
@@ -106,17 +108,20 @@ def _calibrate(args: argparse.Namespace, rig: Any, target: Any) -> int:
     out.mkdir(parents=True, exist_ok=True)
     truth = None
     if args.sim:
-        from sim.calibration import render_calibration_captures, true_rig
+        from sim.calibration import true_rig
 
         truth = true_rig(rig, target, args.seed).save(out / "truth.yaml")
         print(f"simulated rig, seed {args.seed}: true poses in {out / 'truth.yaml'}", flush=True)
-        print("photographing the cuboid at every capture angle", flush=True)
-        captures = render_calibration_captures(rig, target, truth, out / "pictures", seed=args.seed, jobs=args.jobs,
-                                               progress=lambda d, n: _progress("pictures", d, n))
+        captures = _rotate_sim(args, rig, target, truth, out)
         source = f"simulated rig, seed {args.seed}"
-    else:
+    elif args.pictures is not None:
         captures = args.pictures
         source = f"pictures {captures}"
+    else:
+        captures = _rotate_rig(args)
+        if captures is None:
+            return 1
+        source = f"calibration rotation {captures.parent.name}"
     try:
         pictures = read_captures(captures)
         print(f"calibrating from {len(pictures)} pictures", flush=True)
@@ -144,6 +149,82 @@ def _calibrate(args: argparse.Namespace, rig: Any, target: Any) -> int:
     print(f"report: {page}")
     print(out / "calibration.yaml", flush=True)
     return 0
+
+
+def _rotate_sim(args: argparse.Namespace, rig: Any, target: Any, truth: Any, out: Path) -> Path:
+    """The daemon's calibration rotation on the simulated rig (virtual time); its captures.json."""
+    from sim.clock import run_virtual
+    from sim.cuboid_stage import CuboidStage
+    from sim.run import sim_calibration_rotation
+
+    print("calibration rotation through the daemon on the simulated rig, the cuboid in place", flush=True)
+    stage = CuboidStage(rig, target, truth, seed=args.seed)
+    report = run_virtual(sim_calibration_rotation(rig, stage, store=out, target=args.target, seed=args.seed,
+                                                  out=sys.stdout))
+    for problem in report.problems:
+        print(f"  rotation: {problem}", flush=True)
+    return report.folder / "captures.json"
+
+
+def _rotate_rig(args: argparse.Namespace) -> Path | None:
+    """Ask the running daemon for a calibration rotation, follow it to its end; its captures.json,
+    or None (printed why) when it did not complete."""
+    import asyncio
+
+    from daemon.control import ControlError
+
+    try:
+        return asyncio.run(_follow_rotation(args.socket))
+    except ControlError as exc:
+        print(f"tbp calibrate: {exc}", file=sys.stderr)
+        return None
+
+
+async def _follow_rotation(socket: Path | None) -> Path | None:
+    import contextlib
+
+    from daemon.control import ControlClient, DaemonUnavailable
+
+    client = ControlClient(socket)
+    async with contextlib.aclosing(client.subscribe()) as events:
+        await anext(events)  # subscribed before the rotation can emit anything
+        started = await client.calibrate()
+        print(f"calibration rotation {started['rotation_id']} started: {started['folder']}", flush=True)
+        async for event in events:
+            data = event.get("data") or {}
+            if event.get("cause") == "calibration stop":
+                print(f"  stop {data.get('angle_index')}: encoder {data.get('encoder_deg')} deg, "
+                      f"{data.get('pictures')} pictures", flush=True)
+            elif event.get("cause") == "calibration problem":
+                print(f"  {data.get('problem')}", flush=True)
+            elif event.get("kind") == "transition":
+                print(f"  {event.get('state')}: {event.get('cause')}", flush=True)
+                if event.get("state") in ("IDLE", "FAULT"):
+                    last = await _rotation_report(client, started["rotation_id"])
+                    if last.get("outcome") != "COMPLETED":
+                        print(f"tbp calibrate: the rotation did not complete ({last.get('outcome', event.get('state'))}"
+                              f"{': ' + '; '.join(last.get('causes', [])) if last.get('causes') else ''}); "
+                              f"its pictures so far: {started['folder']}", file=sys.stderr)
+                        return None
+                    return Path(started["folder"]) / "captures.json"
+    raise DaemonUnavailable(client.path, "the daemon ended the subscription before the rotation ended")
+
+
+async def _rotation_report(client: Any, rotation_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
+    """The daemon's report of the rotation once it has closed its folder."""
+    import asyncio
+
+    from daemon.control import DaemonUnavailable
+
+    try:
+        async with asyncio.timeout(timeout_s):
+            while True:
+                last = (await client.status()).get("last_calibration_rotation") or {}
+                if last.get("rotation_id") == rotation_id:
+                    return last
+                await asyncio.sleep(0.2)
+    except TimeoutError:
+        raise DaemonUnavailable(client.path, f"no report of rotation {rotation_id} within {timeout_s:g} s") from None
 
 
 def _focus(args: argparse.Namespace, rig: Any, target: Any) -> int:

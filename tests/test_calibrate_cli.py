@@ -22,9 +22,17 @@ def test_unreadable_captures_file_is_named(tmp_path: Path, capsys: pytest.Captur
     assert "captures[0]" in err and "encoder_deg" in err
 
 
-def test_needs_sim_or_pictures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["calibrate", "--out", str(tmp_path)]) == 2
+def test_sim_and_pictures_exclude_each_other(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--sim", "--pictures", str(tmp_path / "c.json"), "--out", str(tmp_path)]) == 2
     assert "--sim or --pictures" in capsys.readouterr().err
+
+
+def test_on_the_rig_it_needs_the_daemon(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sock = tmp_path / "no.sock"
+    assert main(["calibrate", "--out", str(tmp_path / "o"), "--socket", str(sock)]) == 1
+    err = capsys.readouterr().err
+    assert str(sock) in err and "not reachable" in err
+    assert not (tmp_path / "o" / "calibration.yaml").exists()
 
 
 def test_bad_target_file_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
