@@ -2,9 +2,10 @@
 and what the remaining pose error costs the focus plan.
 
 The simulated rig (seed 1: phones and depth cameras off nominal, a wobbling beam, the cuboid off
-centre) photographs the cuboid on the stop-and-go calibration rotation twice, with different
-picture noise (seeds 1 and 101). Pictures are rendered once into ~/.cache/tbp-rig/calibrate-bench
-(10 to 20 minutes on a busy 2-core machine; delete the folder to render afresh). Then
+centre) photographs the cuboid on the daemon's stop-and-go calibration rotation (the simulators over
+CAN and ADB, virtual time) twice, with different picture noise (seeds 1 and 101). The rotations'
+folders are kept in ~/.cache/tbp-rig/calibrate-bench (2 to 5 minutes each on a busy 2-core machine;
+delete the folder to take them afresh). Then
 - each calibration runs in a fresh process (its peak memory is its own): detection + bundle
   adjustment of 336 phone pictures + 144 depth-camera infrared frames (goal <= 60 s, <= 4 GiB);
 - mean reprojection error (goal <= 0.5 px; seed 0.58 px);
@@ -47,25 +48,32 @@ def _mark(ok: bool) -> str:
 
 
 def _pictures(noise_seed: int) -> Path:
-    """The calibration rotation's pictures for the benchmark rig and a noise seed (rendered once)."""
-    from planner.calibration.model import load_calibration
+    """The calibration rotation's pictures for the benchmark rig and a noise seed (taken once): the
+    daemon's stop-and-go rotation on the simulated rig, the cuboid in place."""
     from planner.calibration.target import load_target
     from planner.rig import load_rig
-    from sim.calibration import render_calibration_captures, true_rig
+    from sim.calibration import true_rig
+    from sim.clock import run_virtual
+    from sim.cuboid_stage import CuboidStage
+    from sim.run import sim_calibration_rotation
 
     rig, target = load_rig(), load_target()
-    folder = CACHE / f"truth{TRUTH_SEED}-noise{noise_seed}"
+    store = CACHE / f"truth{TRUTH_SEED}-noise{noise_seed}"
     truth_file = CACHE / f"truth{TRUTH_SEED}.yaml"
     truth = true_rig(rig, target, TRUTH_SEED)
     if not truth_file.exists():
         CACHE.mkdir(parents=True, exist_ok=True)
         truth.save(truth_file)
-    if not (folder / "captures.json").exists():
-        started = time.perf_counter()
-        print(f"rendering the calibration pictures (noise seed {noise_seed}) into {folder} ...", flush=True)
-        render_calibration_captures(rig, target, load_calibration(truth_file), folder, seed=noise_seed)
-        print(f"  rendered in {time.perf_counter() - started:.0f} s", flush=True)
-    return folder
+    done = sorted(store.glob("calibration/*/captures.json"))
+    if done and json.loads(done[-1].read_text()).get("state") == "complete":
+        return done[-1].parent
+    started = time.perf_counter()
+    print(f"calibration rotation through the daemon on the simulated rig (noise seed {noise_seed}) into {store} ...",
+          flush=True)
+    report = run_virtual(sim_calibration_rotation(rig, CuboidStage(rig, target, truth, seed=noise_seed),
+                                                  store=store, seed=noise_seed))
+    print(f"  {report.pictures} pictures in {time.perf_counter() - started:.0f} s", flush=True)
+    return report.folder
 
 
 def _calibrate_in_child(folder: Path) -> dict:
