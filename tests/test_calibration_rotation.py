@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -242,3 +241,27 @@ def test_focus_lands_on_the_cuboid(angle: float) -> None:
             assert np.max(np.abs(nearer[:2])) > half  # outside just before: the near face
         assert focus[c] > 0
     assert hits >= RIG.n_cameras - 2  # the column's phones look at the cuboid
+
+
+@pytest.mark.slow
+def test_the_whole_loop_on_the_simulated_rig_recovers_the_true_poses(tmp_path: Path) -> None:
+    """The daemon's rotation on the simulated rig (phones over ADB, the cuboid seen from the true
+    poses), then the pipeline: the issue's accuracy goals against the simulated truth."""
+    from planner.calibration.calibrate import calibrate, read_captures
+    from planner.calibration.compare import compare
+    from sim.calibration import true_rig
+    from sim.cuboid_stage import CuboidStage
+    from sim.run import sim_calibration_rotation
+
+    truth = true_rig(RIG, TARGET, 3)
+    report = run_virtual(sim_calibration_rotation(RIG, CuboidStage(RIG, TARGET, truth, seed=3),
+                                                  store=tmp_path, seed=3))
+    assert report.outcome is ScanOutcome.COMPLETED and report.missing == 0, report.problems
+    run = calibrate(RIG, TARGET, read_captures(report.folder / "captures.json"), created_utc="test", source="test")
+    assert run.calibration.residuals is not None and run.calibration.residuals.mean_px <= 0.5
+    for kind in ("phone", "depth"):
+        ids = [c.id for c in run.calibration.cameras if c.kind == kind]
+        assert len(ids) == (RIG.n_cameras if kind == "phone" else len(RIG.depth_cameras))
+        s = compare(run.calibration, truth, RIG.capture.angles_deg, ids).summary()
+        assert s["median_mm"] <= 1.0 and s["median_deg"] <= 0.1, (kind, s)
+        assert s["max_mm"] <= 2.0 and s["max_deg"] <= 0.2, (kind, s)
