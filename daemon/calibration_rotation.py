@@ -233,6 +233,8 @@ class CalibrationRotation:
         await self._stop_depth_cameras()
         if error is not None:
             report.problems.append(f"{type(error).__name__}: {error}")
+            if _is_drive_error(error) and not self.safety.latched:  # as in a scan: the drive failed, FAULT
+                await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self.hw.drive.name, error))
         if not self.safety.latched and (self._abort_cause is not None or error is not None):
             cause = self._abort_cause or AbortCause.of_error(AbortSource.SCAN_ERROR, "calibration", error)
             report.outcome, report.causes = ScanOutcome.ABORTED, [cause]
@@ -284,7 +286,9 @@ class CalibrationRotation:
             for d, frame in zip(list(self._streams), frames):
                 if frame is not None:
                     await self._keep_infrared(d, index, encoder, frame)
-            self._save("in progress")
+            document = self._document("in progress")
+            await asyncio.get_running_loop().run_in_executor(None, self.writer.write, self.folder / "captures.json",
+                                                             document)
             self.machine.progress("calibration stop", angle_index=index, encoder_deg=round(encoder, 4),
                                   pictures=len(self.captures))
         self.safety.expect_samples = False
@@ -425,11 +429,20 @@ class CalibrationRotation:
         self.machine.progress("calibration problem", problem=text)
 
     def _save(self, state: str) -> None:
+        self.writer.write(self.folder / "captures.json", self._document(state))
+
+    def _document(self, state: str) -> bytes:
+        """captures.json: what the rotation is and every picture safely on disk, in camera order."""
         order = {c: i for i, c in enumerate([p.id for p in self.rig.phones] + [d.id for d in self.rig.depth_cameras])}
         captures = sorted(self.captures, key=lambda x: (order.get(x.camera, len(order)), x.angle_index))
         doc = {"format": "tbp-rig calibration rotation 1", "rotation_id": self.report.rotation_id,
                "rig_digest": self.rig.digest, "target": self.target.name, "state": state,
                "reason": [str(c) for c in self.report.causes], "problems": list(self.report.problems),
                "captures": [c.as_dict() for c in captures]}
-        self.writer.write(self.folder / "captures.json", json.dumps(doc, indent=1).encode())
+        return json.dumps(doc, indent=1).encode()
 
+
+def _is_drive_error(error: BaseException) -> bool:
+    from drivers.motor.errors import DriveError
+
+    return isinstance(error, DriveError)

@@ -149,7 +149,7 @@ class RigController:
     def _check_startable(self, job_id: str | None) -> None:
         """Refuse a scan or calibration rotation while busy, faulted, not ready or e-stopped."""
         if self.busy:
-            raise ScanBusy(self.machine.state.value, "a scan is already running")
+            raise ScanBusy(self.machine.state.value, "a scan or calibration rotation is already running")
         if self.safety.latched or self.machine.state is not ScanState.IDLE:
             raise ScanBusy(self.machine.state.value,
                            "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")

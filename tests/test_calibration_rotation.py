@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from daemon.calibration_rotation import create_rotation_folder, focus_on_cuboid_mm
 from daemon.controller import RigController
 from daemon.errors import ScanBusy
-from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
+from daemon.faults import AbortCause, AbortSource
 from daemon.scan import ScanSettings
 from daemon.states import ScanOutcome, ScanState
 from daemon.store import ScanStore, StoreError
@@ -139,17 +139,25 @@ def test_a_depth_camera_without_infrared_is_named_and_the_phones_go_on(tmp_path:
         assert any(camera.id in p and "InfraredUnavailable" in p for p in doc["problems"])
 
 
-def test_estop_mid_rotation_latches_and_keeps_the_pictures(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fault", ["estop", "drive_fault", "heartbeat_lost"])
+def test_a_safety_fault_mid_rotation_latches_and_keeps_the_pictures(tmp_path: Path, fault: str) -> None:
     async def during(controller: RigController, world: Any) -> None:
         while controller.current is None or len(controller.current.captures) < 40:
             await asyncio.sleep(0.05)
-        await controller.trip(FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed"))
+        if fault == "estop":
+            world.sim_drive.press_estop()
+        elif fault == "drive_fault":
+            world.sim_drive.inject_fault(0x2310)  # continuous over-current
+        else:
+            world.sim_drive.stop_heartbeat()
 
-    report, controller, _ = rotate(tmp_path, during=during)
-    assert report.outcome is ScanOutcome.FAULTED
+    report, controller, world = rotate(tmp_path, during=during)
+    assert report.outcome is ScanOutcome.FAULTED, report.problems
     assert controller.machine.state is ScanState.FAULT  # latched: only a reset leaves it
+    assert abs(world.sim_drive.true_speed_deg_s) < 1e-6
     doc = captures_of(report)
     assert doc["state"] == "fault" and 40 <= len(doc["captures"]) < (RIG.n_cameras + 3) * N_ANGLES
+    assert doc["reason"]  # the latched causes, named
 
 
 def test_abort_stops_the_beam_and_keeps_the_pictures(tmp_path: Path) -> None:
