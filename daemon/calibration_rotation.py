@@ -20,6 +20,7 @@ rotation goes on with the phones.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import math
 from collections.abc import AsyncIterator
@@ -415,9 +416,11 @@ class CalibrationRotation:
         if not ok:
             raise CalibrationRotationError(f"{name}: the infrared frame could not be encoded as PNG")
         (self.folder / camera).mkdir(exist_ok=True)
-        await loop.run_in_executor(None, self.writer.write, self.folder / name, png.tobytes())
+        data = png.tobytes()
+        await loop.run_in_executor(None, self.writer.write, self.folder / name, data)
         k = frame.intrinsics
-        self.captures.append(_Capture(camera, "depth", index, encoder, name, size_bytes=len(png),
+        self.captures.append(_Capture(camera, "depth", index, encoder, name, size_bytes=len(data),
+                                      sha256=hashlib.sha256(data).hexdigest(),
                                       intrinsics={"fx": float(k[0, 0]), "fy": float(k[1, 1]),
                                                   "cx": float(k[0, 2]), "cy": float(k[1, 2])}))
 

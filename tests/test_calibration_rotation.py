@@ -70,9 +70,12 @@ def rotate(store: Path, *, during: Any = None, prepare: Any = None, infrared: bo
 
 
 def captures_of(report: Any) -> dict[str, Any]:
+    import hashlib
+
     doc = json.loads((report.folder / "captures.json").read_text())
-    for c in doc["captures"]:  # the folder is consistent: every listed picture is on disk
-        assert (report.folder / c["file"]).is_file(), c["file"]
+    for c in doc["captures"]:  # the folder is consistent: every listed picture is on disk, as recorded
+        data = (report.folder / c["file"]).read_bytes()
+        assert len(data) == c["size_bytes"] and hashlib.sha256(data).hexdigest() == c["sha256"], c["file"]
     return doc
 
 
