@@ -254,33 +254,42 @@ class SimulatedDepthCamera:
 
     def render_frame(self, frame_number: int, time_s: float) -> DepthFrame:
         """The frame exposed at event-loop time time_s (beam angle from the angle source)."""
-        return _finish(self._frame_steps(frame_number, time_s))
+        angle = self.beam_angle_deg(time_s)
+        depth = _finish(self._depth_steps(frame_number, angle))
+        source = self._streaming_infrared
+        picture = None if source is None else self._checked_infrared(source(frame_number, angle))
+        return self._frame(frame_number, time_s, depth, picture)
 
     async def render_frame_async(self, frame_number: int, time_s: float) -> DepthFrame:
         """:meth:`render_frame`, giving the event loop a turn between steps of the ray casting (a
-        whole frame held a loop that also serves the console for 30-90 ms). The pose is taken
-        before the first step; the frame is the same."""
-        steps = self._frame_steps(frame_number, time_s)
+        whole frame held a loop that also serves the console for 30-90 ms) and rendering the
+        infrared picture (one call) in the executor. The angle is taken before the first step;
+        the frame is the same."""
+        angle = self.beam_angle_deg(time_s)
+        steps = self._depth_steps(frame_number, angle)
         while True:
             try:
                 next(steps)
             except StopIteration as done:
-                return done.value
+                depth = done.value
+                break
             await asyncio.sleep(0)
-
-    def _frame_steps(self, frame_number: int, time_s: float) -> Generator[None, None, DepthFrame]:
-        m = self.model
-        angle = self.beam_angle_deg(time_s)
-        if frame_number in self.faults.empty_frames:
-            depth = np.zeros((m.height_px, m.width_px), dtype=np.uint16)
-        else:
-            pose = depth_camera_pose(self.camera, math.radians(angle))
-            depth = yield from self.renderer.render_steps(pose, self._rng)
-        infrared = None
+        picture = None
         source = self._streaming_infrared
         if source is not None:
-            yield
-            infrared = self._checked_infrared(source(frame_number, angle))
+            raw = await asyncio.get_running_loop().run_in_executor(None, source, frame_number, angle)
+            picture = self._checked_infrared(raw)
+        return self._frame(frame_number, time_s, depth, picture)
+
+    def _depth_steps(self, frame_number: int, angle_deg: float) -> Generator[None, None, np.ndarray]:
+        m = self.model
+        if frame_number in self.faults.empty_frames:
+            return np.zeros((m.height_px, m.width_px), dtype=np.uint16)
+        pose = depth_camera_pose(self.camera, math.radians(angle_deg))
+        return (yield from self.renderer.render_steps(pose, self._rng))
+
+    def _frame(self, frame_number: int, time_s: float, depth: np.ndarray, infrared: np.ndarray | None) -> DepthFrame:
+        m = self.model
         return DepthFrame(
             camera_id=self.id,
             frame_number=frame_number,
