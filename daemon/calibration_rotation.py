@@ -37,6 +37,7 @@ from daemon.beam import BeamTracker, rebase_angle
 from daemon.errors import DaemonError, FaultLatched
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
+from daemon.job import RigJob, is_drive_error
 from daemon.phones import focus_range_mm
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
@@ -155,7 +156,7 @@ class _Capture:
         return out
 
 
-class CalibrationRotation:
+class CalibrationRotation(RigJob):
     """One calibration rotation on connected hardware (the controller runs it like a scan: abort,
     a latched fault and the folder's consistency follow the same rules)."""
 
@@ -176,16 +177,6 @@ class CalibrationRotation:
         self._streams: dict[int, AsyncIterator[Any]] = {}
 
     # ------------------------------------------------------------------ control
-
-    def abort(self, cause: AbortCause) -> None:
-        if self._abort_cause is None:
-            self._abort_cause = cause
-        if self._body is not None and not self._body.done():
-            self._body.cancel()
-
-    def cancel_for_fault(self) -> None:
-        if self._body is not None and not self._body.done():
-            self._body.cancel()
 
     def close_folder(self) -> bool:
         """Write the final captures.json if not done yet; False (logged) when the disk refuses."""
@@ -234,7 +225,7 @@ class CalibrationRotation:
         await self._stop_depth_cameras()
         if error is not None:
             report.problems.append(f"{type(error).__name__}: {error}")
-            if _is_drive_error(error) and not self.safety.latched:  # as in a scan: the drive failed, FAULT
+            if is_drive_error(error) and not self.safety.latched:  # as in a scan: the drive failed, FAULT
                 await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self.hw.drive.name, error))
         if not self.safety.latched and (self._abort_cause is not None or error is not None):
             cause = self._abort_cause or AbortCause.of_error(AbortSource.SCAN_ERROR, "calibration", error)
@@ -443,9 +434,3 @@ class CalibrationRotation:
                "reason": [str(c) for c in self.report.causes], "problems": list(self.report.problems),
                "captures": [c.as_dict() for c in captures]}
         return json.dumps(doc, indent=1).encode()
-
-
-def _is_drive_error(error: BaseException) -> bool:
-    from drivers.motor.errors import DriveError
-
-    return isinstance(error, DriveError)

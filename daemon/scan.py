@@ -29,6 +29,7 @@ from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, Cause, FaultCause, FaultSource
 from daemon.fusion import FusionSession
 from daemon.hardware import RigHardware
+from daemon.job import RigJob, is_drive_error
 from daemon.manifest import ImageStatus, ScanEnd
 from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.planning import BASELINES, plan_capture
@@ -114,7 +115,7 @@ class ScanReport:
         }
 
 
-class Scan:
+class Scan(RigJob):
     """One scan on connected hardware.
 
     Args:
@@ -163,20 +164,6 @@ class Scan:
         self.fusion: FusionSession | None = None
         self.store_error: StoreError | None = None
         self._trace_mark = 0
-
-    # ------------------------------------------------------------------ control
-
-    def abort(self, cause: AbortCause) -> None:
-        """Stop the scan: the beam decelerates, the folder keeps what was captured."""
-        if self._abort_cause is None:
-            self._abort_cause = cause
-        if self._body is not None and not self._body.done():
-            self._body.cancel()
-
-    def cancel_for_fault(self) -> None:
-        """Called by the safety monitor on a trip: stop the sequence (the latch stops the beam)."""
-        if self._body is not None and not self._body.done():
-            self._body.cancel()
 
     # ------------------------------------------------------------------ run
 
@@ -258,7 +245,7 @@ class Scan:
             await asyncio.gather(self._body, return_exceptions=True)
         if error is not None:
             report.errors.append(f"{type(error).__name__}: {error}")
-            if _is_drive_error(error) and not self.safety.latched:
+            if is_drive_error(error) and not self.safety.latched:
                 await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self._drive_name, error))
         if not self.safety.latched and (self._abort_cause is not None or error is not None):
             cause = self._abort_cause or _error_cause(error)
@@ -601,10 +588,6 @@ def _error_cause(error: BaseException | None) -> AbortCause:
     return AbortCause.of_error(AbortSource.SCAN_ERROR, "scan", error)
 
 
-def _is_drive_error(error: BaseException) -> bool:
-    from drivers.motor.errors import DriveError
-
-    return isinstance(error, DriveError)
 
 
 _END = {ScanOutcome.COMPLETED: ScanEnd.COMPLETE, ScanOutcome.ABORTED: ScanEnd.ABORTED,
