@@ -113,7 +113,8 @@ def create_rotation_folder(store_root: Path, rotation_id: str | None = None, *,
 def focus_on_cuboid_mm(rig: Rig, target: CuboidTarget, angle_deg: float) -> np.ndarray:
     """(C,) each phone's focus distance at a beam angle: along its optical axis to the cuboid's near
     face, the cuboid standing upright at the rig's centre (an axis-aligned box: the target's size);
-    a phone whose axis passes above or beside the cuboid focuses at the distance to its axis."""
+    a phone whose axis passes above or beside the cuboid focuses where its axis comes closest to the
+    rig's axis."""
     poses = rgb_poses(rig, np.array([angle_deg]))
     half = np.array([target.size_mm[0] / 2, target.size_mm[1] / 2])
     low = np.array([-half[0], -half[1], 0.0])
@@ -129,7 +130,9 @@ def focus_on_cuboid_mm(rig: Rig, target: CuboidTarget, angle_deg: float) -> np.n
         if near <= far and near > 0:
             out[c] = near  # forward is a unit vector: t is distance along the axis
         else:
-            out[c] = float(np.hypot(*origin[:2]) * max(abs(forward[:2] @ (-origin[:2] / np.hypot(*origin[:2]))), 0.3))
+            across = forward[:2]
+            closest = float(across @ -origin[:2]) / max(float(across @ across), 1e-9)
+            out[c] = closest if closest > 0 else float(np.hypot(*origin[:2]))
     return out
 
 
@@ -269,13 +272,14 @@ class CalibrationRotation(RigJob):
             focus = focus_on_cuboid_mm(rig, self.target, float(angle))
             shots = await asyncio.gather(*(self._shoot(c, float(focus[c])) for c in phones))
             failed = [c for c, shot in zip(phones, shots) if shot is None]
-            frames = await asyncio.gather(*(self._infrared(d, settled) for d in list(self._streams)))
+            depth = list(self._streams)  # a camera that fails at this stop leaves _streams meanwhile
+            frames = await asyncio.gather(*(self._infrared(d, settled) for d in depth))
             encoder = self._encoder_deg(mark)
             for c, shot in zip(phones, shots):
                 if shot is not None:
                     self._pull(c, index, encoder, shot, float(focus[c]))
             phones = [c for c in phones if c not in failed]
-            for d, frame in zip(list(self._streams), frames):
+            for d, frame in zip(depth, frames):
                 if frame is not None:
                     await self._keep_infrared(d, index, encoder, frame)
             document = self._document("in progress")

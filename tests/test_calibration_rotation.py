@@ -276,3 +276,20 @@ def test_the_whole_loop_on_the_simulated_rig_recovers_the_true_poses(tmp_path: P
         s = compare(run.calibration, truth, RIG.capture.angles_deg, ids).summary()
         assert s["median_mm"] <= 1.0 and s["median_deg"] <= 0.1, (kind, s)
         assert s["max_mm"] <= 2.0 and s["max_deg"] <= 0.2, (kind, s)
+
+
+def test_a_phone_looking_past_the_cuboid_focuses_where_its_axis_nears_the_rigs() -> None:
+    """A cuboid too short for the top phone: its focus is the closest approach of its axis to z."""
+    import dataclasses
+
+    short = dataclasses.replace(TARGET, size_mm=(TARGET.size_mm[0], TARGET.size_mm[1], 300.0))
+    poses = rgb_poses(RIG, np.array([0.0]))
+    top = int(np.argmax([poses.camera_to_world(c)[2, 3] for c in range(RIG.n_cameras)]))
+    pose = poses.camera_to_world(top)
+    focus = focus_on_cuboid_mm(RIG, short, 0.0)[top]
+    point = pose[:3, 3] + focus * pose[:3, 2]
+    assert point[2] > 300.0  # it does not reach the cuboid
+    # no point of the axis comes nearer to the rig's axis than this one
+    for t in (focus - 20.0, focus + 20.0):
+        other = pose[:3, 3] + t * pose[:3, 2]
+        assert np.hypot(*other[:2]) > np.hypot(*point[:2])
