@@ -388,12 +388,14 @@ class CalibrationRotation(RigJob):
                     if frame.timestamp_s >= settled_s:
                         break
         except (TimeoutError, StopAsyncIteration):
-            self._problem(f"depth camera {camera.id}: no frame within {self.settings.depth_timeout_s:g} s of a stop")
+            self._problem(f"depth camera {camera.id}: no frame within {self.settings.depth_timeout_s:g} s of a stop; "
+                          "left out of the rest of the rotation")
+            self._streams.pop(d, None)
             return None
         except DaemonError:
             raise
         except Exception as exc:  # the camera's typed error (stalled, unplugged)
-            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}")
+            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}; left out of the rest of the rotation")
             self._streams.pop(d, None)
             return None
         if frame.infrared is None:

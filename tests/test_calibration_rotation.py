@@ -142,6 +142,29 @@ def test_a_depth_camera_without_infrared_is_named_and_the_phones_go_on(tmp_path:
         assert any(camera.id in p and "InfraredUnavailable" in p for p in doc["problems"])
 
 
+def test_a_depth_camera_that_stalls_is_named_and_the_others_keep_their_own_frames(tmp_path: Path) -> None:
+    async def during(controller: RigController, world: Any) -> None:
+        while controller.current is None or len(controller.current.captures) < 60:
+            await asyncio.sleep(0.05)
+        controller.hw.depth_cameras[1].stop_streaming()  # its USB link stalls
+
+    report, _, _ = rotate(tmp_path, during=during)
+    assert report.outcome is ScanOutcome.COMPLETED
+    doc = captures_of(report)
+    stalled = RIG.depth_cameras[1].id
+    assert any(stalled in p and "left out" in p for p in doc["problems"])
+    kept = [c for c in doc["captures"] if c["camera"] == stalled]
+    assert 0 < len(kept) < N_ANGLES
+    import cv2
+
+    for c in doc["captures"]:
+        if c["kind"] == "depth":  # each frame is filed under the camera that took it
+            image = cv2.imread(str(report.folder / c["file"]), cv2.IMREAD_GRAYSCALE)
+            assert RIG.depth_cameras[int(image[0, 0])].id == c["camera"]
+    others = [c for c in doc["captures"] if c["kind"] == "depth" and c["camera"] != stalled]
+    assert len(others) == 2 * N_ANGLES
+
+
 @pytest.mark.parametrize("fault", ["estop", "drive_fault", "heartbeat_lost"])
 def test_a_safety_fault_mid_rotation_latches_and_keeps_the_pictures(tmp_path: Path, fault: str) -> None:
     async def during(controller: RigController, world: Any) -> None:
