@@ -130,4 +130,9 @@ def test_sysusers_and_tmpfiles_apply_to_an_alternate_root(tmp_path):
                          timeout=60)
     assert res.returncode == 0, res.stderr
     scans = tmp_path / "srv/tbp-rig/scans"
-    assert scans.is_dir() and oct(scans.stat().st_mode & 0o777) == "0o750"
+    assert scans.is_dir() and oct(scans.stat().st_mode & 0o7777) == "0o2750"
+    # set-group-ID: a folder the daemon (primary group tbp-rig) makes in the store belongs to the
+    # operators' group, so `tbp scans` and `tbp calibrate` can read what the daemon wrote
+    made = scans / "calibration"
+    made.mkdir()
+    assert made.stat().st_gid == scans.stat().st_gid and made.stat().st_mode & 0o2000
