@@ -200,7 +200,7 @@ async def _follow_rotation(socket: Path | None) -> Path | None:
             elif event.get("kind") == "transition":
                 print(f"  {event.get('state')}: {event.get('cause')}", flush=True)
                 if event.get("state") in ("IDLE", "FAULT"):
-                    last = await _rotation_report(client, started["rotation_id"])
+                    last = await client.report_of("last_calibration_rotation", "rotation_id", started["rotation_id"])
                     if last.get("outcome") != "COMPLETED":
                         print(f"tbp calibrate: the rotation did not complete ({last.get('outcome', event.get('state'))}"
                               f"{': ' + '; '.join(last.get('causes', [])) if last.get('causes') else ''}); "
@@ -208,23 +208,6 @@ async def _follow_rotation(socket: Path | None) -> Path | None:
                         return None
                     return Path(started["folder"]) / "captures.json"
     raise DaemonUnavailable(client.path, "the daemon ended the subscription before the rotation ended")
-
-
-async def _rotation_report(client: Any, rotation_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    """The daemon's report of the rotation once it has closed its folder."""
-    import asyncio
-
-    from daemon.control import DaemonUnavailable
-
-    try:
-        async with asyncio.timeout(timeout_s):
-            while True:
-                last = (await client.status()).get("last_calibration_rotation") or {}
-                if last.get("rotation_id") == rotation_id:
-                    return last
-                await asyncio.sleep(0.2)
-    except TimeoutError:
-        raise DaemonUnavailable(client.path, f"no report of rotation {rotation_id} within {timeout_s:g} s") from None
 
 
 def _focus(args: argparse.Namespace, rig: Any, target: Any) -> int:

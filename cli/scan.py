@@ -108,26 +108,11 @@ async def _remote(socket: Path | None) -> int:
         async for event in events:
             print(_describe(event), flush=True)
             if event.get("kind") == "transition" and event.get("state") in ("IDLE", "FAULT"):
-                last = await _report_of(client, scan_id)
+                last = await client.report_of("last_scan", "scan_id", scan_id)
                 if last.get("folder"):
                     print(last["folder"], flush=True)
                 return 0 if last.get("outcome") == "COMPLETED" else 1
     raise DaemonUnavailable(client.path, "the daemon ended the subscription before the scan ended")
-
-
-async def _report_of(client: Any, scan_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
-    """The daemon's report of ``scan_id`` once the scan has closed its folder."""
-    from daemon.control import DaemonUnavailable
-
-    try:
-        async with asyncio.timeout(timeout_s):
-            while True:
-                last = (await client.status()).get("last_scan") or {}
-                if last.get("scan_id") == scan_id:
-                    return last
-                await asyncio.sleep(0.2)
-    except TimeoutError:
-        raise DaemonUnavailable(client.path, f"no report of scan {scan_id} within {timeout_s:g} s") from None
 
 
 def _describe(event: dict[str, Any]) -> str:

@@ -400,6 +400,20 @@ class ControlClient:
     async def calibrate(self, **args: Any) -> dict[str, Any]:
         return await self.request("calibrate", **args)
 
+    async def report_of(self, key: str, id_key: str, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
+        """The daemon's report of a job once it has closed its folder: ``status()[key]`` once its
+        ``id_key`` is ``job_id`` (``last_scan``/``scan_id``, ``last_calibration_rotation``/``rotation_id``).
+        DaemonUnavailable when none comes within ``timeout_s``."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                while True:
+                    last = (await self.status()).get(key) or {}
+                    if last.get(id_key) == job_id:
+                        return last
+                    await asyncio.sleep(0.2)
+        except TimeoutError:
+            raise DaemonUnavailable(self.path, f"no report of {job_id} within {timeout_s:g} s") from None
+
     async def abort(self) -> dict[str, Any]:
         return await self.request("abort")
 

@@ -125,22 +125,19 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
 
 
 async def sim_calibration_rotation(rig: Rig, stage: CuboidStage, *, store: Path, target: Path | None = None,
-                                   seed: int = 0, depth_decimation: int = 1, rotation_id: str | None = None,
-                                   out: TextIO | None = None,
-                                   on_ready: Callable[[RigController, Any], None] | None = None) -> RotationReport:
+                                   seed: int = 0, depth_decimation: int = 1,
+                                   out: TextIO | None = None) -> RotationReport:
     """The daemon's calibration rotation on the simulated rig with the cuboid in place (``stage``);
     its folder goes under ``store``/calibration. Returns the rotation's report. The depth cameras
     stream at full resolution (the corners of a half-resolution infrared image are too coarse to
     calibrate from)."""
-    hardware, world = await build_sim_rig(
+    hardware, _world = await build_sim_rig(
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=False), stage=stage)
     controller = RigController(rig, hardware, ScanStore(store), settings=ScanSettings(calibration_target=target))
     printer = asyncio.create_task(_print_stops(controller, out)) if out is not None else None
     try:
         await controller.start()
-        if on_ready is not None:
-            on_ready(controller, world)
-        return await (await controller.start_calibration(rotation_id or f"sim-seed{seed}"))
+        return await (await controller.start_calibration(f"sim-seed{seed}"))
     finally:
         if printer is not None:
             printer.cancel()
