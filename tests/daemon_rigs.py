@@ -40,6 +40,7 @@ class MockWorld:
     sim_drive: Any
     phones: list[MockPhone]
     tasks: list[asyncio.Task[Any]] = field(default_factory=list)
+    depth_cameras: list[Any] = field(default_factory=list)
 
 
 async def build_rig(rig: Rig, seed: int) -> tuple[RigHardware, MockWorld]:
@@ -56,6 +57,7 @@ async def build_rig(rig: Rig, seed: int) -> tuple[RigHardware, MockWorld]:
     model = sim_depth_model(rig.depth_camera_model, 4, 10.0)
     cameras = [SimulatedDepthCamera(c, model, scene, lambda _t: sim_drive.true_angle_deg, seed=seed * 10 + i)
                for i, c in enumerate(rig.depth_cameras)]
+    world.depth_cameras = cameras
 
     async def stop_sims() -> None:
         for task in world.tasks:
@@ -75,8 +77,19 @@ def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: H
              prepare: Callable[[MockWorld], None] | None = None,
              rig: Rig = RIG) -> tuple[ScanReport, RigController, MockWorld]:
     """One scan in virtual time; ``during`` runs concurrently with it, ``after`` once it ended."""
+    return run_job(store, lambda controller: controller.scan(f"test-seed{seed}"), seed=seed, during=during,
+                   after=after, store_factory=store_factory, prepare=prepare, rig=rig)
 
-    async def main() -> tuple[ScanReport, RigController, MockWorld]:
+
+def run_job(store: Path, job: Callable[[RigController], Awaitable[Any]], *, seed: int = 0,
+            during: Hook | None = None, after: Hook | None = None,
+            store_factory: Callable[[Path], ScanStore] = ScanStore,
+            prepare: Callable[[MockWorld], None] | None = None,
+            rig: Rig = RIG) -> tuple[Any, RigController, MockWorld]:
+    """``job(controller)`` (a scan, a calibration rotation) to its report in virtual time on the
+    mock-phone rig; ``during`` runs concurrently with it, ``after`` once it ended."""
+
+    async def main() -> tuple[Any, RigController, MockWorld]:
         hardware, world = await build_rig(rig, seed)
         if prepare is not None:
             prepare(world)
@@ -86,7 +99,7 @@ def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: H
             await controller.start()
             side = asyncio.create_task(during(controller, world)) if during is not None else None
             try:
-                report = await controller.scan(f"test-seed{seed}")
+                report = await job(controller)
                 if after is not None:
                     await after(controller, world)
             finally:

@@ -27,7 +27,7 @@ from daemon.store import ScanStore, StoreError
 from planner.calibration.target import load_target
 from planner.poses import rgb_poses
 from sim.clock import run_virtual
-from tests.daemon_rigs import RIG, build_rig
+from tests.daemon_rigs import RIG, build_rig, run_job
 
 TARGET = load_target()
 N_ANGLES = len(RIG.capture.angles_deg)
@@ -47,26 +47,16 @@ def _infrared(camera_index: int, model: Any) -> Any:
 
 
 def rotate(store: Path, *, during: Any = None, prepare: Any = None, infrared: bool = True) -> tuple[Any, RigController, Any]:
-    async def main() -> tuple[Any, RigController, Any]:
-        hardware, world = await build_rig(RIG, 0)
-        for i, camera in enumerate(hardware.depth_cameras):
+    def set_up(world: Any) -> None:
+        for i, camera in enumerate(world.depth_cameras):
             camera.infrared_source = _infrared(i, camera.model) if infrared else None
         if prepare is not None:
-            prepare(hardware, world)
-        controller = RigController(RIG, hardware, ScanStore(store), settings=ScanSettings())
-        await controller.start()
-        task = await controller.start_calibration("cal-test")
-        side = asyncio.create_task(during(controller, world)) if during is not None else None
-        try:
-            report = await task
-        finally:
-            if side is not None:
-                side.cancel()
-                await asyncio.gather(side, return_exceptions=True)
-            await controller.close()
-        return report, controller, world
+            prepare(world)
 
-    return run_virtual(main())
+    async def calibration(controller: RigController) -> Any:
+        return await (await controller.start_calibration("cal-test"))
+
+    return run_job(store, calibration, during=during, prepare=set_up)
 
 
 def captures_of(report: Any) -> dict[str, Any]:
@@ -119,7 +109,7 @@ def test_the_pipeline_reads_the_rotation(tmp_path: Path) -> None:
 
 
 def test_a_phone_that_vanishes_is_named_and_the_rest_goes_on(tmp_path: Path) -> None:
-    def prepare(hardware: Any, world: Any) -> None:
+    def prepare(world: Any) -> None:
         world.phones[2].fail_after = 5  # gone after 5 pictures (of the warm-up free rotation)
 
     report, _, _ = rotate(tmp_path, prepare=prepare)
@@ -202,6 +192,8 @@ def test_abort_stops_the_beam_and_keeps_the_pictures(tmp_path: Path) -> None:
 
 def test_refused_while_a_rotation_runs(tmp_path: Path) -> None:
     async def during(controller: RigController, world: Any) -> None:
+        while controller.current is None:  # the rotation has started
+            await asyncio.sleep(0.05)
         with pytest.raises(ScanBusy):
             await controller.start_calibration("second")
         with pytest.raises(ScanBusy):
