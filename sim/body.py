@@ -211,6 +211,10 @@ def _cached_body(phenotype: Phenotype, sway_deg: float, sway_seed: int) -> Body:
         body = _to_rig_frame(posed, phenotype, sway_deg)
         _write_cached(path, body)
     body.mesh.vertices.flags.writeable = False
+    # Skin coordinates for the simulated cameras' freckles: the unswayed body of the same
+    # phenotype (same vertices), so every visit of one person shows the same spots on the same skin.
+    still = body if not sway_deg else _cached_body(phenotype, 0.0, 0)
+    body.mesh.vertex_attributes["skin_mm"] = still.mesh.vertices
     return body
 
 

@@ -159,7 +159,18 @@ def test_same_seed_is_identical_when_regenerated(tmp_path, monkeypatch) -> None:
     body._cached_body.cache_clear()
     cached = make_body(seed=5, sway_deg=2.0)
     assert np.array_equal(cached.vertices, again.vertices)
-    assert len(list((tmp_path / "elsewhere" / "bodies").glob("body-*.npz"))) == 1
+    # the swayed body and the unswayed one that gives its skin coordinates
+    assert len(list((tmp_path / "elsewhere" / "bodies").glob("body-*.npz"))) == 2
+
+
+def test_a_swayed_body_keeps_the_skin_coordinates_of_the_unswayed_one() -> None:
+    """The simulated cameras paint freckles in skin coordinates: a swayed, moved visit of one
+    person must carry the same coordinates on the same vertices, so the same spots."""
+    still = make_body(seed=5)
+    swayed = make_body(seed=5, sway_deg=2.0, sway_seed=9)
+    assert np.abs(swayed.vertices - still.vertices).max() > 5.0  # really another pose
+    assert np.array_equal(swayed.vertex_attributes["skin_mm"], still.vertices)
+    assert np.array_equal(still.vertex_attributes["skin_mm"], still.vertices)
 
 
 def test_make_body_returns_an_independent_copy() -> None:

@@ -1,5 +1,5 @@
 """Images for the simulated phone: the subject ray cast from the phone's pose, shaded by normal,
-blurred by the distance from the focal plane, encoded as JPEG.
+freckled (drivers/sim/skin_texture.py), blurred by the distance from the focal plane, encoded as JPEG.
 
 The blur is the thin-lens circle of confusion, diameter c = A * |z - s| / z * f / (s - f) on the
 sensor (A = f / N aperture, f focal length, s focus distance, z the surface depth), converted to
@@ -15,6 +15,7 @@ import numpy as np
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
+from drivers.sim.skin_texture import pigment, pigmented
 from planner.rig import Optics
 
 SKIN_RGB = np.array([224.0, 178.0, 150.0])
@@ -37,15 +38,24 @@ FLOOR_HALF_SIDE_MM = 2500.0
 
 
 class SubjectScene:
-    """The subject mesh (mm, world frame, feet on z = 0) on a floor square, for ray casting."""
+    """The subject mesh (mm, world frame, feet on z = 0) on a floor square, for ray casting.
+
+    The skin carries freckles (drivers/sim/skin_texture.py) in skin coordinates: the mesh's
+    ``vertex_attributes["skin_mm"]`` when the body generator gave them (the unswayed body, so a
+    swayed visit shows the same spots on the same skin), else the mesh's own vertices.
+    """
 
     def __init__(self, mesh) -> None:
         import open3d as o3d
 
         self._o3d = o3d
+        skin = getattr(mesh, "vertex_attributes", {}).get("skin_mm")
+        self.skin_mm = np.asarray(mesh.vertices if skin is None else skin, dtype=np.float32)
+        self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        self.vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float32)
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
-                                 o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+        self._subject_id = self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                                                    o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
         s = FLOOR_HALF_SIDE_MM
         floor = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], dtype=np.float32)
         self.scene.add_triangles(o3d.core.Tensor(floor), o3d.core.Tensor(np.array([[0, 1, 2], [0, 2, 3]],
@@ -53,11 +63,31 @@ class SubjectScene:
 
     def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rays from one origin along (N, 3) directions: t_hit (N,) (inf = miss) and normals (N, 3)."""
+        answer = self._cast(origin, directions)
+        return answer["t_hit"].numpy(), answer["primitive_normals"].numpy()
+
+    def cast_skin(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """cast(), with the skin's normals smooth across its triangles (skin is not faceted), and
+        the pigment darkness (N,) where a ray meets the subject's skin (0 elsewhere)."""
+        answer = self._cast(origin, directions)
+        normals = answer["primitive_normals"].numpy()
+        triangle = answer["primitive_ids"].numpy().astype(np.int64)
+        on_skin = answer["geometry_ids"].numpy() == self._subject_id  # not the floor, not a miss
+        darkness = np.zeros(len(directions))
+        if on_skin.any():
+            corners = self.faces[triangle[on_skin]]  # (K, 3)
+            uv = answer["primitive_uvs"].numpy()[on_skin]
+            weights = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+            darkness[on_skin] = pigment(np.einsum("kc,kcj->kj", weights, self.skin_mm[corners]))
+            smooth = np.einsum("kc,kcj->kj", weights, self.vertex_normals[corners])
+            normals[on_skin] = smooth / np.maximum(np.linalg.norm(smooth, axis=1, keepdims=True), 1e-6)
+        return answer["t_hit"].numpy(), normals, darkness
+
+    def _cast(self, origin: np.ndarray, directions: np.ndarray) -> dict:
         rays = np.empty((len(directions), 6), dtype=np.float32)
         rays[:, :3] = origin
         rays[:, 3:] = directions
-        answer = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
-        return answer["t_hit"].numpy(), answer["primitive_normals"].numpy()
+        return self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
 
 
 class PhoneRenderer:
@@ -80,12 +110,13 @@ class PhoneRenderer:
         """(H, W, 3) uint8 image of the subject from camera_to_world (4, 4), lens focused at focus_mm."""
         rotation, origin = camera_to_world[:3, :3], camera_to_world[:3, 3]
         directions = (self._rays @ rotation.T).astype(np.float32)
-        t_hit, normals = self.scene.cast(origin, directions)
+        t_hit, normals, darkness = self.scene.cast_skin(origin, directions)
         hit = np.isfinite(t_hit)
         t = np.where(hit, t_hit, np.float32(1e6))  # rays have camera z = 1, so t is the z-depth
         shade = np.abs(np.einsum("ij,ij->i", normals, directions)) * self._inverse_length
         floor = hit & (np.abs(origin[2] + t * directions[:, 2]) < 0.5)
-        albedo = np.where(floor[:, None], FLOOR_RGB, SKIN_RGB).astype(np.float32)
+        albedo = pigmented(np.where(floor[:, None], FLOOR_RGB, SKIN_RGB).astype(np.float32),
+                           np.where(floor, 0.0, darkness))
         colour = albedo * (0.25 + 0.75 * shade[:, None])
         rgb = np.where(hit[:, None], colour, BACKGROUND_RGB.astype(np.float32))
         coc_px = circle_of_confusion_mm(t, focus_mm, self.optics) / self.pixel_mm
