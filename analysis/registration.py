@@ -5,15 +5,20 @@ body meshes are aligned as a whole (Open3D point-to-plane ICP from the centroid 
 few turns about the vertical axis; the best fit wins), then every mark is refined on its own
 neighbourhood (ICP on the skin within 300, 200, then 150 mm of the mark, measured along the
 mesh so that the other leg is no neighbour, each fit starting from the last), so a limb that
-moved a few degrees still carries its marks. The carried point is snapped onto the later mesh.
+moved a few degrees still carries its marks. The carried point is snapped onto the later mesh,
+then, given both scans' pictures, moved along the skin to where the skin looks the same
+(analysis/mark_match.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from analysis.mark_match import PictureMatcher
 
 
 class RegistrationError(ValueError):
@@ -155,19 +160,34 @@ class MarkCarrier:
             fit = Registration(np.asarray(result.transformation), float(result.fitness), float(result.inlier_rmse))
         return fit
 
-    def carry(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(K, 3) points on the earlier mesh -> (K, 3) on the later mesh, and (K,) local fit rmse, mm."""
+    def carry(self, points: np.ndarray, pictures: PictureMatcher | None = None) -> Carried:
+        """(K, 3) points on the earlier mesh -> their places on the later mesh.
+
+        With ``pictures`` (both scans' pictures), each carried point then moves along the skin
+        to where the skin around it looks the same in both scans, when the pictures agree."""
         import open3d as o3d
 
         points = np.asarray(points, dtype=float).reshape(-1, 3)
-        moved = np.empty_like(points)
-        rmse = np.empty(len(points))
-        for k, point in enumerate(points):  # a handful of marks: one local fit each
-            local = self._local(point)
-            moved[k] = local.apply(point)[0]
-            rmse[k] = local.rmse_mm
+        fits = [self._local(point) for point in points]  # a handful of marks: one local fit each
+        moved = np.array([fit.apply(point)[0] for fit, point in zip(fits, points)]).reshape(-1, 3)
+        score = np.full(len(points), np.nan)
         if len(points):
             closest = self._target_scene.compute_closest_points(
                 o3d.core.Tensor(moved.astype(np.float32)))["points"].numpy()
             moved = closest.astype(float)
-        return moved, rmse
+        if pictures is not None:
+            for k, (point, fit) in enumerate(zip(points, fits)):
+                match = pictures.refine(point, moved[k], fit.transform[:3, :3])
+                if match is not None:
+                    moved[k], score[k] = match.point_mm, match.score
+        return Carried(moved, np.array([fit.rmse_mm for fit in fits]), score)
+
+
+@dataclass(frozen=True)
+class Carried:
+    """Points carried to the later mesh (K, 3) mm, the rmse of each one's local fit (K,) mm, and
+    the picture match's score (K,) where the pictures placed it (NaN: placed by the shapes)."""
+
+    points_mm: np.ndarray
+    fit_rmse_mm: np.ndarray
+    picture_score: np.ndarray

@@ -81,6 +81,19 @@ class RayScene:
         found = self._open3d_scene().compute_closest_points(query)
         return found["points"].numpy().astype(float), found["primitive_ids"].numpy().astype(np.int64)
 
+    def first_hits(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(K,) distance (mm) along each ray (K, 3) origins, unit directions to the first
+        surface it meets; inf where it meets none."""
+        origins = np.asarray(origins, dtype=np.float32).reshape(-1, 3)
+        directions = np.asarray(directions, dtype=np.float32).reshape(-1, 3)
+        if self.backend == "open3d":
+            import open3d as o3d
+
+            rays = np.concatenate([origins, directions], axis=1)
+            return self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
+        hit = self._scene.run(origins, directions, output=1)
+        return np.where(np.asarray(hit["geomID"]) != -1, np.asarray(hit["tfar"], dtype=float), np.inf)
+
     def occluded(self, origins: np.ndarray, targets: np.ndarray, epsilon_mm: float) -> np.ndarray:
         """(K,) bool: the mesh crosses the segment origin -> target, ignoring its last epsilon_mm.
 

@@ -50,7 +50,10 @@ def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, de
 
 def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, Any]:
     """Marks at ``count`` skin points seen sharp in the earlier scan (feet soles excluded),
-    carried to the later scan; distance (mm) from the same skin point on the later mesh."""
+    carried to the later scan by the shapes alone and then on the pictures; distance (mm) from
+    the same skin point on the later mesh."""
+    from analysis.mark_match import PictureMatcher
+    from analysis.navigate import Navigator
     from analysis.registration import MarkCarrier
     from analysis.scan_views import open_scan
     from analysis.skin_map import SHARP, vertex_skin
@@ -70,10 +73,13 @@ def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, A
                             & (truth_a[:, 2] > 150.0))
     chosen = np.random.default_rng(seed).choice(usable, size=min(count, len(usable)), replace=False)
     carrier = MarkCarrier(mesh_a, mesh_b)
-    carried, _ = carrier.carry(on_a[chosen])
     target, _ = scene_b.closest_faces(truth_b[chosen])
-    error = np.linalg.norm(carried - np.asarray(target, dtype=float).reshape(-1, 3), axis=1)
-    return {"error_mm": error, "points": on_a[chosen], "fitness": carrier.whole.fitness,
+    target = np.asarray(target, dtype=float).reshape(-1, 3)
+    by_shape = carrier.carry(on_a[chosen])
+    carried = carrier.carry(on_a[chosen], PictureMatcher(Navigator(earlier, mesh_a), Navigator(later, mesh_b)))
+    return {"error_mm": np.linalg.norm(carried.points_mm - target, axis=1),
+            "shape_error_mm": np.linalg.norm(by_shape.points_mm - target, axis=1),
+            "picture_score": carried.picture_score, "points": on_a[chosen], "fitness": carrier.whole.fitness,
             "rmse_mm": carrier.whole.rmse_mm}
 
 

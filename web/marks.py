@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
+from analysis.mark_match import PictureMatcher
 from analysis.marks import MarkBook, MarkError, check_mark_id, new_mark, read_marks, write_marks
 from analysis.registration import MarkCarrier, RegistrationError
 from web import keys
@@ -41,22 +42,23 @@ async def read_json(request: web.Request) -> dict[str, Any]:
 
 
 class Carriers:
-    """Registrations between an earlier and a later scan's meshes, kept for a few pairs."""
+    """Registrations between an earlier and a later scan's meshes, with both scans' pictures,
+    kept for a few pairs."""
 
     KEEP = 4
 
     def __init__(self) -> None:
-        self._fits: OrderedDict[tuple[Any, ...], MarkCarrier] = OrderedDict()
+        self._fits: OrderedDict[tuple[Any, ...], tuple[MarkCarrier, PictureMatcher]] = OrderedDict()
         self._lock = asyncio.Lock()
 
-    async def get(self, library: ScanLibrary, earlier: str, later: str) -> MarkCarrier:
+    async def get(self, library: ScanLibrary, earlier: str, later: str) -> tuple[MarkCarrier, PictureMatcher]:
         a, b = library.opened(earlier), library.opened(later)
         key = (earlier, a.stamp, later, b.stamp)
         async with self._lock:
             if key not in self._fits:
-                source = await _off_loop(a.mesh_now)
-                target = await _off_loop(b.mesh_now)
-                self._fits[key] = await _off_loop(MarkCarrier, source, target)
+                source, target = await a.navigator_ready(), await b.navigator_ready()
+                carrier = await _off_loop(MarkCarrier, source.mesh, target.mesh)
+                self._fits[key] = carrier, PictureMatcher(source, target)
                 while len(self._fits) > self.KEEP:
                     self._fits.popitem(last=False)
             self._fits.move_to_end(key)
@@ -81,14 +83,18 @@ async def list_marks(request: web.Request) -> web.Response:
         earlier = _book(library.folder(book.previous_scan))
         if earlier.marks:
             try:
-                carrier = await request.app[keys.CARRIERS].get(library, book.previous_scan, name)
-                points, rmse = await _off_loop(carrier.carry, np.array([m.point_mm for m in earlier.marks]))
+                carrier, pictures = await request.app[keys.CARRIERS].get(library, book.previous_scan, name)
+                carried = await _off_loop(carrier.carry, np.array([m.point_mm for m in earlier.marks]), pictures)
             except RegistrationError as exc:
                 out["registration"] = {"error": str(exc)}
             else:
                 out["registration"] = {"fitness": carrier.whole.fitness, "rmse_mm": carrier.whole.rmse_mm}
-                out["carried"] = [{**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm),
-                                   "fit_rmse_mm": float(r)} for m, p, r in zip(earlier.marks, points, rmse)]
+                out["carried"] = [
+                    {**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm), "fit_rmse_mm": float(r),
+                     "placed_by": "shape" if np.isnan(score) else "pictures",
+                     "picture_score": None if np.isnan(score) else float(score)}
+                    for m, p, r, score in zip(earlier.marks, carried.points_mm, carried.fit_rmse_mm,
+                                              carried.picture_score)]
     return web.json_response(out)
 
 
