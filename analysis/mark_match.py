@@ -44,10 +44,9 @@ RISE_MM = 15.0
 
 @dataclass(frozen=True)
 class PictureMatch:
-    """The carried point moved along the later scan's skin: offset (mm) and the match's score."""
+    """The carried point moved along the later scan's skin, and the match's score."""
 
     point_mm: np.ndarray
-    offset_mm: float
     score: float
 
 
@@ -64,12 +63,19 @@ def tangent_frame(normal: np.ndarray, along: np.ndarray | None = None) -> tuple[
     return e1, np.cross(n, e1)
 
 
-@lru_cache(maxsize=32)
-def _grey(path: Path) -> np.ndarray:
+@lru_cache(maxsize=16)
+def _grey(path: Path, least_width_px: int) -> np.ndarray | None:
+    """The picture in grey levels (H, W) uint8, decoded at the smallest JPEG scale that is at
+    least ``least_width_px`` wide (a rig's 40-megapixel picture is far finer than the patches
+    need); None when it cannot be read."""
     from PIL import Image
 
-    with Image.open(path) as image:
-        return np.asarray(image.convert("L"), dtype=np.float32)
+    try:
+        with Image.open(path) as image:
+            image.draft("L", (least_width_px, least_width_px * image.height // max(image.width, 1)))
+            return np.asarray(image.convert("L"))
+    except (OSError, ValueError, Image.DecompressionBombError):
+        return None
 
 
 class ScanPictures:
@@ -107,15 +113,20 @@ class ScanPictures:
 
         from planner.navigation import pixel_of
 
-        image = _grey(self.navigator.scan.path / view["file"])
+        optics = self.rig.optics
+        # pixels of at most half a patch step at the view's depth
+        least = int(np.ceil(optics.image_width_px * min(1.0, 2.0 * view["resolution_mm_px"] / STEP_MM)))
+        image = _grey(self.navigator.scan.path / view["file"], least)
         points = grid.reshape(-1, 3)
+        if image is None:
+            return np.full(grid.shape[:2], np.nan)
         known = np.isfinite(points).all(axis=1)
         points = np.where(known[:, None], points, self.navigator.poses.centres[view["pose"]] + 1e3)
         pose = np.full(len(points), view["pose"])
         u, v = pixel_of(self.navigator.poses, pose, points, self.rig)
-        scale = image.shape[1] / self.rig.optics.image_width_px
+        scale = image.shape[1] / optics.image_width_px
         u, v = u * scale - 0.5, v * scale - 0.5  # pixel centres at .5
-        values = map_coordinates(image, [v, u], order=1, mode="constant", cval=np.nan)
+        values = map_coordinates(image.astype(np.float32), [v, u], order=1, mode="constant", cval=np.nan)
         inside = (u >= 0) & (v >= 0) & (u <= image.shape[1] - 1) & (v <= image.shape[0] - 1)
         centre = self.navigator.poses.centres[view["pose"]]
         hidden = self.scene.occluded(np.repeat(centre[None, :], len(points), axis=0), points, 2.0)
@@ -218,7 +229,7 @@ class PictureMatcher:
         back = _locate(_templates(self.later, moved, later_e1, later_e2), self.earlier, mark, e1, e2)
         if back is None or np.linalg.norm(back[0] - mark) > AGREE_MM:
             return None
-        return PictureMatch(moved, float(np.linalg.norm(moved - carried)), score)
+        return PictureMatch(moved, score)
 
 
 def _templates(pictures: ScanPictures, point: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> list[np.ndarray]:

@@ -71,6 +71,21 @@ def test_the_pictures_must_agree():
     assert _consensus([(1.0, 2.0, 0.6, 0.1), (-6.0, 4.0, 0.55, 0.1)]) is None
 
 
+def test_pictures_are_decoded_no_finer_than_needed_and_a_bad_one_is_skipped(tmp_path):
+    from PIL import Image
+
+    from analysis.mark_match import _grey
+
+    big = tmp_path / "big.jpg"
+    Image.fromarray(np.random.default_rng(0).integers(0, 255, (1600, 1200, 3), dtype=np.uint8)).save(big)
+    assert _grey(big, 1200).shape == (1600, 1200)
+    assert _grey(big, 280).shape == (400, 300)  # the JPEG's 1/4 scale: the smallest at least 280 wide
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(big.read_bytes()[:100])
+    assert _grey(broken, 1200) is None
+    assert _grey(tmp_path / "gone.jpg", 1200) is None
+
+
 @pytest.mark.slow
 def test_marks_between_two_simulated_visits_move_onto_the_same_skin(tmp_path):
     """Two scans of one simulated adult (new seed, swayed, standing elsewhere): where the

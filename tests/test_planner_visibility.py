@@ -150,3 +150,14 @@ def test_height_window_contains_every_frustum_point() -> None:
             pts = poses.centres[0] + depth[:, None] * (forward + u[:, :1] * right + u[:, 1:] * down)
             low, high = _height_windows(poses, pts, tan_w, tan_h)[0]
             assert np.all((pts[:, 2] >= low - 1e-6) & (pts[:, 2] <= high + 1e-6))
+
+
+@pytest.mark.parametrize("backend", ["open3d", "embree"])
+def test_first_hits_meet_the_near_side_or_nothing(backend: str) -> None:
+    scene = RayScene(sphere(100.0, (0.0, 0.0, 0.0)), backend)
+    origins = np.array([[0.0, 0.0, 300.0], [0.0, 0.0, 0.0], [500.0, 0.0, 300.0]])
+    down = np.array([[0.0, 0.0, -1.0]] * 3)
+    hits = scene.first_hits(origins, down)
+    assert hits[0] == pytest.approx(200.0, abs=1.0)  # the sphere's top, not its bottom
+    assert hits[1] == pytest.approx(100.0, abs=1.0)  # from inside: the far wall
+    assert np.isinf(hits[2])
