@@ -295,6 +295,12 @@ async def test_marks_of_the_earlier_scan_are_carried_to_the_later_one(scan_store
         assert np.linalg.norm(np.subtract(carried["point_mm"], vertex)) < 1.0
         # the same pictures: the skin around the mark matches itself
         assert carried["placed_by"] == "pictures" and carried["picture_score"] > 0.95, carried
+        # a second earlier mark: both listed, the first where it was
+        other = (await (await client.get(f"/api/scans/{earlier}/navigate", params={"vertex": 777})).json())["point_mm"]
+        assert (await client.post(f"/api/scans/{earlier}/marks", json={"name": "lentigo", "point_mm": other})).status == 201
+        again = await (await client.get(f"/api/scans/{later}/marks")).json()
+        assert [m["name"] for m in again["carried"]] == ["naevus", "lentigo"] and again["carried"][0] == carried
+        assert np.linalg.norm(np.subtract(again["carried"][1]["point_mm"], other)) < 1.0
     finally:
         await client.close()
 

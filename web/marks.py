@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections import OrderedDict
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -41,24 +42,42 @@ async def read_json(request: web.Request) -> dict[str, Any]:
     return body
 
 
+@dataclass
+class CarriedPair:
+    """One earlier -> later registration, both scans' pictures, and every point carried so far
+    (a point's place is kept: the viewer lists the marks again after each change)."""
+
+    carrier: MarkCarrier
+    pictures: PictureMatcher
+    done: dict[tuple[float, float, float], tuple[np.ndarray, float, float]] = field(default_factory=dict)
+
+    def carry(self, points: list[tuple[float, float, float]]) -> list[tuple[np.ndarray, float, float]]:
+        """(carried point, local fit rmse, picture score or NaN) for each point."""
+        new = [p for p in dict.fromkeys(points) if p not in self.done]
+        if new:
+            carried = self.carrier.carry(np.array(new), self.pictures)
+            for key, *place in zip(new, carried.points_mm, carried.fit_rmse_mm, carried.picture_score):
+                self.done[key] = tuple(place)
+        return [self.done[p] for p in points]
+
+
 class Carriers:
-    """Registrations between an earlier and a later scan's meshes, with both scans' pictures,
-    kept for a few pairs."""
+    """Registrations between an earlier and a later scan, kept for a few pairs."""
 
     KEEP = 4
 
     def __init__(self) -> None:
-        self._fits: OrderedDict[tuple[Any, ...], tuple[MarkCarrier, PictureMatcher]] = OrderedDict()
+        self._fits: OrderedDict[tuple[Any, ...], CarriedPair] = OrderedDict()
         self._lock = asyncio.Lock()
 
-    async def get(self, library: ScanLibrary, earlier: str, later: str) -> tuple[MarkCarrier, PictureMatcher]:
+    async def get(self, library: ScanLibrary, earlier: str, later: str) -> CarriedPair:
         a, b = library.opened(earlier), library.opened(later)
         key = (earlier, a.stamp, later, b.stamp)
         async with self._lock:
             if key not in self._fits:
                 source, target = await a.navigator_ready(), await b.navigator_ready()
                 carrier = await _off_loop(MarkCarrier, source.mesh, target.mesh)
-                self._fits[key] = carrier, PictureMatcher(source, target)
+                self._fits[key] = CarriedPair(carrier, PictureMatcher(source, target))
                 while len(self._fits) > self.KEEP:
                     self._fits.popitem(last=False)
             self._fits.move_to_end(key)
@@ -83,18 +102,17 @@ async def list_marks(request: web.Request) -> web.Response:
         earlier = _book(library.folder(book.previous_scan))
         if earlier.marks:
             try:
-                carrier, pictures = await request.app[keys.CARRIERS].get(library, book.previous_scan, name)
-                carried = await _off_loop(carrier.carry, np.array([m.point_mm for m in earlier.marks]), pictures)
+                pair = await request.app[keys.CARRIERS].get(library, book.previous_scan, name)
+                places = await _off_loop(pair.carry, [m.point_mm for m in earlier.marks])
             except RegistrationError as exc:
                 out["registration"] = {"error": str(exc)}
             else:
-                out["registration"] = {"fitness": carrier.whole.fitness, "rmse_mm": carrier.whole.rmse_mm}
+                out["registration"] = {"fitness": pair.carrier.whole.fitness, "rmse_mm": pair.carrier.whole.rmse_mm}
                 out["carried"] = [
                     {**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm), "fit_rmse_mm": float(r),
                      "placed_by": "shape" if np.isnan(score) else "pictures",
                      "picture_score": None if np.isnan(score) else float(score)}
-                    for m, p, r, score in zip(earlier.marks, carried.points_mm, carried.fit_rmse_mm,
-                                              carried.picture_score)]
+                    for m, (p, r, score) in zip(earlier.marks, places)]
     return web.json_response(out)
 
 
