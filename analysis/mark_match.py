@@ -36,8 +36,9 @@ SURE_SCORE, SURE_MARGIN = 0.75, 0.15
 VIEWS = 3
 """Pictures tried per scan, best first (navigation's ranking)."""
 SHADING_SIGMA_MM = 3.0
-MIN_CONTRAST = 3.0
+MIN_CONTRAST = 2.0
 """Grey-level spread (after the shading is taken out) below which a patch is blank skin."""
+NORMAL_RADIUS_MM = 6.0
 RISE_MM = 15.0
 """The rectified patch is the skin met by rays along the normal from this far above the plane."""
 
@@ -85,10 +86,23 @@ class ScanPictures:
         self.navigator = navigator
         self.scene = navigator.scene
         self.rig = navigator.scan.rig
+        self._vertices: Any = None
 
     def normal(self, point: np.ndarray) -> np.ndarray:
+        """Outward unit normal of the skin at ``point``: of the plane through the mesh within
+        NORMAL_RADIUS_MM (one triangle of a scanned mesh tilts by tens of degrees)."""
+        from scipy.spatial import cKDTree
+
         _, faces = self.scene.closest_faces(point[None, :])
-        return self.scene.face_normals[int(np.asarray(faces).reshape(-1)[0])]
+        outward = self.scene.face_normals[int(np.asarray(faces).reshape(-1)[0])]
+        if self._vertices is None:
+            self._vertices = cKDTree(np.asarray(self.navigator.mesh.vertices, dtype=float))
+        near = self._vertices.data[self._vertices.query_ball_point(point, NORMAL_RADIUS_MM)]
+        if len(near) < 6:
+            return outward
+        _, _, axes = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)
+        normal = axes[2]
+        return normal if normal @ outward >= 0 else -normal
 
     def skin(self, point: np.ndarray, e1: np.ndarray, e2: np.ndarray, half_mm: float) -> np.ndarray:
         """(S, S, 3) points of the skin under a square grid on the tangent plane at ``point``,
@@ -101,6 +115,10 @@ class ScanPictures:
         t = self.scene.first_hits(above, down)
         t[t > 2 * RISE_MM] = np.nan
         return (above - t[:, None] * normal).reshape(len(steps), len(steps), 3)
+
+    def towards_camera(self, view: dict[str, Any], point: np.ndarray) -> np.ndarray:
+        direction = self.navigator.poses.centres[view["pose"]] - point
+        return direction / np.linalg.norm(direction)
 
     def views(self, point: np.ndarray) -> list[dict[str, Any]]:
         """The best views of the point that are in focus, best first."""
@@ -221,48 +239,59 @@ class PictureMatcher:
         A match must hold both ways: the later scan's skin at the matched point, looked for in
         the earlier scan's pictures, must be found back at the mark."""
         e1, e2 = tangent_frame(self.earlier.normal(mark))
-        forward = _locate(_templates(self.earlier, mark, e1, e2), self.later, carried,
+        forward = _locate(_templates(self.earlier, mark, e1, e2, rotation), self.later, carried,
                           *tangent_frame(self.later.normal(carried), rotation @ e1))
         if forward is None:
             return None
         moved, later_e1, later_e2, score = forward
-        back = _locate(_templates(self.later, moved, later_e1, later_e2), self.earlier, mark, e1, e2)
+        back = _locate(_templates(self.later, moved, later_e1, later_e2, rotation.T), self.earlier, mark, e1, e2)
         if back is None or np.linalg.norm(back[0] - mark) > AGREE_MM:
             return None
         return PictureMatch(moved, score)
 
 
-def _templates(pictures: ScanPictures, point: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> list[np.ndarray]:
-    """The skin around ``point`` in the scan's two best pictures, rectified (blank skin left out:
-    it matches anything)."""
+@dataclass(frozen=True)
+class _Template:
+    """The rectified skin around a point in one picture, and the direction it was seen from
+    (unit, towards the camera, turned into the other scan's frame)."""
+
+    patch: np.ndarray
+    towards_camera: np.ndarray
+
+
+def _templates(pictures: ScanPictures, point: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+               rotation: np.ndarray) -> list[_Template]:
+    """The skin around ``point`` in the scan's best pictures, rectified (blank skin left out: it
+    matches anything)."""
     grid = pictures.skin(point, e1, e2, TEMPLATE_HALF_MM)
     templates = []
-    for view in pictures.views(point)[:2]:
+    for view in pictures.views(point):
         patch = _detail(pictures.sample(view, grid))
         if np.isfinite(patch).mean() >= 0.6 and np.nanstd(patch) > MIN_CONTRAST:
-            templates.append(patch)
+            templates.append(_Template(patch, rotation @ pictures.towards_camera(view, point)))
     return templates
 
 
-def _locate(templates: list[np.ndarray], pictures: ScanPictures, centre: np.ndarray, e1: np.ndarray,
+def _locate(templates: list[_Template], pictures: ScanPictures, centre: np.ndarray, e1: np.ndarray,
             e2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Where the templates' skin is within SEARCH_MM of ``centre`` in the scan's pictures: the
-    skin point, the tangent frame there and the best score; None when the pictures do not agree."""
+    skin point, the tangent frame there and the best score; None when the pictures do not agree.
+
+    Each picture is searched with the template seen from the nearest direction: where the
+    scanned surface is off the skin by a millimetre, pictures from different directions see
+    the skin shifted against each other, pictures from the same direction alike."""
     if not templates:
         return None
     grid = pictures.skin(centre, e1, e2, TEMPLATE_HALF_MM + SEARCH_MM)
-    found = []  # per picture: the best template's (offset along e1, along e2, score, margin)
+    found = []  # per picture: (offset along e1, along e2, score, margin)
     for view in pictures.views(centre):
-        search = _detail(pictures.sample(view, grid))
-        best = None
-        for template in templates:
-            row, col, score, runner_up = _peak(ncc_map(template, search))
-            if best is None or score > best[2]:
-                middle = SEARCH_MM / STEP_MM
-                best = ((row - middle) * STEP_MM, (col - middle) * STEP_MM, score, score - runner_up)
-        if (best is not None and best[2] >= MIN_SCORE and best[3] >= MIN_MARGIN
-                and max(abs(best[0]), abs(best[1])) < SEARCH_MM - STEP_MM):  # a peak on the rim is no peak
-            found.append(best)
+        towards = pictures.towards_camera(view, centre)
+        template = max(templates, key=lambda t: float(t.towards_camera @ towards))
+        row, col, score, runner_up = _peak(ncc_map(template.patch, _detail(pictures.sample(view, grid))))
+        middle = SEARCH_MM / STEP_MM
+        a, b = (row - middle) * STEP_MM, (col - middle) * STEP_MM
+        if score >= MIN_SCORE and score - runner_up >= MIN_MARGIN and max(abs(a), abs(b)) < SEARCH_MM - STEP_MM:
+            found.append((a, b, score, score - runner_up))  # (a peak on the rim is no peak)
     chosen = _consensus(found)
     if chosen is None:
         return None

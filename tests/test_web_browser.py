@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -81,6 +82,39 @@ def test_click_on_the_body_shows_the_image_and_pixel_tbp_navigate_gives(web_stor
         driver.find_element("css selector", ".tabs button[data-pane='gallery']").click()
         wait_for(driver, "document.querySelectorAll('#gallery img').length === 48")
         driver.save_screenshot(str(SHOTS / "viewer-gallery.png"))
+
+
+def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
+    """The same scan stored again as a later visit: the earlier mark is listed as placed on the
+    pictures, and Compare shows the mark's best image in both scans side by side."""
+    import shutil
+
+    from analysis.marks import MarkBook, new_mark, write_marks
+
+    earlier = folder_of(web_store)
+    later = "20991231-000000-" + earlier.split("-", 2)[2]
+    store = tmp_path / "store"
+    shutil.copytree(web_store / earlier, store / earlier)
+    shutil.copytree(web_store / earlier, store / later)
+    point = open_scan(store / earlier).mesh().vertices[front_vertex(store / earlier)].tolist()
+    write_marks(store / earlier, MarkBook([new_mark("naevus", point)]))
+    write_marks(store / later, MarkBook(previous_scan=earlier))
+    with serve_in_thread(store) as url, chromium() as driver:
+        driver.get(f"{url}/scans/{later}")
+        wait_for(driver, "document.querySelector('#marks') && document.querySelector('#marks').textContent"
+                         ".includes('placed on the pictures')", 120)
+        driver.find_element("css selector", ".tabs button[data-pane='marks']").click()
+        compare = next(b for b in driver.find_elements("css selector", "#marks button") if b.text == "Compare")
+        compare.click()
+        wait_for(driver, "Array.from(document.querySelectorAll('.pair img')).filter(i => i.complete && i.naturalWidth > 0).length === 2")
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(SHOTS / "viewer-carried-mark.png"))
+        sources = driver.execute_script("return Array.from(document.querySelectorAll('.pair img')).map(i => i.src)")
+    assert f"/api/scans/{earlier}/" in sources[0] and f"/api/scans/{later}/" in sources[1]
+    then, now = (urllib.parse.urlsplit(src) for src in sources)
+    assert then.path.split("/images/")[1] == now.path.split("/images/")[1]  # the same picture...
+    pixel = [np.array([float(urllib.parse.parse_qs(u.query)[k][0]) for k in "uv"]) for u in (then, now)]
+    assert np.linalg.norm(pixel[0] - pixel[1]) < 3.0  # ...and the same place in it
 
 
 def _free_port() -> int:
