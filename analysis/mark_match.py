@@ -27,7 +27,7 @@ SEARCH_MM = 8.0
 """How far along the skin the pictures may move a carried mark."""
 MIN_SCORE = 0.45
 """Lowest normalised cross-correlation a match needs."""
-MIN_MARGIN = 0.05
+MIN_MARGIN = 0.1
 """A match must beat the best one elsewhere (beyond 2 mm) by this much: repeated skin is no match."""
 AGREE_MM = 1.5
 """Two pictures agree when their offsets are this close; a match needs two that agree, or"""
@@ -275,7 +275,7 @@ def _templates(pictures: ScanPictures, point: np.ndarray, e1: np.ndarray, e2: np
 def _locate(templates: list[_Template], pictures: ScanPictures, centre: np.ndarray, e1: np.ndarray,
             e2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Where the templates' skin is within SEARCH_MM of ``centre`` in the scan's pictures: the
-    skin point, the tangent frame there and the best score; None when the pictures do not agree.
+    skin point, the frame searched in and the best score; None when the pictures do not agree.
 
     Each picture is searched with the template seen from the nearest direction: where the
     scanned surface is off the skin by a millimetre, pictures from different directions see
@@ -299,4 +299,4 @@ def _locate(templates: list[_Template], pictures: ScanPictures, centre: np.ndarr
     point = pictures.skin(centre + a * e1 + b * e2, e1, e2, 0.0)[0, 0]
     if not np.isfinite(point).all():
         return None
-    return point, *tangent_frame(pictures.normal(point), e1), score
+    return point, e1, e2, score  # the frame the match was found in, for the check back
