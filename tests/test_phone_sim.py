@@ -92,3 +92,25 @@ def test_standalone_server_serves_until_sigterm() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_defocus_blurs_each_level_as_if_over_the_whole_picture() -> None:
+    """Blurring only the box round a level's pixels gives the pixels the whole picture would."""
+    from scipy.ndimage import gaussian_filter
+
+    from drivers.sim.phone_render import BLUR_LEVELS_PX
+
+    rng = np.random.default_rng(4)
+    rgb = rng.uniform(0, 255, (90, 70, 3)).astype(np.float32)
+    coc = np.zeros((90, 70))
+    coc[10:30, 5:25] = 2.0  # a patch inside the picture
+    coc[60:, 50:] = 8.0  # a patch at the picture's corner
+    coc[40:45, :] = 16.0  # a band across it
+    levels = np.array(BLUR_LEVELS_PX)
+    index = np.searchsorted((levels[1:] + levels[:-1]) / 2, coc)
+    expected = rgb.copy()
+    for i in np.unique(index):
+        if levels[i]:
+            whole = gaussian_filter(rgb, sigma=(levels[i] / 2, levels[i] / 2, 0), truncate=3.0)
+            expected[index == i] = whole[index == i]
+    assert np.array_equal(PhoneRenderer._defocus(rgb, coc), np.clip(expected, 0, 255).astype(np.uint8))
