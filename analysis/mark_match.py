@@ -135,20 +135,20 @@ class ScanPictures:
         # pixels of at most half a patch step at the view's depth
         least = int(np.ceil(optics.image_width_px * min(1.0, 2.0 * view["resolution_mm_px"] / STEP_MM)))
         image = _grey(self.navigator.scan.path / view["file"], least)
+        values = np.full(grid.shape[:2], np.nan, dtype=np.float32).reshape(-1)
         points = grid.reshape(-1, 3)
-        if image is None:
-            return np.full(grid.shape[:2], np.nan)
-        known = np.isfinite(points).all(axis=1)
-        points = np.where(known[:, None], points, self.navigator.poses.centres[view["pose"]] + 1e3)
-        pose = np.full(len(points), view["pose"])
-        u, v = pixel_of(self.navigator.poses, pose, points, self.rig)
+        known = np.flatnonzero(np.isfinite(points).all(axis=1))  # where the skin was found
+        if image is None or not len(known):
+            return values.reshape(grid.shape[:2])
+        points = points[known]
+        u, v = pixel_of(self.navigator.poses, np.full(len(points), view["pose"]), points, self.rig)
         scale = image.shape[1] / optics.image_width_px
         u, v = u * scale - 0.5, v * scale - 0.5  # pixel centres at .5
-        values = map_coordinates(image.astype(np.float32), [v, u], order=1, mode="constant", cval=np.nan)
         inside = (u >= 0) & (v >= 0) & (u <= image.shape[1] - 1) & (v <= image.shape[0] - 1)
         centre = self.navigator.poses.centres[view["pose"]]
-        hidden = self.scene.occluded(np.repeat(centre[None, :], len(points), axis=0), points, 2.0)
-        values[~inside | ~known | np.asarray(hidden, dtype=bool)] = np.nan
+        seen = inside & ~np.asarray(self.scene.occluded(np.repeat(centre[None, :], len(points), axis=0), points, 2.0),
+                                    dtype=bool)
+        values[known[seen]] = map_coordinates(image.astype(np.float32), [v[seen], u[seen]], order=1)
         return values.reshape(grid.shape[:2])
 
 
