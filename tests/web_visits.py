@@ -51,7 +51,9 @@ def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, de
 def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, Any]:
     """Marks at ``count`` skin points seen sharp in the earlier scan (feet soles excluded),
     carried to the later scan by the shapes alone and then on the pictures; distance (mm) from
-    the same skin point on the later mesh."""
+    the same skin point on the later mesh, and how far that point of the later mesh is from the
+    true skin (the later scan's own shape error there: a mark drawn on the later mesh can be
+    judged no finer than that)."""
     from analysis.mark_match import PictureMatcher
     from analysis.navigate import Navigator
     from analysis.registration import MarkCarrier
@@ -79,6 +81,7 @@ def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, A
     carried = carrier.carry(on_a[chosen], PictureMatcher(Navigator(earlier, mesh_a), Navigator(later, mesh_b)))
     return {"error_mm": np.linalg.norm(carried.points_mm - target, axis=1),
             "shape_error_mm": np.linalg.norm(by_shape.points_mm - target, axis=1),
+            "later_surface_mm": np.linalg.norm(target - truth_b[chosen], axis=1),
             "picture_score": carried.picture_score, "points": on_a[chosen], "fitness": carrier.whole.fitness,
             "rmse_mm": carrier.whole.rmse_mm}
 

@@ -203,3 +203,10 @@ def run() -> None:
               f"their median {np.median(shape[matched]) if matched.any() else float('nan'):.2f} -> "
               f"{np.median(error[matched]) if matched.any() else float('nan'):.2f} mm, "
               f"{int(np.sum(error > shape + 1.0))} moved more than 1 mm further from the truth")
+        surface = carried["later_surface_mm"]
+        sound = surface <= 3.0  # as the earlier scan's marks: its surface within 3 mm of the skin
+        worst = int(np.argmax(error))
+        print(f"  the later scan's own surface is off the true skin by median {np.median(surface):.2f} mm, max "
+              f"{surface.max():.2f} mm; worst mark {error[worst]:.2f} mm where it is {surface[worst]:.2f} mm off; "
+              f"marks where it is within 3 mm ({sound.sum()} of {len(error)}): max "
+              f"{error[sound].max() if sound.any() else float('nan'):.2f} mm")
