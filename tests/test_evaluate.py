@@ -48,11 +48,16 @@ def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside
     # Every method side by side on planning samples, fresh samples, calibration noise and sway.
     assert "| method | planning samples | fresh samples | calibration noise | postural sway |" in text
     assert "| robust-angles |" in text and "Certified bound" in text
+    assert "with every candidate capture angle at once" in text and "| bound, any angles |" in text
     for body in corpus["per_body"]:
         for name, m in body["methods"].items():
             assert {"fresh_in_focus", "calibration_in_focus", "sway_in_focus"} <= set(m), name
             if name != "robust-angles":  # the bound is for the rig's own angles
                 assert m["fresh_in_focus"] <= body["bound"]["fresh"] + 1e-12, name
+            # Every plan, whatever its angles among the candidates, under the any-angle bound.
+            assert m["fresh_in_focus"] <= body["bound"]["fresh_any_angle"] + 1e-12, name
+        assert body["bound"]["fresh_any_angle"] <= body["any_angle_visible_fraction"] + 1e-12
+        assert body["any_angle_visible_fraction"] >= body["fresh_visible_fraction"] - 1e-12
         assert body["methods"]["shape-aware"]["in_focus_fraction"] <= body["bound"]["planning"] + 1e-12
     paths = write(corpus, tmp_path / "out")
     assert all(p.exists() and p.stat().st_size > 0 for p in paths)
