@@ -13,8 +13,9 @@ capture angles), then judge every plan side by side, as SPEC section 6 and issue
 It also computes the certified in-focus bound (planner/bound.py) on the planning and the fresh
 samples, and (with per-subject angles) on the fresh samples seen from every candidate capture
 angle at once: no choice of angles among the candidates, with any number of images, can hold
-more of the skin sharp, so it caps what per-subject angles can add. Every random source is seeded from (corpus seed, body label), so the numbers do not
-depend on how many worker processes run the corpus.
+more of the skin sharp, so it caps what per-subject angles can add. Every random source is
+seeded from (corpus seed, body label), so the numbers do not depend on how many worker
+processes run the corpus.
 """
 
 from __future__ import annotations
