@@ -111,7 +111,7 @@ def subset_table(table: CostTable, poses: np.ndarray, rig: Rig) -> CostTable:
 
 def _objective(table: CostTable, focus: np.ndarray, redundancy: Redundancy) -> float:
     return table.total_cost(focus) + redundancy.weight * expected_misses(
-        sharp_views(table, focus), redundancy.miss_probability
+        sharp_views(table, focus), redundancy.miss_probability, table.weight
     )
 
 
@@ -182,10 +182,10 @@ class _Search:
             if sl.stop == sl.start:
                 continue
             points = t.vis.point[sl]
-            o, base = other[points], t.base[sl]
+            o, base, weight = other[points], t.base[sl], t.weight[points]
             in_focus_cost = np.minimum(o, base + w3)
-            total += float((o - in_focus_cost).sum())
-            gain = np.maximum(in_focus_cost - base, 0.0) + self.extra[views[points]]
+            total += float((o - in_focus_cost) @ weight)
+            gain = (np.maximum(in_focus_cost - base, 0.0) + self.extra[views[points]]) * weight
             focus[i], score = self.ends.sweep(q, gain)
             total += score
         return total, focus

@@ -13,7 +13,8 @@ counts as possibly sharp, except where the poses that see it cannot all be satis
 Groups of poses are disjoint (a greedy matching of the pose pairs that share the most samples),
 so their sample sets are disjoint and the losses add up: bound = visible - sum of group losses.
 The bound holds for the sample set it is computed on; on the continuous skin it is an estimate
-with the sampling error of that set.
+with the sampling error of that set. Weighted samples (planner/importance.py) count with their
+weights throughout.
 """
 
 from __future__ import annotations
@@ -28,30 +29,33 @@ from planner.interval_sweep import sweep
 
 @dataclass(frozen=True)
 class InFocusBound:
-    """n_points: samples; visible: samples some pose sees; sharp_at_most: no plan holds more of
-    them sharp; groups: pose groups whose conflicts were counted (singles and pairs)."""
+    """n_points: samples; visible: weight of the samples some pose sees; sharp_at_most: no plan
+    holds more weight sharp; groups: pose groups whose conflicts were counted (singles and
+    pairs); total_weight: of all samples (n_points for area-uniform samples of weight 1)."""
 
     n_points: int
-    visible: int
-    sharp_at_most: int
+    visible: float
+    sharp_at_most: float
     groups: int
+    total_weight: float
 
     @property
     def fraction(self) -> float:
         """Upper bound on the in-focus fraction (of all samples)."""
-        return self.sharp_at_most / self.n_points if self.n_points else 0.0
+        return self.sharp_at_most / self.total_weight if self.n_points else 0.0
 
     @property
     def visible_fraction(self) -> float:
-        return self.visible / self.n_points if self.n_points else 0.0
+        return self.visible / self.total_weight if self.n_points else 0.0
 
 
-def _best_single(lo: np.ndarray, hi: np.ndarray) -> int:
-    return int(round(sweep(lo, hi, np.ones(len(lo)))[1])) if len(lo) else 0
+def _best_single(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray) -> float:
+    return float(sweep(lo, hi, weight)[1]) if len(lo) else 0.0
 
 
-def _best_pair(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> int:
-    """Most of one group's samples two poses can hold sharp together.
+def _best_pair(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray,
+               weight: np.ndarray) -> float:
+    """Most of one group's samples (by weight (n,)) two poses can hold sharp together.
 
     lo_a, hi_a: (n,) intervals of pose a for the group's samples (nan where a does not see the
     sample); likewise for b. Exact: pose a's focus is tried at every interval lower end (and
@@ -59,11 +63,11 @@ def _best_pair(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.nd
     """
     seen_a = ~np.isnan(lo_a)
     seen_b = ~np.isnan(lo_b)
-    best = _best_single(lo_b[seen_b], hi_b[seen_b])
+    best = _best_single(lo_b[seen_b], hi_b[seen_b], weight[seen_b])
     for s in np.unique(lo_a[seen_a]):
         sharp_a = seen_a & (np.nan_to_num(lo_a, nan=np.inf) <= s) & (s <= np.nan_to_num(hi_a, nan=-np.inf))
         rest = seen_b & ~sharp_a
-        best = max(best, int(sharp_a.sum()) + _best_single(lo_b[rest], hi_b[rest]))
+        best = max(best, float(weight[sharp_a].sum()) + _best_single(lo_b[rest], hi_b[rest], weight[rest]))
     return best
 
 
@@ -71,7 +75,8 @@ def in_focus_bound(table: CostTable) -> InFocusBound:
     """The certified bound for the table's samples and poses (see the module docstring)."""
     vis = table.vis
     views = np.diff(table.point_ptr)
-    visible = int((views > 0).sum())
+    weight = table.weight
+    visible = float(weight[views > 0].sum())
     order = table.order
     ptr = table.point_ptr
     pose_of = vis.pose[order]
@@ -97,7 +102,7 @@ def in_focus_bound(table: CostTable) -> InFocusBound:
     one, one_pair, private_pose = one[by_pose], one_pair[by_pose], private_pose[by_pose]
     private_ptr = np.searchsorted(private_pose, np.arange(vis.n_poses + 1))
 
-    loss = 0
+    loss = 0.0
     groups = 0
     for c in range(vis.n_poses):
         q = int(partner[c])
@@ -106,7 +111,8 @@ def in_focus_bound(table: CostTable) -> InFocusBound:
         if q < 0:
             pairs = one_pair[private_ptr[c] : private_ptr[c + 1]]
             if len(pairs):
-                loss += len(pairs) - _best_single(table.lo[pairs], table.hi[pairs])
+                w = weight[vis.point[pairs]]
+                loss += float(w.sum()) - _best_single(table.lo[pairs], table.hi[pairs], w)
                 groups += 1
             continue
         shared = two[pair_key == min(c, q) * vis.n_poses + max(c, q)]
@@ -122,12 +128,13 @@ def in_focus_bound(table: CostTable) -> InFocusBound:
             for pair in order[ptr[p] : ptr[p + 1]].tolist():
                 row = 0 if vis.pose[pair] == c else 1
                 lo[row, index[p]], hi[row, index[p]] = table.lo[pair], table.hi[pair]
-        loss += len(group_points) - _best_pair(lo[0], hi[0], lo[1], hi[1])
+        w = weight[group_points]
+        loss += float(w.sum()) - _best_pair(lo[0], hi[0], lo[1], hi[1], w)
         groups += 1
-    return InFocusBound(table.n_points, visible, visible - loss, groups)
+    return InFocusBound(table.n_points, visible, max(visible - loss, 0.0), groups, table.total_weight)
 
 
-def sharp_count(table: CostTable, focus_mm: np.ndarray) -> int:
-    """Samples a plan holds sharp, for comparison with the bound."""
-    return int(round(table.in_focus_fraction(focus_mm) * table.n_points))
+def sharp_count(table: CostTable, focus_mm: np.ndarray) -> float:
+    """Weight of the samples a plan holds sharp, for comparison with the bound."""
+    return float(table.weight[table.sharp_points(focus_mm)].sum())
 

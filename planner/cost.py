@@ -6,6 +6,10 @@ Per visible pair (camera c, point p) at focus s:
 A pose that does not see p costs 1, so a point's cost is min(1, min over its visible pairs)
 and the total cost K sums the point costs (at most N). Only the last term depends on s; it is
 stored as each pair's focus interval [lo, hi].
+
+Samples may carry weights (the skin each stands for, in units of one area-uniform sample:
+planner/importance.py samples the skin few poses see more densely, at lower weight); K, the
+in-focus and the visible share are then weighted sums.
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ class CostTable:
         order: (M,) int64, pair indices sorted by point.
         point_ptr: (N + 1,) int64, point p's pairs are order[point_ptr[p]:point_ptr[p + 1]].
         by_point: (pose, base, lo, hi) of the pairs in point order, for fast per-point passes.
+        weight: (N,) float, the skin each point stands for (1: one area-uniform sample).
     """
 
     vis: Visibility
@@ -62,6 +67,7 @@ class CostTable:
     order: np.ndarray
     point_ptr: np.ndarray
     by_point: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    weight: np.ndarray
 
     @property
     def n_points(self) -> int:
@@ -76,9 +82,13 @@ class CostTable:
         """(N,) bool: points with at least one visible pair."""
         return np.diff(self.point_ptr) > 0
 
+    @cached_property
+    def total_weight(self) -> float:
+        return float(self.weight.sum())
+
     @property
     def visible_fraction(self) -> float:
-        return float(self.seen.mean())
+        return float(self.weight[self.seen].sum() / self.total_weight) if self.n_points else 0.0
 
     @cached_property
     def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -116,14 +126,20 @@ class CostTable:
         return out
 
     def total_cost(self, focus_mm: np.ndarray) -> float:
-        """K: the sum of point costs (N for a plan that images nothing)."""
-        return float(self.point_costs(focus_mm).sum())
+        """K: the weighted sum of point costs (N for a plan that images nothing)."""
+        return float(self.point_costs(focus_mm) @ self.weight)
 
-    def in_focus_fraction(self, focus_mm: np.ndarray) -> float:
-        """Share of all points visible from, and in the depth of field of, at least one pose."""
+    def sharp_points(self, focus_mm: np.ndarray) -> np.ndarray:
+        """(N,) bool: points visible from, and in the depth of field of, at least one pose."""
         sharp = np.zeros(self.n_points, dtype=bool)
         sharp[self.vis.point[self.pair_in_focus(focus_mm)]] = True
-        return float(sharp.mean())
+        return sharp
+
+    def in_focus_fraction(self, focus_mm: np.ndarray) -> float:
+        """Share of the skin (weighted points) that at least one pose holds sharp."""
+        if not self.n_points:
+            return 0.0
+        return float(self.weight[self.sharp_points(focus_mm)].sum() / self.total_weight)
 
     def assignment(self, focus_mm: np.ndarray) -> tuple[np.ndarray, float]:
         """(best pair per point (N,) int64, -1 if unseen; K) under the focus plan (P,) mm.
@@ -131,10 +147,11 @@ class CostTable:
         The best pair is a point's lowest-cost pair (the first one on ties).
         """
         if not len(self.order):
-            return np.full(self.n_points, -1, dtype=np.int64), float(self.n_points * INVISIBLE_COST)
+            return np.full(self.n_points, -1, dtype=np.int64), self.total_weight * INVISIBLE_COST
         best, mins = self._argmin_by_point(self.pair_cost_by_point(focus_mm))
-        unseen = self.n_points - len(mins)
-        return best, float(np.minimum(mins, INVISIBLE_COST).sum()) + INVISIBLE_COST * unseen
+        seen = self.seen
+        unseen = float(self.weight[~seen].sum())
+        return best, float(np.minimum(mins, INVISIBLE_COST) @ self.weight[seen]) + INVISIBLE_COST * unseen
 
     def best_pairs_by(self, pair_values: np.ndarray) -> np.ndarray:
         """(N,) int64: each point's pair with the lowest value of ``pair_values`` (M,), pose order."""
@@ -162,8 +179,13 @@ def stable_argsort_indices(keys: np.ndarray) -> np.ndarray:
     return order
 
 
-def cost_table(vis: Visibility, cost: Cost, optics: Optics) -> CostTable:
-    """Precompute the focus-independent terms and focus intervals of every visible pair."""
+def cost_table(vis: Visibility, cost: Cost, optics: Optics, weight: np.ndarray | None = None) -> CostTable:
+    """Precompute the focus-independent terms and focus intervals of every visible pair.
+
+    weight: (N,) the skin each point stands for (default 1 each: area-uniform samples)."""
+    weight = np.ones(vis.n_points) if weight is None else np.asarray(weight, dtype=float)
+    if weight.shape != (vis.n_points,) or not np.all(weight > 0):
+        raise ValueError(f"point weights must be {vis.n_points} positive numbers, got shape {weight.shape}")
     area = area_term(vis.depth, vis.facing, cost.eps_area)
     axis = axis_term(vis.off_axis, cost.axis_deviation_mm)
     lo, hi = focus_interval(vis.depth, optics.hyperfocal_mm, optics.focal_length_mm)
@@ -182,4 +204,5 @@ def cost_table(vis: Visibility, cost: Cost, optics: Optics) -> CostTable:
         order=order,
         point_ptr=point_ptr,
         by_point=(vis.pose[order], base[order], lo[order], hi[order]),
+        weight=weight,
     )

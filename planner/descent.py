@@ -122,10 +122,11 @@ def _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running):  # ty
 @_jit
 def descend(pose_ptr, point, base, lo, hi, w_focus, order, point_ptr,  # type: ignore[no-untyped-def]
             end_ptr, end_local, end_sign, end_coord, focus, sharp_pair, pair_cost,
-            best, second, best_pair, sharp_views, extra, redundancy, max_sweeps, min_gain):
+            best, second, best_pair, sharp_views, extra, redundancy, weight, max_sweeps, min_gain):
     """Visit every pose one of whose points changed since its last look, in pose order, pass
     after pass, moving its focus to the exact best cell when K (plus the redundancy term) drops by
-    more than ``min_gain``. Returns (passes, accepted moves)."""
+    more than ``min_gain``; each point's gains count with its ``weight``. Returns (passes,
+    accepted moves)."""
     invisible = INVISIBLE_COST
     n_poses = len(pose_ptr) - 1
     widest = 0
@@ -165,6 +166,7 @@ def descend(pose_ptr, point, base, lo, hi, w_focus, order, point_ptr,  # type: i
                 g = max(min(other, base[i] + w_focus) - base[i], 0.0)
                 if redundancy:
                     g += extra[sharp_views[p] - sharp_pair[i]]
+                g *= weight[p]
                 gain[i - a] = g
                 possible += g
                 if sharp_pair[i]:

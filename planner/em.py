@@ -1,7 +1,8 @@
 """The seed's Expectation-Minimisation for shape-aware focus (SPEC 3, paper Algorithm 1).
 
 Assignment: every visible point goes to the pose where it costs least under the current focus.
-Minimisation: per pose, the focus where most of its assigned points are sharp (interval sweep).
+Minimisation: per pose, the focus where most of its assigned points (by weight) are sharp
+(interval sweep).
 Stops when K falls by less than a relative tolerance or at the iteration cap; a step that does
 not lower K is never taken, so K never increases.
 """
@@ -32,7 +33,9 @@ class EmResult:
 def minimisation_step(table: CostTable, assigned_pairs: np.ndarray, focus_mm: np.ndarray) -> np.ndarray:
     """(P,) focus: per pose, the sweep optimum over its assigned pairs (unchanged if none)."""
     pairs = assigned_pairs[assigned_pairs >= 0]
-    s, _ = best_focus_per_group(table.lo[pairs], table.hi[pairs], table.vis.pose[pairs], table.n_poses)
+    weights = table.weight[table.vis.point[pairs]]
+    s, _ = best_focus_per_group(table.lo[pairs], table.hi[pairs], table.vis.pose[pairs], table.n_poses,
+                                None if np.all(weights == 1.0) else weights)
     return np.where(np.isnan(s), focus_mm, s)
 
 

@@ -66,19 +66,20 @@ def coverage(lo: np.ndarray, hi: np.ndarray, s: float, weights: np.ndarray | Non
 
 
 def best_focus_per_group(
-    lo: np.ndarray, hi: np.ndarray, group: np.ndarray, n_groups: int
+    lo: np.ndarray, hi: np.ndarray, group: np.ndarray, n_groups: int, weights: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unweighted :func:`best_focus` for many groups of intervals in one vectorised sweep.
+    """:func:`best_focus` for many groups of intervals in one vectorised sweep.
 
-    lo, hi: (n,) float interval ends; group: (n,) int in [0, n_groups).
-    Returns s (n_groups,) float (nan for a group without intervals) and score (n_groups,) int.
+    lo, hi: (n,) float interval ends; group: (n,) int in [0, n_groups); weights: (n,) > 0 or
+    None (each interval counts 1). Returns s (n_groups,) float (nan for a group without
+    intervals) and score (n_groups,): int without weights, float with them.
     """
     lo = np.asarray(lo, dtype=float)
     hi = np.asarray(hi, dtype=float)
     group = np.asarray(group, dtype=np.int64)
     n = len(lo)
     s = np.full(n_groups, np.nan)
-    score = np.zeros(n_groups, dtype=np.int64)
+    score = np.zeros(n_groups, dtype=np.int64 if weights is None else float)
     if n == 0:
         return s, score
     coords = np.concatenate([lo, hi])
@@ -89,10 +90,17 @@ def best_focus_per_group(
     order = stable_argsort(coords)
     order = order[np.argsort(key[order], kind="stable")]
     steps = np.where(order < n, 1, -1)
-    # Each group's +1/-1 steps sum to zero, so a global running sum restarts at 0 per group.
+    if weights is not None:
+        w = np.asarray(weights, dtype=float)
+        steps = steps * np.concatenate([w, w])[order]
+    # Each group's steps sum to zero, so a global running sum restarts at 0 per group (weighted:
+    # up to rounding, which is taken off at each group's start).
     running = np.cumsum(steps)
     g_sorted = groups[order]
     starts = np.flatnonzero(np.r_[True, g_sorted[1:] != g_sorted[:-1]])
+    if weights is not None:
+        carried = np.r_[0.0, running[starts[1:] - 1]]
+        running = running - np.repeat(carried, np.diff(np.r_[starts, 2 * n]))
     best = np.maximum.reduceat(running, starts)
     present = g_sorted[starts]
     hits = np.flatnonzero(running == np.repeat(best, np.diff(np.r_[starts, 2 * n])))

@@ -39,9 +39,11 @@ class Redundancy:
             raise ValueError(f"miss probability must be in (0, 1), got {self.miss_probability!r}")
 
 
-def expected_misses(sharp_views: np.ndarray, miss_probability: float) -> float:
-    """sum over points of miss ** k: sharp_views (N,) int, k_p sharp views of each point."""
-    return float(np.sum(miss_probability ** np.asarray(sharp_views, dtype=float)))
+def expected_misses(sharp_views: np.ndarray, miss_probability: float, weight: np.ndarray | None = None) -> float:
+    """sum over points of weight * miss ** k: sharp_views (N,) int, k_p sharp views of each
+    point; weight (N,) the skin each point stands for (default 1)."""
+    misses = miss_probability ** np.asarray(sharp_views, dtype=float)
+    return float(misses.sum() if weight is None else misses @ np.asarray(weight, dtype=float))
 
 
 def sharp_views(table: CostTable, focus_mm: np.ndarray) -> np.ndarray:

@@ -81,12 +81,12 @@ def refine_focus(
         vis.pose_ptr.astype(np.int64), vis.point.astype(np.int64), table.base, table.lo, table.hi,
         float(table.w_focus), order, point_ptr, ends.ptr, ends.local.astype(np.int64), ends.sign, ends.coords,
         focus, sharp_pair, pair_cost, best, second, best_pair, sharp_views, extra, redundancy is not None,
-        max_sweeps, MIN_GAIN,
+        table.weight, max_sweeps, MIN_GAIN,
     )
-    total = float(best.sum())
+    total = float(best @ table.weight)
     objective = total
     if redundancy is not None:
-        objective += redundancy.weight * expected_misses(sharp_views, redundancy.miss_probability)
+        objective += redundancy.weight * expected_misses(sharp_views, redundancy.miss_probability, table.weight)
     log.debug("refine.done", sweeps=sweeps, updates=updates, total_cost=total, objective=objective)
     return RefineResult(focus, total, sweeps, updates, objective)
 

@@ -79,8 +79,9 @@ def test_bad_initial_focus_shape_is_refused(table) -> None:
         expectation_minimisation(table, np.ones(3))
 
 
-def random_table(seed: int, n_poses: int, n_points: int):
-    """A random sparse problem: each point seen by a few poses at depths 200..1200 mm."""
+def random_table(seed: int, n_poses: int, n_points: int, weight: np.ndarray | None = None):
+    """A random sparse problem: each point seen by a few poses at depths 200..1200 mm;
+    ``weight`` (n_points,) the skin each point stands for (default 1 each)."""
     rng = np.random.default_rng(seed)
     pose, point = [], []
     for p in range(n_points):
@@ -98,7 +99,7 @@ def random_table(seed: int, n_poses: int, n_points: int):
         depth=rng.uniform(200.0, 1200.0, m), off_axis=rng.uniform(0.0, 400.0, m),
         facing=rng.uniform(0.05, 1.0, m), pose_ptr=ptr,
     )
-    return cost_table(vis, RIG.cost, RIG.optics)
+    return cost_table(vis, RIG.cost, RIG.optics, weight)
 
 
 @given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 5), n_points=st.integers(1, 25))
