@@ -31,6 +31,7 @@ from planner.focus_errors import (
     PlanTooLarge,
     SubjectOutsideRing,
 )
+from planner.importance import Importance, refine_samples
 from planner.optics import resolution_mm_per_px
 from planner.poses import Poses, rgb_poses, rig_rgb_poses
 from planner.redundancy import Redundancy
@@ -97,6 +98,9 @@ class PlanResult:
     beam_angles_deg: np.ndarray | None = None
     """(A,) deg, the beam angle of each angle index of ``poses`` when known (the rig's own poses,
     nominal or calibrated); None for given poses, whose angles are estimated from their centres."""
+    points: int = 0
+    """Area-uniform samples asked for; ``samples`` adds the importance samples (0: as many as
+    ``samples``)."""
 
     @property
     def pose_angles_deg(self) -> np.ndarray:
@@ -133,7 +137,8 @@ class PlanResult:
         camera_heights = [p.height_mm for p in self.rig.phones]
         angles = self.pose_angles_deg
         return {
-            "points": len(self.samples),
+            "points": self.points or len(self.samples),
+            "samples": len(self.samples),
             "poses": len(self.poses),
             "angles_deg": [float(a) for a in angles],
             "camera_heights_mm": camera_heights,
@@ -187,9 +192,9 @@ def load_subject_mesh(path: Path | str, max_bytes: int = MAX_MESH_BYTES) -> trim
 
 def _samples(
     mesh: trimesh.Trimesh, rig: Rig, points: int | SurfaceSamples | None, seed: int, name: str
-) -> SurfaceSamples:
-    """The given samples, or fresh ones; EmptyMesh or InvertedMesh (naming the mesh) if the mesh
-    has no surface or is wound inside out."""
+) -> tuple[SurfaceSamples, Triangles]:
+    """The given samples, or fresh ones, and the mesh's triangles; EmptyMesh or InvertedMesh
+    (naming the mesh) if the mesh has no surface or is wound inside out."""
     if len(mesh.faces) == 0:
         raise EmptyMesh(name, 0, 0.0)
     check_inside_ring(mesh, rig, name)
@@ -198,13 +203,13 @@ def _samples(
     if volume < 0:
         raise InvertedMesh(name, volume)
     if isinstance(points, SurfaceSamples):
-        return points
+        return points, triangles
     count = rig.planner.points if points is None else int(points)
     need = planning_memory_bytes(count, rig.n_poses)
     if need > PLAN_MEMORY_BUDGET_BYTES:
         raise PlanTooLarge(count, rig.n_poses, need, PLAN_MEMORY_BUDGET_BYTES)
     try:
-        return sample_surface(mesh, count, seed=seed, triangles=triangles)
+        return sample_surface(mesh, count, seed=seed, triangles=triangles), triangles
     except EmptyMesh as exc:
         raise EmptyMesh(name, exc.faces, exc.area_mm2) from exc
 
@@ -243,10 +248,13 @@ def resolution_stats(table: CostTable, rig: Rig) -> dict[str, float]:
     res = resolution_mm_per_px(table.vis.depth[best[seen]], rig.optics)
     if not len(res):
         return {"mean": float("nan"), "std": float("nan"), "share_at_most_0.075": 0.0}
+    weight = table.weight[seen]  # the skin each sample stands for
+    mean = float(np.average(res, weights=weight))
+    fine = float(weight[res <= LESION_RESOLUTION_MM_PER_PX].sum() / table.total_weight)
     return {
-        "mean": round(float(res.mean()), 6),
-        "std": round(float(res.std()), 6),
-        "share_at_most_0.075": round(float((res <= LESION_RESOLUTION_MM_PER_PX).sum() / table.n_points), 6),
+        "mean": round(mean, 6),
+        "std": round(float(np.sqrt(np.average((res - mean) ** 2, weights=weight))), 6),
+        "share_at_most_0.075": round(fine, 6),
     }
 
 
@@ -259,9 +267,15 @@ def _plan_angles(scene: RayScene, rig: Rig, samples: SurfaceSamples, robust_focu
     profile = rig_profile(rig)
     candidates = candidate_angles(rig, profile, rig.planner.angle_step_deg)
     poses = rig_rgb_poses(rig, calibration, candidates)
-    table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics)
+    table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics, samples.weight)
     return plan_angles(table, candidates, rig, robust_focus, redundancy=rig_redundancy(rig), profile=profile,
                        fallback_mm=fallback_mm, poses_at=lambda angles: rig_rgb_poses(rig, calibration, angles))
+
+
+def rig_importance(rig: Rig) -> Importance:
+    """The planning samples' importance refinement from the rig file's planner section."""
+    p = rig.planner
+    return Importance(p.importance_views, p.importance_radius_mm, p.importance_density)
 
 
 def rig_redundancy(rig: Rig) -> Redundancy:
@@ -299,10 +313,15 @@ def plan_focus(
     t_start = time.perf_counter()
     given_poses = poses
     poses = rig_rgb_poses(rig, calibration) if poses is None else poses
-    samples = _samples(mesh, rig, points, seed, mesh_name)
+    samples, triangles = _samples(mesh, rig, points, seed, mesh_name)
     t_sampled = time.perf_counter()
     scene = RayScene(mesh, backend)
-    table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics)
+    vis = visible_pairs(scene, poses, samples, rig.optics)
+    asked = len(samples)
+    if not isinstance(points, SurfaceSamples):  # given samples are planned on as they are
+        samples, vis = refine_samples(mesh, triangles, samples, vis, scene, poses, rig.optics,
+                                      rig_importance(rig), seed)
+    table = cost_table(vis, rig.cost, rig.optics, samples.weight)
     t_visible = time.perf_counter()
     if not table.seen.any():
         raise NothingVisible(mesh_name, len(samples), len(poses), mesh.bounds.round(1).tolist())
@@ -365,10 +384,11 @@ def plan_focus(
     timing["plan"] = timing["visibility"] + timing.get("em", 0.0) + last
     timing["total"] = time.perf_counter() - t_start
     result = PlanResult(rig, poses, samples, table, plans, resolution_stats(table, rig), timing,
-                        beam_angles_deg=rig.capture.angles_deg if given_poses is None else None)
+                        beam_angles_deg=rig.capture.angles_deg if given_poses is None else None, points=asked)
     log.info(
         "plan.done",
-        points=len(samples),
+        points=asked,
+        samples=len(samples),
         poses=len(poses),
         visible=round(table.visible_fraction, 4),
         **{f"in_focus_{k}": round(m.in_focus_fraction, 4) for k, m in plans.items()},
@@ -395,8 +415,9 @@ def evaluate(
     """
     poses = rgb_poses(rig) if poses is None else poses
     focus = check_focus(focus_mm, len(poses))
-    samples = _samples(mesh, rig, points, seed, mesh_name)
-    table = cost_table(visible_pairs(RayScene(mesh, backend), poses, samples, rig.optics), rig.cost, rig.optics)
+    samples, _ = _samples(mesh, rig, points, seed, mesh_name)
+    table = cost_table(visible_pairs(RayScene(mesh, backend), poses, samples, rig.optics), rig.cost, rig.optics,
+                       samples.weight)
     return Evaluation(
         n_points=len(samples),
         total_cost=table.total_cost(focus),

@@ -292,6 +292,9 @@ class PlannerSettings:
     robust_max_sweeps: int
     per_subject_angles: bool
     angle_step_deg: float
+    importance_density: float
+    importance_views: int
+    importance_radius_mm: float
 
 
 @dataclass(frozen=True)
@@ -472,6 +475,11 @@ _PLANNER = {
     # Per-subject capture angles (planner/angles.py): off unless a rig file asks for them.
     "per_subject_angles": _Field(bool, default=False, required=False),
     "angle_step_deg": _num(0.1, 30.0, default=1.0, required=False),
+    # Importance samples (planner/importance.py): the skin few poses see, sampled this many
+    # times finer (1: off) within a radius of samples seen by at most importance_views poses.
+    "importance_density": _num(1.0, 16.0, default=1.0, required=False),
+    "importance_views": _int(1, 1_000, default=6, required=False),
+    "importance_radius_mm": _num(1.0, 500.0, default=20.0, required=False),
 }
 _DEPTH_CAMERA = {
     "id": _id(),

@@ -23,12 +23,15 @@ class SurfaceSamples:
         normals: (N, 3) float unit inward normals.
         face_index: (N,) int, the triangle each sample lies on (-1 when not from a mesh).
         area_mm2: total surface area the samples represent (mm^2).
+        weight: (N,) float, the skin each sample stands for in units of one area-uniform sample
+            (None: area-uniform, 1 each; planner/importance.py gives denser samples less).
     """
 
     points: np.ndarray
     normals: np.ndarray
     face_index: np.ndarray
     area_mm2: float
+    weight: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -90,12 +93,14 @@ class Triangles:
 
 
 def sample_surface(
-    mesh: trimesh.Trimesh, count: int, *, seed: int = 0, triangles: Triangles | None = None
+    mesh: trimesh.Trimesh, count: int, *, seed: int = 0, triangles: Triangles | None = None,
+    faces: np.ndarray | None = None,
 ) -> SurfaceSamples:
     """``count`` area-uniform samples of ``mesh``'s surface, reproducible for a given seed.
 
     Samples come ordered by height (z). Raises EmptyMesh when the mesh has no faces or no area.
-    ``triangles``: the mesh's :class:`Triangles`, when the caller has them already.
+    ``triangles``: the mesh's :class:`Triangles`, when the caller has them already. ``faces``:
+    (F,) bool, sample only these triangles (area_mm2 is then theirs).
     """
     if count <= 0:
         raise ValueError(f"sample count must be positive, got {count}")
@@ -104,6 +109,8 @@ def sample_surface(
     t = Triangles.of(mesh) if triangles is None else triangles
     a, ab, ac = t.a, t.ab, t.ac
     doubled = t.doubled_areas
+    if faces is not None:
+        doubled = np.where(faces, doubled, 0.0)
     total = float(doubled.sum()) / 2.0
     if not total > 0:
         raise EmptyMesh("<mesh>", len(t), total)

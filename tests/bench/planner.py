@@ -83,6 +83,7 @@ def _measure_size(points: int, runs: int) -> dict:
         rays[backend] = statistics.median(times)
     return {
         "points": points,
+        "samples": len(result.samples),
         "body": source,
         "median_s": {k: statistics.median(v) for k, v in parts.items()},
         "pairs": len(result.table.vis),
@@ -104,7 +105,8 @@ def _speed() -> None:
         m = json.loads(out.stdout.strip().splitlines()[-1])
         t = m["median_s"]
         print(
-            f"336 poses x {points} points ({m['body']}, median of {RUNS[points]}): plan {t['plan']:.3f} s "
+            f"336 poses x {points} points ({m['samples']} samples with the importance refinement; {m['body']}, "
+            f"median of {RUNS[points]}): plan {t['plan']:.3f} s "
             f"(goal <= {goal} s) [{_mark(t['plan'] <= goal)}] = visibility {t['visibility']:.3f} + EM {t['em']:.3f} + "
             f"robust refinement {t['robust']:.3f}; {m['pairs']} visible pairs"
         )

@@ -1,0 +1,105 @@
+"""Importance samples: the skin few poses see is sampled finer at lower weight, the samples'
+visibility is exactly theirs, and the plan reports shares of the skin, not of the samples."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from planner.importance import Importance, refine_samples, region_faces
+from planner.plan import plan_focus
+from planner.poses import rgb_poses
+from planner.rig import load_rig
+from planner.sampling import Triangles, sample_surface
+from planner.visibility import RayScene, visible_pairs
+from tests.planner_standin import standin_body
+from tests.test_planner_optimise import RIG
+
+
+@pytest.fixture(scope="module")
+def body():
+    return standin_body()
+
+
+@pytest.mark.parametrize("density", [2.0, 4.0])
+def test_importance_samples_are_the_skin_few_poses_see_finer_and_their_visibility_is_exact(body, density) -> None:
+    poses = rgb_poses(RIG)
+    triangles = Triangles.of(body)
+    uniform = sample_surface(body, 3000, seed=2, triangles=triangles)
+    scene = RayScene(body)
+    vis = visible_pairs(scene, poses, uniform, RIG.optics)
+    importance = Importance(few_views=6, radius_mm=20.0, density=density)
+    samples, merged = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics, importance, seed=2)
+
+    fine = samples.weight < 1.0
+    assert np.all(np.isclose(samples.weight[fine], 1.0 / density)) and np.all(samples.weight[~fine] == 1.0)
+    assert fine.sum() > 0 and len(samples) > len(uniform)
+    assert np.all(np.diff(samples.points[:, 2]) >= 0)  # ordered by height, as sample_surface gives them
+    # The region: triangles within 20 mm of a sample 1 to 6 poses see. The fine samples lie on
+    # it, the uniform samples kept lie off it.
+    views = np.bincount(vis.point, minlength=len(uniform))
+    region = region_faces(triangles, uniform.points[(views >= 1) & (views <= 6)], 20.0)
+    assert region[samples.face_index[fine]].all()
+    assert not region[samples.face_index[~fine]].any()
+    assert (~fine).sum() == (~region[uniform.face_index]).sum()
+    # The region is where few poses see the skin: its uniform samples were seen by fewer poses.
+    in_region = region[uniform.face_index]
+    assert np.median(views[in_region]) < np.median(views[~in_region])
+    # The weights stand for the same skin: the region's share of the area, near enough.
+    doubled = triangles.doubled_areas
+    share = doubled[region].sum() / doubled.sum()
+    assert samples.weight[fine].sum() == pytest.approx(share * len(uniform), abs=1.0 / density)
+    # Merged visibility: exactly the pairs a fresh ray cast of the merged samples finds.
+    fresh = visible_pairs(scene, poses, samples, RIG.optics)
+    key = lambda v: np.lexsort((v.point, v.pose))  # noqa: E731
+    a, b = key(merged), key(fresh)
+    assert np.array_equal(merged.pose[a], fresh.pose[b]) and np.array_equal(merged.point[a], fresh.point[b])
+    assert np.allclose(merged.depth[a], fresh.depth[b]) and np.allclose(merged.facing[a], fresh.facing[b])
+    assert np.array_equal(merged.pose_ptr, fresh.pose_ptr)
+
+
+def test_importance_off_leaves_the_uniform_samples(body) -> None:
+    poses = rgb_poses(RIG)
+    triangles = Triangles.of(body)
+    uniform = sample_surface(body, 1000, seed=1, triangles=triangles)
+    scene = RayScene(body)
+    vis = visible_pairs(scene, poses, uniform, RIG.optics)
+    samples, out = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics,
+                                  Importance(6, 20.0, 1.0), seed=1)
+    assert samples is uniform and out is vis
+
+
+def test_the_plan_uses_the_rig_files_importance_and_reports_shares_of_the_skin(body) -> None:
+    rig = load_rig()
+    on = dataclasses.replace(rig, planner=dataclasses.replace(rig.planner, importance_density=4.0))
+    off = dataclasses.replace(rig, planner=dataclasses.replace(rig.planner, importance_density=1.0))
+    plan_on = plan_focus(body, on, points=2000, seed=3, methods=("robust",))
+    plan_off = plan_focus(body, off, points=2000, seed=3, methods=("robust",))
+    assert len(plan_off.samples) == 2000 and plan_off.samples.weight is None
+    assert len(plan_on.samples) > 2000
+    assert plan_on.to_json()["points"] == 2000 and plan_on.to_json()["samples"] == len(plan_on.samples)
+    assert plan_on.table.total_weight == pytest.approx(2000, rel=0.02)
+    # Shares of the skin, not of the samples: the visible share of one body stays put.
+    assert plan_on.visible_fraction == pytest.approx(plan_off.visible_fraction, abs=0.02)
+    assert 0.0 < plan_on.methods["robust"].in_focus_fraction <= plan_on.visible_fraction
+    # Given samples are planned on as they are.
+    given_samples = sample_surface(body, 1500, seed=4)
+    assert len(plan_focus(body, on, points=given_samples, methods=("robust",)).samples) == 1500
+
+
+@pytest.mark.parametrize("key, value", [("importance_density", 0.5), ("importance_views", 0),
+                                        ("importance_radius_mm", -1.0)])
+def test_importance_settings_are_checked(tmp_path, key: str, value: float) -> None:
+    import yaml
+
+    from planner.rig import DEFAULT_RIG_PATH, RigConfigError
+
+    raw = yaml.safe_load(DEFAULT_RIG_PATH.read_text())
+    raw["planner"][key] = value
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(RigConfigError) as info:
+        load_rig(path)
+    assert info.value.key == f"planner.{key}"
