@@ -8,10 +8,11 @@ cost in plan time that grows with them (docs/planner.md: 40,000 uniform samples 
 
 Method: the area-uniform samples first, with their visibility. The triangles within
 ``radius_mm`` of a sample that 1 to ``few_views`` poses see form the region. Its uniform samples
-are replaced by ``density`` times as many area-uniform samples of the region, each weighing
-1 / density; the others keep weight 1. Every square millimetre of skin still counts the same
-in K and in the in-focus share (the weights make the estimate unbiased); the region's samples
-are just finer. Only the new samples are ray cast.
+are replaced by ``density`` times as many area-uniform samples of the region (fewer where the
+planner's memory budget says so), together weighing what the region's share of the skin is
+worth in uniform samples (each about 1 / density); the others keep weight 1. Every square
+millimetre of skin still counts the same in K and in the in-focus share (the weights make the
+estimate unbiased); the region's samples are just finer. Only the new samples are ray cast.
 """
 
 from __future__ import annotations
@@ -65,11 +66,14 @@ def refine_samples(
     optics: Optics,
     importance: Importance,
     seed: int,
+    max_samples: int | None = None,
 ) -> tuple[SurfaceSamples, Visibility]:
     """The weighted sample set and its visibility (see the module docstring).
 
     uniform: area-uniform samples of ``mesh`` with face indices; vis: their visibility from
-    ``poses``. Returns them unchanged when importance is off or no skin qualifies."""
+    ``poses``; max_samples: the most samples the result may hold (the planner's memory budget:
+    the region is then sampled less finely). Returns them unchanged when importance is off or
+    no skin qualifies."""
     if not importance.active:
         return uniform, vis
     views = np.bincount(vis.point, minlength=vis.n_points)
@@ -77,12 +81,14 @@ def refine_samples(
     region = region_faces(triangles, uniform.points[few], importance.radius_mm)
     doubled = triangles.doubled_areas
     share = float(doubled[region].sum() / doubled.sum()) if region.any() else 0.0
+    keep = ~region[uniform.face_index]
     count = int(round(importance.density * share * len(uniform)))
-    if count == 0:
-        return uniform, vis
+    if max_samples is not None:
+        count = min(count, max_samples - int(keep.sum()))
+    if count <= len(uniform) - int(keep.sum()):
+        return uniform, vis  # no finer than the uniform samples already there
     fine = sample_surface(mesh, count, seed=seed + 7_919, triangles=triangles, faces=region)
     fine_vis = visible_pairs(scene, poses, fine, optics)
-    keep = ~region[uniform.face_index]
 
     # Both sets ordered by height, as sample_surface gives them (the planner's memory locality).
     z = np.concatenate([uniform.points[keep, 2], fine.points[:, 2]])
@@ -97,7 +103,7 @@ def refine_samples(
     def cat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.concatenate([a, b])[order]
 
-    weight = cat(np.ones(len(kept)), np.full(len(fine), 1.0 / importance.density))
+    weight = cat(np.ones(len(kept)), np.full(len(fine), share * len(uniform) / count))
     samples = SurfaceSamples(
         points=cat(uniform.points[keep], fine.points),
         normals=cat(uniform.normals[keep], fine.normals),

@@ -319,8 +319,9 @@ def plan_focus(
     vis = visible_pairs(scene, poses, samples, rig.optics)
     asked = len(samples)
     if not isinstance(points, SurfaceSamples):  # given samples are planned on as they are
+        budget = PLAN_MEMORY_BUDGET_BYTES // planning_memory_bytes(1, len(poses))
         samples, vis = refine_samples(mesh, triangles, samples, vis, scene, poses, rig.optics,
-                                      rig_importance(rig), seed)
+                                      rig_importance(rig), seed, max_samples=budget)
     table = cost_table(vis, rig.cost, rig.optics, samples.weight)
     t_visible = time.perf_counter()
     if not table.seen.any():
