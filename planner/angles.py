@@ -106,7 +106,7 @@ def subset_table(table: CostTable, poses: np.ndarray, rig: Rig) -> CostTable:
         facing=vis.facing[pairs],
         pose_ptr=ptr,
     )
-    return cost_table(sub, rig.cost, rig.optics)
+    return cost_table(sub, rig.cost, rig.optics, table.weight)
 
 
 def _objective(table: CostTable, focus: np.ndarray, redundancy: Redundancy) -> float:

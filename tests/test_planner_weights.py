@@ -97,3 +97,20 @@ def test_no_plan_beats_the_weighted_bound(seed: int, n_poses: int, n_points: int
         assert bound.sharp_at_most == pytest.approx(best)
 
 
+
+
+@given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 5), n_points=st.integers(1, 20), focus=FOCUS)
+@settings(max_examples=30, deadline=None)
+def test_a_subset_of_the_poses_keeps_the_weights(seed: int, n_poses: int, n_points: int, focus: list[float]) -> None:
+    from planner.angles import subset_table
+
+    weight = np.random.default_rng(seed + 9).uniform(0.1, 3.0, n_points)
+    table = random_table(seed, n_poses, n_points, weight)
+    keep = np.arange(0, n_poses, 2)
+    sub = subset_table(table, keep, RIG)
+    s = np.array(focus[:n_poses])
+    # The same skin seen by fewer poses: the kept poses' pairs, each point at its weight.
+    alone = s.copy()
+    alone[np.setdiff1d(np.arange(n_poses), keep)] = np.nan  # poses left out hold nothing sharp
+    assert sub.in_focus_fraction(s[keep]) == pytest.approx(table.in_focus_fraction(alone), abs=1e-12)
+    assert sub.total_weight == pytest.approx(weight.sum())
