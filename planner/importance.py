@@ -46,14 +46,11 @@ def region_faces(triangles: Triangles, points: np.ndarray, radius_mm: float) -> 
     """(F,) bool: triangles whose centre lies within ``radius_mm`` of one of ``points`` (K, 3)."""
     from scipy.spatial import cKDTree
 
-    region = np.zeros(len(triangles), dtype=bool)
     if not len(points):
-        return region
+        return np.zeros(len(triangles), dtype=bool)
     centres = triangles.a + (triangles.ab + triangles.ac) / 3.0
-    near = cKDTree(centres).query_ball_point(np.asarray(points, dtype=float), radius_mm)
-    hit = [i for group in near for i in group]
-    region[np.asarray(hit, dtype=np.int64)] = True
-    return region
+    distance, _ = cKDTree(np.asarray(points, dtype=float)).query(centres, k=1, distance_upper_bound=radius_mm)
+    return np.isfinite(distance)
 
 
 def refine_samples(

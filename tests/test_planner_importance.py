@@ -7,6 +7,8 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from planner.importance import Importance, refine_samples, region_faces
 from planner.plan import plan_focus
@@ -16,6 +18,8 @@ from planner.sampling import Triangles, sample_surface
 from planner.visibility import RayScene, visible_pairs
 from tests.planner_standin import standin_body
 from tests.test_planner_optimise import RIG
+
+_BODY = standin_body()
 
 
 @pytest.fixture(scope="module")
@@ -122,3 +126,16 @@ def test_importance_settings_are_checked(tmp_path, key: str, value: float) -> No
     with pytest.raises(RigConfigError) as info:
         load_rig(path)
     assert info.value.key == f"planner.{key}"
+
+
+@given(seed=st.integers(0, 10_000), count=st.integers(0, 12), radius=st.floats(5.0, 200.0))
+@settings(max_examples=30, deadline=None)
+def test_the_region_is_every_triangle_whose_centre_is_near_a_point(seed: int, count: int, radius: float) -> None:
+    triangles = Triangles.of(_BODY)
+    points = np.random.default_rng(seed).uniform(-300.0, 300.0, (count, 3)) + [0.0, 0.0, 900.0]
+    centres = triangles.a + (triangles.ab + triangles.ac) / 3.0
+    if count:
+        near = (np.linalg.norm(centres[:, None, :] - points[None, :, :], axis=2) < radius).any(axis=1)
+    else:
+        near = np.zeros(len(centres), dtype=bool)
+    assert np.array_equal(region_faces(triangles, points, radius), near)
