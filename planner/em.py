@@ -33,9 +33,8 @@ class EmResult:
 def minimisation_step(table: CostTable, assigned_pairs: np.ndarray, focus_mm: np.ndarray) -> np.ndarray:
     """(P,) focus: per pose, the sweep optimum over its assigned pairs (unchanged if none)."""
     pairs = assigned_pairs[assigned_pairs >= 0]
-    weights = table.weight[table.vis.point[pairs]]
     s, _ = best_focus_per_group(table.lo[pairs], table.hi[pairs], table.vis.pose[pairs], table.n_poses,
-                                None if np.all(weights == 1.0) else weights)
+                                table.weight[table.vis.point[pairs]])
     return np.where(np.isnan(s), focus_mm, s)
 
 
