@@ -24,18 +24,30 @@ _BODY = standin_body()
 
 @pytest.fixture(scope="module")
 def body():
-    return standin_body()
+    return _BODY
+
+
+class _Uniform:
+    """Area-uniform samples of a body with their visibility from the rig's poses, and a call
+    that refines them."""
+
+    def __init__(self, body, count: int, seed: int) -> None:
+        self.body, self.seed, self.poses = body, seed, rgb_poses(RIG)
+        self.triangles = Triangles.of(body)
+        self.samples = sample_surface(body, count, seed=seed, triangles=self.triangles)
+        self.scene = RayScene(body)
+        self.vis = visible_pairs(self.scene, self.poses, self.samples, RIG.optics)
+
+    def refine(self, importance: Importance, max_samples: int | None = None):
+        return refine_samples(self.body, self.triangles, self.samples, self.vis, self.scene, self.poses,
+                              RIG.optics, importance, self.seed, max_samples=max_samples)
 
 
 @pytest.mark.parametrize("density", [2.0, 4.0])
 def test_importance_samples_are_the_skin_few_poses_see_finer_and_their_visibility_is_exact(body, density) -> None:
-    poses = rgb_poses(RIG)
-    triangles = Triangles.of(body)
-    uniform = sample_surface(body, 3000, seed=2, triangles=triangles)
-    scene = RayScene(body)
-    vis = visible_pairs(scene, poses, uniform, RIG.optics)
-    importance = Importance(few_views=6, radius_mm=20.0, density=density)
-    samples, merged = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics, importance, seed=2)
+    u = _Uniform(body, 3000, seed=2)
+    uniform, vis, triangles, scene, poses = u.samples, u.vis, u.triangles, u.scene, u.poses
+    samples, merged = u.refine(Importance(few_views=6, radius_mm=20.0, density=density))
 
     fine = samples.weight < 1.0
     assert np.allclose(samples.weight[fine], 1.0 / density, rtol=0.01) and np.all(samples.weight[~fine] == 1.0)
@@ -65,33 +77,22 @@ def test_importance_samples_are_the_skin_few_poses_see_finer_and_their_visibilit
 
 
 def test_the_memory_budget_caps_the_importance_samples(body) -> None:
-    poses = rgb_poses(RIG)
-    triangles = Triangles.of(body)
-    uniform = sample_surface(body, 3000, seed=2, triangles=triangles)
-    scene = RayScene(body)
-    vis = visible_pairs(scene, poses, uniform, RIG.optics)
+    u = _Uniform(body, 3000, seed=2)
     importance = Importance(few_views=6, radius_mm=20.0, density=4.0)
-    full, _ = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics, importance, seed=2)
-    capped, capped_vis = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics, importance,
-                                        seed=2, max_samples=len(full) - 100)
+    full, _ = u.refine(importance)
+    capped, capped_vis = u.refine(importance, max_samples=len(full) - 100)
     assert len(capped) == len(full) - 100 and capped_vis.n_points == len(capped)
     # Fewer, heavier fine samples: the region still weighs what its skin does.
     assert capped.weight.sum() == pytest.approx(full.weight.sum(), rel=1e-9)
     # No room to sample the region finer than the uniform samples: left as it was.
-    same, same_vis = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics, importance,
-                                    seed=2, max_samples=len(uniform))
-    assert same is uniform and same_vis is vis
+    same, same_vis = u.refine(importance, max_samples=len(u.samples))
+    assert same is u.samples and same_vis is u.vis
 
 
 def test_importance_off_leaves_the_uniform_samples(body) -> None:
-    poses = rgb_poses(RIG)
-    triangles = Triangles.of(body)
-    uniform = sample_surface(body, 1000, seed=1, triangles=triangles)
-    scene = RayScene(body)
-    vis = visible_pairs(scene, poses, uniform, RIG.optics)
-    samples, out = refine_samples(body, triangles, uniform, vis, scene, poses, RIG.optics,
-                                  Importance(6, 20.0, 1.0), seed=1)
-    assert samples is uniform and out is vis
+    u = _Uniform(body, 1000, seed=1)
+    samples, vis = u.refine(Importance(6, 20.0, 1.0))
+    assert samples is u.samples and vis is u.vis
 
 
 def test_the_plan_uses_the_rig_files_importance_and_reports_shares_of_the_skin(body) -> None:

@@ -1,5 +1,5 @@
-"""Weighted samples: a weight counts like that many copies of a sample, the planner's optimisers
-stay monotone and exact per pose on weighted problems, and the bound stays certified."""
+"""Weighted samples: a weight counts like that many copies of a sample and the bound stays
+certified (the optimisers on weighted problems: tests/test_planner_optimise.py)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,7 @@ from hypothesis import strategies as st
 from planner.bound import in_focus_bound
 from planner.cost import cost_table
 from planner.em import expectation_minimisation
-from planner.redundancy import Redundancy, expected_misses, sharp_views
-from planner.refine import refine_focus
+from planner.redundancy import expected_misses, sharp_views
 from planner.visibility import Visibility
 from tests.test_planner_bound import best_plan_by_brute_force
 from tests.test_planner_optimise import RIG, random_table
@@ -52,35 +51,6 @@ def test_a_weight_counts_like_that_many_copies(seed: int, n_poses: int, n_points
     # The EM step's weighted sweep lands where the copies' sweep does.
     em, em_dup = expectation_minimisation(table, s), expectation_minimisation(dup, s)
     assert em.total_cost == pytest.approx(em_dup.total_cost, abs=1e-9)
-
-
-@given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 5), n_points=st.integers(1, 25),
-       miss=st.floats(0.05, 0.9), redundancy_weight=st.floats(0.0, 3.0))
-@settings(max_examples=60, deadline=None)
-def test_weighted_refinement_is_monotone_and_a_coordinate_wise_optimum(
-    seed: int, n_poses: int, n_points: int, miss: float, redundancy_weight: float
-) -> None:
-    weight = np.random.default_rng(seed + 5).uniform(0.1, 3.0, n_points)
-    table = random_table(seed, n_poses, n_points, weight)
-    redundancy = Redundancy(redundancy_weight, miss)
-
-    def objective(focus: np.ndarray) -> float:
-        return table.total_cost(focus) + redundancy_weight * expected_misses(
-            sharp_views(table, focus), miss, table.weight)
-
-    start = np.random.default_rng(seed + 1).uniform(200.0, 1500.0, n_poses)
-    em = expectation_minimisation(table, start)
-    assert em.total_cost <= table.total_cost(start) + 1e-9
-    refined = refine_focus(table, start, max_sweeps=1000, redundancy=redundancy)
-    j = objective(refined.focus_mm)
-    assert j <= objective(start) + 1e-9
-    assert refined.objective == pytest.approx(j, abs=1e-9)
-    for c in range(n_poses):
-        sl = table.vis.pairs_of(c)
-        for s in np.concatenate([table.lo[sl], table.hi[sl][np.isfinite(table.hi[sl])]]):
-            trial = refined.focus_mm.copy()
-            trial[c] = s
-            assert objective(trial) >= j - 1e-9
 
 
 @given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 3), n_points=st.integers(1, 9))
