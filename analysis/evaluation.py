@@ -102,7 +102,7 @@ class _Judge:
         from planner.cost import cost_table
         from planner.visibility import RayScene, visible_pairs
 
-        scene = RayScene(mesh)
+        self.scene = scene = RayScene(mesh)
         self.rig_table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics)
         self.angle_table = None
         if angle_poses is not None:
@@ -117,19 +117,6 @@ class _Judge:
         return out
 
 
-def _any_angle_table(mesh: Any, rig: Rig, samples: Any) -> Any:
-    """The cost table of ``samples`` seen by every phone at every candidate capture angle."""
-    from planner.angles import candidate_angles
-    from planner.cost import cost_table
-    from planner.poses import rgb_poses
-    from planner.schedule import rig_profile
-    from planner.visibility import RayScene, visible_pairs
-
-    candidates = candidate_angles(rig, rig_profile(rig), rig.planner.angle_step_deg)
-    return cost_table(visible_pairs(RayScene(mesh), rgb_poses(rig, candidates), samples, rig.optics),
-                      rig.cost, rig.optics)
-
-
 def _perturbed(poses: Any, options: StudyOptions, seed: int) -> Any:
     from planner.pose_noise import perturb_poses
 
@@ -140,7 +127,7 @@ def _perturbed(poses: Any, options: StudyOptions, seed: int) -> Any:
 def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig_path: str | None = None) -> dict[str, Any]:
     """All numbers for one body of the corpus (a plain dict, JSON-ready)."""
     from planner.bound import in_focus_bound
-    from planner.plan import METHODS, plan_focus
+    from planner.plan import METHODS, candidate_table, plan_focus
     from planner.poses import rgb_poses
     from planner.sampling import sample_surface
     from sim.body import make_body
@@ -178,7 +165,7 @@ def evaluate_body(label: str | int, corpus_seed: int, options: StudyOptions, rig
     any_angle_visible = None
     if chosen_angles is not None:
         t = time.perf_counter()
-        any_angle = in_focus_bound(_any_angle_table(body, rig, fresh_samples))
+        any_angle = in_focus_bound(candidate_table(fresh_judge.scene, rig, fresh_samples)[1])
         bounds["fresh_any_angle"], any_angle_visible = any_angle.fraction, any_angle.visible_fraction
         timings["any_angle_bound"] = time.perf_counter() - t
 

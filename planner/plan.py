@@ -258,17 +258,26 @@ def resolution_stats(table: CostTable, rig: Rig) -> dict[str, float]:
     }
 
 
+def candidate_table(scene: RayScene, rig: Rig, samples: SurfaceSamples,
+                    calibration: Calibration | None = None) -> tuple[np.ndarray, CostTable]:
+    """The candidate capture angles (K,) deg of the rig's rotation and the cost table of
+    ``samples`` seen by every phone at every one of them (K * C poses, angle-major)."""
+    from planner.angles import candidate_angles
+    from planner.schedule import rig_profile
+
+    candidates = candidate_angles(rig, rig_profile(rig), rig.planner.angle_step_deg)
+    poses = rig_rgb_poses(rig, calibration, candidates)
+    return candidates, cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics,
+                                  samples.weight)
+
+
 def _plan_angles(scene: RayScene, rig: Rig, samples: SurfaceSamples, robust_focus: np.ndarray,
                  fallback_mm: float, calibration: Calibration | None) -> Any:
     """Per-subject capture angles (planner/angles.py) for these samples, from the robust plan."""
-    from planner.angles import candidate_angles, plan_angles
-    from planner.schedule import rig_profile
+    from planner.angles import plan_angles
 
-    profile = rig_profile(rig)
-    candidates = candidate_angles(rig, profile, rig.planner.angle_step_deg)
-    poses = rig_rgb_poses(rig, calibration, candidates)
-    table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics, samples.weight)
-    return plan_angles(table, candidates, rig, robust_focus, redundancy=rig_redundancy(rig), profile=profile,
+    candidates, table = candidate_table(scene, rig, samples, calibration)
+    return plan_angles(table, candidates, rig, robust_focus, redundancy=rig_redundancy(rig),
                        fallback_mm=fallback_mm, poses_at=lambda angles: rig_rgb_poses(rig, calibration, angles))
 
 
