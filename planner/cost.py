@@ -21,7 +21,7 @@ import numpy as np
 
 from planner.optics import focus_interval
 from planner.rig import Cost, Optics
-from planner.visibility import Visibility
+from planner.visibility import Visibility, group_pointers
 
 #: Cost of a point no pose sees (and of a pose that does not see a point).
 INVISIBLE_COST = 1.0
@@ -190,8 +190,7 @@ def cost_table(vis: Visibility, cost: Cost, optics: Optics, weight: np.ndarray |
     axis = axis_term(vis.off_axis, cost.axis_deviation_mm)
     lo, hi = focus_interval(vis.depth, optics.hyperfocal_mm, optics.focal_length_mm)
     order = stable_argsort_indices(vis.point)
-    point_ptr = np.zeros(vis.n_points + 1, dtype=np.int64)
-    np.cumsum(np.bincount(vis.point, minlength=vis.n_points), out=point_ptr[1:])
+    point_ptr = group_pointers(vis.point, vis.n_points)
     base = cost.w_area * area + cost.w_axis * axis
     return CostTable(
         vis=vis,

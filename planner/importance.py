@@ -25,7 +25,7 @@ import trimesh
 from planner.poses import Poses
 from planner.rig import Optics
 from planner.sampling import SurfaceSamples, Triangles, sample_surface
-from planner.visibility import RayScene, Visibility, visible_pairs
+from planner.visibility import RayScene, Visibility, group_pointers, visible_pairs
 
 
 @dataclass(frozen=True)
@@ -118,8 +118,6 @@ def _merged(a: Visibility, new_a: np.ndarray, b: Visibility, new_b: np.ndarray, 
     pose = np.concatenate([a.pose[kept], b.pose])
     point = np.concatenate([new_a[a.point[kept]], new_b[b.point]])
     order = np.lexsort((point, pose))
-    ptr = np.zeros(a.n_poses + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pose, minlength=a.n_poses), out=ptr[1:])
     return Visibility(
         n_poses=a.n_poses,
         n_points=n_points,
@@ -128,5 +126,5 @@ def _merged(a: Visibility, new_a: np.ndarray, b: Visibility, new_b: np.ndarray, 
         depth=np.concatenate([a.depth[kept], b.depth])[order],
         off_axis=np.concatenate([a.off_axis[kept], b.off_axis])[order],
         facing=np.concatenate([a.facing[kept], b.facing])[order],
-        pose_ptr=ptr,
+        pose_ptr=group_pointers(pose, a.n_poses),
     )

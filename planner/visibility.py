@@ -172,6 +172,14 @@ class Visibility:
         return slice(int(self.pose_ptr[pose]), int(self.pose_ptr[pose + 1]))
 
 
+def group_pointers(keys: np.ndarray, n_groups: int) -> np.ndarray:
+    """(n_groups + 1,) int64 offsets of each group in ``keys`` sorted by group (0 <= key < n_groups):
+    group g is [ptr[g], ptr[g + 1])."""
+    ptr = np.zeros(n_groups + 1, dtype=np.int64)
+    np.cumsum(np.bincount(keys, minlength=n_groups), out=ptr[1:])
+    return ptr
+
+
 def frustum_tangents(optics: Optics) -> tuple[float, float]:
     """tan of the half fields of view: (across the image width, across its height)."""
     tan_w = math.tan(math.radians(optics.hfov_deg) / 2.0)
@@ -275,8 +283,6 @@ def visible_pairs(
     keep = np.flatnonzero(clear)
     keep = keep[np.argsort(pose[keep], kind="stable")]  # group by pose (16-bit keys: radix sort)
     pose, point = pose[keep].astype(np.int32), point[keep]
-    ptr = np.zeros(len(poses) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pose, minlength=len(poses)), out=ptr[1:])
     return Visibility(
         n_poses=len(poses),
         n_points=len(samples),
@@ -285,5 +291,5 @@ def visible_pairs(
         depth=depth[keep].astype(float),
         off_axis=off_axis[keep].astype(float),
         facing=facing[keep].astype(float),
-        pose_ptr=ptr,
+        pose_ptr=group_pointers(pose, len(poses)),
     )

@@ -16,7 +16,7 @@ from planner.redundancy import Redundancy, expected_misses, sharp_views
 from planner.refine import refine_focus
 from planner.rig import load_rig
 from planner.sampling import sample_surface
-from planner.visibility import RayScene, Visibility, visible_pairs
+from planner.visibility import RayScene, Visibility, group_pointers, visible_pairs
 from tests.planner_standin import standin_body
 
 RIG = load_rig()
@@ -92,8 +92,7 @@ def random_table(seed: int, n_poses: int, n_points: int, weight: np.ndarray | No
     by_pose = np.argsort(pose, kind="stable")
     pose, point = pose[by_pose], point[by_pose]
     m = len(pose)
-    ptr = np.zeros(n_poses + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pose, minlength=n_poses), out=ptr[1:])
+    ptr = group_pointers(pose, n_poses)
     vis = Visibility(
         n_poses, n_points, pose, point,
         depth=rng.uniform(200.0, 1200.0, m), off_axis=rng.uniform(0.0, 400.0, m),

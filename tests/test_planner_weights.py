@@ -12,7 +12,7 @@ from planner.bound import in_focus_bound
 from planner.cost import cost_table
 from planner.em import expectation_minimisation
 from planner.redundancy import expected_misses, sharp_views
-from planner.visibility import Visibility
+from planner.visibility import Visibility, group_pointers
 from tests.test_planner_bound import best_plan_by_brute_force
 from tests.test_planner_optimise import RIG, random_table
 
@@ -28,8 +28,7 @@ def copies(table) -> object:
     pose = np.array([r[0] for r in rows], dtype=np.int32)
     point = np.array([r[1] for r in rows], dtype=np.int32)
     src = np.array([r[2] for r in rows], dtype=np.int64)
-    ptr = np.zeros(vis.n_poses + 1, dtype=np.int64)
-    np.cumsum(np.bincount(pose, minlength=vis.n_poses), out=ptr[1:])
+    ptr = group_pointers(pose, vis.n_poses)
     dup = Visibility(vis.n_poses, int(weight.sum()), pose, point, vis.depth[src], vis.off_axis[src],
                      vis.facing[src], ptr)
     return cost_table(dup, RIG.cost, RIG.optics)
