@@ -41,7 +41,7 @@ async def _measure() -> dict[str, float]:
     cpu_share = (time.process_time() - cpu) / (loop.time() - t)
     t = loop.time()
     sim.stop_heartbeats()
-    while (event := await anext(events)) is not PanelEvent.HEARTBEAT_LOST:
+    while await anext(events) is not PanelEvent.HEARTBEAT_LOST:
         pass
     panel_lost = loop.time() - t
     sim.resume_heartbeats()
