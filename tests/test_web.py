@@ -295,6 +295,7 @@ async def test_marks_of_the_earlier_scan_are_carried_to_the_later_one(scan_store
         assert np.linalg.norm(np.subtract(carried["point_mm"], vertex)) < 1.0
         # the same pictures: the skin around the mark matches itself
         assert carried["placed_by"] == "pictures" and carried["picture_score"] > 0.95, carried
+        assert carried["surface_gap_mm"] < 1.0 and not carried["in_doubt"], carried
         # a second earlier mark: both listed, the first where it was
         other = (await (await client.get(f"/api/scans/{earlier}/navigate", params={"vertex": 777})).json())["point_mm"]
         assert (await client.post(f"/api/scans/{earlier}/marks", json={"name": "lentigo", "point_mm": other})).status == 201
@@ -323,6 +324,23 @@ def test_marks_carry_to_a_swayed_later_visit():
     carried = MarkCarrier(earlier, later).carry(np.asarray(earlier.vertices)[marks]).points_mm
     error = np.linalg.norm(carried - np.asarray(later.vertices)[marks], axis=1)
     assert np.median(error) < 2.0 and np.mean(error <= 5.0) >= 0.9, np.sort(error)
+
+
+def test_a_mark_on_skin_the_later_scan_reconstructed_inside_is_in_doubt():
+    """Where the later scan's surface is a centimetre inside the skin (an occluded gap), the
+    carried mark says so; elsewhere the later surface is where the fit puts the skin."""
+    import numpy as np
+
+    from analysis.registration import MarkCarrier
+    from sim.body import make_body
+    from tests.web_visits import dented
+
+    earlier = make_body(seed=3)
+    vertices = np.asarray(earlier.vertices)
+    marks = vertices[[int(np.argmax(vertices[:, 0])), int(np.argmin(vertices[:, 0])), int(np.argmax(vertices[:, 2]))]]
+    carried = MarkCarrier(earlier, dented(earlier, marks[0], 40.0, 10.0)).carry(marks)
+    assert carried.in_doubt.tolist() == [True, False, False], carried.surface_gap_mm
+    assert carried.surface_gap_mm[0] > 5.0 and np.all(carried.surface_gap_mm[1:] < 1.0), carried.surface_gap_mm
 
 
 def test_token_file_is_checked(tmp_path):

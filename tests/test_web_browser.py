@@ -86,29 +86,41 @@ def test_click_on_the_body_shows_the_image_and_pixel_tbp_navigate_gives(web_stor
 
 def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
     """The same scan stored again as a later visit: the earlier mark is listed as placed on the
-    pictures, and Compare shows the mark's best image in both scans side by side."""
+    pictures, and Compare shows the mark's best image in both scans side by side. A second mark,
+    where the later scan's surface was made a centimetre too deep (a groove round the round
+    subject), is shown in doubt."""
     import shutil
 
     from analysis.marks import MarkBook, new_mark, write_marks
+    from tests.web_visits import dented
 
     earlier = folder_of(web_store)
     later = "20991231-000000-" + earlier.split("-", 2)[2]
     store = tmp_path / "store"
     shutil.copytree(web_store / earlier, store / earlier)
     shutil.copytree(web_store / earlier, store / later)
-    point = open_scan(store / earlier).mesh().vertices[front_vertex(store / earlier)].tolist()
-    write_marks(store / earlier, MarkBook([new_mark("naevus", point)]))
+    mesh = open_scan(store / earlier).mesh()
+    point = mesh.vertices[front_vertex(store / earlier)].tolist()
+    back = np.asarray(point) * [-1.0, 1.0, 1.0] + [0.0, 0.0, 450.0]
+    back = mesh.vertices[int(np.argmin(np.linalg.norm(mesh.vertices - back, axis=1)))]
+    dented(mesh, back, 40.0, 10.0, ring=True).export(store / later / "mesh.ply")
+    write_marks(store / earlier, MarkBook([new_mark("naevus", point), new_mark("lentigo", back.tolist())]))
     write_marks(store / later, MarkBook(previous_scan=earlier))
     with serve_in_thread(store) as url, chromium() as driver:
         driver.get(f"{url}/scans/{later}")
         wait_for(driver, "document.querySelector('#marks') && document.querySelector('#marks').textContent"
                          ".includes('placed on the pictures')", 120)
         driver.find_element("css selector", ".tabs button[data-pane='marks']").click()
+        doubts = driver.execute_script("return Array.from(document.querySelectorAll('#marks .doubt'))"
+                                       ".map(p => p.previousElementSibling.querySelector('b').textContent)")
+        assert doubts == ["lentigo"]
         compare = next(b for b in driver.find_elements("css selector", "#marks button") if b.text == "Compare")
         compare.click()
         wait_for(driver, "Array.from(document.querySelectorAll('.pair img')).filter(i => i.complete && i.naturalWidth > 0).length === 2")
         SHOTS.mkdir(parents=True, exist_ok=True)
         driver.save_screenshot(str(SHOTS / "viewer-carried-mark.png"))
+        driver.execute_script("document.querySelector('#marks .doubt').scrollIntoView()")
+        driver.save_screenshot(str(SHOTS / "viewer-mark-in-doubt.png"))
         sources = driver.execute_script("return Array.from(document.querySelectorAll('.pair img')).map(i => i.src)")
     assert f"/api/scans/{earlier}/" in sources[0] and f"/api/scans/{later}/" in sources[1]
     then, now = (urllib.parse.urlsplit(src) for src in sources)

@@ -31,6 +31,18 @@ def placed(mesh: Any, shift_mm: tuple[float, float, float], turn_deg: float) -> 
     return moved
 
 
+def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, ring: bool = False) -> Any:
+    """The mesh pushed in along its normals around ``centre``, ``depth_mm`` there and smoothly
+    less out to ``radius_mm``: skin a scan reconstructed inside the true surface. ``ring``: all
+    round the body at the centre's height (a groove that leaves a round body round)."""
+    vertices = np.asarray(mesh.vertices, dtype=float)
+    offset = vertices[:, 2:] - centre[2:] if ring else vertices - centre
+    near = np.clip(1.0 - np.sum(offset**2, axis=1) / radius_mm**2, 0.0, None) ** 2
+    out = mesh.copy()
+    out.vertices = vertices - depth_mm * near[:, None] * np.asarray(mesh.vertex_normals)
+    return out
+
+
 def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2) -> Visits:
     """Scan the same simulated adult twice (seeds 1 and 2) into ``store``; QA reports included."""
     from analysis.qa_report import generate_report
@@ -51,9 +63,10 @@ def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, de
 def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, Any]:
     """Marks at ``count`` skin points seen sharp in the earlier scan (feet soles excluded),
     carried to the later scan by the shapes alone and then on the pictures; distance (mm) from
-    the same skin point on the later mesh, and how far that point of the later mesh is from the
+    the same skin point on the later mesh, how far that point of the later mesh is from the
     true skin (the later scan's own shape error there: a mark drawn on the later mesh can be
-    judged no finer than that)."""
+    judged no finer than that), distance from the true skin point itself, and the carrier's
+    doubt (the later surface's gap from where the fit put the skin)."""
     from analysis.mark_match import PictureMatcher
     from analysis.navigate import Navigator
     from analysis.registration import MarkCarrier
@@ -82,6 +95,8 @@ def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, A
     return {"error_mm": np.linalg.norm(carried.points_mm - target, axis=1),
             "shape_error_mm": np.linalg.norm(by_shape.points_mm - target, axis=1),
             "later_surface_mm": np.linalg.norm(target - truth_b[chosen], axis=1),
+            "skin_error_mm": np.linalg.norm(carried.points_mm - truth_b[chosen], axis=1),
+            "surface_gap_mm": carried.surface_gap_mm, "in_doubt": carried.in_doubt,
             "picture_score": carried.picture_score, "points": on_a[chosen], "fitness": carrier.whole.fitness,
             "rmse_mm": carrier.whole.rmse_mm}
 

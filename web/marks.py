@@ -49,14 +49,16 @@ class CarriedPair:
 
     carrier: MarkCarrier
     pictures: PictureMatcher
-    done: dict[tuple[float, float, float], tuple[np.ndarray, float, float]] = field(default_factory=dict)
+    done: dict[tuple[float, float, float], tuple[np.ndarray, float, float, float, bool]] = field(default_factory=dict)
 
-    def carry(self, points: list[tuple[float, float, float]]) -> list[tuple[np.ndarray, float, float]]:
-        """(carried point, local fit rmse, picture score or NaN) for each point."""
+    def carry(self, points: list[tuple[float, float, float]]) -> list[tuple[np.ndarray, float, float, float, bool]]:
+        """(carried point, local fit rmse, picture score or NaN, later surface's gap, in doubt) for
+        each point."""
         new = [p for p in dict.fromkeys(points) if p not in self.done]
         if new:
             carried = self.carrier.carry(np.array(new), self.pictures)
-            for key, *place in zip(new, carried.points_mm, carried.fit_rmse_mm, carried.picture_score):
+            for key, *place in zip(new, carried.points_mm, carried.fit_rmse_mm, carried.picture_score,
+                                   carried.surface_gap_mm, carried.in_doubt):
                 self.done[key] = tuple(place)
         return [self.done[p] for p in points]
 
@@ -111,8 +113,9 @@ async def list_marks(request: web.Request) -> web.Response:
                 out["carried"] = [
                     {**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm), "fit_rmse_mm": float(r),
                      "placed_by": "shape" if np.isnan(score) else "pictures",
-                     "picture_score": None if np.isnan(score) else float(score)}
-                    for m, (p, r, score) in zip(earlier.marks, places)]
+                     "picture_score": None if np.isnan(score) else float(score),
+                     "surface_gap_mm": float(gap), "in_doubt": bool(doubt)}
+                    for m, (p, r, score, gap, doubt) in zip(earlier.marks, places)]
     return web.json_response(out)
 
 

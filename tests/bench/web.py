@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from analysis.registration import MarkCarrier
 from tests.web_browser import chromium, chromium_missing, serve_in_thread, wait_for
 from tests.web_visits import Visits, carry_errors, two_visits
 
@@ -210,3 +211,9 @@ def run() -> None:
               f"{surface.max():.2f} mm; worst mark {error[worst]:.2f} mm where it is {surface[worst]:.2f} mm off; "
               f"marks where it is within 3 mm ({sound.sum()} of {len(error)}): max "
               f"{error[sound].max() if sound.any() else float('nan'):.2f} mm")
+        skin, doubt = carried["skin_error_mm"], carried["in_doubt"]
+        print(f"  from the true skin point: median {np.median(skin):.2f} mm, max {skin.max():.2f} mm, "
+              f"{int(np.sum(skin > 5))} beyond 5 mm; in doubt (the later surface over "
+              f"{MarkCarrier.SURFACE_DOUBT_MM:.0f} mm from the fit, the viewer says so): {doubt.sum()} marks, "
+              f"{int(np.sum(doubt & (skin > 5)))} of them beyond 5 mm; not in doubt: max {skin[~doubt].max():.2f} mm "
+              f"{_mark(float(skin[~doubt].max()), 5.0)}")

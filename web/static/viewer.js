@@ -308,12 +308,13 @@ async function renderMarks() {
   if (m.registration && m.registration.error) root.append(el("p", { class: "error" }, m.registration.error));
   else if (m.registration) root.append(el("p", { class: "muted" }, `Bodies registered: ${fmt(100 * m.registration.fitness, 0)} % overlap, ${fmt(m.registration.rmse_mm, 1)} mm rms.`));
   for (const mark of m.carried) {
+    const doubt = mark.in_doubt ? [el("p", { class: "doubt" }, `This scan's surface is ${fmt(mark.surface_gap_mm, 1)} mm from where the body's fit puts this skin: it may not hold this spot. Check the images before keeping it.`)] : [];
     root.append(el("div", { class: "mark" }, el("span", {}, el("b", {}, mark.name), el("span", { class: "muted" }, mark.placed_by === "pictures"
       ? `  from the earlier scan, placed on the pictures (match ${fmt(mark.picture_score, 2)})` : "  from the earlier scan, placed by the body's shape")),
       el("span", {}, el("button", { onclick: () => compare(mark) }, "Compare"), " ",
         el("button", { onclick: () => selectSpot(mark.point_mm) }, "Show"), " ",
         el("button", { onclick: async () => { await send("POST", `${api}/marks`, { name: mark.name, point_mm: mark.point_mm, carried_from: { scan: m.previous_scan, mark: mark.id } }); await loadMarks(); } }, "Keep here"))),
-      el("div", { class: "pair", id: `pair-${mark.id}` }));
+      ...doubt, el("div", { class: "pair", id: `pair-${mark.id}` }));
   }
 }
 
