@@ -59,6 +59,16 @@ def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside
         assert body["bound"]["fresh_any_angle"] <= body["any_angle_visible_fraction"] + 1e-12
         assert body["any_angle_visible_fraction"] >= body["fresh_visible_fraction"] - 1e-12
         assert body["methods"]["shape-aware"]["in_focus_fraction"] <= body["bound"]["planning"] + 1e-12
+    below = corpus["summary"]["bound_below_99_of_visible"]
+    for body in corpus["per_body"]:
+        share = body["bound"]["fresh"] / body["fresh_visible_fraction"]
+        assert (body["label"] in below) == (share < 0.99) and share <= 1.0 + 1e-12, body["label"]
+    if below:
+        assert "Certified: no plan of the rig's poses holds 99 % of the visible fresh skin" in text
+    else:
+        assert "The bound leaves every body room to hold 99 %" in text
+    short = corpus | {"summary": corpus["summary"] | {"bound_below_99_of_visible": {"tall": 0.98834}}}
+    assert "sharp on 1 of 2 bodies, at most (bound / visible): tall (98.83 %)" in markdown(short)
     paths = write(corpus, tmp_path / "out")
     assert all(p.exists() and p.stat().st_size > 0 for p in paths)
     assert json.loads((tmp_path / "out" / "results.json").read_text())["bodies"] == 2
