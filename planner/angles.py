@@ -12,6 +12,8 @@ phones would gain most (K and the redundancy term of ``planner/redundancy.py``, 
 best focus found by an exact interval sweep against the rest of the plan). After a round over
 all angles the focus of the new pose set is refined exactly; the round is kept only if the
 objective fell, so the result is never worse than the rig's angles on the planning samples.
+Last, neighbouring poses of the chosen set are refocused together (``planner/group_moves.py``),
+which never loses sharp skin.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 import structlog
 
 from planner.cost import CostTable, cost_table
+from planner.group_moves import group_moves, rig_groups
 from planner.interval_sweep import PresortedIntervals
 from planner.poses import Poses, rgb_poses
 from planner.redundancy import Redundancy, expected_misses, sharp_views
@@ -261,6 +264,8 @@ def plan_angles(
     angles = candidates_deg[best_chosen]
     poses = rgb_poses(rig, angles) if poses_at is None else poses_at(angles)
     chosen_table = subset_table(table, _pose_ids(best_chosen, n_cam), rig)
+    # Neighbouring poses refocused together, as for the robust plan at the rig's angles.
+    best_focus = group_moves(chosen_table, best_focus, rig_groups(len(angles), n_cam)).focus_mm
     return AnglePlan(angles, best_focus, poses, chosen_table, best_objective, start, done, len(candidates_deg))
 
 

@@ -84,30 +84,52 @@ def coverage_sets(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return sets[keep]
 
 
+def search_group(sets: list[np.ndarray], weight: np.ndarray) -> tuple[float, list[int]]:
+    """The exact best choice of one coverage set per pose: (weight held sharp, index of the chosen
+    set per pose). ``sets``: per pose (m, n) bool (:func:`coverage_sets`), weight (n,).
+
+    All but the two poses with the most sets are enumerated; every choice of those two is one
+    matrix product: sets i, j hold (before_i + last_j - both) of what the others leave."""
+    k = len(sets)
+    if k == 1:
+        held = sets[0] @ weight
+        return float(held.max()), [int(np.argmax(held))]
+    rank = sorted(range(k), key=lambda i: len(sets[i]))
+    leading, (b, c) = rank[:-2], rank[-2:]
+    before, last = sets[b].astype(float), sets[c].astype(float)
+    best, choice = -1.0, [0] * k
+    for picked in itertools.product(*(range(len(sets[i])) for i in leading)):
+        held = np.zeros(len(weight), dtype=bool)
+        for i, j in zip(leading, picked):
+            held |= sets[i][j]
+        left = np.where(held, 0.0, weight)
+        gain = (before @ left)[:, None] + (last @ left)[None, :] - (before * left) @ last.T
+        i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
+        value = float(weight[held].sum()) + float(gain[i, j])
+        if value > best:
+            best = value
+            for pose, set_index in zip(leading, picked):
+                choice[pose] = set_index
+            choice[b], choice[c] = int(i), int(j)
+    return best, choice
+
+
+def search_size(sets: list[np.ndarray]) -> int:
+    """Choices :func:`search_group` enumerates for these sets."""
+    return int(np.prod(sorted(len(m) for m in sets)[:-2]))
+
+
 def best_group(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray) -> float:
     """Most of a group's samples (by weight (n,)) its k poses can hold sharp together, or (for a
     search over SEARCH_BUDGET) an upper bound on it.
 
     lo, hi: (k, n) the poses' focus intervals of the samples, nan where a pose does not see one.
     """
-    sets = sorted((coverage_sets(lo[i], hi[i]) for i in range(len(lo))), key=len)
-    if len(sets) == 1:
-        return float((sets[0] @ weight).max())
-    leading = sets[:-2]
-    if int(np.prod([len(m) for m in leading])) > SEARCH_BUDGET:
+    sets = [coverage_sets(lo[i], hi[i]) for i in range(len(lo))]
+    if len(sets) > 1 and search_size(sets) > SEARCH_BUDGET:
         half = len(lo) // 2
-        return (best_group(lo[:half], hi[:half], weight) + best_group(lo[half:], hi[half:], weight))
-    before, last = sets[-2].astype(float), sets[-1].astype(float)
-    best = 0.0
-    for choice in itertools.product(*(range(len(m)) for m in leading)):
-        held = np.zeros(len(weight), dtype=bool)
-        for m, j in zip(leading, choice):
-            held |= m[j]
-        left = np.where(held, 0.0, weight)
-        # the last two poses' sets i, j hold (before_i + last_j - both) of what is left
-        gain = (before @ left)[:, None] + (last @ left)[None, :] - (before * left) @ last.T
-        best = max(best, float(weight[held].sum()) + float(gain.max()))
-    return best
+        return best_group(lo[:half], hi[:half], weight) + best_group(lo[half:], hi[half:], weight)
+    return search_group(sets, weight)[0]
 
 
 def pose_groups(table: CostTable, max_poses: int = GROUP_POSES) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 ``plan_focus`` samples the surface, finds the visible (pose, point) pairs, and runs the
 baselines, the seed's EM, EM + exact refinement ("shape-aware") and EM + refinement with the
-redundancy term ("robust", the plan to capture with). ``evaluate`` scores any
+redundancy term, then group moves of neighbouring poses ("robust", the plan to capture with). ``evaluate`` scores any
 focus plan on another mesh, sample or pose set: plan on an estimated mesh or noisy poses,
 judge on the true body and poses.
 """
@@ -31,6 +31,7 @@ from planner.focus_errors import (
     PlanTooLarge,
     SubjectOutsideRing,
 )
+from planner.group_moves import group_moves, rig_groups
 from planner.importance import Importance, refine_samples
 from planner.optics import resolution_mm_per_px
 from planner.poses import Poses, rgb_poses, rig_rgb_poses
@@ -377,8 +378,12 @@ def plan_focus(
             record("shape-aware", refined, timing["em"] + timing["refine"])
         if "robust" in methods or "robust-angles" in methods:
             robust, timing["robust"] = timed(
-                lambda: refine_focus(
-                    table, em_focus, max_sweeps=rig.planner.robust_max_sweeps, redundancy=rig_redundancy(rig)
+                lambda: group_moves(
+                    table,
+                    refine_focus(
+                        table, em_focus, max_sweeps=rig.planner.robust_max_sweeps, redundancy=rig_redundancy(rig)
+                    ).focus_mm,
+                    rig_groups(table.n_poses // rig.n_cameras, rig.n_cameras),
                 ).focus_mm
             )
             record("robust", robust, timing["em"] + timing["robust"])

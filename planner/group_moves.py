@@ -1,0 +1,115 @@
+"""Group moves: a few neighbouring poses refocused together on the skin only they hold sharp.
+
+After the robust refinement no single pose can move its focus and gain, but skin close to the
+column (an arm as the beam passes, 10-15 cm from the phones) is sharp over a few millimetres of
+focus only and seen by a few neighbouring poses: the phones next to each other at one capture
+angle, or one phone at consecutive angles. Holding more of it needs those poses to split its
+depths between them, which no single-pose move can do (the k-view idea of arXiv 2407.15883:
+optimise small sets of views jointly).
+
+For each group, with every other pose's focus fixed, the group's samples are those no other
+pose holds sharp. The group's focus distances that hold most of them are found exactly (the
+search of the certified bound, planner/bound.py) and taken when they hold more than now. A
+sample another pose holds sharp stays sharp, so the in-focus share never falls; each pose's new
+focus is the harmonic middle of the depths its chosen set allows (the widest margin).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner.bound import coverage_sets, search_group, search_size
+from planner.cost import CostTable
+
+#: A group's move is taken only if it holds more than this weight more (guards float ties).
+MIN_GAIN = 1e-9
+#: Most choices of a group's leading pose searched; a group with more is left as it is (a few
+#: groups whose own skin spreads over many depths; they cost the plan time, not its skin).
+SEARCH_BUDGET = 50
+
+
+@dataclass(frozen=True)
+class GroupMoves:
+    """focus_mm (P,) after the moves, the weight they brought into focus, and the moves taken."""
+
+    focus_mm: np.ndarray
+    gained: float
+    moves: int
+
+
+def rig_groups(n_angles: int, n_cameras: int, size: int = 3) -> list[np.ndarray]:
+    """Pose groups of an angle-major rig (pose = angle * n_cameras + camera): ``size`` cameras
+    next to each other on the column at every angle, and every camera at ``size`` consecutive
+    angles (the turn wraps)."""
+    groups = []
+    if n_cameras >= size:
+        for angle in range(n_angles):
+            for camera in range(n_cameras - size + 1):
+                groups.append(angle * n_cameras + camera + np.arange(size))
+    if n_angles >= size:
+        for camera in range(n_cameras):
+            for angle in range(n_angles):
+                groups.append((angle + np.arange(size)) % n_angles * n_cameras + camera)
+    return groups
+
+
+def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray], *,
+                rounds: int = 2) -> GroupMoves:
+    """Every group in turn (``rounds`` passes, stopping early when a pass takes no move)."""
+    vis = table.vis
+    focus = np.asarray(focus_mm, dtype=float).copy()
+    held = np.bincount(vis.point[table.pair_in_focus(focus)], minlength=vis.n_points)
+    row = np.full(vis.n_poses, -1, dtype=np.int64)
+    gained, moves = 0.0, 0
+    for _ in range(rounds):
+        taken = 0
+        # A group can gain only where one of its poses sees skin nobody holds sharp.
+        wanting = np.zeros(vis.n_poses, dtype=bool)
+        wanting[vis.pose[held[vis.point] == 0]] = True
+        for members in groups:
+            if not wanting[members].any():
+                continue
+            pairs = np.concatenate([np.arange(vis.pose_ptr[p], vis.pose_ptr[p + 1]) for p in members])
+            if not len(pairs):
+                continue
+            points, local = np.unique(vis.point[pairs], return_inverse=True)
+            by_group = np.bincount(local[_sharp(table, pairs, focus)], minlength=len(points))
+            mine = held[points] == by_group  # no pose outside the group holds these
+            if not mine.any():
+                continue
+            weight = table.weight[points[mine]]
+            now = float(weight[held[points[mine]] > 0].sum())
+            if now >= weight.sum() - MIN_GAIN:
+                continue  # the group holds all of its own skin already
+            column = np.cumsum(mine) - 1
+            own = mine[local]
+            row[members] = np.arange(len(members))
+            lo = np.full((len(members), len(weight)), np.nan)
+            hi = np.full((len(members), len(weight)), np.nan)
+            lo[row[vis.pose[pairs[own]]], column[local[own]]] = table.lo[pairs[own]]
+            hi[row[vis.pose[pairs[own]]], column[local[own]]] = table.hi[pairs[own]]
+            sets = [coverage_sets(lo[i], hi[i]) for i in range(len(members))]
+            if search_size(sets) > SEARCH_BUDGET:
+                continue
+            best, choice = search_group(sets, weight)
+            if best <= now + MIN_GAIN:
+                continue
+            for i, pose in enumerate(members.tolist()):
+                chosen = sets[i][choice[i]]
+                if chosen.any():  # a pose that sees none of the group's own skin keeps its focus
+                    near, far = float(np.max(lo[i][chosen])), float(np.min(hi[i][chosen]))
+                    focus[pose] = 2.0 * near * far / (near + far) if np.isfinite(far) else 2.0 * near
+            held[points] += np.bincount(local[_sharp(table, pairs, focus)], minlength=len(points)) - by_group
+            gained += best - now
+            taken += 1
+        moves += taken
+        if not taken:
+            break
+    return GroupMoves(focus, gained, moves)
+
+
+def _sharp(table: CostTable, pairs: np.ndarray, focus: np.ndarray) -> np.ndarray:
+    s = focus[table.vis.pose[pairs]]
+    return (table.lo[pairs] <= s) & (s <= table.hi[pairs])
