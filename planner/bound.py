@@ -132,25 +132,23 @@ def best_group(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray) -> float:
     return search_group(sets, weight)[0]
 
 
-def pose_groups(table: CostTable, max_poses: int = GROUP_POSES) -> np.ndarray:
-    """(P,) group label of every pose: disjoint groups of at most ``max_poses``, formed by
-    joining the pose pairs that share the most weight of samples seen by at most that many
-    poses, heaviest first (Kruskal's order, with a size cap)."""
-    vis = table.vis
-    views = np.diff(table.point_ptr)
-    few = np.flatnonzero((views >= 2) & (views <= max_poses))
-    viewers = _padded_viewers(table, few, max_poses)
+def pose_groups(n_poses: int, viewers: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(P,) group label of every pose: disjoint groups of at most ``viewers.shape[1]`` poses,
+    formed by joining the pose pairs that share the most weight of the samples seen by that few
+    poses, heaviest first (Kruskal's order, with a size cap). ``viewers``: (n, width) the poses
+    that see each such sample, -1 padded (:func:`_padded_viewers`); ``weight`` (n,) theirs."""
+    max_poses = viewers.shape[1]
     keys, weights = [], []
     for i, j in itertools.combinations(range(max_poses), 2):
         both = (viewers[:, i] >= 0) & (viewers[:, j] >= 0)
         a, b = viewers[both, i], viewers[both, j]
-        keys.append(np.minimum(a, b).astype(np.int64) * vis.n_poses + np.maximum(a, b))
-        weights.append(table.weight[few[both]])
+        keys.append(np.minimum(a, b).astype(np.int64) * n_poses + np.maximum(a, b))
+        weights.append(weight[both])
     key = np.concatenate(keys) if keys else np.zeros(0, dtype=np.int64)
     unique, inverse = np.unique(key, return_inverse=True)
     shared = np.bincount(inverse, weights=np.concatenate(weights) if weights else None, minlength=len(unique))
-    parent = np.arange(vis.n_poses)
-    size = np.ones(vis.n_poses, dtype=np.int64)
+    parent = np.arange(n_poses)
+    size = np.ones(n_poses, dtype=np.int64)
 
     def root(x: int) -> int:
         while parent[x] != x:
@@ -159,11 +157,11 @@ def pose_groups(table: CostTable, max_poses: int = GROUP_POSES) -> np.ndarray:
         return x
 
     for edge in unique[stable_argsort(-shared)].tolist():
-        a, b = root(edge // vis.n_poses), root(edge % vis.n_poses)
+        a, b = root(edge // n_poses), root(edge % n_poses)
         if a != b and size[a] + size[b] <= max_poses:
             parent[b] = a
             size[a] += size[b]
-    return np.array([root(x) for x in range(vis.n_poses)], dtype=np.int64)
+    return np.array([root(x) for x in range(n_poses)], dtype=np.int64)
 
 
 def _padded_viewers(table: CostTable, points: np.ndarray, width: int) -> np.ndarray:
@@ -182,9 +180,9 @@ def in_focus_bound(table: CostTable, max_poses: int = GROUP_POSES) -> InFocusBou
     vis, order, ptr, weight = table.vis, table.order, table.point_ptr, table.weight
     views = np.diff(ptr)
     visible = float(weight[views > 0].sum())
-    group = pose_groups(table, max_poses)
     few = np.flatnonzero((views >= 1) & (views <= max_poses))
     viewers = _padded_viewers(table, few, max_poses)
+    group = pose_groups(vis.n_poses, viewers, weight[few])
     first = group[viewers[:, 0]]
     own = np.all((group[viewers] == first[:, None]) | (viewers < 0), axis=1)  # every viewer in one group
     few, first = few[own], first[own]

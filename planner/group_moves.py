@@ -22,6 +22,7 @@ import numpy as np
 
 from planner.bound import coverage_sets, search_group, search_size
 from planner.cost import CostTable
+from planner.interval_sweep import cell_focus
 
 #: A group's move is taken only if it holds more than this weight more (guards float ties).
 MIN_GAIN = 1e-9
@@ -99,8 +100,7 @@ def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray]
             for i, pose in enumerate(members.tolist()):
                 chosen = sets[i][choice[i]]
                 if chosen.any():  # a pose that sees none of the group's own skin keeps its focus
-                    near, far = float(np.max(lo[i][chosen])), float(np.min(hi[i][chosen]))
-                    focus[pose] = 2.0 * near * far / (near + far) if np.isfinite(far) else 2.0 * near
+                    focus[pose] = cell_focus(float(np.max(lo[i][chosen])), float(np.min(hi[i][chosen])))
             held[points] += np.bincount(local[_sharp(table, pairs, focus)], minlength=len(points)) - by_group
             gained += best - now
             taken += 1

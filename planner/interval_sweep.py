@@ -49,14 +49,16 @@ def sweep(lo: np.ndarray, hi: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     # The last coordinate closes every interval: no cell starts there. Excluding it also keeps
     # a rounding residue (weights that are differences of costs) from electing it.
     k = int(np.argmax(running[:-1]))
-    left = coords[order[k]]
-    right = coords[order[k + 1]]
+    return cell_focus(coords[order[k]], coords[order[k + 1]]), float(running[k])
+
+
+def cell_focus(left: float, right: float) -> float:
+    """The focus distance inside the cell [left, right] mm with the widest depth-of-field margin:
+    its midpoint in diopters (the harmonic mean of its ends), or twice its start when unbounded."""
     if np.isinf(right):
-        s = 2.0 * left
-    else:
-        s = 2.0 * left * right / (left + right) if left + right > 0 else left
-        s = min(max(s, left), right)
-    return float(s), float(running[k])
+        return float(2.0 * left)
+    s = 2.0 * left * right / (left + right) if left + right > 0 else left
+    return float(min(max(s, left), right))
 
 
 def coverage(lo: np.ndarray, hi: np.ndarray, s: float, weights: np.ndarray | None = None) -> float:
@@ -155,10 +157,4 @@ class PresortedIntervals:
         tolerance = 1e-12 * max(1.0, abs(best))
         below = np.flatnonzero(inner[k:] < best - tolerance)
         j = k + (int(below[0]) if len(below) else len(inner) - k)
-        left, right = coords[k], coords[j]
-        if np.isinf(right):
-            s = 2.0 * left
-        else:
-            s = 2.0 * left * right / (left + right) if left + right > 0 else left
-            s = min(max(s, left), right)
-        return float(s), best
+        return cell_focus(coords[k], coords[j]), best
