@@ -42,3 +42,13 @@ def test_halving_the_fast_step_again_is_refused() -> None:
     tight = dataclasses.replace(rig, capture=dataclasses.replace(rig.capture, sectors=sectors))
     with pytest.raises(PlanInfeasible):
         compile_plan(np.full(tight.n_poses, 500.0), tight)
+
+
+def test_importance_samples_cover_the_same_few_view_skin_as_on_the_default_rig() -> None:
+    """840 poses see each piece of skin about 2.5x as often as 336: the few-view threshold of the
+    importance samples grows with the poses, so they refine the same folds (docs/planner.md)."""
+    default, dense = load_rig(DEFAULT_RIG_PATH), load_rig(DENSE)
+    assert dense.planner.importance_density == default.planner.importance_density > 1.0
+    assert dense.planner.importance_radius_mm == default.planner.importance_radius_mm
+    per_pose = dense.planner.importance_views / dense.n_poses
+    assert per_pose == pytest.approx(default.planner.importance_views / default.n_poses, rel=0.1)
