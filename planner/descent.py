@@ -61,6 +61,30 @@ def _store(p, b, s, bp, best, second, best_pair):  # type: ignore[no-untyped-def
 
 
 @_jit
+def lowest_pairs(seen_points, point_ptr, order, pose, base, lo, hi, focus, w_focus):  # type: ignore[no-untyped-def]
+    """Each of ``seen_points``' lowest pair cost under ``focus`` and that pair (the first lowest
+    in point order, as ``CostTable.assignment``); pose, base, lo, hi in point order
+    (``CostTable.by_point``). EM's assignment step: at 100,000 samples NumPy's gathers and
+    reductions over 3 million pairs took 0.1 s a step."""
+    n = len(seen_points)
+    best_pair = np.empty(n, dtype=np.int64)
+    lowest = np.empty(n)
+    for i in range(n):
+        p = seen_points[i]
+        low = np.inf
+        pair = -1
+        for j in range(point_ptr[p], point_ptr[p + 1]):
+            s = focus[pose[j]]
+            cost = base[j] if lo[j] <= s and s <= hi[j] else base[j] + w_focus
+            if cost < low:
+                low = cost
+                pair = order[j]
+        best_pair[i] = pair
+        lowest[i] = low
+    return best_pair, lowest
+
+
+@_jit
 def init_point_best(order, point_ptr, pair_cost, best, second, best_pair, invisible):  # type: ignore[no-untyped-def]
     """Every seen point's best and second-best cost and best pair, from scratch."""
     for p in range(len(point_ptr) - 1):

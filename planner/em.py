@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import structlog
 
-from planner.cost import CostTable
+from planner.cost import INVISIBLE_COST, CostTable
+from planner.descent import lowest_pairs
 from planner.interval_sweep import best_focus_per_group
 
 log = structlog.get_logger(__name__)
@@ -28,6 +29,27 @@ class EmResult:
     total_cost: float
     iterations: int
     history: list[float] = field(default_factory=list)
+
+
+class Assignment:
+    """``CostTable.assignment`` for the many steps of one EM run: the same best pairs and K,
+    by the compiled loop (``planner.descent.lowest_pairs``)."""
+
+    def __init__(self, table: CostTable) -> None:
+        self.table = table
+        self.seen = table.seen
+        self.seen_points = np.flatnonzero(self.seen)
+        self.seen_weight = table.weight[self.seen]
+        self.unseen = float(table.weight[~self.seen].sum())
+
+    def __call__(self, focus_mm: np.ndarray) -> tuple[np.ndarray, float]:
+        t = self.table
+        pose, base, lo, hi = t.by_point
+        best_seen, lowest = lowest_pairs(self.seen_points, t.point_ptr, t.order, pose, base, lo, hi,
+                                         np.asarray(focus_mm, dtype=float), float(t.w_focus))
+        best = np.full(t.n_points, -1, dtype=np.int64)
+        best[self.seen] = best_seen
+        return best, float(np.minimum(lowest, INVISIBLE_COST) @ self.seen_weight) + INVISIBLE_COST * self.unseen
 
 
 def minimisation_step(table: CostTable, assigned_pairs: np.ndarray, focus_mm: np.ndarray) -> np.ndarray:
@@ -49,13 +71,14 @@ def expectation_minimisation(
     focus = np.array(initial_focus_mm, dtype=float, copy=True)
     if focus.shape != (table.n_poses,):
         raise ValueError(f"initial focus has shape {focus.shape}; expected ({table.n_poses},)")
-    assigned, k = table.assignment(focus)
+    assignment = Assignment(table)
+    assigned, k = assignment(focus)
     history = [k]
     iterations = 0
     while iterations < max_iterations:
         iterations += 1
         candidate = minimisation_step(table, assigned, focus)
-        next_assigned, k_new = table.assignment(candidate)
+        next_assigned, k_new = assignment(candidate)
         if not k_new < k:
             break
         improvement = k - k_new

@@ -23,6 +23,7 @@ import numpy as np
 import structlog
 
 from planner.cost import INVISIBLE_COST, CostTable, cost_table
+from planner.em import expectation_minimisation
 from planner.interval_sweep import PresortedIntervals
 from planner.redundancy import Redundancy, expected_misses
 from planner.rig import Rig
@@ -92,9 +93,12 @@ def refine_focus(
 
 
 def warm_up(rig: Rig) -> None:
-    """Compile the descent's loop (or load it from numba's cache) now rather than in the first
-    plan, where compiling takes seconds: one pose seeing one point, with the redundancy term."""
+    """Compile the planner's loops (or load them from numba's cache) now rather than in the first
+    plan, where compiling takes seconds: EM's assignment and the descent, on one pose seeing one
+    point, with the redundancy term."""
     one = np.ones(1)
     vis = Visibility(1, 1, np.zeros(1, np.int32), np.zeros(1, np.int32), 500.0 * one, 0.0 * one, one,
                      np.array([0, 1], dtype=np.int64))
-    refine_focus(cost_table(vis, rig.cost, rig.optics), 500.0 * one, redundancy=Redundancy(1.0, 0.5))
+    table = cost_table(vis, rig.cost, rig.optics)
+    expectation_minimisation(table, 500.0 * one)
+    refine_focus(table, 500.0 * one, redundancy=Redundancy(1.0, 0.5))

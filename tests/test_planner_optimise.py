@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from planner.baselines import average_focus, closest_focus, fixed_focus
 from planner.cost import cost_table
-from planner.em import expectation_minimisation
+from planner.em import Assignment, expectation_minimisation
 from planner.poses import rgb_poses
 from planner.redundancy import Redundancy, expected_misses, sharp_views
 from planner.refine import refine_focus
@@ -119,6 +119,31 @@ def test_random_problems_em_refine_monotone_and_refine_optimal(seed: int, n_pose
             trial = refined.focus_mm.copy()
             trial[c] = s
             assert table.total_cost(trial) >= k - 1e-9
+
+
+@given(seed=st.integers(0, 10_000), n_poses=st.integers(1, 6), n_points=st.integers(1, 30),
+       on_ends=st.booleans(), weighted=st.booleans())
+@settings(max_examples=80, deadline=None)
+def test_em_compiled_assignment_is_the_tables(seed: int, n_poses: int, n_points: int, on_ends: bool,
+                                               weighted: bool) -> None:
+    """EM's compiled assignment gives the table's best pair per point (the first lowest where pairs
+    cost the same) and K, also with every focus exactly on an interval end and with weights."""
+    rng = np.random.default_rng(seed + 2)
+    weight = rng.uniform(0.1, 3.0, n_points) if weighted else None
+    v = random_table(seed, n_poses, n_points).vis
+    # Depths and angles on a coarse grid: a point's pairs often cost exactly the same (ties).
+    coarse = Visibility(v.n_poses, v.n_points, v.pose, v.point, depth=np.round(v.depth, -2),
+                        off_axis=np.round(v.off_axis, -2), facing=np.maximum(np.round(v.facing, 1), 0.1),
+                        pose_ptr=v.pose_ptr)
+    table = cost_table(coarse, RIG.cost, RIG.optics, weight)
+    focus = rng.uniform(150.0, 2500.0, n_poses)
+    if on_ends and len(table.lo):
+        ends = np.concatenate([table.lo, table.hi[np.isfinite(table.hi)]])
+        focus = rng.choice(ends, size=n_poses)
+    best, k = Assignment(table)(focus)
+    expected_best, expected_k = table.assignment(focus)
+    np.testing.assert_array_equal(best, expected_best)
+    assert k == pytest.approx(expected_k, rel=1e-12, abs=1e-12)
 
 
 def robust_objective(table, focus: np.ndarray, redundancy: Redundancy) -> float:
