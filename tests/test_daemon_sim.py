@@ -107,3 +107,29 @@ def test_phones_lost_mid_scan_are_retaken_or_recorded_missing(tmp_path: Path) ->
     retaken = [c for c in captures if c["capture_pass"] == "retake" and c["status"] == "captured"]
     assert retaken and {c["camera_id"] for c in retaken} == {"cam5"}
     assert report.retaken == len(retaken)
+
+
+def test_the_planner_is_warmed_up_before_the_first_plan(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Like the daemon's worker, the simulated scan's compute thread compiles (or loads) the
+    planner's loops first, so the first plan does not between the sweep and the capture."""
+    import threading
+
+    import daemon.scan
+    import sim.run
+
+    calls: list[tuple[str, str]] = []
+    warm_up, plan_capture = sim.run.warm_up, daemon.scan.plan_capture
+
+    def warming(rig):
+        calls.append(("warm_up", threading.current_thread().name))
+        return warm_up(rig)
+
+    def planning(*args, **kwargs):
+        calls.append(("plan", threading.current_thread().name))
+        return plan_capture(*args, **kwargs)
+
+    monkeypatch.setattr(sim.run, "warm_up", warming)
+    monkeypatch.setattr(daemon.scan, "plan_capture", planning)
+    assert _scan(tmp_path).outcome is ScanOutcome.COMPLETED
+    assert [name for name, _ in calls][:2] == ["warm_up", "plan"]
+    assert calls[0][1] == calls[1][1] and calls[0][1].startswith("compute")
