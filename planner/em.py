@@ -15,7 +15,6 @@ import numpy as np
 import structlog
 
 from planner.cost import INVISIBLE_COST, CostTable
-from planner.descent import lowest_pairs
 from planner.interval_sweep import best_focus_per_group
 
 log = structlog.get_logger(__name__)
@@ -43,6 +42,8 @@ class Assignment:
         self.unseen = float(table.weight[~self.seen].sum())
 
     def __call__(self, focus_mm: np.ndarray) -> tuple[np.ndarray, float]:
+        from planner.descent import lowest_pairs  # numba: only processes that plan load it
+
         t = self.table
         pose, base, lo, hi = t.by_point
         best_seen, lowest = lowest_pairs(self.seen_points, t.point_ptr, t.order, pose, base, lo, hi,

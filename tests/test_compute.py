@@ -138,3 +138,15 @@ def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh
     metrics = shape_metrics(whole.mesh, live.mesh, samples=20_000)
     assert metrics.true_to_estimate_mean_mm < 0.05 and metrics.estimate_to_true_mean_mm < 0.05
     assert not [p for p in SHM_DIR.glob("psm_*")]  # every batch's block released
+
+
+def test_the_daemon_process_does_not_load_numba() -> None:
+    """Only the process that plans compiles or loads the planner's loops (0.8 s of numba's import
+    alone): importing the daemon's scan, which reaches the planner, leaves numba out."""
+    import subprocess
+    import sys
+
+    probe = "import sys, daemon.scan, daemon.planning, planner.em; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "False"
