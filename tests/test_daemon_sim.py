@@ -111,7 +111,7 @@ def test_phones_lost_mid_scan_are_retaken_or_recorded_missing(tmp_path: Path) ->
 
 def test_the_planner_is_warmed_up_before_the_first_plan(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Like the daemon's worker, the simulated scan's compute thread compiles (or loads) the
-    planner's loops first, so the first plan does not between the sweep and the capture."""
+    planner's loops first, so the first plan does not compile them between the sweep and the capture."""
     import threading
 
     import daemon.scan
