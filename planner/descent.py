@@ -12,26 +12,13 @@ place on the state arrays the caller passes.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-import structlog
 
 from planner.cost import INVISIBLE_COST
-
-log = structlog.get_logger(__name__)
-
-
-def _jit(func):  # type: ignore[no-untyped-def]
-    """Compiled, cached where numba finds a writable cache directory (NUMBA_CACHE_DIR, the
-    package's ``__pycache__`` or the user's cache), compiled in memory where it finds none."""
-    try:
-        return numba.njit(cache=True, nogil=True)(func)
-    except RuntimeError as exc:  # "cannot cache function ...: no locator available"
-        log.info("descent.no_compile_cache", reason=str(exc))
-        return numba.njit(nogil=True)(func)
+from planner.jit import jit
 
 
-@_jit
+@jit
 def _refresh_point(p, order, point_ptr, pair_cost, best, second, best_pair, invisible):  # type: ignore[no-untyped-def]
     """Point p's best and second-best pair cost (capped at ``invisible``) and its best pair (the
     first lowest in point order) from pair_cost; True when any of the three changed."""
@@ -50,7 +37,7 @@ def _refresh_point(p, order, point_ptr, pair_cost, best, second, best_pair, invi
     return _store(p, min(lowest, invisible), min(runner_up, invisible), lowest_pair, best, second, best_pair)
 
 
-@_jit
+@jit
 def _store(p, b, s, bp, best, second, best_pair):  # type: ignore[no-untyped-def]
     """Set point p's best and second-best cost and best pair; True when any of them changed."""
     changed = b != best[p] or s != second[p] or bp != best_pair[p]
@@ -60,7 +47,7 @@ def _store(p, b, s, bp, best, second, best_pair):  # type: ignore[no-untyped-def
     return changed
 
 
-@_jit
+@jit
 def lowest_pairs(seen_points, point_ptr, order, pose, base, lo, hi, focus, w_focus):  # type: ignore[no-untyped-def]
     """Each of ``seen_points``' lowest pair cost under ``focus`` and that pair (the first lowest
     in point order, as ``CostTable.assignment``); pose, base, lo, hi in point order
@@ -84,7 +71,7 @@ def lowest_pairs(seen_points, point_ptr, order, pose, base, lo, hi, focus, w_foc
     return best_pair, lowest
 
 
-@_jit
+@jit
 def init_point_best(order, point_ptr, pair_cost, best, second, best_pair, invisible):  # type: ignore[no-untyped-def]
     """Every seen point's best and second-best cost and best pair, from scratch."""
     for p in range(len(point_ptr) - 1):
@@ -92,7 +79,7 @@ def init_point_best(order, point_ptr, pair_cost, best, second, best_pair, invisi
             _refresh_point(p, order, point_ptr, pair_cost, best, second, best_pair, invisible)
 
 
-@_jit
+@jit
 def _pair_changed(i, p, old, order, point_ptr, pair_cost, best, second, best_pair, invisible):  # type: ignore[no-untyped-def]
     """Pair i (of point p) changed cost from ``old`` to pair_cost[i]: update p's best and second
     in O(1) where that is exact (a cost fell, or a pair that was neither best nor second rose),
@@ -116,7 +103,7 @@ def _pair_changed(i, p, old, order, point_ptr, pair_cost, best, second, best_pai
     return _store(p, nb, ns, nbp, best, second, best_pair)
 
 
-@_jit
+@jit
 def _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running):  # type: ignore[no-untyped-def]
     """(s, score) of pose c's best cell under per-pair ``gain`` (the pose's pairs in order), as
     ``PresortedIntervals.sweep``: the first maximum of the running sum, widened over the cells
@@ -143,7 +130,7 @@ def _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running):  # ty
     return min(max(s, left), right), top
 
 
-@_jit
+@jit
 def descend(pose_ptr, point, base, lo, hi, w_focus, order, point_ptr,  # type: ignore[no-untyped-def]
             end_ptr, end_local, end_sign, end_coord, focus, sharp_pair, pair_cost,
             best, second, best_pair, sharp_views, extra, redundancy, weight, max_sweeps, min_gain):

@@ -127,20 +127,24 @@ class PresortedIntervals:
     """
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, ptr: np.ndarray) -> None:
+        from planner.end_order import follows, merge_ends  # numba: only processes that plan load it
+
+        lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
         ptr = np.asarray(ptr, dtype=np.int64)
-        local = np.empty(2 * len(lo), dtype=np.int32)
-        is_start = np.empty(2 * len(lo), dtype=bool)
-        # Pose by pose: many small sorts are several times faster than one sort of every end.
-        for a, b in zip(ptr[:-1].tolist(), ptr[1:].tolist()):
-            if b > a:
-                order = stable_argsort(np.concatenate([lo[a:b], hi[a:b]]))
-                n = b - a
-                is_start[2 * a : 2 * b] = order < n
-                local[2 * a : 2 * b] = np.where(order < n, order, order - n)
-        pair = local + np.repeat(ptr[:-1], 2 * np.diff(ptr))
-        self.coords = np.where(is_start, lo[pair], hi[pair])
-        self.sign = np.where(is_start, 1.0, -1.0)
-        self.local = local
+        bounds = list(zip(ptr[:-1].tolist(), ptr[1:].tolist()))
+        starts = np.empty(len(lo), dtype=np.int64)
+        for a, b in bounds:  # many small sorts are several times faster than one of every end
+            starts[a:b] = stable_argsort(lo[a:b])
+        ends = starts
+        unlike = np.flatnonzero(~follows(hi, starts, ptr))
+        if len(unlike):
+            ends = starts.copy()
+            for c in unlike.tolist():
+                a, b = bounds[c]
+                ends[a:b] = stable_argsort(hi[a:b])
+        self.coords, self.sign = np.empty(2 * len(lo)), np.empty(2 * len(lo))
+        self.local = np.empty(2 * len(lo), dtype=np.int64)
+        merge_ends(lo, hi, starts, ends, ptr, self.coords, self.sign, self.local)
         self.ptr = 2 * ptr
 
     def sweep(self, pose: int, weights: np.ndarray) -> tuple[float, float]:

@@ -80,7 +80,7 @@ def refine_focus(
     ends = PresortedIntervals(table.lo, table.hi, vis.pose_ptr)
     sweeps, updates = descend(
         vis.pose_ptr.astype(np.int64), vis.point.astype(np.int64), table.base, table.lo, table.hi,
-        float(table.w_focus), order, point_ptr, ends.ptr, ends.local.astype(np.int64), ends.sign, ends.coords,
+        float(table.w_focus), order, point_ptr, ends.ptr, ends.local, ends.sign, ends.coords,
         focus, sharp_pair, pair_cost, best, second, best_pair, sharp_views, extra, redundancy is not None,
         table.weight, max_sweeps, MIN_GAIN,
     )

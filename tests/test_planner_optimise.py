@@ -195,7 +195,7 @@ def test_redundancy_parameters_are_checked() -> None:
 def test_descent_loop_compiles_where_no_cache_directory_is_writable(monkeypatch) -> None:
     import numba
 
-    from planner import descent
+    from planner import jit
 
     asked: list[bool] = []
     real_njit = numba.njit
@@ -206,7 +206,7 @@ def test_descent_loop_compiles_where_no_cache_directory_is_writable(monkeypatch)
             raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
         return real_njit(**options)
 
-    monkeypatch.setattr(descent.numba, "njit", njit)
-    double = descent._jit(lambda x: 2 * x)
+    monkeypatch.setattr(jit.numba, "njit", njit)
+    double = jit.jit(lambda x: 2 * x)
     assert double(21) == 42
     assert asked == [True, False]

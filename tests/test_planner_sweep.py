@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner.interval_sweep import best_focus, best_focus_per_group, coverage, sweep
+from planner.interval_sweep import PresortedIntervals, best_focus, best_focus_per_group, coverage, sweep
 
 
 def brute_force(lo: np.ndarray, hi: np.ndarray, w: np.ndarray | None) -> float:
@@ -60,6 +60,45 @@ def test_grouped_sweep_matches_single_sweeps(cases) -> None:
         assert score[2 * i] == one_score
         assert s[2 * i] == pytest.approx(one_s)
         assert np.isnan(s[2 * i + 1]) and score[2 * i + 1] == 0
+
+
+@given(st.lists(intervals(weighted=False), min_size=1, max_size=5), st.lists(st.booleans(), min_size=5, max_size=5),
+       st.integers(0, 4))
+@settings(max_examples=150, deadline=None)  # the first example compiles the merge
+def test_presorted_ends_are_each_poses_stable_sort_of_its_starts_then_ends(cases, monotone, empty) -> None:
+    """Poses whose upper ends follow their lower ends' order (as a depth's interval does: the
+    merge without a second sort) and poses whose do not, ties and empty poses included."""
+    cases = [(lo, lo + 7.0 if monotone[i] else hi) for i, (lo, hi, _) in enumerate(cases)]
+    cases.insert(min(empty, len(cases)), (np.zeros(0), np.zeros(0)))
+    lo = np.concatenate([c[0] for c in cases])
+    hi = np.concatenate([c[1] for c in cases])
+    ptr = np.r_[0, np.cumsum([len(c[0]) for c in cases])]
+    ends = PresortedIntervals(lo, hi, ptr)
+    assert np.array_equal(ends.ptr, 2 * ptr)
+    for pose, (l, h) in enumerate(cases):
+        order = np.argsort(np.concatenate([l, h]), kind="stable")
+        seg = slice(ends.ptr[pose], ends.ptr[pose + 1])
+        assert np.array_equal(ends.coords[seg], np.concatenate([l, h])[order])
+        assert np.array_equal(ends.sign[seg], np.where(order < len(l), 1.0, -1.0))
+        assert np.array_equal(ends.local[seg], order % max(len(l), 1))
+
+
+def test_presorted_upper_ends_tied_out_of_pair_order_are_sorted_again() -> None:
+    """Equal upper ends stay in pair order even where the lower ends' order puts them the other way."""
+    ends = PresortedIntervals(np.array([2.0, 1.0]), np.array([5.0, 5.0]), np.array([0, 2]))
+    assert ends.local.tolist() == [1, 0, 0, 1] and ends.sign.tolist() == [1.0, 1.0, -1.0, -1.0]
+
+
+@given(intervals(weighted=True))
+@settings(max_examples=150, deadline=None)
+def test_presorted_sweep_matches_the_sweep_of_the_weighted_intervals(case) -> None:
+    lo, hi, w = case
+    if not (w > 0).any():
+        return
+    s, score = PresortedIntervals(lo, hi, np.array([0, len(lo)])).sweep(0, w)
+    keep = w > 0
+    assert score == pytest.approx(best_focus(lo[keep], hi[keep], w[keep])[1])
+    assert coverage(lo, hi, s, w) == pytest.approx(score)
 
 
 def test_touching_closed_intervals_overlap() -> None:
