@@ -59,14 +59,14 @@ def rig_groups(n_angles: int, n_cameras: int, size: int = 3) -> list[np.ndarray]
 def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray], *,
                 rounds: int = 2) -> GroupMoves:
     """Every group in turn (``rounds`` passes, stopping early when a pass takes no move)."""
+    from planner.own_samples import own_samples  # numba: only processes that plan load it
+
     vis = table.vis
     focus = np.asarray(focus_mm, dtype=float).copy()
     held = np.bincount(vis.point[table.pair_in_focus(focus)], minlength=vis.n_points)
-    row = np.full(vis.n_poses, -1, dtype=np.int64)
-    # Scratch for a group's samples (sorted, and each pair's place among them): marking a
-    # boolean array is several times faster than np.unique's sort for a group's few thousand.
-    marked = np.zeros(vis.n_points, dtype=bool)
-    place = np.zeros(vis.n_points, dtype=np.int64)
+    pose_ptr, point = vis.pose_ptr.astype(np.int64), vis.point.astype(np.int64)
+    count = np.zeros(vis.n_points, dtype=np.int64)  # the kernel's scratch
+    column = np.full(vis.n_points, -1, dtype=np.int64)
     gained, moves = 0.0, 0
     for _ in range(rounds):
         taken = 0
@@ -76,29 +76,14 @@ def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray]
         for members in groups:
             if not wanting[members].any():
                 continue
-            pairs = np.concatenate([np.arange(vis.pose_ptr[p], vis.pose_ptr[p + 1]) for p in members])
-            if not len(pairs):
+            members = np.asarray(members, dtype=np.int64)
+            own, lo, hi = own_samples(members, pose_ptr, point, table.lo, table.hi, focus, held, count, column)
+            if not len(own):
                 continue
-            marked[vis.point[pairs]] = True
-            points = np.flatnonzero(marked)
-            marked[points] = False
-            place[points] = np.arange(len(points))
-            local = place[vis.point[pairs]]
-            by_group = np.bincount(local[_sharp(table, pairs, focus)], minlength=len(points))
-            mine = held[points] == by_group  # no pose outside the group holds these
-            if not mine.any():
-                continue
-            weight = table.weight[points[mine]]
-            now = float(weight[held[points[mine]] > 0].sum())
+            weight = table.weight[own]
+            now = float(weight[held[own] > 0].sum())
             if now >= weight.sum() - MIN_GAIN:
                 continue  # the group holds all of its own skin already
-            column = np.cumsum(mine) - 1
-            own = mine[local]
-            row[members] = np.arange(len(members))
-            lo = np.full((len(members), len(weight)), np.nan)
-            hi = np.full((len(members), len(weight)), np.nan)
-            lo[row[vis.pose[pairs[own]]], column[local[own]]] = table.lo[pairs[own]]
-            hi[row[vis.pose[pairs[own]]], column[local[own]]] = table.hi[pairs[own]]
             sets = [coverage_sets(lo[i], hi[i]) for i in range(len(members))]
             if search_size(sets) > SEARCH_BUDGET:
                 continue
@@ -108,8 +93,10 @@ def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray]
             for i, pose in enumerate(members.tolist()):
                 chosen = sets[i][choice[i]]
                 if chosen.any():  # a pose that sees none of the group's own skin keeps its focus
+                    before = _sharp(table, pose, focus[pose])
                     focus[pose] = cell_focus(float(np.max(lo[i][chosen])), float(np.min(hi[i][chosen])))
-            held[points] += np.bincount(local[_sharp(table, pairs, focus)], minlength=len(points)) - by_group
+                    # a pose sees a sample once: its pairs' samples are distinct
+                    held[point[pose_ptr[pose]:pose_ptr[pose + 1]]] += _sharp(table, pose, focus[pose]) - before
             gained += best - now
             taken += 1
         moves += taken
@@ -118,6 +105,7 @@ def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray]
     return GroupMoves(focus, gained, moves)
 
 
-def _sharp(table: CostTable, pairs: np.ndarray, focus: np.ndarray) -> np.ndarray:
-    s = focus[table.vis.pose[pairs]]
-    return (table.lo[pairs] <= s) & (s <= table.hi[pairs])
+def _sharp(table: CostTable, pose: int, focus: float) -> np.ndarray:
+    """(pairs of ``pose``,) int: 1 where the pair is in focus at ``focus`` mm."""
+    pairs = slice(int(table.vis.pose_ptr[pose]), int(table.vis.pose_ptr[pose + 1]))
+    return ((table.lo[pairs] <= focus) & (focus <= table.hi[pairs])).astype(np.int64)
