@@ -27,6 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from cli.pages import numpy_page_advice
+
+    numpy_page_advice()
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

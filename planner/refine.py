@@ -94,11 +94,14 @@ def refine_focus(
 
 def warm_up(rig: Rig) -> None:
     """Compile the planner's loops (or load them from numba's cache) now rather than in the first
-    plan, where compiling takes seconds: EM's assignment and the descent, on one pose seeing one
-    point, with the redundancy term."""
+    plan, where compiling takes seconds: EM's assignment, the descent with the redundancy term
+    and the group moves, on one pose seeing one point (out of focus at first, so each runs)."""
+    from planner.group_moves import group_moves
+
     one = np.ones(1)
     vis = Visibility(1, 1, np.zeros(1, np.int32), np.zeros(1, np.int32), 500.0 * one, 0.0 * one, one,
                      np.array([0, 1], dtype=np.int64))
     table = cost_table(vis, rig.cost, rig.optics)
     expectation_minimisation(table, 500.0 * one)
     refine_focus(table, 500.0 * one, redundancy=Redundancy(1.0, 0.5))
+    group_moves(table, 2000.0 * one, [np.zeros(1, dtype=np.int64)])

@@ -7,9 +7,11 @@ import pkgutil
 import sys
 
 import tests.bench as package
+from cli.pages import numpy_page_advice
 
 
 def main(argv: list[str]) -> int:
+    numpy_page_advice()  # as the tbp command does; the benchmarks' own subprocesses inherit it
     names = sorted(m.name for m in pkgutil.iter_modules(package.__path__) if not m.name.startswith("_"))
     chosen = argv or names
     unknown = sorted(set(chosen) - set(names))
