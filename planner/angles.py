@@ -26,7 +26,6 @@ import structlog
 
 from planner.cost import CostTable, cost_table
 from planner.group_moves import group_moves, rig_groups
-from planner.interval_sweep import PresortedIntervals
 from planner.poses import Poses, rgb_poses
 from planner.redundancy import Redundancy, expected_misses, sharp_views
 from planner.refine import refine_focus
@@ -133,7 +132,7 @@ class _Search:
         r = redundancy
         views = int(np.diff(table.point_ptr).max(initial=0)) + 2
         self.extra = r.weight * (1.0 - r.miss_probability) * r.miss_probability ** np.arange(views)
-        self.ends = PresortedIntervals(table.lo, table.hi, table.vis.pose_ptr)
+        self.ends = table.ends
 
     def poses_of(self, candidate: int) -> np.ndarray:
         return candidate * self.n_cameras + np.arange(self.n_cameras)

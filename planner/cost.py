@@ -19,6 +19,7 @@ from functools import cached_property
 
 import numpy as np
 
+from planner.interval_sweep import PresortedIntervals
 from planner.optics import focus_interval
 from planner.rig import Cost, Optics
 from planner.visibility import Visibility, group_pointers
@@ -81,6 +82,12 @@ class CostTable:
     def seen(self) -> np.ndarray:
         """(N,) bool: points with at least one visible pair."""
         return np.diff(self.point_ptr) > 0
+
+    @cached_property
+    def ends(self) -> PresortedIntervals:
+        """Every pose's interval ends in sorted order, built once per table: the descents (plain and
+        robust) and the angle search sweep them with new weights."""
+        return PresortedIntervals(self.lo, self.hi, self.vis.pose_ptr)
 
     @cached_property
     def total_weight(self) -> float:

@@ -104,16 +104,21 @@ def _pair_changed(i, p, old, order, point_ptr, pair_cost, best, second, best_pai
 
 
 @jit
-def _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running):  # type: ignore[no-untyped-def]
+def _best_cell(c, gain, end_ptr, end, pose_ptr, lo, hi, running):  # type: ignore[no-untyped-def]
     """(s, score) of pose c's best cell under per-pair ``gain`` (the pose's pairs in order), as
     ``PresortedIntervals.sweep``: the first maximum of the running sum, widened over the cells
-    of equal score that follow it, at the diopter midpoint."""
+    of equal score that follow it, at the diopter midpoint. ``end``: the pose's sorted ends, a
+    lower end as its pair's index in the pose, an upper end as ~index."""
     e0, e1 = end_ptr[c], end_ptr[c + 1]
     total = 0.0
     top = -np.inf
     k = 0
     for j in range(e0, e1 - 1):  # the last end closes every interval: no cell starts there
-        total += gain[end_local[j]] * end_sign[j]
+        e = end[j]
+        if e >= 0:
+            total += gain[e]
+        else:
+            total -= gain[~e]
         running[j - e0] = total
         if total > top:
             top = total
@@ -123,7 +128,10 @@ def _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running):  # ty
     j = k
     while j < n and not running[j] < top - tolerance:
         j += 1
-    left, right = end_coord[e0 + k], end_coord[e0 + j]
+    a = pose_ptr[c]
+    e, f = end[e0 + k], end[e0 + j]
+    left = lo[a + e] if e >= 0 else hi[a + ~e]
+    right = lo[a + f] if f >= 0 else hi[a + ~f]
     if np.isinf(right):
         return 2.0 * left, top
     s = 2.0 * left * right / (left + right) if left + right > 0 else left
@@ -132,7 +140,7 @@ def _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running):  # ty
 
 @jit
 def descend(pose_ptr, point, base, lo, hi, w_focus, order, point_ptr,  # type: ignore[no-untyped-def]
-            end_ptr, end_local, end_sign, end_coord, focus, sharp_pair, pair_cost,
+            end_ptr, end, focus, sharp_pair, pair_cost,
             best, second, best_pair, sharp_views, extra, redundancy, weight, max_sweeps, min_gain):
     """Visit every pose one of whose points changed since its last look, in pose order, pass
     after pass, moving its focus to the exact best cell when K (plus the redundancy term) drops by
@@ -184,7 +192,7 @@ def descend(pose_ptr, point, base, lo, hi, w_focus, order, point_ptr,  # type: i
                     current += g
             if not possible - current > min_gain:
                 continue  # everything this pose could gain is already in focus
-            s, score = _best_cell(c, gain, end_ptr, end_local, end_sign, end_coord, running)
+            s, score = _best_cell(c, gain, end_ptr, end, pose_ptr, lo, hi, running)
             if score <= current + min_gain:
                 continue
             focus[c] = s

@@ -24,7 +24,6 @@ import structlog
 
 from planner.cost import INVISIBLE_COST, CostTable, cost_table
 from planner.em import expectation_minimisation
-from planner.interval_sweep import PresortedIntervals
 from planner.redundancy import Redundancy, expected_misses
 from planner.rig import Rig
 from planner.visibility import Visibility
@@ -77,10 +76,10 @@ def refine_focus(
         extra = redundancy.weight * (1.0 - redundancy.miss_probability) * (
             redundancy.miss_probability ** np.arange(int(np.diff(table.point_ptr).max(initial=0)) + 2)
         )
-    ends = PresortedIntervals(table.lo, table.hi, vis.pose_ptr)
+    ends = table.ends
     sweeps, updates = descend(
         vis.pose_ptr.astype(np.int64), vis.point.astype(np.int64), table.base, table.lo, table.hi,
-        float(table.w_focus), order, point_ptr, ends.ptr, ends.local, ends.sign, ends.coords,
+        float(table.w_focus), order, point_ptr, ends.ptr, ends.end,
         focus, sharp_pair, pair_cost, best, second, best_pair, sharp_views, extra, redundancy is not None,
         table.weight, max_sweeps, MIN_GAIN,
     )

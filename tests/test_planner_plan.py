@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -10,8 +11,9 @@ import pytest
 import trimesh
 
 from cli import main as tbp
+from planner import plan as plan_module
 from planner.focus_errors import BadFocusPlan, EmptyMesh, MeshLoadError, NothingVisible
-from planner.plan import METHODS, evaluate, load_subject_mesh, plan_focus
+from planner.plan import METHODS, evaluate, load_subject_mesh, plan_focus, spare_core
 from planner.poses import rgb_poses
 from planner.rig import load_rig
 from tests.planner_standin import standin_body
@@ -79,6 +81,43 @@ def test_plan_on_given_methods_only(body) -> None:
     assert set(only.methods) == {"closest"}
     with pytest.raises(ValueError, match="unknown focus method 'magic'"):
         plan_focus(body, RIG, points=500, methods=("magic",))
+
+
+def test_sorting_the_ends_beside_em_changes_no_plan(body, monkeypatch) -> None:
+    """The presort runs on a second thread while EM runs when a core is spare; the plans are the
+    same either way, and the thread is used when allowed (the table's ends come from it)."""
+    methods = ("em", "shape-aware", "robust")
+    monkeypatch.setattr(plan_module, "spare_core", lambda: False)
+    alone = plan_focus(body, RIG, points=800, seed=2, methods=methods)
+    monkeypatch.setattr(plan_module, "spare_core", lambda: True)
+    threads: list[str] = []
+    real = plan_module.CostTable.ends.func
+
+    def ends(table):
+        import threading
+
+        threads.append(threading.current_thread().name)
+        return real(table)
+
+    monkeypatch.setattr(plan_module.CostTable, "ends", functools.cached_property(ends))
+    plan_module.CostTable.ends.__set_name__(plan_module.CostTable, "ends")
+    beside = plan_focus(body, RIG, points=800, seed=2, methods=methods)
+    assert threads and threads[0].startswith("presort")
+    for name in methods:
+        assert np.array_equal(alone.methods[name].focus_mm, beside.methods[name].focus_mm)
+
+
+@pytest.mark.parametrize(("variable", "cores", "spare"), [
+    (None, {0, 1}, True), ("1", {0, 1}, False), ("3", {0, 1, 2, 3}, True), ("4", {0}, False),
+    ("2,1", {0, 1}, True), ("many", {0, 1}, True),
+])
+def test_a_spare_core_needs_two_cores_and_openmp_allowing_two(monkeypatch, variable, cores, spare) -> None:
+    monkeypatch.setattr(plan_module.os, "sched_getaffinity", lambda pid: cores)
+    if variable is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", variable)
+    assert spare_core() is spare
 
 
 def test_empty_mesh_is_refused() -> None:
