@@ -1,11 +1,18 @@
 """NumPy's huge-page advice: off in this program's processes unless the environment asks for it.
 
-NumPy asks the kernel for transparent huge pages on every large array. A 100,000-sample plan
-allocates about 900 MB of transient arrays; on the development machine (a virtual machine) each
-fresh 2 MB page took 2.5 ms to fault in, 1.1 s of kernel time a plan, where 4 kB pages the
-process had freed before are handed back at once: the plan took 3.9 s instead of 4.6 s
-(``./dev bench planner``). ``NUMPY_MADVISE_HUGEPAGE=1`` in the service's environment turns the
-advice back on for a machine where huge pages pay.
+NumPy asks the kernel for transparent huge pages on every large array; with the kernel's usual
+``defrag=madvise`` a fault on such an array waits while the kernel compacts memory for a whole
+2 MB page, and the rig PC fills its memory with the page cache of the images it writes. The plan
+sits between the depth sweep and the capture, with the patient standing: it should not wait for
+that. Without the advice the kernel still gives huge pages where they are free (``enabled=always``)
+but never stalls for one.
+
+Measured on the development machine (a virtual machine, ``enabled=madvise``), 100,000-sample
+plans in one process: the first two 4.0-4.9 s without the advice, 5.0-5.8 s with it (each fresh
+2 MB page took 2.5 ms to fault in: 1.1 s of kernel time a plan); later plans 3.5-4.4 s without,
+3.4-4.4 s with (``./dev bench planner``, median of three: 3.90 s without, 4.58 s with).
+``NUMPY_MADVISE_HUGEPAGE=1`` (NumPy's own variable) in the service's environment turns the advice
+back on.
 """
 
 from __future__ import annotations

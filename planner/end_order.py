@@ -37,8 +37,7 @@ def merge_ends(lo, hi, starts, ends, ptr, end):  # type: ignore[no-untyped-def]
     """Fill ``end`` (2M,) with every pose's 2n ends, pose by pose: a lower end as its pair's index
     within the pose, an upper end as ~index. ``starts``, ``ends``: (M,) the stable orders of each
     pose's ``lo`` and ``hi`` (pose-local indices, grouped by ``ptr`` (P + 1,)). The caller
-    allocates ``end``: NumPy asks the kernel for huge pages on large arrays where it may, numba
-    never does, and filling 160 MB of fresh 4 kB pages took six times as long here."""
+    allocates ``end``, so NumPy's allocator and its page advice (``cli/pages.py``) apply to it."""
     for c in range(len(ptr) - 1):
         a, b = ptr[c], ptr[c + 1]
         i = a
