@@ -4,7 +4,7 @@ samples and their focus intervals.
 A group's own samples are those seen by one of its poses that no pose outside the group holds
 sharp. At 100,000 samples a group's poses see 30,000 pairs, and finding the few hundred own
 samples among them with NumPy (gathers, a mark array, bincounts over every pair) took 0.8 s of
-the plan over the 1,100 groups visited; here it is two passes over the group's pairs.
+the plan over the 1,100 groups visited; here it is a few passes over the group's pairs (0.2 s).
 """
 
 from __future__ import annotations
