@@ -64,7 +64,8 @@ def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray]
     vis = table.vis
     focus = np.asarray(focus_mm, dtype=float).copy()
     held = np.bincount(vis.point[table.pair_in_focus(focus)], minlength=vis.n_points)
-    pose_ptr, point = vis.pose_ptr.astype(np.int64), vis.point.astype(np.int64)
+    pose_ptr, point = vis.pose_ptr, vis.point  # the kernel takes them as they are, no copies
+    groups = [np.asarray(members, dtype=np.int64) for members in groups]
     count = np.zeros(vis.n_points, dtype=np.int64)  # the kernel's scratch
     column = np.full(vis.n_points, -1, dtype=np.int64)
     gained, moves = 0.0, 0
@@ -76,7 +77,6 @@ def group_moves(table: CostTable, focus_mm: np.ndarray, groups: list[np.ndarray]
         for members in groups:
             if not wanting[members].any():
                 continue
-            members = np.asarray(members, dtype=np.int64)
             own, lo, hi = own_samples(members, pose_ptr, point, table.lo, table.hi, focus, held, count, column)
             if not len(own):
                 continue
