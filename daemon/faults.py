@@ -27,6 +27,8 @@ class FaultSource(enum.Enum):
     """A drive command failed (start-up, a scan step, the controlled stop of an abort)."""
     ENCODER_STALLED = "encoder_stalled"
     """No encoder sample while the beam was expected to move."""
+    HOST_STALLED = "host_stalled"
+    """The daemon's event loop stood still too long: the drive guard quick-stopped the beam."""
     SHUTDOWN = "shutdown"
     """A shutdown handler (quick stop, fault light) failed during a trip."""
     SCAN_FAILED = "scan_failed"

@@ -15,6 +15,7 @@ from typing import Any
 import structlog
 
 from daemon.errors import FaultLatched
+from drivers.motor.errors import HostStalled
 from daemon.faults import FaultCause, FaultSource
 from daemon.states import ScanState, ScanStateMachine
 
@@ -121,7 +122,6 @@ class SafetyMonitor:
             self._watch = None
 
     async def _watch_drive(self) -> None:
-        loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(self.POLL_S)
             if self.latched:
@@ -129,11 +129,14 @@ class SafetyMonitor:
             device = self.drive.name
             fault = self.drive.fault
             if fault is not None:
-                await self.trip(FaultCause.of_error(FaultSource.DRIVE_FAULT, device, fault))
+                source = FaultSource.HOST_STALLED if isinstance(fault, HostStalled) else FaultSource.DRIVE_FAULT
+                await self.trip(FaultCause.of_error(source, device, fault))
                 continue
             latest = self.drive.latest
             if self.expect_samples and latest is not None:
-                age = loop.time() - latest.time_s
+                # Stamped where the frame was received (the drive guard's thread on a real bus),
+                # so a loop that falls behind does not make a live encoder look stalled.
+                age = self.drive.sample_age_s()
                 if age > self.STALE_SAMPLE_S:
                     await self.trip(FaultCause(
                         FaultSource.ENCODER_STALLED, device,

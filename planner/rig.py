@@ -363,6 +363,8 @@ class Motor:
     heartbeat_timeout_ms: int
     following_error_deg: float
     position_rate_hz: float
+    host_stall_ms: int = 500
+    """The host's event loop not running for this long quick-stops the beam (drivers/motor/guard.py)."""
 
     @property
     def counts_per_degree(self) -> float:
@@ -531,6 +533,7 @@ _MOTOR = {
     "heartbeat_timeout_ms": _int(20, 60_000),
     "following_error_deg": _num(0.01, 90.0),
     "position_rate_hz": _num(1.0, 10_000.0),
+    "host_stall_ms": _int(100, 5_000, default=500, required=False),
 }
 _CALIBRATION = {
     "file": _str(required=False, default="calibration.yaml"),

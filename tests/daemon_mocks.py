@@ -8,6 +8,7 @@ tests use the protocol-level simulators instead.
 from __future__ import annotations
 
 import asyncio
+import math
 import threading
 from collections.abc import AsyncIterator, Iterator
 from contextlib import contextmanager
@@ -79,6 +80,12 @@ class MockDrive:
 
     async def quick_stop(self) -> None:
         await self.stop(self.max_accel)
+
+    def sample_age_s(self) -> float:
+        return math.inf if self.latest is None else self._now() - self.latest.time_s
+
+    def heartbeat_age_s(self) -> float:
+        return 0.0 if self._task is not None and not self._task.done() else math.inf
 
     async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
         self.calls.append(("move_to", (angle_deg, speed_deg_s, acceleration_deg_s2)))

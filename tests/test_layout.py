@@ -48,6 +48,7 @@ CLOCK_OWNERS = {
     "sim/clock.py",  # the virtual-time loop paces itself against the real clock
     "sim/loopback.py",  # the loopback rig waits for real processes in real time
     "daemon/utc.py",  # calendar time for the records a scan folder keeps
+    "drivers/motor/guard.py",  # the drive guard keeps real time apart from the event loop's
 }
 
 

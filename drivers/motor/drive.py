@@ -2,13 +2,16 @@
 
 One reader task dispatches every frame from the drive (SDO replies, TPDOs, EMCY, heartbeat);
 every wait (state transitions, set-point acknowledge, target reached) waits on the statusword
-TPDO, never polls. Faults (EMCY, statusword FAULT, lost heartbeat, a dead bus) are latched in
-:attr:`BeamDrive.fault` until :meth:`BeamDrive.reset_fault` and raised by every waiting call.
+TPDO, never polls. Faults (EMCY, statusword FAULT, lost heartbeat, a stalled host, a dead bus) are
+latched in :attr:`BeamDrive.fault` until :meth:`BeamDrive.reset_fault` and raised by every waiting
+call.
 
 Bring-up configures the drive so that it streams, by event timer at ``position_rate_hz``:
 TPDO1 = position actual (0x6064, i32) + velocity actual (0x606C, i32) - one :class:`BeamSample`
-per frame - and TPDO2 = statusword (0x6041, u16). Heartbeats run both ways, so a drive whose
-host died stops by itself and a host whose drive went silent quick-stops and latches.
+per frame - and TPDO2 = statusword (0x6041, u16) - and takes the controlword on RPDO1, the quick stop
+that needs no SDO. The host heartbeat, the watch on the drive's heartbeat and the quick stop on
+either going silent belong to the drive guard (drivers/motor/guard.py), which runs apart from the
+event loop's timing on a real bus; a drive whose host died stops by itself (0x6007).
 """
 
 from __future__ import annotations
@@ -34,12 +37,23 @@ from drivers.motor.errors import (
     FollowingError,
     FrameError,
     HeartbeatLost,
+    HostStalled,
     MotionInterrupted,
     MotionLimitError,
     NmtStateLost,
     NmtTimeout,
     SdoAbort,
     StateTransitionTimeout,
+)
+from drivers.motor.guard import (
+    DriveGuard,
+    GuardTiming,
+    GuardTrip,
+    GuardTripKind,
+    LoopGuard,
+    RealtimePort,
+    ThreadedGuard,
+    quick_stop_message,
 )
 from drivers.motor.port import CanPort
 from drivers.motor.samples import BeamSample, SampleStream
@@ -108,6 +122,8 @@ class BeamDrive:
         self.fault: DriveError | None = None
         self.last_heartbeat_s: float | None = None
         self.samples_received = 0
+        self.guard: DriveGuard | None = None
+        self.guard_timing = GuardTiming.of(config)
         self.sdo = SdoClient(self._send, self.node_id, device=name, state=lambda: self.state.value)
         self.sdo.RESPONSE_TIMEOUT_S = self.SDO_TIMEOUT_S
         self._speed_counts = 0
@@ -121,6 +137,7 @@ class BeamDrive:
         self._tasks: list[asyncio.Task[None]] = []
         self._connected = False
         self._closed = False
+        self._halted = False  # a quick stop was commanded: nothing re-enables motion but enable()
 
     # ------------------------------------------------------------------ public API
 
@@ -148,12 +165,11 @@ class BeamDrive:
                 f"no boot-up within {self.BOOT_TIMEOUT_S:g} s of NMT reset communication",
             ) from None
         await self._configure()
-        self._start(self._produce_heartbeat(), "heartbeat")
+        self._start_guard()
         self._connected = True
         # nmt_state follows the drive's own heartbeat: one sent before it got the START must
         # not read as the drive leaving OPERATIONAL.
         await self._nmt(nmt.NmtCommand.START)
-        self._start(self._watch_heartbeat(), "watchdog")
         await self._until(
             lambda: self.latest is not None,
             self.FIRST_SAMPLE_TIMEOUT_S,
@@ -171,8 +187,9 @@ class BeamDrive:
         )
 
     async def enable(self) -> None:
-        """Walk the CiA 402 state machine to OPERATION ENABLED."""
+        """Walk the CiA 402 state machine to OPERATION ENABLED (the one way out of a quick stop)."""
         self._check_ready()
+        self._halted = False
         if self.state is not Cia402State.OPERATION_ENABLED:
             # A profile-velocity target left from before a quick stop must not restart the beam.
             await self.sdo.write(cia402.TARGET_VELOCITY, 0, "<i", 0)
@@ -335,9 +352,16 @@ class BeamDrive:
 
     async def quick_stop(self) -> None:
         """CiA 402 quick stop: the drive brakes on its quick-stop ramp; returns at standstill.
-        With a latched fault the command is sent and the drive's own fault reaction brakes."""
+
+        The controlword goes out at once as RPDO1 (ahead of every queued frame on a real bus, no SDO
+        lock to wait for), and also by SDO when the drive is not OPERATIONAL (it ignores PDOs then).
+        From here on nothing re-enables motion but :meth:`enable`. With a latched fault the command
+        is sent and the drive's own fault reaction brakes."""
         self._new_command("quick stop")
-        await self._write_controlword(cia402.QUICK_STOP)
+        self._halted = True
+        await self._send_quick_stop()
+        if self.nmt_state is not nmt.NmtState.OPERATIONAL:
+            await self._write_controlword(cia402.QUICK_STOP)
         if self.fault is not None or self.state not in (
             Cia402State.OPERATION_ENABLED,
             Cia402State.QUICK_STOP_ACTIVE,
@@ -355,6 +379,14 @@ class BeamDrive:
             self._transition_timeout("standstill after quick stop", cia402.QUICK_STOP),
         )
         log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
+
+    def heartbeat_age_s(self) -> float:
+        """Seconds since the drive's last heartbeat, stamped where it was received (inf: not watched)."""
+        return math.inf if self.guard is None else self.guard.heartbeat_age_s()
+
+    def sample_age_s(self) -> float:
+        """Seconds since the drive's last position sample, stamped where it was received (inf: none)."""
+        return math.inf if self.guard is None else self.guard.sample_age_s()
 
     async def identity(self) -> DriveIdentity:
         """The drive's device type (0x1000) and identity object (0x1018); CiA 301 makes only the
@@ -383,6 +415,10 @@ class BeamDrive:
         timeout_s = self.config.heartbeat_timeout_ms / 1000
         if silent > timeout_s:
             raise HeartbeatLost(self.name, self.state.value, silent, timeout_s)
+        if self.guard is not None and self.guard.logic.trip is not None:
+            # The host heartbeat resumes; the drive's consumer sees it before the fault reset.
+            self.guard.rearm()
+            await asyncio.sleep(2 * self.guard_timing.heartbeat_period_s)
         if isinstance(self.fault, DriveRebooted):
             # The reboot wiped the communication set-up (and any zero set by homing).
             await self._configure()
@@ -407,12 +443,15 @@ class BeamDrive:
         self._wake()
 
     async def close(self) -> None:
-        """Leave the drive disabled and unwatched, stop the heartbeat and the reader, end every
-        sample stream, close the port (idempotent).
+        """Leave the drive still and unwatched, stop the guard and the reader, end every sample
+        stream, close the port (idempotent).
 
-        An orderly goodbye: voltage off, then the drive's heartbeat consumer off, so the drive does
-        not fault over the host's silence. A host that dies instead leaves the consumer on and
-        the drive stops and faults by itself. An error of the goodbye is raised after cleanup.
+        An orderly goodbye only for a beam that stands: voltage off, then the drive's heartbeat
+        consumer off, so the drive does not fault over the host's silence. A beam still turning
+        gets a quick stop first; one that cannot be seen to stand (no samples, a dead link) keeps
+        the consumer on, so when the host heartbeat stops the drive stops itself (0x6007). A host
+        that dies instead leaves the consumer on too. An error of the goodbye is raised after
+        cleanup.
         """
         if self._closed:
             return
@@ -421,12 +460,19 @@ class BeamDrive:
         was_connected = self._connected
         if self._connected and receiving and not isinstance(self.fault, (HeartbeatLost, CanBusError)):
             try:
-                await self._write_controlword(cia402.DISABLE_VOLTAGE)
-                await self.sdo.write(cia402.HEARTBEAT_CONSUMER, 1, "<I", 0)
+                if await self._brought_to_standstill():
+                    await self._write_controlword(cia402.DISABLE_VOLTAGE)
+                    await self.sdo.write(cia402.HEARTBEAT_CONSUMER, 1, "<I", 0)
+                else:
+                    log.warning("drive_left_to_stop_itself", drive=self.name,
+                                speed_deg_s=self.latest.speed_deg_s if self.latest else None,
+                                sample_age_s=round(self.sample_age_s(), 3))
             except DriveError as exc:
                 goodbye_error = exc
         self._closed = True
         self._connected = False
+        if self.guard is not None:
+            await self.guard.stop()
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -440,6 +486,26 @@ class BeamDrive:
             "drive_closed", drive=self.name, goodbye_error=str(goodbye_error) if goodbye_error else None)
         if goodbye_error is not None:
             raise goodbye_error
+
+    STANDING_SAMPLE_AGE_S = 0.2
+    """A beam is seen to stand only on a sample this fresh."""
+
+    async def _brought_to_standstill(self) -> bool:
+        """Quick-stop a beam that still turns and wait for it to stand; True when it is seen standing."""
+        if self._standing() and self.sample_age_s() <= self.STANDING_SAMPLE_AGE_S:
+            return True
+        speed = abs(self.latest.speed_deg_s) if self.latest else 0.0
+        self._new_command("quick stop before closing")
+        self._halted = True
+        await self._send_quick_stop()
+        try:
+            await self._until(lambda: self.latest is not None and self.latest.speed_deg_s == 0,
+                              speed / self.config.max_acceleration_deg_s2 + self.MOTION_MARGIN_S,
+                              self._transition_timeout("standstill before closing", cia402.QUICK_STOP),
+                              raise_fault=False)
+        except StateTransitionTimeout:
+            return False
+        return self.sample_age_s() <= self.STANDING_SAMPLE_AGE_S
 
     def samples(self) -> AsyncIterator[BeamSample]:
         """A live stream of position samples from now on; each call its own queue."""
@@ -562,8 +628,21 @@ class BeamDrive:
             )
 
     async def _write_controlword(self, word: int) -> None:
+        if self._halted and word & cia402.ENABLE_OPERATION == cia402.ENABLE_OPERATION:
+            # A step that was under way when the quick stop came must not start the beam again.
+            raise MotionInterrupted(self.name, self.state.value,
+                                    f"controlword 0x{word:04X} refused: a quick stop holds until enable()")
         await self.sdo.write(cia402.CONTROLWORD, 0, "<H", word)
         self._controlword = word
+
+    async def _send_quick_stop(self) -> None:
+        """The quick stop as one RPDO frame: on a real bus through the port's urgent lane."""
+        msg = quick_stop_message(self.node_id)
+        if isinstance(self.port, RealtimePort):
+            self.port.send_urgent(msg)
+        else:
+            await self.port.send(msg)
+        self._controlword = cia402.QUICK_STOP
 
     async def _set_mode(self, mode: Mode) -> None:
         if self._mode is not mode:
@@ -619,6 +698,8 @@ class BeamDrive:
 
     def _dispatch(self, cob_id: int, data: bytes) -> None:
         n = self.node_id
+        if isinstance(self.guard, LoopGuard):
+            self.guard.observe(cob_id, asyncio.get_running_loop().time())
         try:
             if cob_id == nmt.sdo_response_cob_id(n):
                 self.sdo.on_frame(data)
@@ -706,35 +787,33 @@ class BeamDrive:
             self.nmt_state = state
         self._wake()
 
-    # ------------------------------------------------------------------ heartbeats
+    # ------------------------------------------------------------------ the guard
 
-    async def _produce_heartbeat(self) -> None:
-        period_s = self.config.host_heartbeat_ms / 1000
-        frame = nmt.heartbeat_frame(nmt.NmtState.OPERATIONAL)
-        while True:
-            try:
-                await self._send(nmt.heartbeat_cob_id(self.host_node_id), frame)
-            except CanBusError as exc:
-                self._latch(exc)
-                return
-            await asyncio.sleep(period_s)
+    def _start_guard(self) -> None:
+        """The host heartbeat and the watch on the drive's, on the guard's thread on a real bus
+        (a task of the loop on an in-process one), fed by a task of the loop."""
+        timing = self.guard_timing
+        if isinstance(self.port, RealtimePort):
+            self.guard = ThreadedGuard(self.port, self.node_id, self.host_node_id, timing, self._guard_tripped,
+                                       loop=asyncio.get_running_loop(), name=self.name)
+        else:
+            self.guard = LoopGuard(self.port.send, self.node_id, self.host_node_id, timing, self._guard_tripped,
+                                   name=self.name)
+        self._start(self._feed_guard(), "guard-feed")
 
-    async def _watch_heartbeat(self) -> None:
-        loop = asyncio.get_running_loop()
-        timeout_s = self.config.heartbeat_timeout_ms / 1000
-        if self.last_heartbeat_s is None:
-            self.last_heartbeat_s = loop.time()
+    async def _feed_guard(self) -> None:
+        """The dead man's switch: the guard hears from the loop only while this task runs on time."""
+        assert self.guard is not None
+        period = self.guard_timing.feed_period_s
         while True:
-            silent = loop.time() - self.last_heartbeat_s
-            if silent <= timeout_s:
-                await asyncio.sleep(timeout_s - silent + 1e-6)
-                continue
-            lost = HeartbeatLost(self.name, self.state.value, silent, timeout_s)
-            self._latch(lost)
-            try:
-                await self._write_controlword(cia402.QUICK_STOP)
-            except DriveError as exc:
-                lost.add_note(f"quick stop after heartbeat loss failed: {exc}")
-            seen = self.last_heartbeat_s
-            while self.last_heartbeat_s == seen:
-                await self._update.wait()
+            self.guard.feed()
+            await asyncio.sleep(period)
+
+    def _guard_tripped(self, trip: GuardTrip) -> None:
+        """On the loop: the guard sent the quick stop; latch why (every waiting call raises it)."""
+        self._halted = True
+        self._controlword = cia402.QUICK_STOP
+        if trip.kind is GuardTripKind.DRIVE_SILENT:
+            self._latch(HeartbeatLost(self.name, self.state.value, trip.silent_s, trip.limit_s))
+        else:
+            self._latch(HostStalled(self.name, self.state.value, trip.silent_s, trip.limit_s))

@@ -96,6 +96,17 @@ class HeartbeatLost(DriveError):
         super().__init__(device, state, f"no heartbeat for {silent_s:.3f} s (consumer time {timeout_s:g} s)")
 
 
+class HostStalled(DriveError):
+    """The host's event loop did not run for longer than the rig allows: the drive guard quick-stopped
+    the beam and stopped the host heartbeat (drivers/motor/guard.py)."""
+
+    def __init__(self, device: str, state: str, stalled_s: float, limit_s: float) -> None:
+        self.stalled_s = stalled_s
+        self.limit_s = limit_s
+        super().__init__(device, state, f"the host's event loop did not run for {stalled_s:.3f} s "
+                                        f"(limit {limit_s:g} s): quick stop sent, host heartbeat stopped")
+
+
 class DriveRebooted(DriveError):
     """The drive sent a boot-up message while connected: it reset and lost its configuration."""
 
