@@ -116,6 +116,11 @@ class BeamTracker:
             self._task = asyncio.create_task(self._follow(), name=f"{self.name}-tracker")
             await asyncio.sleep(0)
 
+    @property
+    def following(self) -> bool:
+        """The encoder stream is being followed."""
+        return self._task is not None and not self._task.done()
+
     async def stop(self) -> None:
         if self._task is not None:
             self._task.cancel()

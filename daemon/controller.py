@@ -104,19 +104,47 @@ class RigController:
         if self.hw.panel is not None:
             await self.hw.panel.set_status(_led("FAULT" if self.safety.latched else "IDLE"))
 
+    JOB_STOP_TIMEOUT_S = 15.0
+    """Longest wait for an aborted job to close its folder at shutdown (systemd waits 30 s in all)."""
+
     async def close(self) -> list[str]:
-        """Stop the beam, stop watching, close every device; returns close failures."""
-        if self.scan_task is not None and not self.scan_task.done():
-            self.abort(AbortCause(AbortSource.DAEMON_STOPPING, "daemon", "stopping"))
-            await asyncio.gather(self.scan_task, return_exceptions=True)
-        await self.safety.stop()
+        """Stop the job, bring the beam to a standstill with the safety watch still on, then close
+        every device; returns what failed. The beam is never left turning without a stop command:
+        a controlled stop when the drive is healthy, the quick stop otherwise (sent even with a
+        fault latched), and a drive that cannot be seen to stand keeps its heartbeat consumer on,
+        so it stops itself when the host heartbeat ends."""
         failures: list[str] = []
-        try:
-            await self.hw.drive.stop(self.STOP_DECELERATION_DEG_S2)
-        except Exception as exc:  # reported; the drive is closed next anyway
-            failures.append(f"beam stop: {type(exc).__name__}: {exc}")
+        task = self.scan_task
+        if task is not None and not task.done():
+            self.abort(AbortCause(AbortSource.DAEMON_STOPPING, "daemon", "stopping"))
+            done, _ = await asyncio.wait({task}, timeout=self.JOB_STOP_TIMEOUT_S)
+            if not done:
+                failures.append(f"job: not closed within {self.JOB_STOP_TIMEOUT_S:g} s of the abort")
+                task.cancel()
+        failures += await self._halt_beam()
+        await self.safety.stop()
         await self.tracker.stop()
         return failures + await self.hw.close()
+
+    async def _halt_beam(self) -> list[str]:
+        """The beam at a standstill before anything closes: a controlled stop, or the quick stop."""
+        drive = self.hw.drive
+        if drive.closed or drive.latest is None:
+            return []
+        try:
+            async with asyncio.timeout(self.STANDSTILL_TIMEOUT_S):
+                if drive.fault is None and not self.safety.latched:
+                    await drive.stop(self.STOP_DECELERATION_DEG_S2)
+                else:
+                    await drive.quick_stop()
+            return []
+        except Exception as exc:  # the quick stop next; the drive's own consumer is the last resort
+            failure = f"beam stop: {type(exc).__name__}: {exc}"
+        try:
+            await drive.quick_stop()
+        except Exception as exc:  # reported; drive.close() leaves the consumer on if it still turns
+            failure += f"; quick stop: {type(exc).__name__}: {exc}"
+        return [failure]
 
     # ------------------------------------------------------------------ scans
 

@@ -84,6 +84,8 @@ class LoopLagMonitor:
         self.period_s = period_s
         self.warn_s = warn_s
         self.last_s = 0.0
+        self.worst_since_s = 0.0
+        """The worst lag since :meth:`take_worst` last ran (the watchdog's view between two pings)."""
         self.by_state: dict[str, StateLag] = {}
         self._current: str | None = None
         self._gc_started = 0.0
@@ -117,9 +119,15 @@ class LoopLagMonitor:
                 log.info("loop_lag_summary", lag_state=self._current, **self.by_state[self._current].summary())
             self._current = state
         self.last_s = lag_s
+        self.worst_since_s = max(self.worst_since_s, lag_s)
         self.by_state.setdefault(state, StateLag()).add(lag_s)
         if lag_s > self.warn_s:
             log.warning("loop_lag", lag_state=state, lag_ms=round(lag_s * 1000, 1))
+
+    def take_worst(self) -> float:
+        """The worst lag since the last call (s); starts the next interval."""
+        worst, self.worst_since_s = self.worst_since_s, 0.0
+        return worst
 
     def summary(self) -> dict[str, dict[str, float | int]]:
         return {state: lag.summary() for state, lag in self.by_state.items()}

@@ -58,6 +58,11 @@ class SafetyMonitor:
         self._listeners.append(listener)
 
     @property
+    def watching(self) -> bool:
+        """The drive watch runs (False before the drive first came up, or once it ended)."""
+        return self._watch is not None and not self._watch.done()
+
+    @property
     def latched(self) -> bool:
         return self.tripped.is_set()
 

@@ -3,7 +3,9 @@
 Start-up closes any scan folder a killed daemon left in progress (marked incomplete, reported
 in the status), connects the drivers and makes sure the beam stands still before telling
 systemd READY. The watchdog is pinged only while the event loop runs on time and the drive
-answers; panel buttons and control requests go through the same controller as ``tbp scan``.
+answers, every safety task and driver thread runs and the loop never ran late beyond a bound
+since the last ping; panel buttons and control requests go through the same controller as
+``tbp scan``.
 """
 
 from __future__ import annotations
@@ -85,7 +87,7 @@ class RigService:
             await server.start()
         self._tasks += [
             asyncio.create_task(self.lag.run(), name="loop-lag"),
-            asyncio.create_task(run_watchdog(self.notifier, self.healthy), name="watchdog"),
+            asyncio.create_task(run_watchdog(self.notifier, self._watchdog_check), name="watchdog"),
             asyncio.create_task(self._mirror_status(), name="notify-status"),
             asyncio.create_task(ctl.bringup.run(self._readiness_changed), name="reprobe"),
         ]
@@ -153,20 +155,47 @@ class RigService:
 
     # ------------------------------------------------------------------ health
 
-    def healthy(self) -> bool:
-        """The daemon itself works: the loop runs on time, no scan state is left without its
-        scan, and the re-probe of missing devices still runs.
+    MAX_LAG_S = 1.0
+    """The loop is wedged when it ran this late at any moment between two watchdog pings (twice the
+    stall after which the drive guard already stops the beam)."""
+    TASKS = ("loop-lag", "reprobe", "notify-status")
+
+    def health(self, worst_lag_s: float | None = None) -> list[str]:
+        """What keeps the daemon from doing its work (empty: healthy): the loop ran late beyond
+        MAX_LAG_S, a task of its own or of a driver's safety machinery ended, a scan state is left
+        without its scan, or a connected drive is not being heard while healthy.
 
         A missing or silent device is not ill health: restarting the daemon would not bring a
-        phone back, it would only lose the status the operator reads. A drive whose heartbeat
-        stops latches FAULT (the safety monitor), a missing device keeps the rig NOT READY and
-        is re-probed; the watchdog is for a wedged daemon."""
-        if self.lag.last_s > self.MAX_LAG_S:
-            return False
-        if self.controller.machine.state in SCAN_STATES and not self.controller.busy:
-            return False  # a scan state nobody will leave: the watchdog restarts the daemon
-        reprobe = next((t for t in self._tasks if t.get_name() == "reprobe"), None)
-        return reprobe is None or not reprobe.done()
+        phone back, it would only lose the status the operator reads. A drive that goes silent
+        latches FAULT (the drive guard), a missing device keeps the rig NOT READY and is
+        re-probed; the watchdog is for a wedged daemon."""
+        ctl = self.controller
+        worst = self.lag.worst_since_s if worst_lag_s is None else worst_lag_s
+        problems = []
+        if worst > self.MAX_LAG_S:
+            problems.append(f"event loop ran {worst:.3f} s late (limit {self.MAX_LAG_S:g} s)")
+        if ctl.machine.state in SCAN_STATES and not ctl.busy:
+            problems.append(f"state {ctl.machine.state.value} without a running job")
+        running = {t.get_name() for t in self._tasks if not t.done()}
+        problems += [f"task {name} ended" for name in self.TASKS if name not in running]
+        if ctl.hw.panel is not None and "panel-events" not in running:
+            problems.append("task panel-events ended")
+        if ctl.bringup.devices["drive"].ok:
+            if not ctl.safety.watching:
+                problems.append("safety watch on the drive not running")
+            if not ctl.tracker.following:
+                problems.append("encoder not followed")
+            problems += ctl.hw.drive.liveness()
+        if ctl.hw.panel is not None and ctl.bringup.devices["panel"].ok:
+            problems += ctl.hw.panel.liveness()
+        return problems
+
+    def _watchdog_check(self) -> bool:
+        """One watchdog period: healthy over the whole interval since the last ping."""
+        problems = self.health(self.lag.take_worst())
+        if problems:
+            log.error("daemon_unhealthy", problems=problems)
+        return not problems
 
     async def _mirror_status(self) -> None:
         async for event in self.controller.machine.subscribe():
@@ -202,7 +231,9 @@ class RigService:
     def status(self) -> dict[str, Any]:
         status = self.controller.status()
         status["recovered_scans"] = list(self.recovered)
-        status["healthy"] = self.healthy()
+        problems = self.health()
+        status["healthy"] = not problems
+        status["health_problems"] = problems
         status["loop_lag"] = self.lag.summary()
         return status
 

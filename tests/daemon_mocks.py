@@ -87,6 +87,10 @@ class MockDrive:
     def heartbeat_age_s(self) -> float:
         return 0.0 if self._task is not None and not self._task.done() else math.inf
 
+    def liveness(self) -> list[str]:
+        running = self._task is not None and not self._task.done()
+        return [] if running or self._task is None or self._closed else ["beam: sample stream ended"]
+
     async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
         self.calls.append(("move_to", (angle_deg, speed_deg_s, acceleration_deg_s2)))
         t = self._now()

@@ -96,10 +96,10 @@ def test_a_lost_drive_heartbeat_latches_fault_and_the_daemon_stays_up(tmp_path: 
         await service.start()
         try:
             await asyncio.sleep(0.5)
-            assert service.healthy()
+            assert not service.health()
             world.sim_drive.stop_heartbeat()
             await asyncio.sleep(1.0)
-            assert service.healthy()
+            assert not service.health()
             assert controller.machine.state.value == "FAULT"
             assert any(c.source is FaultSource.DRIVE_FAULT and "HeartbeatLost" in c.detail
                        for c in controller.safety.causes)
@@ -143,7 +143,7 @@ def test_a_missing_phone_keeps_the_rig_not_ready_until_it_is_plugged_in(tmp_path
             while not service.status()["ready"]:
                 await asyncio.sleep(0.1)
             reused_after_s = loop.time() - back
-            assert "READY=1" in notes.sent and service.healthy()
+            assert "READY=1" in notes.sent and not service.health()
             assert named_after_s <= 5.0 and reused_after_s <= 10.0, (named_after_s, reused_after_s)
         finally:
             await service.stop()

@@ -77,8 +77,8 @@ def test_unreachable_notify_socket_reports_failure(tmp_path):
 
 def test_watchdog_period_from_environment():
     pid = os.getpid()
-    assert watchdog_period_s({"WATCHDOG_USEC": "20000000"}) == 10.0
-    assert watchdog_period_s({"WATCHDOG_USEC": "20000000", "WATCHDOG_PID": str(pid)}) == 10.0
+    assert watchdog_period_s({"WATCHDOG_USEC": "30000000"}) == 10.0
+    assert watchdog_period_s({"WATCHDOG_USEC": "30000000", "WATCHDOG_PID": str(pid)}) == 10.0
     assert watchdog_period_s({"WATCHDOG_USEC": "20000000", "WATCHDOG_PID": str(pid + 1)}) is None
     assert watchdog_period_s({}) is None
     assert watchdog_period_s({"WATCHDOG_USEC": "soon"}) is None
@@ -94,7 +94,7 @@ def test_watchdog_pings_only_while_healthy(listener):
         health = {"ok": True}
         task = asyncio.create_task(
             run_watchdog(notifier, lambda: health["ok"],
-                         period_s=watchdog_period_s({"WATCHDOG_USEC": "2000000"}))
+                         period_s=watchdog_period_s({"WATCHDOG_USEC": "3000000"}))
         )
         counts = []
         for t_s, ok in ((0.05, True), (3.05, False), (6.05, True), (9.05, True)):

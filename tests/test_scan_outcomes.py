@@ -219,10 +219,10 @@ def test_a_scan_state_left_without_its_scan_makes_the_daemon_unhealthy(tmp_path:
         hardware, _world = await build_rig(RIG, 0)
         controller = RigController(RIG, hardware, ScanStore(tmp_path))
         service = RigService(controller)
-        before = service.healthy()
+        before = not service.health()
         for state in (ScanState.PREPARING, ScanState.ABORTING, ScanState.STORING):
             controller.machine.transition(state, "no scan task behind it")
-        after = service.healthy()
+        after = not service.health()
         await hardware.close()
         return before, after
 

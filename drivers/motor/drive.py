@@ -380,6 +380,27 @@ class BeamDrive:
         )
         log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
 
+    LIVE_SAMPLE_AGE_S = 0.5
+    """A connected, healthy drive whose newest sample is older than this is not being heard."""
+
+    def liveness(self) -> list[str]:
+        """What of the drive's own machinery is not running, or not hearing a healthy drive
+        (empty: all well). A latched fault is the safety monitor's business, not ill health."""
+        if not self._connected or self._closed:
+            return []
+        problems = [f"{self.name}: task {t.get_name()} ended" for t in self._tasks
+                    if t.done() and t.get_name().endswith(("-receive", "-guard-feed"))]
+        if self.guard is not None and not self.guard.alive:
+            problems.append(f"{self.name}: drive guard not running")
+        if self.fault is None:
+            limit = self.guard_timing.drive_timeout_s + self.guard_timing.pause_allowance_s
+            if self.heartbeat_age_s() > limit:
+                problems.append(f"{self.name}: no heartbeat for {self.heartbeat_age_s():.3f} s (limit {limit:g} s)")
+            if self.sample_age_s() > self.LIVE_SAMPLE_AGE_S:
+                problems.append(f"{self.name}: no position sample for {self.sample_age_s():.3f} s "
+                                f"(limit {self.LIVE_SAMPLE_AGE_S:g} s)")
+        return problems
+
     def heartbeat_age_s(self) -> float:
         """Seconds since the drive's last heartbeat, stamped where it was received (inf: not watched)."""
         return math.inf if self.guard is None else self.guard.heartbeat_age_s()

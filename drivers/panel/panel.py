@@ -171,6 +171,18 @@ class OperatorPanel:
                 self._reader = self._writer = None
             raise
 
+    def liveness(self) -> list[str]:
+        """What of the link's own tasks is not running (empty: all well). A lost panel is the safety
+        system's business (it latches FAULT); a link that stopped watching is ill health."""
+        if self.state in (LinkState.CONNECTED, LinkState.LOST):
+            running = {t.get_name() for t in self._tasks if not t.done()}
+            return [f"{self.name}: task {self.name}{role} not running" for role in ("-read", "-hb", "-watchdog")
+                    if f"{self.name}{role}" not in running]
+        reopening = self._reconnect_task is not None and not self._reconnect_task.done()
+        if self.state is LinkState.DISCONNECTED and self._reopen is not None and self._connected_once and not reopening:
+            return [f"{self.name}: link down and not being reopened"]
+        return []
+
     async def _open_session(self) -> None:
         """Read, greet, then heartbeat and watch on the current streams."""
         self.state = LinkState.CONNECTING
