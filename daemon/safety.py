@@ -15,9 +15,9 @@ from typing import Any
 import structlog
 
 from daemon.errors import FaultLatched
-from drivers.motor.errors import HostStalled
 from daemon.faults import FaultCause, FaultSource
 from daemon.states import ScanState, ScanStateMachine
+from drivers.motor.errors import HostStalled
 
 log = structlog.get_logger("daemon.safety")
 
