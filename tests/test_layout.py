@@ -48,6 +48,7 @@ CLOCK_OWNERS = {
     "sim/clock.py",  # the virtual-time loop paces itself against the real clock
     "sim/loopback.py",  # the loopback rig waits for real processes in real time
     "daemon/utc.py",  # calendar time for the records a scan folder keeps
+    "drivers/motor/port.py",  # stamps received frames for a guard thread that runs beside the loop
     "drivers/sim/canopen_node.py",  # stamps the simulator's logs so another process can time its reactions
 }
 

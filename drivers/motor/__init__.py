@@ -32,7 +32,7 @@ from drivers.motor.errors import (
     StateTransitionTimeout,
 )
 from drivers.motor.nmt import rpdo_cob_id
-from drivers.motor.port import CanPort, LazyCanPort, LoopbackCanBus, PythonCanPort
+from drivers.motor.port import CanPort, LazyCanPort, LoopbackCanBus, PythonCanPort, RealtimePort
 from drivers.motor.stop_config import StopConfiguration, read_stop_configuration, required_stop_configuration
 
 __all__ = [
@@ -58,6 +58,7 @@ __all__ = [
     "NmtStateLost",
     "NmtTimeout",
     "PythonCanPort",
+    "RealtimePort",
     "SdoAbort",
     "SdoError",
     "SdoProtocolError",
