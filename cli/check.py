@@ -1,12 +1,14 @@
 """``tbp check``: commissioning in one command: is every device of the hardware file there?
 
 Probes every device the hardware file names, each under the file's open timeout, all at once:
-the drive (CANopen identity object, one SDO round trip), each phone (ADB, the capture agent's
-hello, one clock round trip), each depth camera (the RealSense enumerated by serial, or the
-recording's file) and the panel (its HELLO, one acknowledged command). Prints one row per
-device: name, address, found, identity, round-trip latency, verdict with what to check.
-Exit status 0 when every device answers, 1 when any is missing, 2 for an unusable rig or
-hardware file.
+the drive (CANopen identity object, one SDO round trip, and the objects that make it stop by
+itself when the host dies), each phone (ADB, the capture agent's hello, one clock round trip),
+each depth camera (the RealSense enumerated by serial, or the recording's file) and the panel
+(its HELLO, one acknowledged command). Prints one row per device: name, address, found,
+identity, round-trip latency, verdict with what to check; then the drive's stop configuration,
+each object beside the value the rig requires (docs/motor.md).
+Exit status 0 when every device answers and the drive holds what the rig requires, 1 when a
+device is missing or has a problem, 2 for an unusable rig or hardware file.
 
 While the daemon runs it owns the devices (probing the drive would reset its CANopen
 communication mid-scan): ``tbp check`` then shows the daemon's own view of them.
@@ -20,11 +22,14 @@ import json
 import sys
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 from cli import options
+
+STOP_CHECK = ("the drive must hold every object of docs/motor.md 'What the rig requires of a drive' to stop by "
+              "itself when the host dies: set them with the vendor's tool, or use a drive that accepts them")
 
 
 def register(subparsers: Any) -> None:
@@ -52,10 +57,18 @@ class Probe:
     latency_ms: float | None = None
     error: str | None = None
     check: str | None = None
+    problems: list[str] = field(default_factory=list)
+    stop_configuration: list[dict[str, Any]] | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.found and not self.problems
 
     @property
     def verdict(self) -> str:
-        return "ok" if self.found else "MISSING"
+        if not self.found:
+            return "MISSING"
+        return "PROBLEM" if self.problems else "ok"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,13 +81,13 @@ def run(args: argparse.Namespace) -> int:
     rig, config = loaded
     probes, source = asyncio.run(_probe_or_ask_daemon(rig, config, args))
     if args.json:
-        print(json.dumps({"source": source, "hardware": config.path, "ok": all(p.found for p in probes),
+        print(json.dumps({"source": source, "hardware": config.path, "ok": all(p.ok for p in probes),
                           "devices": [{**asdict(p), "verdict": p.verdict} for p in probes]}, indent=1))
     else:
         print(render(probes))
         if source == "daemon":
             print("(the daemon is running: this is its own view of the devices; stop it to probe them directly)")
-    return 0 if all(p.found for p in probes) else 1
+    return 0 if all(p.ok for p in probes) else 1
 
 
 async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) -> tuple[list[Probe], str]:
@@ -95,20 +108,20 @@ async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
 
     key = AdbKey.load_or_create(key_dir)
     addresses = dict(config.devices())
-    jobs: list[tuple[str, str, Callable[[], Awaitable[tuple[str, float]]]]] = [
-        ("drive", "drive", lambda: _drive(rig, config))]
+    jobs: list[tuple[str, str, Callable[[Probe], Awaitable[tuple[str, float]]]]] = [
+        ("drive", "drive", lambda probe: _drive(rig, config, probe))]
     for phone in rig.phones:
-        jobs.append((phone.id, "phone", lambda phone=phone: _phone(rig, config, phone, key)))
+        jobs.append((phone.id, "phone", lambda _, phone=phone: _phone(rig, config, phone, key)))
     for index, camera in enumerate(rig.depth_cameras):
-        jobs.append((camera.id, "depth", lambda index=index: _depth(rig, config, index)))
+        jobs.append((camera.id, "depth", lambda _, index=index: _depth(rig, config, index)))
     if config.panel is not None:
-        jobs.append(("panel", "panel", lambda: _panel(config)))
+        jobs.append(("panel", "panel", lambda _: _panel(config)))
 
-    async def one(name: str, kind: str, job: Callable[[], Awaitable[tuple[str, float]]]) -> Probe:
+    async def one(name: str, kind: str, job: Callable[[Probe], Awaitable[tuple[str, float]]]) -> Probe:
         probe = Probe(name, kind, addresses[name], False)
         try:
             async with asyncio.timeout(config.timeouts.open_s):
-                probe.identity, latency_s = await job()
+                probe.identity, latency_s = await job(probe)
             probe.found, probe.latency_ms = True, round(latency_s * 1000.0, 2)
         except TimeoutError:
             probe.error, probe.check = f"no answer within {config.timeouts.open_s:g} s", CHECK[kind]
@@ -119,17 +132,27 @@ async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
     return list(await asyncio.gather(*(one(*job) for job in jobs)))
 
 
-async def _drive(rig: Any, config: Any) -> tuple[str, float]:
+async def _drive(rig: Any, config: Any, probe: Probe) -> tuple[str, float]:
+    """Connect the drive (bring-up writes and reads back its stop configuration), then read what
+    it holds; a drive that refuses a setting is still found, with the refusal as its problem."""
     from daemon.real_rig import make_drive
-    from drivers.motor import cia402
+    from drivers.motor import DriveSettingError, cia402
 
     drive = make_drive(rig, config)
     try:
-        await drive.connect()
+        try:
+            await drive.connect()
+        except DriveSettingError as exc:
+            probe.problems.append(str(exc))
         identity = await drive.identity()
         started = time.perf_counter()
         await drive.sdo.read(cia402.STATUSWORD, 0, "<H")
         latency = time.perf_counter() - started
+        rows = (await drive.stop_configuration()).rows(drive.config, drive.host_node_id)
+        probe.stop_configuration = [{**asdict(row), "ok": row.ok} for row in rows]
+        probe.problems += [str(row) for row in rows if not row.ok]
+        if probe.problems:
+            probe.check = STOP_CHECK
         return f"{identity}, {drive.state.value}", latency
     finally:
         await drive.close()
@@ -178,12 +201,32 @@ async def _panel(config: Any) -> tuple[str, float]:
 
 
 def render(probes: list[Probe]) -> str:
-    """The table: one row per device; a missing device's row ends with the error and what to check."""
+    """The table: one row per device; a missing device's row ends with the error and what to check,
+    a device with problems with the first of them and what to do. Then each drive's stop
+    configuration."""
     rows = [("DEVICE", "ADDRESS", "FOUND", "IDENTITY", "LATENCY", "VERDICT")]
     for p in probes:
-        verdict = p.verdict if p.found else f"MISSING: {p.error}; {p.check}"
+        if not p.found:
+            verdict = f"MISSING: {p.error}; {p.check}"
+        elif p.problems:
+            more = f" (and {len(p.problems) - 1} more)" if len(p.problems) > 1 else ""
+            verdict = f"PROBLEM: {p.problems[0]}{more}; {p.check}"
+        else:
+            verdict = p.verdict
         rows.append((p.device, p.address, "yes" if p.found else "no", p.identity or "-",
                      "-" if p.latency_ms is None else f"{p.latency_ms:.1f} ms", verdict))
-    widths = [max(len(r[i]) for r in rows) for i in range(5)]
-    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r[:5], widths, strict=True)) + "  " + r[5]
+    text = _columns(rows)
+    for p in probes:
+        if p.stop_configuration is not None:
+            text += f"\n\n{p.device}: how it stops by itself when the host dies (docs/motor.md)\n" + _columns(
+                [("OBJECT", "NAME", "VALUE", "VERDICT")]
+                + [(r["address"], r["name"], r["shown"], "ok" if r["ok"] else f"REQUIRED: {r['required_shown']}")
+                   for r in p.stop_configuration])
+    return text
+
+
+def _columns(rows: list[tuple[str, ...]]) -> str:
+    """Rows as aligned columns, the last one left ragged."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(r[:-1], widths, strict=True)) + "  " + r[-1]
                      for r in rows)

@@ -23,9 +23,10 @@ RIG = load_rig(DEFAULT_RIG_PATH)
 class Simulators:
     """The rig's devices simulated in a background event loop; ``hardware(path)`` wires them."""
 
-    def __init__(self, tmp: Path, *, missing_phones: tuple[str, ...] = ()) -> None:
+    def __init__(self, tmp: Path, *, missing_phones: tuple[str, ...] = (), drive_class: Any = None) -> None:
         self.tmp = tmp
         self.missing_phones = missing_phones
+        self.drive_class = drive_class
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self.thread.start()
@@ -45,7 +46,7 @@ class Simulators:
         from drivers.sim.socketcand import SocketcandServer
 
         bus = LoopbackCanBus("sim")
-        drive = SimulatedDrive(bus.port("drive"), RIG.motor)
+        drive = (self.drive_class or SimulatedDrive)(bus.port("drive"), RIG.motor)
         self.tasks.append(asyncio.create_task(drive.run()))
         self.bridge = SocketcandServer(bus, channel="can0", host="127.0.0.1", port=0)
         await self.bridge.start()
@@ -123,6 +124,10 @@ def test_every_device_answering_is_reported_with_identity_and_latency(
     assert set(devices) == {"drive", "panel"} | {p.id for p in RIG.phones} | {c.id for c in RIG.depth_cameras}
     assert all(d["found"] and d["verdict"] == "ok" and d["latency_ms"] >= 0 for d in devices.values())
     assert devices["drive"]["identity"].startswith("CiA 402 vendor 0x00000544")
+    stop = {row["address"]: row for row in devices["drive"]["stop_configuration"]}
+    assert all(row["ok"] for row in stop.values()) and devices["drive"]["problems"] == []
+    assert stop["0x6007:0"]["value"] == 1 and stop["0x6007:0"]["shown"] == "1 (fault)"
+    assert stop["0x1029:1"]["value"] == 1 and stop["0x1600:0"]["value"] == [0x6040_0010]
     assert devices["drive"]["address"] == f"socketcand://127.0.0.1:{simulators.bridge.port}/can0"
     assert "TBP Simulated Phone" in devices[RIG.phones[0].id]["identity"]
     assert RIG.phones[0].serial in devices[RIG.phones[0].id]["identity"]
@@ -132,7 +137,7 @@ def test_every_device_answering_is_reported_with_identity_and_latency(
 def test_a_missing_phone_and_recording_fail_the_check_naming_each(
         simulators: Simulators, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(_check(tmp_path, simulators.hardware(missing_recording="depth1"))) == 1
-    table = capsys.readouterr().out.splitlines()
+    table = capsys.readouterr().out.split("\n\n")[0].splitlines()
     assert table[0].split()[:6] == ["DEVICE", "ADDRESS", "FOUND", "IDENTITY", "LATENCY", "VERDICT"]
     rows = {line.split()[0]: line for line in table[1:]}
     assert f"tcp:127.0.0.1:{simulators.phone_ports['cam3']}" in rows["cam3"]
@@ -140,6 +145,43 @@ def test_a_missing_phone_and_recording_fail_the_check_naming_each(
     assert "MISSING" in rows["depth1"] and "no recording" in rows["depth1"]
     others = [name for name in rows if name not in ("cam3", "depth1")]
     assert others and all(rows[name].rstrip().endswith("ok") for name in others)
+
+
+def _drive_stuck_at_no_action() -> Any:
+    from drivers.motor import sdo
+    from drivers.sim.canopen_node import SdoAbortRequest
+    from drivers.sim.drive import SimulatedDrive
+
+    class StuckDrive(SimulatedDrive):
+        """A drive whose abort connection option stays 0 (no action)."""
+
+        def write_object(self, index: int, subindex: int, value: int) -> None:
+            if index == 0x6007 and value != 0:
+                raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            super().write_object(index, subindex, value)
+
+    return StuckDrive
+
+
+def test_a_drive_that_would_not_stop_by_itself_is_a_problem_naming_the_object(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sims = Simulators(tmp_path, drive_class=_drive_stuck_at_no_action())
+    capsys.readouterr()  # the simulators' start-up lines
+    try:
+        assert main(_check(tmp_path, sims.hardware(), "--json")) == 1
+        report = json.loads(capsys.readouterr().out)
+        drive = next(d for d in report["devices"] if d["device"] == "drive")
+        assert not report["ok"] and drive["found"] and drive["verdict"] == "PROBLEM"
+        assert "0x6007:0" in drive["problems"][0] and "refused with SDO abort 0x06090030" in drive["problems"][0]
+        assert "0x6007:0 abort connection option code is 0 (no action), the rig requires 1 (fault)" in drive["problems"]
+        assert "vendor's tool" in drive["check"]
+        assert main(_check(tmp_path, sims.hardware())) == 1
+        table, stop = capsys.readouterr().out.split("\n\n")[:2]
+        assert "PROBLEM: beam [" in next(line for line in table.splitlines() if line.startswith("drive "))
+        assert next(line for line in stop.splitlines() if line.startswith("0x6007:0")).endswith("REQUIRED: 1 (fault)")
+        assert next(line for line in stop.splitlines() if line.startswith("0x6085:0")).endswith("ok")
+    finally:
+        sims.close()
 
 
 def test_a_bad_hardware_file_is_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -49,6 +49,8 @@ CLOCK_OWNERS = {
     "sim/loopback.py",  # the loopback rig waits for real processes in real time
     "daemon/utc.py",  # calendar time for the records a scan folder keeps
     "drivers/motor/guard.py",  # the drive guard keeps real time apart from the event loop's
+    "drivers/motor/port.py",  # stamps received frames for a guard thread that runs beside the loop
+    "drivers/sim/canopen_node.py",  # stamps the simulator's logs so another process can time its reactions
 }
 
 

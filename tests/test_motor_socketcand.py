@@ -10,8 +10,10 @@ import asyncio
 import contextlib
 import re
 import signal
+import socket
 import subprocess
 import sys
+import threading
 from collections.abc import AsyncIterator, Iterator
 
 import can
@@ -19,7 +21,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.motor import BeamDrive, Cia402State, LoopbackCanBus, PythonCanPort
+from drivers.motor import BeamDrive, CanBusError, Cia402State, LoopbackCanBus, PythonCanPort
 from drivers.sim.drive import SimulatedDrive
 from drivers.sim.socketcand import SocketcandProtocolError, SocketcandServer, _bus_to_tcp, format_frame, parse_send
 from planner.rig import load_rig
@@ -330,3 +332,61 @@ async def test_a_simulated_phone_follows_the_angle_the_daemon_drives(
     finally:
         await drive.close()
         await asyncio.to_thread(follower.stop)
+
+
+class _DeafBridge:
+    """A socketcand bridge that shakes hands, then never reads again (a hung bridge process),
+    with a small receive buffer so the client's writes stall after a few kilobytes."""
+
+    def __init__(self) -> None:
+        self.listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+        self.listener.bind(("127.0.0.1", 0))
+        self.listener.listen()
+        self.port = self.listener.getsockname()[1]
+        self.connections: list[socket.socket] = []
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        with contextlib.suppress(OSError):  # the listener closed
+            while True:
+                conn, _ = self.listener.accept()
+                self.connections.append(conn)
+                threading.Thread(target=self._handshake, args=(conn,), daemon=True).start()
+
+    def _handshake(self, conn: socket.socket) -> None:
+        with contextlib.suppress(OSError):  # the connection probe hangs up at once
+            conn.sendall(b"< hi >")
+            if not conn.recv(64):
+                return
+            conn.sendall(b"< ok >")
+            conn.recv(64)
+            conn.sendall(b"< ok >")
+
+    def close(self) -> None:
+        self.listener.close()
+        for conn in self.connections:
+            conn.close()
+
+
+async def test_a_bridge_that_stops_reading_fails_the_port_without_blocking_the_loop() -> None:
+    bridge = _DeafBridge()
+    port = await PythonCanPort.connect("socketcand", "can0", host="127.0.0.1", port=bridge.port, name="deaf")
+    port.bus._SocketCanDaemonBus__socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    frame = can.Message(arbitration_id=0x77F, data=b"\x05", is_extended_id=False)
+    sent = 0
+    try:
+        with pytest.raises(CanBusError) as info:
+            async with asyncio.timeout(30.0):
+                while True:  # a host heartbeat every loop-millisecond, as long as the port takes it
+                    await port.send(frame)
+                    sent += 1
+                    await asyncio.sleep(0.001)
+        assert info.value.device == "deaf" and sent > 10
+        assert "link does not drain" in str(info.value) or "timed out" in str(info.value)
+        # The transmit thread's write gives up after SEND_TIMEOUT_S: the port has failed.
+        with pytest.raises(CanBusError, match="send 0x77F failed: timed out"):
+            await asyncio.wait_for(port.recv(), 5.0)
+    finally:
+        port.close()
+        bridge.close()

@@ -6,6 +6,7 @@
 with the simulated drive in ``drivers.sim.drive`` (``tbp sim motor``: ``sim.processes.motor``).
 """
 
+from drivers.motor.bringup import CONTROL_RPDO, controlword_pdo
 from drivers.motor.cia402 import Cia402State
 from drivers.motor.drive import BeamDrive, BeamSample, DriveIdentity
 from drivers.motor.errors import (
@@ -14,6 +15,7 @@ from drivers.motor.errors import (
     DriveFault,
     DriveNotReady,
     DriveRebooted,
+    DriveSettingError,
     FollowingError,
     FrameError,
     HeartbeatLost,
@@ -26,11 +28,16 @@ from drivers.motor.errors import (
     SdoError,
     SdoProtocolError,
     SdoTimeout,
+    SettingMismatch,
+    SettingRefused,
     StateTransitionTimeout,
 )
-from drivers.motor.port import CanPort, LazyCanPort, LoopbackCanBus, PythonCanPort
+from drivers.motor.nmt import rpdo_cob_id
+from drivers.motor.port import CanPort, LazyCanPort, LoopbackCanBus, PythonCanPort, RealtimePort
+from drivers.motor.stop_config import StopConfiguration, read_stop_configuration, required_stop_configuration
 
 __all__ = [
+    "CONTROL_RPDO",
     "BeamDrive",
     "BeamSample",
     "CanBusError",
@@ -41,6 +48,7 @@ __all__ = [
     "DriveIdentity",
     "DriveNotReady",
     "DriveRebooted",
+    "DriveSettingError",
     "FollowingError",
     "FrameError",
     "HeartbeatLost",
@@ -52,9 +60,17 @@ __all__ = [
     "NmtStateLost",
     "NmtTimeout",
     "PythonCanPort",
+    "RealtimePort",
     "SdoAbort",
     "SdoError",
     "SdoProtocolError",
     "SdoTimeout",
+    "SettingMismatch",
+    "SettingRefused",
     "StateTransitionTimeout",
+    "StopConfiguration",
+    "controlword_pdo",
+    "read_stop_configuration",
+    "required_stop_configuration",
+    "rpdo_cob_id",
 ]

@@ -13,7 +13,9 @@ from collections import deque
 # Object dictionary indices (sub-index 0 unless stated) and their struct formats.
 CONTROLWORD = 0x6040  # u16
 STATUSWORD = 0x6041  # u16
+ABORT_CONNECTION_OPTION = 0x6007  # i16: what the drive does when a connection (heartbeat) is lost
 QUICK_STOP_OPTION = 0x605A  # i16
+FAULT_REACTION_OPTION = 0x605E  # i16: how the drive stops on a fault
 MODES_OF_OPERATION = 0x6060  # i8
 MODES_DISPLAY = 0x6061  # i8
 POSITION_ACTUAL = 0x6064  # i32, encoder counts
@@ -34,9 +36,44 @@ IDENTITY = 0x1018  # record: 1 vendor id, 2 product code, 3 revision, 4 serial n
 ERROR_REGISTER = 0x1001  # u8
 HEARTBEAT_CONSUMER = 0x1016  # array of u32
 HEARTBEAT_PRODUCER = 0x1017  # u16, ms
+ERROR_BEHAVIOUR = 0x1029  # array of u8 (CiA 301); sub 1: on a communication error
 
 HOMING_ON_CURRENT_POSITION = 37
 HOMING_ON_CURRENT_POSITION_OLD = 35  # the same method's number in older revisions of CiA 402
+
+
+class AbortConnection(enum.IntEnum):
+    """Abort connection option codes (0x6007): the drive's reaction to a lost connection."""
+
+    NO_ACTION = 0
+    FAULT = 1  # fault signal: the fault reaction (0x605E), then FAULT
+    DISABLE_VOLTAGE = 2  # the disable voltage command: power stage off, the motor coasts
+    QUICK_STOP = 3  # the quick stop command: QUICK STOP ACTIVE per 0x605A
+
+
+class FaultReaction(enum.IntEnum):
+    """Fault reaction option codes (0x605E): how the drive stops in FAULT REACTION ACTIVE."""
+
+    DISABLE_DRIVE = 0  # power stage off: the motor coasts
+    SLOW_DOWN_RAMP = 1  # the profile deceleration (0x6084)
+    QUICK_STOP_RAMP = 2  # the quick-stop deceleration (0x6085)
+    CURRENT_LIMIT = 3
+    VOLTAGE_LIMIT = 4
+
+
+class QuickStopOption(enum.IntEnum):
+    """Quick stop option codes (0x605A): the ramp, then SWITCH ON DISABLED or staying in
+    QUICK STOP ACTIVE."""
+
+    DISABLE_DRIVE = 0
+    SLOW_DOWN_RAMP = 1
+    QUICK_STOP_RAMP = 2
+    CURRENT_LIMIT = 3
+    VOLTAGE_LIMIT = 4
+    SLOW_DOWN_RAMP_STAY = 5
+    QUICK_STOP_RAMP_STAY = 6
+    CURRENT_LIMIT_STAY = 7
+    VOLTAGE_LIMIT_STAY = 8
 
 
 class Mode(enum.IntEnum):

@@ -58,6 +58,7 @@ from drivers.motor.guard import (
 from drivers.motor.port import CanPort
 from drivers.motor.samples import BeamSample, SampleStream
 from drivers.motor.sdo import SdoClient
+from drivers.motor.stop_config import StopConfiguration, read_stop_configuration
 from planner.rig import Motor
 
 log = structlog.get_logger(__name__)
@@ -535,6 +536,11 @@ class BeamDrive:
     def angle_to_counts(self, angle_deg: float) -> int:
         """Encoder counts (motor side) for a beam angle."""
         return self._counts(angle_deg)
+
+    async def stop_configuration(self) -> StopConfiguration:
+        """What the drive holds of the objects that make it stop by itself (compare with
+        ``.deviations(self.config, self.host_node_id)``)."""
+        return await read_stop_configuration(self.sdo)
 
     # ------------------------------------------------------------------ bring-up
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 ERROR_RESET = 0x0000
 FOLLOWING_ERROR = 0x8611
 HEARTBEAT_ERROR = 0x8130
+PDO_LENGTH_ERROR = 0x8210
 EMERGENCY_STOP = 0x5441
 
 _CODES = {
@@ -26,6 +27,8 @@ _CODES = {
     0x8120: "CAN in error passive mode",
     0x8130: "life guard or heartbeat error",
     0x8140: "recovered from bus off",
+    0x8210: "PDO not processed due to length error",
+    0x8220: "PDO length exceeded",
     0x8611: "following error",
     0x8612: "reference limit",
     0x9000: "external error",

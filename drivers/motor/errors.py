@@ -146,6 +146,47 @@ class MotionInterrupted(DriveError):
     """A move ended short of its target: halted by stop() or by a quick stop."""
 
 
+class DriveSettingError(DriveError):
+    """The drive does not hold a value the rig requires of it (docs/motor.md lists them):
+    bring-up stops there, because such a drive would not stop by itself when the host dies.
+
+    Attributes:
+        index, subindex: the object.
+        setting: what the object is (``abort connection option code``).
+        required: the value the rig writes.
+    """
+
+    def __init__(self, device: str, state: str, index: int, subindex: int, setting: str, required: int,
+                 problem: str) -> None:
+        self.index = index
+        self.subindex = subindex
+        self.setting = setting
+        self.required = required
+        super().__init__(device, state, f"{setting} 0x{index:04X}:{subindex} = {required}: {problem}")
+
+
+class SettingRefused(DriveSettingError):
+    """The drive answered the write (or its read-back) of a required setting with an SDO abort."""
+
+    def __init__(self, device: str, state: str, index: int, subindex: int, setting: str, required: int,
+                 code: int) -> None:
+        from drivers.motor.sdo import abort_meaning
+
+        self.code = code
+        super().__init__(device, state, index, subindex, setting, required,
+                         f"refused with SDO abort 0x{code:08X} ({abort_meaning(code)})")
+
+
+class SettingMismatch(DriveSettingError):
+    """The drive accepted a required setting but reads back another value."""
+
+    def __init__(self, device: str, state: str, index: int, subindex: int, setting: str, written: int,
+                 read: int) -> None:
+        self.written = written
+        self.read = read
+        super().__init__(device, state, index, subindex, setting, written, f"written, but reads back {read}")
+
+
 class DriveNotReady(DriveError):
     """A command needs another state (enabled, connected, stationary) than the drive is in."""
 

@@ -56,6 +56,15 @@ class NmtState(enum.IntEnum):
     PRE_OPERATIONAL = 0x7F
 
 
+class CommunicationErrorBehaviour(enum.IntEnum):
+    """0x1029:1 (CiA 301): the NMT state a node enters on a communication error (a lost
+    heartbeat, bus off)."""
+
+    PRE_OPERATIONAL = 0  # only from OPERATIONAL; PDOs stop
+    NO_CHANGE = 1
+    STOPPED = 2  # only NMT and heartbeat go on
+
+
 class NmtFrameError(ValueError):
     """A frame that claims to be NMT or heartbeat but is malformed."""
 

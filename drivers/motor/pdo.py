@@ -10,11 +10,15 @@ import functools
 import struct
 from dataclasses import dataclass
 
-# Communication (0x1800 + k) and mapping (0x1A00 + k) parameter objects of TPDO k+1.
+# Communication (0x1800 + k, 0x1400 + k) and mapping (0x1A00 + k, 0x1600 + k) parameter
+# objects of TPDO and RPDO k+1.
 TPDO_COMMUNICATION = 0x1800
 TPDO_MAPPING = 0x1A00
+RPDO_COMMUNICATION = 0x1400
+RPDO_MAPPING = 0x1600
 COB_ID_INVALID = 0x8000_0000
-TRANSMISSION_EVENT_DRIVEN = 0xFF  # manufacturer-specific event: the event timer
+# TPDO: sent on the manufacturer-specific event (the event timer); RPDO: acts on reception.
+TRANSMISSION_EVENT_DRIVEN = 0xFF
 
 
 @dataclass(frozen=True)

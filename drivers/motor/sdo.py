@@ -166,6 +166,10 @@ class SdoClient:
         self._expected = (0, 0)
         self.stale_replies = 0
 
+    def device_state(self) -> str:
+        """The device's current state as text (what errors name)."""
+        return self._state()
+
     def on_frame(self, data: bytes) -> None:
         """Hand a frame received on 0x580 + node to the waiting transfer. A frame for another
         object (the late answer to a request that already timed out) is counted and dropped."""

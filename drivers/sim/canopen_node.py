@@ -2,25 +2,42 @@
 
 The server half of what :mod:`drivers.motor` is the client of: an object dictionary, an
 expedited SDO server with the standard abort codes, NMT, boot-up and heartbeat producer, a
-heartbeat consumer, and TPDOs sent by event timer in OPERATIONAL. Everything is timed with the
-event loop (one cycle task), so it runs unchanged in real and virtual time. A device profile
-(the CiA 402 drive) subclasses it and overrides the hooks.
+heartbeat consumer with the error behaviour of 0x1029, TPDOs sent by event timer and RPDOs acted
+on at reception, both in OPERATIONAL only. Everything is timed with the event loop (one cycle
+task), so it runs unchanged in real and virtual time. A device profile (the CiA 402 drive)
+subclasses it and overrides the hooks.
+
+NMT state changes and heartbeat losses are logged with ``mono_s`` (``time.monotonic()``, the
+same clock in every process of the machine) so a benchmark can time the host's stalls against
+the device's reactions.
 """
 
 from __future__ import annotations
 
 import asyncio
 import struct
+import time
+from collections.abc import Coroutine
 from dataclasses import dataclass
+from typing import Any
 
 import can
 import structlog
 
-from drivers.motor import nmt, pdo, sdo
+from drivers.motor import emcy, nmt, pdo, sdo
 from drivers.motor.errors import CanBusError
 from drivers.motor.port import CanPort
 
 log = structlog.get_logger(__name__)
+
+_COMMUNICATION_REGISTER = 0x11  # error register 0x1001: generic error + communication error
+_RPDO_TRANSMISSION_TYPES = (0xFE, 0xFF)  # event driven: acted on at reception (no SYNC served)
+
+
+def monotonic_s() -> float:
+    """The machine's monotonic clock (s), stamped into the simulator's logs so another process
+    can compare its own stamps with them."""
+    return time.monotonic()
 
 
 @dataclass
@@ -52,13 +69,17 @@ class SimulatedNode:
     Fault injection: ``sdo_delay_s`` (answer SDO requests late), ``drop_sdo_replies(n)``,
     ``drop_tpdos(n)``, ``stop_heartbeat()`` / ``resume_heartbeat()``, ``disconnect()`` /
     ``reconnect()`` (the node falls silent and deaf, like a pulled cable), ``reboot()``.
+    Observed: ``emcy_sent`` (every EMCY error sent), ``rpdo_length_errors`` (RPDOs ignored for
+    their length, each answered with EMCY 0x8210), ``rpdo_values_refused``.
     """
 
     TICK_S = 0.005
     TPDO_COUNT = 4
+    RPDO_COUNT = 4
     DEVICE_TYPE = 0
     IDENTITY = (0x0000_0000, 0, 0, 0)  # 0x1018: vendor id, product code, revision, serial number
     DEFAULT_TPDO_MAPPING: dict[int, tuple[int, ...]] = {}  # TPDO k+1 -> power-on mapping entries
+    DEFAULT_RPDO_MAPPING: dict[int, tuple[int, ...]] = {}  # RPDO k+1 -> power-on mapping entries
 
     def __init__(self, port: CanPort, node_id: int, *, name: str = "node") -> None:
         if not 1 <= node_id <= 127:
@@ -72,9 +93,13 @@ class SimulatedNode:
         self.heartbeat_enabled = True
         self.silent = False
         self.frames_sent = 0
+        self.emcy_sent: list[emcy.Emcy] = []
+        self.rpdo_length_errors = 0
+        self.rpdo_values_refused = 0
         self._drop_sdo = 0
         self._drop_tpdo = 0
         self._consumer_seen: dict[int, float] = {}
+        self._consumer_lost: set[int] = set()
         self._tpdo_due: dict[int, tuple[float, float]] = {}
         self._heartbeat_due: float | None = None
         self._mapping_cache: dict[int, tuple[pdo.MappedObject, ...]] = {}
@@ -97,28 +122,42 @@ class SimulatedNode:
                 (0x1018, 0): ObjectEntry("<B", 4, writable=False),
                 **{(0x1018, sub + 1): ObjectEntry("<I", value, writable=False)
                    for sub, value in enumerate(self.IDENTITY)},
+                (0x1029, 0): ObjectEntry("<B", 1, writable=False),
+                (0x1029, 1): ObjectEntry("<B", nmt.CommunicationErrorBehaviour.PRE_OPERATIONAL),
             }
         )
         for k in range(self.TPDO_COUNT):
-            invalid = 0 if k == 0 else pdo.COB_ID_INVALID
-            comm, mapping = pdo.TPDO_COMMUNICATION + k, pdo.TPDO_MAPPING + k
+            comm = pdo.TPDO_COMMUNICATION + k
             self.od.update(
                 {
                     (comm, 0): ObjectEntry("<B", 5, writable=False),
-                    (comm, 1): ObjectEntry("<I", invalid | nmt.tpdo_cob_id(k + 1, n)),
+                    (comm, 1): ObjectEntry("<I", (0 if k == 0 else pdo.COB_ID_INVALID) | nmt.tpdo_cob_id(k + 1, n)),
                     (comm, 2): ObjectEntry("<B", pdo.TRANSMISSION_EVENT_DRIVEN),
                     (comm, 3): ObjectEntry("<H", 0),
                     (comm, 5): ObjectEntry("<H", 0),
-                    (mapping, 0): ObjectEntry("<B", 0),
                 }
             )
-            entries = self.DEFAULT_TPDO_MAPPING.get(k, ())
-            self.od[(mapping, 0)].value = len(entries)
-            for sub in range(1, 9):
-                self.od[(mapping, sub)] = ObjectEntry("<I", entries[sub - 1] if sub <= len(entries) else 0)
+            self._reset_mapping(pdo.TPDO_MAPPING + k, self.DEFAULT_TPDO_MAPPING.get(k, ()))
+        for k in range(self.RPDO_COUNT):
+            comm = pdo.RPDO_COMMUNICATION + k
+            entries = self.DEFAULT_RPDO_MAPPING.get(k, ())
+            self.od.update(
+                {
+                    (comm, 0): ObjectEntry("<B", 2, writable=False),
+                    (comm, 1): ObjectEntry("<I", (0 if entries else pdo.COB_ID_INVALID) | nmt.rpdo_cob_id(k + 1, n)),
+                    (comm, 2): ObjectEntry("<B", pdo.TRANSMISSION_EVENT_DRIVEN),
+                }
+            )
+            self._reset_mapping(pdo.RPDO_MAPPING + k, entries)
         self._tpdo_due.clear()
         self._consumer_seen.clear()
+        self._consumer_lost.clear()
         self._mapping_cache.clear()
+
+    def _reset_mapping(self, index: int, entries: tuple[int, ...]) -> None:
+        self.od[(index, 0)] = ObjectEntry("<B", len(entries))
+        for sub in range(1, 9):
+            self.od[(index, sub)] = ObjectEntry("<I", entries[sub - 1] if sub <= len(entries) else 0)
 
     def value(self, index: int, subindex: int = 0) -> int:
         """An object's current value (live objects come from :meth:`read_object`)."""
@@ -129,19 +168,52 @@ class SimulatedNode:
         return self.od[(index, subindex)].value
 
     def write_object(self, index: int, subindex: int, value: int) -> None:
-        """Hook: store a written value, enforcing the PDO mapping rules of CiA 301.
+        """Hook: store a written value, enforcing the PDO rules of CiA 301 and 0x1029's range.
 
         Raises:
             SdoAbortRequest: the write is refused (code says why).
         """
-        if index in range(pdo.TPDO_MAPPING, pdo.TPDO_MAPPING + self.TPDO_COUNT):
-            self._check_mapping_write(index, subindex, value)
-            self._mapping_cache.pop(index - pdo.TPDO_MAPPING, None)
+        comm_index = self._communication_of(index)
+        if comm_index is not None:  # a mapping parameter
+            self._check_mapping_write(comm_index, index, subindex, value)
+            self._mapping_cache.pop(index, None)
+        elif self._mapping_of(index) is not None:  # a communication parameter
+            self._check_communication_write(index, subindex, value)
+        elif index == 0x1029 and value not in tuple(nmt.CommunicationErrorBehaviour):
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
         self.od[(index, subindex)].value = value
 
-    def _check_mapping_write(self, index: int, subindex: int, value: int) -> None:
-        comm = self.od[(index - pdo.TPDO_MAPPING + pdo.TPDO_COMMUNICATION, 1)].value
-        if not comm & pdo.COB_ID_INVALID:
+    def receive_write(self, index: int, subindex: int, value: int, transport: str) -> None:
+        """Hook: a value written from the bus (``transport`` ``sdo`` or ``rpdo``); both arrive
+        through :meth:`write_object`, so an object acts the same whichever carried it."""
+        self.write_object(index, subindex, value)
+
+    def _communication_of(self, mapping_index: int) -> int | None:
+        """The communication parameter of a PDO mapping parameter (None: not one)."""
+        for mapping, comm, count in ((pdo.TPDO_MAPPING, pdo.TPDO_COMMUNICATION, self.TPDO_COUNT),
+                                     (pdo.RPDO_MAPPING, pdo.RPDO_COMMUNICATION, self.RPDO_COUNT)):
+            if mapping <= mapping_index < mapping + count:
+                return mapping_index - mapping + comm
+        return None
+
+    def _mapping_of(self, comm_index: int) -> int | None:
+        """The mapping parameter of a PDO communication parameter (None: not one)."""
+        for mapping, comm, count in ((pdo.TPDO_MAPPING, pdo.TPDO_COMMUNICATION, self.TPDO_COUNT),
+                                     (pdo.RPDO_MAPPING, pdo.RPDO_COMMUNICATION, self.RPDO_COUNT)):
+            if comm <= comm_index < comm + count:
+                return comm_index - comm + mapping
+        return None
+
+    def _check_communication_write(self, index: int, subindex: int, value: int) -> None:
+        current = self.od[(index, subindex)].value
+        if subindex == 1 and not (current | value) & pdo.COB_ID_INVALID and (current ^ value) & 0x1FFF_FFFF:
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)  # a valid PDO's COB-ID changes only via invalid
+        receive = index < pdo.TPDO_COMMUNICATION
+        if receive and subindex == 2 and value not in _RPDO_TRANSMISSION_TYPES:
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+
+    def _check_mapping_write(self, comm_index: int, index: int, subindex: int, value: int) -> None:
+        if not self.od[(comm_index, 1)].value & pdo.COB_ID_INVALID:
             raise SdoAbortRequest(sdo.ABORT_DEVICE_STATE)
         if subindex == 0:
             if value > 8:
@@ -154,21 +226,28 @@ class SimulatedNode:
             raise SdoAbortRequest(sdo.ABORT_UNSUPPORTED_ACCESS)
         obj_index, obj_sub, bits = pdo.parse_map_entry(value)
         entry = self.od.get((obj_index, obj_sub))
-        if entry is None or not entry.mappable or entry.size * 8 != bits:
+        receive = comm_index < pdo.TPDO_COMMUNICATION  # an RPDO writes what it maps
+        if entry is None or not entry.mappable or entry.size * 8 != bits or (receive and not entry.writable):
             raise SdoAbortRequest(sdo.ABORT_NOT_MAPPABLE)
 
     def tpdo_mapping(self, k: int) -> tuple[pdo.MappedObject, ...]:
         """The current mapping of TPDO k+1."""
-        cached = self._mapping_cache.get(k)
+        return self._mapping(pdo.TPDO_MAPPING + k)
+
+    def rpdo_mapping(self, k: int) -> tuple[pdo.MappedObject, ...]:
+        """The current mapping of RPDO k+1."""
+        return self._mapping(pdo.RPDO_MAPPING + k)
+
+    def _mapping(self, index: int) -> tuple[pdo.MappedObject, ...]:
+        cached = self._mapping_cache.get(index)
         if cached is not None:
             return cached
-        index = pdo.TPDO_MAPPING + k
         out = []
         for sub in range(1, self.od[(index, 0)].value + 1):
             obj_index, obj_sub, _ = pdo.parse_map_entry(self.od[(index, sub)].value)
             out.append(pdo.MappedObject(obj_index, obj_sub, self.od[(obj_index, obj_sub)].fmt))
-        self._mapping_cache[k] = tuple(out)
-        return self._mapping_cache[k]
+        self._mapping_cache[index] = tuple(out)
+        return self._mapping_cache[index]
 
     # ------------------------------------------------------------------ fault injection
 
@@ -223,8 +302,17 @@ class SimulatedNode:
         """Send the boot-up message and enter PRE-OPERATIONAL."""
         self.nmt_state = nmt.NmtState.BOOT_UP
         await self.send(nmt.heartbeat_cob_id(self.node_id), nmt.heartbeat_frame(nmt.NmtState.BOOT_UP))
-        self.nmt_state = nmt.NmtState.PRE_OPERATIONAL
+        self.set_nmt_state(nmt.NmtState.PRE_OPERATIONAL, "boot-up")
         self._heartbeat_due = None
+
+    def set_nmt_state(self, state: nmt.NmtState, cause: str) -> None:
+        """Enter an NMT state (logged with ``mono_s`` when it changes; event timers restart)."""
+        if state is self.nmt_state:
+            return
+        log.info("sim_node_nmt", node=self.name, old=self.nmt_state.name, new=state.name, cause=cause,
+                 mono_s=monotonic_s(), loop_s=asyncio.get_running_loop().time())
+        self.nmt_state = state
+        self._tpdo_due.clear()
 
     async def send(self, cob_id: int, data: bytes) -> None:
         if self.silent:
@@ -241,14 +329,52 @@ class SimulatedNode:
                 await self._on_sdo(data)
         elif 0x701 <= cob_id <= 0x77F:
             self._on_heartbeat(cob_id - 0x700, data)
+        elif (k := self._rpdo_for(cob_id)) is not None:
+            if self.nmt_state is nmt.NmtState.OPERATIONAL:
+                await self._on_rpdo(k, data)
         else:
             await self.on_message(cob_id, data)
 
     async def send_emcy(self, data: bytes) -> None:
-        """Send an EMCY frame unless the EMCY COB-ID (0x1014) is marked invalid."""
+        """Send an EMCY frame unless the EMCY COB-ID (0x1014) is marked invalid or the node is
+        STOPPED (where only NMT and heartbeat go on)."""
         cob_id = self.od[(0x1014, 0)].value
-        if not cob_id & pdo.COB_ID_INVALID:
+        if not cob_id & pdo.COB_ID_INVALID and self.nmt_state is not nmt.NmtState.STOPPED:
             await self.send(cob_id & 0x7FF, data)
+
+    def emit_emcy(self, code: int, register: int, vendor: bytes = bytes(5)) -> None:
+        """Record an EMCY error in :attr:`emcy_sent` and send it (in a task of the node)."""
+        message = emcy.Emcy(code, register, vendor)
+        self.emcy_sent.append(message)
+        self.spawn(self.send_emcy(emcy.emcy_frame(message)))
+
+    def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run ``coro`` in a task the node cancels when it stops."""
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _rpdo_for(self, cob_id: int) -> int | None:
+        """The RPDO (k for RPDO k+1) valid on ``cob_id``, None if none."""
+        for k in range(self.RPDO_COUNT):
+            value = self.od[(pdo.RPDO_COMMUNICATION + k, 1)].value
+            if not value & pdo.COB_ID_INVALID and value & 0x7FF == cob_id:
+                return k
+        return None
+
+    async def _on_rpdo(self, k: int, data: bytes) -> None:
+        mapping = self.rpdo_mapping(k)
+        if len(data) != pdo.pdo_length(mapping):
+            self.rpdo_length_errors += 1
+            self.emit_emcy(emcy.PDO_LENGTH_ERROR, self.read_object(0x1001, 0) | _COMMUNICATION_REGISTER)
+            return
+        for obj, value in zip(mapping, pdo.decode_pdo(mapping, data), strict=True):
+            try:
+                self.receive_write(obj.index, obj.subindex, value, "rpdo")
+            except SdoAbortRequest as exc:  # an RPDO has nobody to answer: the value is dropped
+                self.rpdo_values_refused += 1
+                log.warning("sim_node_rpdo_value_refused", node=self.name, rpdo=k + 1,
+                            object=f"0x{obj.index:04X}:{obj.subindex}", value=value, abort=f"0x{exc.code:08X}")
 
     async def on_message(self, cob_id: int, data: bytes) -> None:
         """Hook: any other frame (RPDO, SYNC...)."""
@@ -262,11 +388,11 @@ class SimulatedNode:
         if node not in (0, self.node_id):
             return
         if command is nmt.NmtCommand.START:
-            self.nmt_state = nmt.NmtState.OPERATIONAL
+            self.set_nmt_state(nmt.NmtState.OPERATIONAL, "NMT start")
         elif command is nmt.NmtCommand.STOP:
-            self.nmt_state = nmt.NmtState.STOPPED
+            self.set_nmt_state(nmt.NmtState.STOPPED, "NMT stop")
         elif command is nmt.NmtCommand.ENTER_PRE_OPERATIONAL:
-            self.nmt_state = nmt.NmtState.PRE_OPERATIONAL
+            self.set_nmt_state(nmt.NmtState.PRE_OPERATIONAL, "NMT enter pre-operational")
         elif command is nmt.NmtCommand.RESET_COMMUNICATION:
             self.reset_communication_objects()
             await self.boot()
@@ -274,8 +400,6 @@ class SimulatedNode:
             self.reset_application()
             self.reset_communication_objects()
             await self.boot()
-        if command in (nmt.NmtCommand.START, nmt.NmtCommand.STOP, nmt.NmtCommand.ENTER_PRE_OPERATIONAL):
-            self._tpdo_due.clear()
 
     def reset_application(self) -> None:
         """Hook: application objects back to power-on values (NMT reset node)."""
@@ -285,6 +409,9 @@ class SimulatedNode:
             producer, time_ms = nmt.parse_consumer_heartbeat(self.od[(0x1016, sub)].value)
             if producer == node and time_ms > 0:
                 self._consumer_seen[node] = asyncio.get_running_loop().time()
+                if node in self._consumer_lost:  # monitored again (CiA 301)
+                    self._consumer_lost.discard(node)
+                    log.info("sim_node_heartbeat_resumed", node=self.name, producer=node, mono_s=monotonic_s())
 
     # ------------------------------------------------------------------ SDO server
 
@@ -332,7 +459,7 @@ class SimulatedNode:
         if len(payload) != entry.size:
             return sdo.abort_frame(index, subindex, sdo.ABORT_LENGTH)
         try:
-            self.write_object(index, subindex, struct.unpack(entry.fmt, payload)[0])
+            self.receive_write(index, subindex, struct.unpack(entry.fmt, payload)[0], "sdo")
         except SdoAbortRequest as exc:
             return sdo.abort_frame(index, subindex, exc.code)
         return sdo.download_reply(index, subindex)
@@ -343,7 +470,8 @@ class SimulatedNode:
         """Hook: called every TICK_S (motion, monitoring)."""
 
     async def on_heartbeat_lost(self, node: int, silent_s: float) -> None:
-        """Hook: a consumed heartbeat stayed away longer than its consumer time."""
+        """Hook: a consumed heartbeat stayed away longer than its consumer time (after the node's
+        EMCY and its 0x1029 reaction)."""
 
     async def transmit_tpdo(self, k: int) -> None:
         """Send TPDO k+1 now if it is valid, mapped and the node is OPERATIONAL."""
@@ -417,4 +545,22 @@ class SimulatedNode:
             if now - seen > time_ms / 1000:
                 # Unmonitored again until the producer's next heartbeat (CiA 301).
                 del self._consumer_seen[producer]
-                await self.on_heartbeat_lost(producer, now - seen)
+                self._consumer_lost.add(producer)
+                await self._heartbeat_lost(producer, now - seen)
+
+    async def _heartbeat_lost(self, producer: int, silent_s: float) -> None:
+        """CiA 301's heartbeat event: EMCY 0x8130 (sent before 0x1029 may silence it), then the
+        error behaviour 0x1029:1, then the profile's reaction (:meth:`on_heartbeat_lost`)."""
+        behaviour = nmt.CommunicationErrorBehaviour(self.od[(0x1029, 1)].value)
+        log.info("sim_node_heartbeat_lost", node=self.name, producer=producer, silent_s=round(silent_s, 3),
+                 error_behaviour=behaviour.name, nmt=self.nmt_state.name, mono_s=monotonic_s(),
+                 loop_s=asyncio.get_running_loop().time())
+        message = emcy.Emcy(emcy.HEARTBEAT_ERROR, self.read_object(0x1001, 0) | _COMMUNICATION_REGISTER)
+        self.emcy_sent.append(message)
+        await self.send_emcy(emcy.emcy_frame(message))
+        if behaviour is nmt.CommunicationErrorBehaviour.PRE_OPERATIONAL:
+            if self.nmt_state is nmt.NmtState.OPERATIONAL:
+                self.set_nmt_state(nmt.NmtState.PRE_OPERATIONAL, "heartbeat lost (0x1029:1 = 0)")
+        elif behaviour is nmt.CommunicationErrorBehaviour.STOPPED:
+            self.set_nmt_state(nmt.NmtState.STOPPED, "heartbeat lost (0x1029:1 = 2)")
+        await self.on_heartbeat_lost(producer, silent_s)

@@ -6,14 +6,25 @@ position") modes, and trapezoidal motion evaluated analytically on the event-loo
 Positions are encoder counts of the motor (``encoder_counts_per_rev`` per motor turn,
 ``gear_ratio`` motor turns per beam turn); velocities counts/s; accelerations counts/s^2.
 
-Faults: an e-stop input (quick-stop ramp, then FAULT with EMCY 0x5441), any EMCY fault code,
-a jammed beam (following error, EMCY 0x8611), loss of the host heartbeat (EMCY 0x8130), plus
-the node-level faults of :class:`SimulatedNode` (dropped TPDOs, silent heartbeat, late or
-missing SDO answers, a pulled cable).
+Stopping as CiA 402 defines it: the quick stop command ramps per 0x605A (0 coast, 1/5 the
+profile deceleration, 2/6 the quick-stop deceleration 0x6085); a fault ramps per 0x605E in FAULT
+REACTION ACTIVE (0 coast, 1 profile deceleration, 2 quick-stop deceleration), then FAULT; a
+power stage switched off (disable voltage, shutdown) lets the beam coast on its friction
+(``coast_deceleration_deg_s2``). A lost host heartbeat gives the node's EMCY 0x8130 and 0x1029
+reaction, then the abort connection option 0x6007: 0 nothing (a velocity move goes on), 1 a
+fault (0x605E), 2 the disable voltage command, 3 the quick stop command.
+
+Faults: an e-stop input (fault reaction, EMCY 0x5441), any EMCY fault code, a jammed beam
+(following error, EMCY 0x8611), plus the node-level faults of :class:`SimulatedNode` (dropped
+TPDOs, silent heartbeat, late or missing SDO answers, a pulled cable).
+
+Logged with ``mono_s`` for benchmarks in another process: every controlword received (and by
+SDO or RPDO), every CiA 402 state change, the reaction to a lost heartbeat, and the moment the
+beam comes to rest.
 
 Simplifications: a new profile-position set-point always takes effect at once (as with
-"change immediately"); the beam follows the demand exactly unless jammed; leaving OPERATION
-ENABLED brakes the beam on the quick-stop ramp.
+"change immediately"); the beam follows the demand exactly unless jammed; disable operation
+brakes the beam on the quick-stop ramp.
 
 ``tbp sim motor --port P`` serves the drive on a socketcand bridge at 127.0.0.1:P.
 """
@@ -21,15 +32,13 @@ ENABLED brakes the beam on the quick-stop ramp.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Coroutine
-from typing import Any
 
 import structlog
 
 from drivers.motor import cia402, emcy, sdo
-from drivers.motor.cia402 import Cia402State, Mode, Status
+from drivers.motor.cia402 import AbortConnection, Cia402State, FaultReaction, Mode, QuickStopOption, Status
 from drivers.motor.port import CanPort
-from drivers.sim.canopen_node import ObjectEntry, SdoAbortRequest, SimulatedNode
+from drivers.sim.canopen_node import ObjectEntry, SdoAbortRequest, SimulatedNode, monotonic_s
 from drivers.sim.trapezoid import hold, position_move, velocity_ramp
 from planner.rig import Motor
 
@@ -53,7 +62,10 @@ _TARGET_REACHED, _SET_POINT_ACKNOWLEDGE = int(Status.TARGET_REACHED), int(Status
 # EMCY code prefix -> error register (0x1001) bit: current, voltage, temperature, communication,
 # device profile specific (position control, the e-stop input).
 _REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x81: 0x10, 0x86: 0x20, 0x54: 0x20}
-_QUICK_STOP_OPTIONS = {1, 2, 5, 6}
+_QUICK_STOP_OPTIONS = {0, 1, 2, 5, 6}
+_FAULT_REACTIONS = {0, 1, 2}
+_SLOW_DOWN_RAMP = {QuickStopOption.SLOW_DOWN_RAMP, QuickStopOption.SLOW_DOWN_RAMP_STAY}
+_LEAVE_QUICK_STOP = {QuickStopOption.SLOW_DOWN_RAMP, QuickStopOption.QUICK_STOP_RAMP}
 _MODES = {int(m): m for m in Mode}
 
 
@@ -66,6 +78,12 @@ class SimulatedDrive(SimulatedNode):
         initial_angle_deg: the beam's physical angle at power-on; the encoder then reads 0.
         init_s: how long the drive reports NOT READY TO SWITCH ON after power-on (its self-test).
         homing_methods: the "current position" homing methods it accepts (older drives: 35 only).
+        abort_connection_option: 0x6007 at power-on. CiA 402 leaves the shipped value to the
+            manufacturer (drives ship 0 or 1); the default 0 (no action: the beam turns on when
+            the host dies) is the least safe a drive can ship with, so a test sees exactly what
+            the host's configuration does.
+        coast_deceleration_deg_s2: how fast the beam slows down on its own with the power stage
+            off (default a twentieth of the rig's maximum acceleration).
         name: used in logs.
     """
 
@@ -73,6 +91,7 @@ class SimulatedDrive(SimulatedNode):
     IDENTITY = (0x0000_0544, 0x0000_7B01, 0x0001_0000, 0x0000_0001)  # an unregistered simulator's id
     SUPPORTED_MODES = 0x25  # profile position, profile velocity, homing
     DEFAULT_TPDO_MAPPING = {0: (0x6041_0010,)}  # TPDO1: statusword, as most drives ship
+    DEFAULT_RPDO_MAPPING = {0: (0x6040_0010, 0x6060_0008)}  # RPDO1: controlword + mode, a vendor default
 
     def __init__(
         self,
@@ -82,6 +101,8 @@ class SimulatedDrive(SimulatedNode):
         initial_angle_deg: float = 0.0,
         init_s: float = 0.0,
         homing_methods: tuple[int, ...] = (35, 37),
+        abort_connection_option: int = AbortConnection.NO_ACTION,
+        coast_deceleration_deg_s2: float | None = None,
         name: str = "sim-drive",
     ) -> None:
         self.config = config
@@ -89,13 +110,17 @@ class SimulatedDrive(SimulatedNode):
         self.initial_angle_deg = initial_angle_deg
         self.init_s = init_s
         self.homing_methods = homing_methods
+        self.abort_connection_option = abort_connection_option
+        coast = config.max_acceleration_deg_s2 / 20 if coast_deceleration_deg_s2 is None else coast_deceleration_deg_s2
+        self.coast_deceleration = coast * config.counts_per_degree  # counts/s^2
         self._ready_at: float | None = None
         self.state = S.SWITCH_ON_DISABLED
         self.estop_pressed = False
         self.jammed_at: float | None = None
         self.error_code = 0
-        self.emcy_sent: list[emcy.Emcy] = []
         self._controlword = 0
+        self._logged_state: Cia402State | None = None
+        self._moving = False
         self._clock_s = 0.0
         self._offset = 0.0  # reported counts = raw counts + offset (homing)
         self._trajectory = hold(0.0, 0.0)
@@ -114,7 +139,9 @@ class SimulatedDrive(SimulatedNode):
             cia402.ERROR_CODE: ("<H", 0, ro, True),
             cia402.CONTROLWORD: ("<H", 0, rw, True),
             cia402.STATUSWORD: ("<H", 0, ro, True),
-            cia402.QUICK_STOP_OPTION: ("<h", 6, rw, False),
+            cia402.ABORT_CONNECTION_OPTION: ("<h", self.abort_connection_option, rw, False),
+            cia402.QUICK_STOP_OPTION: ("<h", QuickStopOption.QUICK_STOP_RAMP_STAY, rw, False),
+            cia402.FAULT_REACTION_OPTION: ("<h", FaultReaction.QUICK_STOP_RAMP, rw, False),
             cia402.MODES_OF_OPERATION: ("<b", 0, rw, True),
             cia402.MODES_DISPLAY: ("<b", 0, ro, True),
             cia402.POSITION_ACTUAL: ("<i", 0, ro, True),
@@ -176,6 +203,10 @@ class SimulatedDrive(SimulatedNode):
     def write_object(self, index: int, subindex: int, value: int) -> None:
         if index == cia402.QUICK_STOP_OPTION and value not in _QUICK_STOP_OPTIONS:
             raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        if index == cia402.FAULT_REACTION_OPTION and value not in _FAULT_REACTIONS:
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+        if index == cia402.ABORT_CONNECTION_OPTION and value not in tuple(AbortConnection):
+            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
         if index == cia402.HOMING_METHOD and value not in self.homing_methods:
             raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
         if index == cia402.MODES_OF_OPERATION and value not in (
@@ -197,6 +228,12 @@ class SimulatedDrive(SimulatedNode):
             and self._mode() is Mode.PROFILE_VELOCITY
         ):
             self._apply_velocity()
+
+    def receive_write(self, index: int, subindex: int, value: int, transport: str) -> None:
+        if index == cia402.CONTROLWORD:
+            log.info("sim_drive_controlword", drive=self.name, word=f"0x{value:04X}", transport=transport,
+                     state=self.state.value, mono_s=monotonic_s(), loop_s=self._now())
+        super().receive_write(index, subindex, value, transport)
 
     # ------------------------------------------------------------------ observed values
 
@@ -294,30 +331,37 @@ class SimulatedDrive(SimulatedNode):
 
     # ------------------------------------------------------------------ state machine
 
-    def _raise_fault(self, code: int, vendor: bytes = bytes(5)) -> None:
+    def _raise_fault(self, code: int, vendor: bytes = bytes(5), *, signalled: bool = False) -> None:
+        """Enter the fault reaction for ``code``; ``signalled``: its EMCY is already sent."""
         if self.state in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             return
         self.error_code = code
-        message = emcy.Emcy(code, self._error_register(), vendor)
-        self.emcy_sent.append(message)
-        self._spawn(self.send_emcy(emcy.emcy_frame(message)))
-        log.info("sim_drive_fault", drive=self.name, code=f"0x{code:04X}", meaning=message.meaning)
-        # A driven beam brakes on the quick-stop ramp (FAULT REACTION ACTIVE until it stands);
-        # a beam not driven, or jammed, is in FAULT at once.
+        if not signalled:
+            self.emit_emcy(code, self._error_register(), vendor)
+        log.info("sim_drive_fault", drive=self.name, code=f"0x{code:04X}", meaning=emcy.emcy_meaning(code))
+        # A driven beam slows down per 0x605E (FAULT REACTION ACTIVE until it stands); a beam not
+        # driven, jammed, or whose reaction is to switch the power stage off is in FAULT at once.
         driven = self.state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE) and self.jammed_at is None
-        self.state = S.FAULT_REACTION_ACTIVE if driven else S.FAULT
-        self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        reaction = self.od[(cia402.FAULT_REACTION_OPTION, 0)].value
+        if not driven:
+            self.state = S.FAULT
+        elif reaction == FaultReaction.DISABLE_DRIVE:
+            self.state = S.FAULT
+            self._coast()
+        else:
+            self.state = S.FAULT_REACTION_ACTIVE
+            slow_down = reaction == FaultReaction.SLOW_DOWN_RAMP
+            self._brake(self._ramps()[1] if slow_down else self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
         self._statusword_changed()
-
-    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
-        task = asyncio.get_running_loop().create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
 
     def _brake(self, deceleration: float) -> None:
         now = self._now()
         p, v = self._position_velocity(now)
         self._trajectory = velocity_ramp(now, p, v, 0.0, deceleration, deceleration)
+
+    def _coast(self) -> None:
+        """The power stage is off: the beam slows down on its own friction."""
+        self._brake(self.coast_deceleration)
 
     def _on_controlword(self, word: int) -> None:
         previous, self._controlword = self._controlword, word
@@ -327,7 +371,7 @@ class SimulatedDrive(SimulatedNode):
             if rising & cia402.Control.FAULT_RESET and not self.estop_pressed and self.jammed_at is None:
                 self.state = S.SWITCH_ON_DISABLED
                 self.error_code = 0
-                self._spawn(self.send_emcy(emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0))))
+                self.spawn(self.send_emcy(emcy.emcy_frame(emcy.Emcy(emcy.ERROR_RESET, 0))))
             self._statusword_changed()
             return
         if state is S.FAULT_REACTION_ACTIVE:
@@ -361,10 +405,19 @@ class SimulatedDrive(SimulatedNode):
         if new is old:
             return
         if new is S.QUICK_STOP_ACTIVE:
-            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
-        elif old is S.OPERATION_ENABLED or old is S.QUICK_STOP_ACTIVE:
-            # Power stage off: the brake holds the beam after a quick-stop ramp.
-            self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+            option = self._quick_stop_option()
+            if option == QuickStopOption.DISABLE_DRIVE:
+                self.state = S.SWITCH_ON_DISABLED
+                self._coast()
+            elif option in _SLOW_DOWN_RAMP:
+                self._brake(self._ramps()[1])
+            else:
+                self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+        elif old in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
+            if new is S.SWITCHED_ON:  # disable operation: the drive brakes, then holds
+                self._brake(self.od[(cia402.QUICK_STOP_DECELERATION, 0)].value)
+            else:  # shutdown, disable voltage: the power stage is off
+                self._coast()
         if new is S.OPERATION_ENABLED:
             now = self._now()
             p, v = self._position_velocity(now)
@@ -373,6 +426,9 @@ class SimulatedDrive(SimulatedNode):
             self._homing_attained = False
             if self._mode() is Mode.PROFILE_VELOCITY:
                 self._apply_velocity()
+
+    def _quick_stop_option(self) -> int:
+        return int(self.od[(cia402.QUICK_STOP_OPTION, 0)].value)
 
     def _ramps(self) -> tuple[float, float]:
         return (
@@ -422,10 +478,15 @@ class SimulatedDrive(SimulatedNode):
         self._homing_attained = True
 
     def _statusword_changed(self) -> None:
+        if self.state is not self._logged_state:
+            log.info("sim_drive_state", drive=self.name, old=self._logged_state.value if self._logged_state else None,
+                     new=self.state.value, speed_deg_s=round(self.true_speed_deg_s, 3), mono_s=monotonic_s(),
+                     loop_s=self._now())
+            self._logged_state = self.state
         word = self.statusword
         if word != self._last_statusword:
             self._last_statusword = word
-            self._spawn(self.transmit_tpdos_with(cia402.STATUSWORD))
+            self.spawn(self.transmit_tpdos_with(cia402.STATUSWORD))
 
     # ------------------------------------------------------------------ cyclic work
 
@@ -447,10 +508,24 @@ class SimulatedDrive(SimulatedNode):
         if now >= self._trajectory.end_time:
             if self.state is S.FAULT_REACTION_ACTIVE:
                 self.state = S.FAULT
-            elif self.state is S.QUICK_STOP_ACTIVE and self.od[(cia402.QUICK_STOP_OPTION, 0)].value in (1, 2):
+            elif self.state is S.QUICK_STOP_ACTIVE and self._quick_stop_option() in _LEAVE_QUICK_STOP:
                 self.state = S.SWITCH_ON_DISABLED
+        moving = self._position_velocity(now)[1] != 0
+        if self._moving and not moving:
+            log.info("sim_drive_standstill", drive=self.name, angle_deg=round(self.true_angle_deg, 3),
+                     state=self.state.value, mono_s=monotonic_s(), loop_s=now)
+        self._moving = moving
         self._statusword_changed()
 
     async def on_heartbeat_lost(self, node: int, silent_s: float) -> None:
-        log.info("sim_drive_host_heartbeat_lost", drive=self.name, node=node, silent_s=round(silent_s, 3))
-        self._raise_fault(emcy.HEARTBEAT_ERROR)
+        """The abort connection option 0x6007 acts on the loss of the host's heartbeat."""
+        option = self.od[(cia402.ABORT_CONNECTION_OPTION, 0)].value
+        log.info("sim_drive_abort_connection", drive=self.name, node=node, option=AbortConnection(option).name,
+                 state=self.state.value, speed_deg_s=round(self.true_speed_deg_s, 3), mono_s=monotonic_s(),
+                 loop_s=self._now())
+        if option == AbortConnection.FAULT:
+            self._raise_fault(emcy.HEARTBEAT_ERROR, signalled=True)  # the node sent its EMCY
+        elif option == AbortConnection.DISABLE_VOLTAGE:
+            self._on_controlword(cia402.DISABLE_VOLTAGE)
+        elif option == AbortConnection.QUICK_STOP:
+            self._on_controlword(cia402.QUICK_STOP)
