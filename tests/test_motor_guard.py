@@ -13,15 +13,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from drivers.motor import nmt
-from drivers.motor.guard import (
-    GuardLogic,
-    GuardTiming,
-    GuardTrip,
-    GuardTripKind,
-    RealtimePort,
-    ThreadedGuard,
-    quick_stop_message,
-)
+from drivers.motor.guard import GuardLogic, GuardTiming, GuardTrip, GuardTripKind, ThreadedGuard, quick_stop_message
+from drivers.motor.port import RealtimePort
 
 TIMING = GuardTiming(heartbeat_period_s=0.05, drive_timeout_s=0.35, host_stall_s=0.5)
 DRIVE_PERIOD_S = 0.1

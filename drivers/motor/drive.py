@@ -51,11 +51,10 @@ from drivers.motor.guard import (
     GuardTrip,
     GuardTripKind,
     LoopGuard,
-    RealtimePort,
     ThreadedGuard,
     quick_stop_message,
 )
-from drivers.motor.port import CanPort
+from drivers.motor.port import CanPort, RealtimePort
 from drivers.motor.samples import BeamSample, SampleStream
 from drivers.motor.sdo import SdoClient
 from drivers.motor.stop_config import StopConfiguration, read_stop_configuration

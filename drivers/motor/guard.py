@@ -40,13 +40,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol
 
 import can
 import structlog
 
 from drivers.motor import cia402, nmt
+from drivers.motor.bringup import controlword_pdo
 from drivers.motor.errors import CanBusError
+from drivers.motor.port import RealtimePort
 from planner.rig import Motor
 
 log = structlog.get_logger(__name__)
@@ -192,17 +194,6 @@ class GuardLogic:
         return max(now, due)
 
 
-@runtime_checkable
-class RealtimePort(Protocol):
-    """A CAN port whose frames can be sent and observed from any thread, never blocking."""
-
-    def send_urgent(self, msg: can.Message) -> None:
-        """Queue ``msg`` ahead of every ordinary frame."""
-
-    def tap(self, callback: Callable[[can.Message, float], None]) -> Callable[[], None]:
-        """Call ``callback(msg, monotonic_s)`` in the receiving thread for every frame; returns untap."""
-
-
 def heartbeat_message(host_node_id: int) -> can.Message:
     """The host's heartbeat (NMT OPERATIONAL)."""
     return can.Message(arbitration_id=nmt.heartbeat_cob_id(host_node_id),
@@ -211,8 +202,7 @@ def heartbeat_message(host_node_id: int) -> can.Message:
 
 def quick_stop_message(node_id: int) -> can.Message:
     """The quick stop as the controlword on the drive's RPDO1 (configured by drivers/motor/bringup.py)."""
-    return can.Message(arbitration_id=nmt.rpdo_cob_id(1, node_id),
-                       data=cia402.QUICK_STOP.to_bytes(2, "little"), is_extended_id=False)
+    return controlword_pdo(node_id, cia402.QUICK_STOP)
 
 
 class DriveGuard(Protocol):

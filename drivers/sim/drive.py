@@ -117,6 +117,8 @@ class SimulatedDrive(SimulatedNode):
         self.state = S.SWITCH_ON_DISABLED
         self.estop_pressed = False
         self.jammed_at: float | None = None
+        self.controlwords: list[tuple[float, int, str]] = []
+        """Every controlword received: (loop time, word, "sdo" or "rpdo")."""
         self.error_code = 0
         self._controlword = 0
         self._logged_state: Cia402State | None = None
@@ -231,6 +233,7 @@ class SimulatedDrive(SimulatedNode):
 
     def receive_write(self, index: int, subindex: int, value: int, transport: str) -> None:
         if index == cia402.CONTROLWORD:
+            self.controlwords.append((self._now(), value, transport))
             log.info("sim_drive_controlword", drive=self.name, word=f"0x{value:04X}", transport=transport,
                      state=self.state.value, mono_s=monotonic_s(), loop_s=self._now())
         super().receive_write(index, subindex, value, transport)
