@@ -176,10 +176,11 @@ class RigService:
             problems.append(f"event loop ran {worst:.3f} s late (limit {self.MAX_LAG_S:g} s)")
         if ctl.machine.state in SCAN_STATES and not ctl.busy:
             problems.append(f"state {ctl.machine.state.value} without a running job")
-        running = {t.get_name() for t in self._tasks if not t.done()}
-        problems += [f"task {name} ended" for name in self.TASKS if name not in running]
-        if ctl.hw.panel is not None and "panel-events" not in running:
-            problems.append("task panel-events ended")
+        if self._tasks:  # started
+            running = {t.get_name() for t in self._tasks if not t.done()}
+            problems += [f"task {name} ended" for name in self.TASKS if name not in running]
+            if ctl.hw.panel is not None and "panel-events" not in running:
+                problems.append("task panel-events ended")
         if ctl.bringup.devices["drive"].ok:
             if not ctl.safety.watching:
                 problems.append("safety watch on the drive not running")
