@@ -127,15 +127,18 @@ class SafetyMonitor:
             self._watch = None
 
     async def _watch_drive(self) -> None:
+        reported: BaseException | None = None
         while True:
             await asyncio.sleep(self.POLL_S)
-            if self.latched:
-                continue
             device = self.drive.name
             fault = self.drive.fault
-            if fault is not None:
+            if fault is not None and fault is not reported:
+                # Also while latched: a drive fault after the first trip is one more cause to read.
+                reported = fault
                 source = FaultSource.HOST_STALLED if isinstance(fault, HostStalled) else FaultSource.DRIVE_FAULT
                 await self.trip(FaultCause.of_error(source, device, fault))
+                continue
+            if self.latched:
                 continue
             latest = self.drive.latest
             if self.expect_samples and latest is not None:

@@ -254,7 +254,9 @@ class LoopbackRig:
     def start_simulators(self) -> None:
         rig = str(self.rig_path)
         recordings = record_depth(self.rig_path, self.body_seed, self.decimation, self.say)
-        motor = self._spawn("motor", _tbp("sim", "motor", "--port", "0", "--rig", rig))
+        # At info level the drive logs its state changes and controlwords, stamped for log_events().
+        motor = self._spawn("motor", _tbp("sim", "--log-level", "info", "motor", "--port", "0", "--rig", rig),
+                            stdin=subprocess.PIPE)
         self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
         for index in range(len(self.rig.phones)):
             if index not in self.missing_phones:
@@ -285,11 +287,54 @@ class LoopbackRig:
         self.procs[self.rig.phones[index].id].stop(sig)
 
     def press(self, keys: str) -> None:
-        """Panel buttons: ``s`` start, ``x`` stop, ``e`` e-stop, ``r`` release the e-stop."""
-        stdin = self.procs["panel"].popen.stdin
+        """Panel keys: ``s`` start, ``x`` stop, ``e`` e-stop, ``r`` release the e-stop, ``h`` / ``H``
+        stop / resume the panel's heartbeats."""
+        self._keys("panel", keys)
+
+    def inject(self, keys: str) -> None:
+        """Drive keys: ``f`` raise a fault (EMCY), ``h`` / ``H`` stop / resume the drive's heartbeat,
+        ``e`` / ``r`` open / close its e-stop input."""
+        self._keys("motor", keys)
+
+    def _keys(self, name: str, keys: str) -> None:
+        stdin = self.procs[name].popen.stdin
         assert stdin is not None
         stdin.write(keys.encode())
         stdin.flush()
+
+    def log_events(self, name: str, event: str, *, after_mono_s: float = 0.0) -> list[dict[str, Any]]:
+        """The JSON log lines of simulator ``name`` with this ``event`` (or a key's acknowledgement,
+        ``<action> mono_s=<t>``, as {"event": action, "mono_s": t}) stamped after ``after_mono_s``."""
+        import json
+
+        found = []
+        for line in self.procs[name].log.read_text(errors="replace").splitlines():
+            if line.startswith("{"):
+                try:
+                    record = json.loads(line)
+                except ValueError:
+                    continue
+            else:
+                action, _, stamp = line.rpartition(" mono_s=")
+                try:
+                    record = {"event": action, "mono_s": float(stamp)}
+                except ValueError:
+                    continue
+            if record.get("event") == event and float(record.get("mono_s", -1.0)) > after_mono_s:
+                found.append(record)
+        return found
+
+    def wait_log(self, name: str, event: str, *, after_mono_s: float = 0.0, timeout_s: float = 30.0,
+                 where: Callable[[dict[str, Any]], bool] = lambda r: True) -> dict[str, Any]:
+        """The first log line of ``name`` with ``event`` after ``after_mono_s`` matching ``where``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            found = [r for r in self.log_events(name, event, after_mono_s=after_mono_s) if where(r)]
+            if found:
+                return min(found, key=lambda r: float(r["mono_s"]))
+            if time.monotonic() > deadline:
+                raise LoopbackError(f"{name}: no {event} within {timeout_s:g} s ({self._tail(self.procs[name].log)})")
+            time.sleep(0.05)
 
     def write_hardware(self, recordings: Path) -> Path:
         phones = {}

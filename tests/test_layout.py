@@ -51,6 +51,7 @@ CLOCK_OWNERS = {
     "drivers/motor/guard.py",  # the drive guard keeps real time apart from the event loop's
     "drivers/motor/port.py",  # stamps received frames for a guard thread that runs beside the loop
     "drivers/sim/canopen_node.py",  # stamps the simulator's logs so another process can time its reactions
+    "sim/processes/keys.py",  # stamps the faults a harness injects, to time the daemon's reactions
 }
 
 

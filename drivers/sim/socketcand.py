@@ -76,6 +76,7 @@ class SocketcandServer:
         self._port = port
         self._server: asyncio.Server | None = None
         self._clients: set[asyncio.Task[None]] = set()
+        self._writers: set[asyncio.StreamWriter] = set()
 
     @property
     def port(self) -> int:
@@ -88,11 +89,19 @@ class SocketcandServer:
         log.info("socketcand_listening", host=self.host, port=self.port, channel=self.channel)
 
     async def close(self) -> None:
+        """Stop listening and hang up on every client. Each client's task ends on its own when its
+        connection is aborted: Python 3.11's stream server logs a cancelled client task as an
+        error, so a task is cancelled only if it does not end within a second."""
         if self._server is not None:
             self._server.close()
-            for task in list(self._clients):
-                task.cancel()
-            await asyncio.gather(*self._clients, return_exceptions=True)
+            for writer in list(self._writers):
+                writer.transport.abort()
+            clients = list(self._clients)
+            if clients:
+                _, pending = await asyncio.wait(clients, timeout=1.0)
+                for task in pending:
+                    task.cancel()
+                await asyncio.gather(*pending, return_exceptions=True)
             await self._server.wait_closed()
             self._server = None
 
@@ -101,6 +110,7 @@ class SocketcandServer:
         if task is not None:
             self._clients.add(task)
         peer = writer.get_extra_info("peername")
+        self._writers.add(writer)
         port: LoopbackPort | None = None
         pump: asyncio.Task[None] | None = None
         try:
@@ -143,6 +153,7 @@ class SocketcandServer:
             if port is not None:
                 port.close()
             writer.close()
+            self._writers.discard(writer)
             if task is not None:
                 self._clients.discard(task)
 

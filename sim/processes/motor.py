@@ -10,6 +10,7 @@ from typing import Any
 
 from drivers.motor.port import LoopbackCanBus
 from drivers.sim.drive import SimulatedDrive
+from sim.processes.keys import watch_keys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,7 +39,10 @@ async def _inject_later(delay_s: float | None, action: Callable[[], None]) -> No
 
 
 async def serve(args: argparse.Namespace) -> None:
-    """Serve the simulated drive on a socketcand bridge at 127.0.0.1:args.port until SIGINT/SIGTERM."""
+    """Serve the simulated drive on a socketcand bridge at 127.0.0.1:args.port until SIGINT/SIGTERM.
+
+    Keys on stdin (sim/processes/keys.py) inject faults: ``f`` raises --fault-code, ``h`` stops the
+    drive's heartbeat and ``H`` resumes it, ``e`` opens the e-stop input and ``r`` closes it."""
     from drivers.sim.socketcand import SocketcandServer
     from planner.rig import DEFAULT_RIG_PATH, load_rig
 
@@ -59,6 +63,11 @@ async def serve(args: argparse.Namespace) -> None:
         asyncio.create_task(_inject_later(args.estop_after, drive.press_estop)),
         asyncio.create_task(_inject_later(args.fault_after, lambda: drive.inject_fault(args.fault_code))),
     ]
+    unwatch = watch_keys({
+        "f": (f"fault 0x{args.fault_code:04X} raised", lambda: drive.inject_fault(args.fault_code)),
+        "h": ("heartbeat stopped", drive.stop_heartbeat), "H": ("heartbeat resumed", drive.resume_heartbeat),
+        "e": ("e-stop input opened", drive.press_estop), "r": ("e-stop input closed", drive.release_estop),
+    })
     print(
         f"simulated drive node {rig.motor.node_id} on socketcand "
         f"127.0.0.1:{server.port} channel {args.channel}",
@@ -67,6 +76,7 @@ async def serve(args: argparse.Namespace) -> None:
     try:
         await stop.wait()
     finally:
+        unwatch()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         for task in tasks:

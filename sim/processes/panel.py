@@ -4,22 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import signal
-import stat
-import sys
-from typing import Any
 
 from drivers.panel import protocol
 from drivers.sim.panel import SimulatedPanel
-
-
-def _is_stream(file: Any) -> bool:
-    """True for a pipe or terminal the event loop can watch (not /dev/null or a regular file)."""
-    if file is None or file.closed:
-        return False
-    mode = os.fstat(file.fileno()).st_mode
-    return stat.S_ISFIFO(mode) or file.isatty()
+from sim.processes.keys import watch_keys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 async def serve(args: argparse.Namespace) -> int:
     """Run a simulated panel on a new pty until SIGINT/SIGTERM; prints the pty path.
 
-    Keys on stdin press buttons: ``s`` start, ``x`` stop, ``e`` e-stop, ``r`` release it.
+    Keys on stdin (sim/processes/keys.py) press buttons: ``s`` start, ``x`` stop, ``e`` e-stop, ``r``
+    release it; ``h`` stops the panel's heartbeats, ``H`` resumes them.
     """
     panel, path = await SimulatedPanel.on_pty(
         estop=args.estop, protocol_version=args.protocol_version, noise=args.noise, seed=args.seed
@@ -52,26 +42,15 @@ async def serve(args: argparse.Namespace) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    keys = {"s": panel.press_start, "x": panel.press_stop, "e": panel.press_estop,
-            "r": panel.release_estop}
-
-    def on_stdin() -> None:
-        data = os.read(sys.stdin.fileno(), 64).decode(errors="replace")
-        if not data:
-            loop.remove_reader(sys.stdin.fileno())
-        for key in data:
-            if key in keys:
-                keys[key]()
-
-    watching_stdin = _is_stream(sys.stdin)
-    if watching_stdin:
-        loop.add_reader(sys.stdin.fileno(), on_stdin)
+    unwatch = watch_keys({"s": ("start pressed", panel.press_start), "x": ("stop pressed", panel.press_stop),
+                          "e": ("e-stop pressed", panel.press_estop), "r": ("e-stop released", panel.release_estop),
+                          "h": ("heartbeats stopped", panel.stop_heartbeats),
+                          "H": ("heartbeats resumed", panel.resume_heartbeats)})
     runner = asyncio.create_task(panel.run(), name="sim-panel")
     try:
         await stop.wait()
     finally:
-        if watching_stdin:
-            loop.remove_reader(sys.stdin.fileno())
+        unwatch()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
         runner.cancel()

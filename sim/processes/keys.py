@@ -1,0 +1,47 @@
+"""Fault keys on a simulator's standard input, each acknowledged with when it acted.
+
+A harness (the loopback rig, ``./dev bench safety``) writes one character to a simulator's stdin
+to press a button or inject a fault; the simulator acts on it and prints ``<action> mono_s=<t>``
+(``time.monotonic()``, the machine-wide clock every process on it shares), so the harness can time
+how long the daemon took to react.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import stat
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+def is_stream(file: Any) -> bool:
+    """True for a pipe or terminal the event loop can watch (not /dev/null or a regular file)."""
+    if file is None or file.closed:
+        return False
+    mode = os.fstat(file.fileno()).st_mode
+    return stat.S_ISFIFO(mode) or file.isatty()
+
+
+def watch_keys(keys: dict[str, tuple[str, Callable[[], None]]]) -> Callable[[], None]:
+    """Act on ``keys`` (character -> (action name, action)) read from stdin, if stdin is a pipe or
+    terminal; returns the function that stops watching."""
+    loop = asyncio.get_running_loop()
+    if not is_stream(sys.stdin):
+        return lambda: None
+    fd = sys.stdin.fileno()
+
+    def on_stdin() -> None:
+        data = os.read(fd, 64).decode(errors="replace")
+        if not data:
+            loop.remove_reader(fd)
+        for key in data:
+            if key in keys:
+                name, action = keys[key]
+                action()
+                print(f"{name} mono_s={time.monotonic():.6f}", flush=True)
+
+    loop.add_reader(fd, on_stdin)
+    return lambda: loop.remove_reader(fd)
