@@ -80,7 +80,7 @@ class SafetyMonitor:
         self.tripped.set()
         self.machine.transition(ScanState.FAULT, cause)
         log.error("safety_trip", source=cause.source.value, device=cause.device,
-                  detail=cause.detail, first=first)
+                  detail=cause.detail, first=first, loop_s=asyncio.get_running_loop().time())
         if not first:
             return
         for listener in self._listeners:

@@ -205,6 +205,7 @@ class LoopbackRig:
         self.bridge_port = 0
         self.panel_tty = ""
         self.notify: Notifications | None = None
+        self._logs_read: dict[str, tuple[int, list[dict[str, Any]]]] = {}
         for sub in ("etc", "srv/scans", "run", "state", "logs"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)
 
@@ -302,36 +303,47 @@ class LoopbackRig:
         stdin.write(keys.encode())
         stdin.flush()
 
-    def log_events(self, name: str, event: str, *, after_mono_s: float = 0.0) -> list[dict[str, Any]]:
-        """The JSON log lines of simulator ``name`` with this ``event`` (or a key's acknowledgement,
-        ``<action> mono_s=<t>``, as {"event": action, "mono_s": t}) stamped after ``after_mono_s``."""
+    def log_events(self, name: str, event: str, *, after_mono_s: float = 0.0,
+                   stamp: str | None = "mono_s") -> list[dict[str, Any]]:
+        """The JSON log lines of process ``name`` with this ``event`` (or a key's acknowledgement,
+        ``<action> mono_s=<t>``, as {"event": action, "mono_s": t}) whose ``stamp`` (a
+        time.monotonic() reading: the simulators' ``mono_s``, the daemon's real loop's ``loop_s``)
+        is after ``after_mono_s`` (every one with ``stamp=None``). The log is read on from where the
+        last call stopped."""
+        return [r for r in self._log_records(name)
+                if r.get("event") == event and (stamp is None or float(r.get(stamp, -1.0)) > after_mono_s)]
+
+    def _log_records(self, name: str) -> list[dict[str, Any]]:
         import json
 
-        found = []
-        for line in self.procs[name].log.read_text(errors="replace").splitlines():
+        offset, records = self._logs_read.get(name, (0, []))
+        with open(self.procs[name].log, "rb") as log:
+            log.seek(offset)
+            data = log.read()
+        complete = data[:data.rfind(b"\n") + 1]
+        for line in complete.decode(errors="replace").splitlines():
             if line.startswith("{"):
                 try:
-                    record = json.loads(line)
+                    records.append(json.loads(line))
                 except ValueError:
                     continue
             else:
-                action, _, stamp = line.rpartition(" mono_s=")
+                action, _, value = line.rpartition(" mono_s=")
                 try:
-                    record = {"event": action, "mono_s": float(stamp)}
+                    records.append({"event": action, "mono_s": float(value)})
                 except ValueError:
                     continue
-            if record.get("event") == event and float(record.get("mono_s", -1.0)) > after_mono_s:
-                found.append(record)
-        return found
+        self._logs_read[name] = (offset + len(complete), records)
+        return records
 
     def wait_log(self, name: str, event: str, *, after_mono_s: float = 0.0, timeout_s: float = 30.0,
-                 where: Callable[[dict[str, Any]], bool] = lambda r: True) -> dict[str, Any]:
+                 where: Callable[[dict[str, Any]], bool] = lambda r: True, stamp: str = "mono_s") -> dict[str, Any]:
         """The first log line of ``name`` with ``event`` after ``after_mono_s`` matching ``where``."""
         deadline = time.monotonic() + timeout_s
         while True:
-            found = [r for r in self.log_events(name, event, after_mono_s=after_mono_s) if where(r)]
+            found = [r for r in self.log_events(name, event, after_mono_s=after_mono_s, stamp=stamp) if where(r)]
             if found:
-                return min(found, key=lambda r: float(r["mono_s"]))
+                return min(found, key=lambda r: float(r[stamp]))
             if time.monotonic() > deadline:
                 raise LoopbackError(f"{name}: no {event} within {timeout_s:g} s ({self._tail(self.procs[name].log)})")
             time.sleep(0.05)
