@@ -419,7 +419,8 @@ class CaptureRunner:
             crossing = self._predict_crossing(angle_deg, pass_name)
             if not math.isfinite(crossing):
                 try:
-                    await asyncio.wait_for(self.tracker.next_sample(), 1.0)
+                    async with asyncio.timeout(1.0):  # a cancel landing with the sample still cancels
+                        await self.tracker.next_sample()
                 except TimeoutError as exc:
                     raise BeamTimeout("beam", angle_deg, self.tracker.angle_deg, 1.0) from exc
                 continue
