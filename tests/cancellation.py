@@ -47,6 +47,11 @@ from tests.daemon_rigs import RIG, build_rig
 KINDS = ("abort", "trip", "cancel", "stop")
 EXIT_BOUND_S = 30.0
 """A stopped job must end within this (rig seconds): systemd/tbp-rig.service's TimeoutStopSec."""
+BEAM_STOP_S = 3.0
+"""The beam stands still this long after a stop at the latest (a controlled stop from the
+sweep's 30 deg/s at 30 deg/s^2 takes 1 s)."""
+LATE_S = 0.5
+"""No picture is exposed later than this after a stop (one already triggered may finish)."""
 HANG_S = 300.0
 """A job still running this long after its stop has hung."""
 SPAN_S = 17.0
@@ -111,6 +116,10 @@ class TrialResult:
     hung: bool = False
     exit_s: float | None = None
     """Rig seconds from the stop to the end of the job (``stop``: to the daemon stopped)."""
+    beam_moving_s: float = 0.0
+    """Rig seconds from the stop to the last encoder sample of a moving beam."""
+    late: int = 0
+    """Pictures exposed more than LATE_S after the stop."""
     folder_open: bool = False
     captured_before: int = 0
     lost: list[str] = field(default_factory=list)
@@ -120,7 +129,8 @@ class TrialResult:
     @property
     def ok(self) -> bool:
         return (not self.hung and not self.folder_open and not self.lost and not self.problems
-                and self.exit_s is not None and self.exit_s <= EXIT_BOUND_S)
+                and self.exit_s is not None and self.exit_s <= EXIT_BOUND_S
+                and self.beam_moving_s <= BEAM_STOP_S and not self.late)
 
 
 def make_trials(n: int, seed: int, kinds: Sequence[str] = KINDS, span_s: float = SPAN_S) -> list[Trial]:
@@ -200,6 +210,7 @@ async def _one(trial: Trial, controller: RigController, service: RigService, res
     result.captured_before = len(before)
     result.state_at = "done" if task.done() else controller.machine.state.value
     acted = loop.time()
+    mark = controller.tracker.mark()
     stopping: asyncio.Task[Any] | None = None
     if trial.kind == "abort":
         controller.abort(AbortCause(AbortSource.CONTROL_API, "harness", "abort"))
@@ -223,7 +234,9 @@ async def _one(trial: Trial, controller: RigController, service: RigService, res
     result.outcome = f"{job.report.outcome.value}: {job.report.reason}"
     if controller.machine.state not in (ScanState.IDLE, ScanState.FAULT):
         result.problems.append(f"ended in {result.end_state}")
-    _check_folder(job, before, result)
+    moving = [float(t) for t, _, v in controller.tracker.trace(mark) if abs(v) > 0.01]
+    result.beam_moving_s = max(moving[-1] - acted, 0.0) if moving else 0.0
+    _check_folder(job, before, result, acted)
     if stopping is not None:
         return "stopped"
     if controller.machine.state is ScanState.FAULT:
@@ -241,11 +254,12 @@ def _captured(job: Any) -> set[tuple[int, int]]:
             if i.status.value in ("captured", "verified")}
 
 
-def _check_folder(job: Any, before: set[tuple[int, int]], result: TrialResult) -> None:
+def _check_folder(job: Any, before: set[tuple[int, int]], result: TrialResult, acted: float) -> None:
     folder = job.folder.path
     manifest = json.loads((folder / "manifest.json").read_text())
     result.folder_open = bool(manifest["in_progress"])
     images = {(i["camera_index"], i["angle_index"]): i for i in manifest["images"]}
+    result.late = sum(i["host_time_s"] is not None and i["host_time_s"] > acted + LATE_S for i in images.values())
     for key in sorted(before):
         image = images.get(key)
         if image is None or image["status"] != "verified":
@@ -277,10 +291,13 @@ def summary(results: Sequence[TrialResult]) -> dict[str, Any]:
         "runs": len(results),
         "hangs": sum(r.hung for r in results),
         "over_bound": sum(r.exit_s is not None and r.exit_s > EXIT_BOUND_S for r in results),
+        "beam_late": sum(bool(r.beam_moving_s > BEAM_STOP_S) for r in results),
+        "late_pictures": sum(r.late for r in results),
         "folders_open": sum(r.folder_open for r in results),
         "images_lost": sum(len(r.lost) for r in results),
         "captured_before": sum(r.captured_before for r in results),
         "problems": sum(bool(r.problems) for r in results),
         "max_exit_s": max(exits, default=0.0),
+        "max_beam_moving_s": max((r.beam_moving_s for r in results), default=0.0),
         "states": states,
     }

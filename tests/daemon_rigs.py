@@ -126,6 +126,7 @@ async def wait_captured(controller: RigController, count: int) -> None:
     """Until the running scan has captured ``count`` images."""
     while True:
         scan = controller.current
-        if scan is not None and scan.runner is not None and scan.runner.captured >= count:
+        runner = getattr(getattr(scan, "steps", None), "runner", None)
+        if runner is not None and runner.captured >= count:
             return
         await asyncio.sleep(0.05)

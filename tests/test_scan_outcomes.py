@@ -16,6 +16,7 @@ import pytest
 
 import daemon.fusion
 import daemon.scan
+import daemon.scan_steps
 import daemon.store
 from daemon.controller import RigController
 from daemon.errors import ScanBusy, ScanRefused
@@ -72,11 +73,11 @@ class _Failure:
 
 
 @pytest.mark.parametrize("phase, owner, name", [
-    ("PREPARING", daemon.scan, "prepare_phones"),
-    ("DEPTH_SWEEP", daemon.scan.DepthSweeper, "run"),
+    ("PREPARING", daemon.scan_steps, "prepare_phones"),
+    ("DEPTH_SWEEP", daemon.scan_steps.DepthSweeper, "run"),
     ("RECONSTRUCTING", daemon.fusion, "fused_mesh"),
-    ("PLANNING", daemon.scan, "plan_capture"),
-    ("CAPTURING", daemon.scan.CaptureRunner, "main_pass"),
+    ("PLANNING", daemon.scan_steps, "plan_capture"),
+    ("CAPTURING", daemon.scan_steps.CaptureRunner, "main_pass"),
 ])
 def test_an_oserror_in_any_phase_aborts_the_scan_on_record_within_5_s(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, phase: str, owner: Any, name: str) -> None:
