@@ -20,6 +20,7 @@ from drivers.motor.samples import BeamSample
 from planner.schedule import compile_plan, phone_timings, rig_profile
 from sim.clock import run_virtual
 from tests.cancellation import make_trials, run_trials, summary
+from tests.daemon_mocks import MockDrive, MockPhone
 from tests.daemon_rigs import RIG
 
 TURNS = range(6)
@@ -107,6 +108,77 @@ def test_a_cancel_as_a_sample_arrives_cancels_a_capture_waiting_for_the_beam(tur
         await _cancel_after_result(lambda: runner._wait_fire(record, record.planned_angle_deg, 0.04, "retake"),
                                    lambda: drive.send(-60.0), turns)
         await tracker.stop()
+
+    run_virtual(main())
+
+
+class StubbornPhone(MockPhone):
+    """A phone whose capture, once cancelled, ignores every cancel for ``stubborn_s`` more."""
+
+    stubborn_s = 8.0
+    capturing = False
+
+    async def capture(self) -> Any:
+        self.capturing = True
+        try:
+            return await super().capture()
+        except asyncio.CancelledError:
+            until = asyncio.get_running_loop().time() + self.stubborn_s
+            while (left := until - asyncio.get_running_loop().time()) > 0:
+                try:
+                    await asyncio.sleep(left)
+                except asyncio.CancelledError:
+                    continue
+            raise
+        finally:
+            self.capturing = False
+
+
+def test_a_capture_worker_that_does_not_stop_is_named_and_left_behind() -> None:
+    """The phones' workers of a pass are stopped with a bound: the pass ends on time and names
+    the worker it left (cancelled) instead of waiting for it."""
+    from daemon.phones import prepare_phones
+
+    async def main() -> tuple[list[str], float]:
+        drive = MockDrive()
+        await drive.connect()
+        tracker = BeamTracker(drive)
+        await tracker.start()
+        phones = [(StubbornPhone if i == 3 else MockPhone)(p.serial, seed=i) for i, p in enumerate(RIG.phones)]
+        profile = rig_profile(RIG)
+        await drive.move_to(profile.start_deg, 40.0, 60.0)
+        prep = await prepare_phones(phones, RIG)
+        schedule = compile_plan(np.full(RIG.n_poses, 500.0), RIG, phone_timings(RIG, trigger_latency_s=[0.04] * 7),
+                                profile=profile)
+        runner = CaptureRunner(RIG, schedule, drive, tracker, phones, prep.clocks, prep.latency)
+        loop = asyncio.get_running_loop()
+        rotation = asyncio.create_task(runner.main_pass())
+        while runner.captured < 20 or not phones[3].capturing:
+            await asyncio.sleep(0.005)
+        rotation.cancel()
+        stopped = loop.time()
+        await asyncio.gather(rotation, return_exceptions=True)
+        took = loop.time() - stopped
+        await asyncio.sleep(StubbornPhone.stubborn_s)  # the phone lets go at last
+        await tracker.stop()
+        await drive.close()
+        return runner.abandoned, took
+
+    abandoned, took = run_virtual(main())
+    assert abandoned == ["capture-3"]
+    assert took == pytest.approx(CaptureRunner.WORKER_STOP_S, abs=0.05)
+
+
+def test_stopping_the_tracker_does_not_swallow_its_callers_cancel() -> None:
+    async def main() -> None:
+        drive = ManualDrive()
+        tracker = BeamTracker(drive)
+        await tracker.start()
+        stopping = asyncio.create_task(tracker.stop())
+        await asyncio.sleep(0)
+        stopping.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await stopping
 
     run_virtual(main())
 
