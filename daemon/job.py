@@ -171,8 +171,8 @@ class RigJob:
             self.note(f"{type(error).__name__}: {error}")
             if isinstance(error, DriveError) and not self.safety.latched:
                 await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self.hw.drive.name, error))
-        if not self.safety.latched and (self._abort_cause is not None or error is not None):
-            cause = self._abort_cause if self._abort_cause is not None else self.error_cause(error)
+        cause = self._abort_cause if self._abort_cause is not None or error is None else self.error_cause(error)
+        if cause is not None and not self.safety.latched:
             report.outcome, report.causes = ScanOutcome.ABORTED, [cause]
             self.machine.transition(ScanState.ABORTING, cause)
             await self._stop_beam()  # before waiting for the body; a drive that cannot stop latches FAULT
@@ -189,9 +189,9 @@ class RigJob:
                                     **self.end_data())
         self.machine.scan_id = None
 
-    def error_cause(self, error: BaseException | None) -> AbortCause:
+    def error_cause(self, error: BaseException) -> AbortCause:
         """Why a step's error aborted the job."""
-        return AbortCause.of_error(AbortSource.SCAN_ERROR, self.device, error or FaultLatched(self.safety.causes))
+        return AbortCause.of_error(AbortSource.SCAN_ERROR, self.device, error)
 
     async def _stop_beam(self) -> None:
         try:

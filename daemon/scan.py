@@ -164,7 +164,7 @@ class Scan(RigJob):
     def note(self, text: str) -> None:
         self.report.errors.append(text)
 
-    def error_cause(self, error: BaseException | None) -> AbortCause:
+    def error_cause(self, error: BaseException) -> AbortCause:
         """Why a step's error aborted the scan: the store (disk full), or the step itself."""
         if isinstance(error, StoreError):
             return AbortCause.of_error(AbortSource.STORE, "store", error)
