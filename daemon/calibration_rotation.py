@@ -213,8 +213,10 @@ class CalibrationRotation(RigJob):
         return True
 
     async def body(self) -> None:
+        """captures.json says ``in progress``, the pulls start (the rotation is their ledger), then
+        the stops."""
         await asyncio.to_thread(self._save, "in progress")
-        self.pulls = PullQueue(self, workers=len(self.hw.phones))
+        self.pulls = PullQueue(self, workers=max(len(self.hw.phones), 1))
         self.pulls.start()
         await self._sequence()
 
