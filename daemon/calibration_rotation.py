@@ -11,10 +11,10 @@ The rotation's folder (``<store>/calibration/<YYYYmmdd-HHMMSS>-<id>/``) is what 
 --pictures`` reads: ``captures.json`` (rewritten atomically after every stop, so it always lists
 exactly the pictures that are safely on disk) and one picture per camera and stop,
 ``<camera>/a<index>.jpg`` pulled from the phone (daemon/pulls.py: verified, retried) and deleted
-there, ``<depth camera>/a<index>.png`` its infrared frame. ``captures.json`` says ``in progress`` until the rotation ends, then
-``complete``, ``aborted`` or ``fault`` with the reason. A phone that fails or vanishes is named and
-the rotation goes on with the others; a depth camera that cannot stream infrared is named and the
-rotation goes on with the phones.
+there, ``<depth camera>/a<index>.png`` its infrared frame. ``captures.json`` says ``in progress``
+until the rotation ends, then ``complete``, ``aborted`` or ``fault`` with the reason. A phone that
+fails or vanishes is named and the rotation goes on with the others; a depth camera that cannot
+stream infrared is named and the rotation goes on with the phones.
 """
 
 from __future__ import annotations
@@ -324,7 +324,8 @@ class CalibrationRotation(RigJob):
         self._problem(f"phone {job.camera_id}: {job.dest.name} not pulled (it stays on the phone): {error}")
 
     def not_deleted(self, job: Pull, error: Exception) -> None:
-        self._problem(f"phone {job.camera_id}: {job.phone_path} not deleted on the phone: {type(error).__name__}: {error}")
+        self._problem(f"phone {job.camera_id}: {job.phone_path} not deleted on the phone: "
+                      f"{type(error).__name__}: {error}")
 
     # ------------------------------------------------------------------ depth cameras
 
@@ -369,7 +370,8 @@ class CalibrationRotation(RigJob):
         except DaemonError:
             raise
         except Exception as exc:  # the camera's typed error (stalled, unplugged)
-            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}; left out of the rest of the rotation")
+            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}; "
+                          "left out of the rest of the rotation")
             self._streams.pop(d, None)
             return None
         if frame.infrared is None:

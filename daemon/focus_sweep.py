@@ -4,11 +4,11 @@ A board stands square-on in front of the phone, its centre on the optical axis, 
 known distances in turn (``place_board`` is awaited before each: the operator moves the stand and
 confirms). At each distance the lens setting itself (Camera2's LENS_FOCUS_DISTANCE, diopters, not
 the focus table's millimetres) is stepped coarsely over the lens' range, then finely around the
-sharpest coarse setting; every picture is pulled (daemon/pulls.py: verified, retried), measured (variance of the Laplacian over the
-centre of the picture that the board covers at that distance, so the background's blur does not
-count) and deleted from the phone. The sharpest picture of each distance is kept in ``workdir``
-for the report. ``planner/calibration/focus_fit.py`` turns the sweeps into the phone's focus
-table. The same code sweeps a real phone and a simulated one.
+sharpest coarse setting; every picture is pulled (daemon/pulls.py: verified, retried), measured
+(variance of the Laplacian over the centre of the picture that the board covers at that distance,
+so the background's blur does not count) and deleted from the phone. The sharpest picture of each
+distance is kept in ``workdir`` for the report. ``planner/calibration/focus_fit.py`` turns the
+sweeps into the phone's focus table. The same code sweeps a real phone and a simulated one.
 """
 
 from __future__ import annotations

@@ -210,8 +210,8 @@ class RigJob:
         if await settle([body], self.BODY_STOP_TIMEOUT_S):
             where = describe(body)
             self.note(f"the {self.kind}'s steps did not end within {self.BODY_STOP_TIMEOUT_S:g} s of the stop: {where}")
-            await self.safety.trip(FaultCause(FaultSource.SCAN_FAILED, self.kind,
-                                              f"its steps did not stop within {self.BODY_STOP_TIMEOUT_S:g} s ({where})"))
+            detail = f"its steps did not stop within {self.BODY_STOP_TIMEOUT_S:g} s ({where})"
+            await self.safety.trip(FaultCause(FaultSource.SCAN_FAILED, self.kind, detail))
         elif not body.cancelled() and body.exception() is not None and error is None:
             exc = body.exception()
             if not isinstance(exc, MotionInterrupted):  # the body's move, cut short by the stop: no news
