@@ -121,14 +121,14 @@ class BeamTracker:
         """The encoder stream is being followed."""
         return self._task is not None and not self._task.done()
 
+    STOP_TIMEOUT_S = 1.0
+
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
-            self._task = None
+        """Stop following (a cancel of the caller is not swallowed; the follower gets a bound)."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.wait([task], timeout=self.STOP_TIMEOUT_S)
 
     async def _follow(self) -> None:
         async for sample in self.drive.samples():
@@ -202,9 +202,12 @@ class BeamTracker:
         future: asyncio.Future[BeamSample] = asyncio.get_running_loop().create_future()
         self._waiters.append((angle_deg, direction, future))
         try:
-            return await asyncio.wait_for(future, timeout_s)
+            async with asyncio.timeout(timeout_s):  # a cancel landing with the sample still cancels
+                return await future
         except TimeoutError as exc:
             raise BeamTimeout(self.name, angle_deg, self.angle_deg, timeout_s) from exc
+        finally:
+            future.cancel()
 
 
 async def rebase_angle(tracker: BeamTracker, drive: Any, near_deg: float) -> None:

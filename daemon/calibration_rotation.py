@@ -10,11 +10,11 @@ the mean of the encoder samples while the pictures were taken.
 The rotation's folder (``<store>/calibration/<YYYYmmdd-HHMMSS>-<id>/``) is what ``tbp calibrate
 --pictures`` reads: ``captures.json`` (rewritten atomically after every stop, so it always lists
 exactly the pictures that are safely on disk) and one picture per camera and stop,
-``<camera>/a<index>.jpg`` pulled from the phone and checked by size, ``<depth camera>/a<index>.png``
-its infrared frame. ``captures.json`` says ``in progress`` until the rotation ends, then
-``complete``, ``aborted`` or ``fault`` with the reason. A phone that fails or vanishes is named and
-the rotation goes on with the others; a depth camera that cannot stream infrared is named and the
-rotation goes on with the phones.
+``<camera>/a<index>.jpg`` pulled from the phone (daemon/pulls.py: verified, retried) and deleted
+there, ``<depth camera>/a<index>.png`` its infrared frame. ``captures.json`` says ``in progress``
+until the rotation ends, then ``complete``, ``aborted`` or ``fault`` with the reason. A phone that
+fails or vanishes is named and the rotation goes on with the others; a depth camera that cannot
+stream infrared is named and the rotation goes on with the phones.
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ import structlog
 
 from daemon.atomic import AtomicWriter, fsync_dir, raise_for
 from daemon.beam import BeamTracker, rebase_angle
-from daemon.errors import DaemonError, FaultLatched
-from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
+from daemon.errors import DaemonError
 from daemon.hardware import RigHardware
-from daemon.job import RigJob, is_drive_error
+from daemon.job import JOB_END, RigJob
 from daemon.phones import focus_range_mm
+from daemon.pulls import ImagePullFailed, Pull, PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.store import SCAN_ID, StoreError, new_scan_id
@@ -160,33 +160,49 @@ class _Capture:
 
 
 class CalibrationRotation(RigJob):
-    """One calibration rotation on connected hardware (the controller runs it like a scan: abort,
-    a latched fault and the folder's consistency follow the same rules)."""
+    """One calibration rotation on connected hardware: a job like a scan (abort, a latched fault
+    and the folder's consistency follow the same rules, daemon/job.py)."""
+
+    kind = "calibration rotation"
+    device = "calibration"
+    first_state = ScanState.CALIBRATING
+    storing = "storing the calibration pictures"
 
     def __init__(self, rig: Rig, hardware: RigHardware, machine: ScanStateMachine, safety: SafetyMonitor,
                  tracker: BeamTracker, target: CuboidTarget, rotation_id: str, folder: Path, *,
                  settings: RotationSettings = RotationSettings(), writer: AtomicWriter | None = None) -> None:
-        self.rig, self.hw, self.machine, self.safety, self.tracker = rig, hardware, machine, safety, tracker
+        super().__init__(rig, hardware, machine, safety, tracker, rotation_id)
         self.target = target
         self.settings = settings
         self.folder = folder
         self.writer = writer or AtomicWriter()
         self.report = RotationReport(rotation_id, folder)
         self.captures: list[_Capture] = []
+        self.pulls: PullQueue | None = None
         self._state = "in progress"
-        self._abort_cause: AbortCause | None = None
-        self._body: asyncio.Task[None] | None = None
-        self._pulls: set[asyncio.Task[None]] = set()
+        self._shots: dict[tuple[int, int], tuple[float, float]] = {}
         self._streams: dict[int, AsyncIterator[Any]] = {}
 
-    # ------------------------------------------------------------------ control
+    # ------------------------------------------------------------------ the job's parts
+
+    def start_data(self) -> dict[str, Any]:
+        return {"folder": str(self.folder), "stops": len(self.rig.capture.angles_deg)}
+
+    def end_data(self) -> dict[str, Any]:
+        return {"pictures": self.report.pictures, "folder": str(self.folder)}
+
+    @property
+    def stop_deceleration_deg_s2(self) -> float:
+        return self.settings.acceleration_deg_s2
+
+    def note(self, text: str) -> None:
+        self.report.problems.append(text)
 
     def close_folder(self) -> bool:
         """Write the final captures.json if not done yet; False (logged) when the disk refuses."""
         if self._state != "in progress":
             return True
-        state = {ScanOutcome.COMPLETED: "complete", ScanOutcome.ABORTED: "aborted",
-                 ScanOutcome.FAULTED: "fault"}[self.report.outcome]
+        state = JOB_END[self.report.outcome].value
         try:
             self._save(state)
         except Exception as exc:  # retried at the next reset or rotation
@@ -196,64 +212,31 @@ class CalibrationRotation(RigJob):
         self._state = state
         return True
 
-    # ------------------------------------------------------------------ run
+    async def body(self) -> None:
+        """captures.json says ``in progress``, the pulls start (the rotation is their ledger), then
+        the stops."""
+        await asyncio.to_thread(self._save, "in progress")
+        self.pulls = PullQueue(self, workers=max(len(self.hw.phones), 1))
+        self.pulls.start()
+        await self._sequence()
 
-    async def run(self) -> RotationReport:
-        error: BaseException | None = None
-        self.machine.scan_id = self.report.rotation_id
-        if self.safety.latched:
-            error = FaultLatched(self.safety.causes)
-        else:
-            self.machine.transition(ScanState.CALIBRATING, "calibration rotation requested",
-                                    folder=str(self.folder), stops=len(self.rig.capture.angles_deg))
-            self._save("in progress")
-            self._body = asyncio.create_task(self._sequence(), name=f"calibration-{self.report.rotation_id}")
-            try:
-                await asyncio.shield(self._body)
-            except asyncio.CancelledError:
-                if not (self._body.done() or self._abort_cause is not None or self.safety.latched):
-                    self._body.cancel()
-                    raise
-            except Exception as exc:  # every step's error ends in the report and captures.json
-                error = exc
-        await self._finish(error)
-        return self.report
-
-    async def _finish(self, error: BaseException | None) -> None:
+    async def store(self) -> None:
+        """Stop the depth cameras, wait for the pulls, count, and close captures.json."""
         report = self.report
-        self.safety.expect_samples = False
-        if self._body is not None and not self._body.done():
-            self._body.cancel()
-            await asyncio.gather(self._body, return_exceptions=True)
         await self._stop_depth_cameras()
-        if error is not None:
-            report.problems.append(f"{type(error).__name__}: {error}")
-            if is_drive_error(error) and not self.safety.latched:  # as in a scan: the drive failed, FAULT
-                await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self.hw.drive.name, error))
-        if not self.safety.latched and (self._abort_cause is not None or error is not None):
-            cause = self._abort_cause or AbortCause.of_error(AbortSource.SCAN_ERROR, "calibration", error)
-            report.outcome, report.causes = ScanOutcome.ABORTED, [cause]
-            self.machine.transition(ScanState.ABORTING, cause)
+        if self.pulls is not None:
             try:
-                await self.hw.drive.stop(self.settings.acceleration_deg_s2)
-            except Exception as exc:  # a drive that cannot stop is a rig fault
-                await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, self.hw.drive.name, exc,
-                                                           "controlled stop failed"))
-        if self.safety.latched:
-            await self.safety.settled()
-            report.outcome, report.causes = ScanOutcome.FAULTED, list(self.safety.causes)
-        elif self.machine.state is not ScanState.STORING:
-            self.machine.transition(ScanState.STORING, "storing the calibration pictures")
-        await self._join_pulls()
+                async with asyncio.timeout(self.settings.pull_timeout_s):
+                    await self.pulls.join()
+            except (StoreError, TimeoutError) as exc:
+                self._problem(f"pulls: {type(exc).__name__}: {exc}")
+            finally:
+                await self.pulls.close()
         report.pictures = len(self.captures)
         expected = (len(self.rig.phones) + len(self.hw.depth_cameras)) * len(self.rig.capture.angles_deg)
         report.missing = expected - report.pictures
         self.close_folder()
-        if self.machine.state is not ScanState.FAULT:
-            self.machine.transition(ScanState.IDLE, f"calibration rotation {report.outcome.value.lower()}",
-                                    pictures=report.pictures, folder=str(self.folder))
-        self.machine.scan_id = None
-        log.info("calibration_rotation_ended", outcome=report.outcome.value, pictures=report.pictures,
+        log.info("calibration_rotation_stored", outcome=report.outcome.value, pictures=report.pictures,
                  problems=len(report.problems), folder=str(self.folder))
 
     # ------------------------------------------------------------------ the sequence
@@ -277,7 +260,7 @@ class CalibrationRotation(RigJob):
             encoder = self._encoder_deg(mark)
             for c, shot in zip(phones, shots):
                 if shot is not None:
-                    self._pull(c, index, encoder, shot, float(focus[c]))
+                    self._submit(c, index, encoder, shot, float(focus[c]))
             phones = [c for c in phones if c not in failed]
             for d, frame in zip(depth, frames):
                 if frame is not None:
@@ -314,43 +297,35 @@ class CalibrationRotation(RigJob):
                           "of the rotation")
             return None
 
-    def _pull(self, c: int, index: int, encoder: float, shot: Any, focus_mm: float) -> None:
-        """Pull the picture in the background (the beam moves on), check its size, delete it on the phone."""
+    def _submit(self, c: int, index: int, encoder: float, shot: Any, focus_mm: float) -> None:
+        """Pull the picture in the background (the beam moves on); it is deleted on the phone once
+        verified and listed in captures.json then."""
+        phone = self.hw.phones[c]
         camera = self.rig.phones[c].id
-        name = f"{camera}/a{index:02d}.jpg"
+        self._shots[(c, index)] = (encoder, focus_mm)
+        assert self.pulls is not None
+        self.pulls.submit(Pull((c, index), camera, index, shot.path, self.folder / _picture(camera, index),
+                               phone.pull, shot.size_bytes, delete=phone.delete))
 
-        async def pull() -> None:
-            phone = self.hw.phones[c]
-            dest = self.folder / name
-            try:
-                dest.parent.mkdir(exist_ok=True)
-                size, digest = await phone.pull(shot.path, dest)
-                if size != shot.size_bytes:
-                    dest.unlink(missing_ok=True)
-                    raise CalibrationRotationError(f"{name}: pulled {size} bytes, the phone wrote {shot.size_bytes}")
-            except Exception as exc:  # named; the picture stays on the phone
-                self._problem(f"phone {camera}: {name}: {type(exc).__name__}: {exc}")
-                return
-            self.captures.append(_Capture(camera, "phone", index, encoder, name, focus_mm, size, digest))
-            try:
-                await phone.delete(shot.path)
-            except Exception as exc:  # the picture is safe here; the phone keeps a copy
-                self._problem(f"phone {camera}: {shot.path} not deleted on the phone: {type(exc).__name__}: {exc}")
+    # ------------------------------------------------------------------ the pulls' ledger
 
-        task = asyncio.create_task(pull(), name=f"pull-{name}")
-        self._pulls.add(task)
-        task.add_done_callback(self._pulls.discard)
+    def attempt(self, job: Pull, attempt: int) -> None:
+        """Attempts are not recorded: captures.json lists pictures safely on disk."""
 
-    async def _join_pulls(self) -> None:
-        if not self._pulls:
-            return
-        try:
-            async with asyncio.timeout(self.settings.pull_timeout_s):
-                await asyncio.gather(*self._pulls, return_exceptions=True)
-        except TimeoutError:
-            for task in self._pulls:
-                task.cancel()
-            self._problem(f"pulls: {len(self._pulls)} not done within {self.settings.pull_timeout_s:g} s")
+    def verified(self, job: Pull, size: int, sha256: str) -> None:
+        encoder, focus_mm = self._shots.pop(job.key)  # type: ignore[arg-type]
+        self.captures.append(_Capture(job.camera_id, "phone", job.angle_index or 0, encoder,
+                                      _picture(job.camera_id, job.angle_index or 0), focus_mm, size, sha256))
+
+    def failed(self, job: Pull, failure: ImagePullFailed) -> None:
+        self._problem(f"phone {job.camera_id}: {failure}")
+
+    def not_pulled(self, job: Pull, error: StoreError) -> None:
+        self._problem(f"phone {job.camera_id}: {job.dest.name} not pulled (it stays on the phone): {error}")
+
+    def not_deleted(self, job: Pull, error: Exception) -> None:
+        self._problem(f"phone {job.camera_id}: {job.phone_path} not deleted on the phone: "
+                      f"{type(error).__name__}: {error}")
 
     # ------------------------------------------------------------------ depth cameras
 
@@ -395,7 +370,8 @@ class CalibrationRotation(RigJob):
         except DaemonError:
             raise
         except Exception as exc:  # the camera's typed error (stalled, unplugged)
-            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}; left out of the rest of the rotation")
+            self._problem(f"depth camera {camera.id}: {type(exc).__name__}: {exc}; "
+                          "left out of the rest of the rotation")
             self._streams.pop(d, None)
             return None
         if frame.infrared is None:
@@ -440,3 +416,8 @@ class CalibrationRotation(RigJob):
                "reason": [str(c) for c in self.report.causes], "problems": list(self.report.problems),
                "captures": [c.as_dict() for c in captures]}
         return json.dumps(doc, indent=1).encode()
+
+
+def _picture(camera: str, index: int) -> str:
+    """A phone's picture at stop ``index``, relative to the rotation's folder."""
+    return f"{camera}/a{index:02d}.jpg"

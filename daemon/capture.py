@@ -23,6 +23,7 @@ import structlog
 from daemon.beam import BeamTracker
 from daemon.clocksync import ClockSync, EncoderTrace, exposure_angle
 from daemon.errors import BeamTimeout, CaptureMissed
+from daemon.tasks import stop_tasks
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, MotionProfile, OutsideProfile, move_duration
 
@@ -113,6 +114,9 @@ class CaptureRunner:
     MAX_SLEEP_S = 0.25
     """Longest wait between predictions (a beam still ramping up would be predicted late)."""
     RECONNECT_TIMEOUT_S = 5.0
+    WORKER_STOP_S = 5.0
+    """A phone's worker that does not end this long after its pass stopped is named
+    (:attr:`abandoned`) and left cancelled."""
     RETAKE_MARGIN_DEG = 1.0
     STILL_TIMEOUT_S = 10.0
     TRACE_WINDOW = 1000
@@ -152,20 +156,12 @@ class CaptureRunner:
             for c in range(rig.n_cameras)
         ]
         self.captured = 0
+        self.abandoned: list[str] = []
         self.main_trace_mark = 0
         self.main_started_s = 0.0
         self.main_ended_s = 0.0
 
     # ------------------------------------------------------------------ passes
-
-    async def run(self) -> list[CaptureRecord]:
-        """The main rotation, then the retake pass over whatever was missed."""
-        await self.main_pass()
-        await self.retake_pass()
-        for record in self.records:
-            if record.status != "captured":
-                record.status = "missing"
-        return self.records
 
     async def main_pass(self) -> None:
         profile = self.schedule.profile
@@ -188,9 +184,7 @@ class CaptureRunner:
             await self._drive_profile(profile, accel)
             await asyncio.gather(*workers)
         finally:
-            for task in workers:
-                task.cancel()
-            await asyncio.gather(*workers, return_exceptions=True)
+            await self._stop_workers(workers)
         self.main_ended_s = loop.time()
 
     async def retake_pass(self) -> None:
@@ -232,9 +226,11 @@ class CaptureRunner:
             await asyncio.gather(*workers)
             await self.drive.stop(accel)
         finally:
-            for task in workers:
-                task.cancel()
-            await asyncio.gather(*workers, return_exceptions=True)
+            await self._stop_workers(workers)
+
+    async def _stop_workers(self, workers: list[asyncio.Task[None]]) -> None:
+        """Cancel the phones' workers of a pass and wait for them, bounded (WORKER_STOP_S)."""
+        self.abandoned += [task.get_name() for task in await stop_tasks(workers, self.WORKER_STOP_S)]
 
     def _retake_speed(self, angle_indices: list[int]) -> float:
         """The fastest sector speed that still leaves every phone its cycle between retakes."""
@@ -314,27 +310,29 @@ class CaptureRunner:
         record.lens_settle_s = stationary - record.focus_sent_s
 
     async def _phone_pass(self, c: int, targets: Sequence[_Target], pass_name: str) -> None:
-        focus: asyncio.Task[None] | None = None
-        for i, target in enumerate(targets):
-            record = self.records[self.rig.pose_index(target.angle_index, c)]
-            if self.gone[c]:
-                self._fail(c, record, CaptureMissed(record.camera_id, target.angle_index,
-                                                    target.angle_deg, "phone gone"), pass_name)
-                continue
-            try:
-                if focus is not None:
-                    await self._await_focus(focus, target)
-                elif record.lens_stationary_s is None:
-                    await self._await_focus(asyncio.create_task(self._focus(c, record)), target)
-                await self._shoot(c, record, target, pass_name)
-            except (Exception, asyncio.TimeoutError) as exc:
-                self._fail(c, record, exc, pass_name)
-            focus = None
-            if i + 1 < len(targets) and not self.gone[c]:
-                nxt = self.records[self.rig.pose_index(targets[i + 1].angle_index, c)]
-                focus = asyncio.create_task(self._focus(c, nxt), name=f"focus-{c}")
-        if focus is not None:
-            focus.cancel()
+        focus: asyncio.Task[None] | None = None  # the lens moving to the next target's focus
+        try:
+            for i, target in enumerate(targets):
+                record = self.records[self.rig.pose_index(target.angle_index, c)]
+                if self.gone[c]:
+                    self._fail(c, record, CaptureMissed(record.camera_id, target.angle_index,
+                                                        target.angle_deg, "phone gone"), pass_name)
+                    continue
+                try:
+                    if focus is None and record.lens_stationary_s is None:
+                        focus = asyncio.create_task(self._focus(c, record))
+                    if focus is not None:
+                        await self._await_focus(focus, target)
+                    await self._shoot(c, record, target, pass_name)
+                except Exception as exc:  # the phone's typed error, a timeout, a missed angle: recorded
+                    self._fail(c, record, exc, pass_name)
+                focus = None
+                if i + 1 < len(targets) and not self.gone[c]:
+                    nxt = self.records[self.rig.pose_index(targets[i + 1].angle_index, c)]
+                    focus = asyncio.create_task(self._focus(c, nxt), name=f"focus-{c}")
+        finally:
+            if focus is not None:  # the pass ended or was stopped: the lens need not get there
+                focus.cancel()
 
     async def _await_focus(self, focus: asyncio.Task[None], target: _Target) -> None:
         """Wait for the lens, but not past the moment the beam leaves the capture window."""
@@ -419,7 +417,8 @@ class CaptureRunner:
             crossing = self._predict_crossing(angle_deg, pass_name)
             if not math.isfinite(crossing):
                 try:
-                    await asyncio.wait_for(self.tracker.next_sample(), 1.0)
+                    async with asyncio.timeout(1.0):  # a cancel landing with the sample still cancels
+                        await self.tracker.next_sample()
                 except TimeoutError as exc:
                     raise BeamTimeout("beam", angle_deg, self.tracker.angle_deg, 1.0) from exc
                 continue

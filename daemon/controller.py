@@ -1,4 +1,5 @@
-"""The rig controller: hardware bring-up, one scan at a time, abort, latched fault and reset.
+"""The rig controller: hardware bring-up, one job at a time (a scan or a calibration rotation),
+abort, latched fault and reset.
 
 Shared by the long-running service (daemon/service.py) and the one-shot ``tbp scan --sim``, so
 both run exactly the same scan code against whatever hardware they were given.
@@ -7,24 +8,27 @@ both run exactly the same scan code against whatever hardware they were given.
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 import structlog
 
 from daemon.beam import BeamTracker, trace_capacity
 from daemon.bringup import BringUp
+from daemon.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
 from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
+from daemon.job import RigJob
 from daemon.safety import SafetyMonitor
 from daemon.scan import Scan, ScanReport, ScanSettings
-from daemon.states import ScanState, ScanStateMachine
+from daemon.states import ScanState, ScanStateMachine, state_groups
 from daemon.store import ScanStore, StoreError
-from planner.calibration.model import Calibration
+from daemon.utc import utc_now
+from planner.calibration.installed import CalibrationMismatch, age_days, calibration_path, installed_calibration
+from planner.calibration.model import Calibration, CalibrationFileError
+from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_target
 from planner.rig import Rig
-
-if TYPE_CHECKING:
-    from daemon.calibration_rotation import CalibrationRotation, RotationReport
 
 log = structlog.get_logger("daemon.controller")
 
@@ -58,9 +62,10 @@ class RigController:
         self.machine = machine or ScanStateMachine()
         self.safety = SafetyMonitor(self.machine, hardware.drive)
         self.tracker = BeamTracker(hardware.drive, capacity=trace_capacity(rig))
-        self.scan_task: asyncio.Task[ScanReport] | None = None
+        self.scan_task: asyncio.Task[Any] | None = None
+        """The running job's task (a scan's or a calibration rotation's), None before the first."""
         self._starting = False
-        self.current: Scan | CalibrationRotation | None = None
+        self.current: RigJob | None = None
         self.last_report: ScanReport | None = None
         self.last_calibration: RotationReport | None = None
         self.safety.add_handler("beam quick stop", self._quick_stop)
@@ -146,105 +151,116 @@ class RigController:
             failure += f"; quick stop: {type(exc).__name__}: {exc}"
         return [failure]
 
-    # ------------------------------------------------------------------ scans
+    # ------------------------------------------------------------------ jobs
 
     @property
     def busy(self) -> bool:
         return self._starting or (self.scan_task is not None and not self.scan_task.done())
 
     async def start_scan(self, scan_id: str | None = None) -> asyncio.Task[ScanReport]:
-        """Start a scan in the background once its folder exists; refuses while busy or while a
-        fault is latched. The folder is made (mkdir, manifest, fsyncs) in a thread: on a busy disk
-        that took 90 ms, on the loop that carries the heartbeats."""
-        self._check_startable(scan_id)
-        calibration = self.calibration(scan_id)
-        # The folder exists before anyone is told the scan started (docs/hardening.md, rule 2).
+        """Start a scan in the background once its folder exists (refused while busy, faulted,
+        not ready or e-stopped, or when the installed calibration cannot be used)."""
+        return await self._start(scan_id, self._new_scan)
+
+    async def start_calibration(self, rotation_id: str | None = None) -> asyncio.Task[RotationReport]:
+        """Start a calibration rotation (the cuboid in place) in the background once its folder
+        exists; refused like a scan."""
+        return await self._start(rotation_id, self._new_rotation)
+
+    async def scan(self, scan_id: str | None = None) -> ScanReport:
+        """Run one scan to its end (completed, aborted or faulted) and return its report."""
+        return await (await self.start_scan(scan_id))
+
+    async def _start(self, job_id: str | None, make: Callable[[str | None], Awaitable[RigJob]]) -> asyncio.Task[Any]:
+        """The one start path of every job: the refusals, then the job made (its folder exists
+        before anyone is told it started: docs/hardening.md, rule 2), then run in the background."""
+        self._check_startable(job_id)
         self._starting = True  # a second START meanwhile is refused as busy
         try:
-            folder = await asyncio.to_thread(self.store.create, self.rig, scan_id=scan_id)
-        except Exception as exc:  # StoreError, or an OSError the store did not expect
-            refused = ScanRefused(scan_id, f"{type(exc).__name__}: {exc}")
-            log.warning("scan_refused", scan_id=str(scan_id)[:80], error=str(refused))
-            self.machine.progress("scan refused", error=str(refused))
-            raise refused from exc
+            job = await make(job_id)
         finally:
             self._starting = False
-        self.current = Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, folder,
-                            settings=self.settings, calibration=calibration)
-        self.scan_task = asyncio.create_task(self._run_scan(self.current), name="scan")
+        self.current = job
+        self.scan_task = asyncio.create_task(self._run_job(job), name=job.kind)
         return self.scan_task
 
     def _check_startable(self, job_id: str | None) -> None:
-        """Refuse a scan or calibration rotation while busy, faulted, not ready or e-stopped."""
+        """Refuse a job while busy, faulted, not ready or e-stopped."""
         if self.busy:
             raise ScanBusy(self.machine.state.value, "a scan or calibration rotation is already running")
         if self.safety.latched or self.machine.state is not ScanState.IDLE:
             raise ScanBusy(self.machine.state.value,
                            "fault latched: reset first (" + "; ".join(map(str, self.safety.causes)) + ")")
         if not self.bringup.ready:
-            refused = ScanRefused(job_id, self.bringup.summary())
-            log.warning("scan_refused", scan_id=str(job_id)[:80], error=str(refused))
-            self.machine.progress("scan refused", error=str(refused))
-            raise refused
+            raise self._refused("scan", job_id, ScanRefused(job_id, self.bringup.summary()))
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
         self._close_left_open()
 
-    async def start_calibration(self, rotation_id: str | None = None) -> asyncio.Task[RotationReport]:
-        """Start a calibration rotation (the cuboid in place) in the background once its folder
-        exists; refused like a scan (busy, fault latched, devices missing, e-stop)."""
-        from daemon.calibration_rotation import CalibrationRotation, create_rotation_folder
-        from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_target
+    def _refused(self, kind: str, job_id: object, refused: ScanRefused) -> ScanRefused:
+        """Log and stream a refusal; returns it to raise."""
+        log.warning(f"{kind}_refused", scan_id=str(job_id)[:80], error=str(refused))
+        self.machine.progress(f"{kind} refused", error=str(refused))
+        return refused
 
-        self._check_startable(rotation_id)
-        self._starting = True
+    async def _new_scan(self, scan_id: str | None) -> Scan:
+        calibration = await self.calibration(scan_id)
+        try:  # mkdir, manifest, fsyncs in a thread: on a busy disk that took 90 ms on the loop
+            folder = await asyncio.to_thread(self.store.create, self.rig, scan_id=scan_id)
+        except Exception as exc:  # StoreError, or an OSError the store did not expect
+            raise self._refused("scan", scan_id, ScanRefused(scan_id, f"{type(exc).__name__}: {exc}")) from exc
+        return Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, folder,
+                    settings=self.settings, calibration=calibration)
+
+    async def _new_rotation(self, rotation_id: str | None) -> CalibrationRotation:
         try:
             target = await asyncio.to_thread(load_target, self.settings.calibration_target or DEFAULT_TARGET_PATH)
             rotation_id, folder = await asyncio.to_thread(create_rotation_folder, self.store.root, rotation_id)
         except (TargetError, StoreError, OSError) as exc:
-            refused = ScanRefused(rotation_id, f"calibration rotation: {type(exc).__name__}: {exc}")
-            log.warning("calibration_refused", error=str(refused))
-            self.machine.progress("calibration refused", error=str(refused))
-            raise refused from exc
-        finally:
-            self._starting = False
-        self.current = CalibrationRotation(self.rig, self.hw, self.machine, self.safety, self.tracker, target,
-                                           rotation_id, folder)
-        self.scan_task = asyncio.create_task(self._run_calibration(self.current), name="calibration")
-        return self.scan_task
+            raise self._refused("calibration", rotation_id,
+                                ScanRefused(rotation_id, f"calibration rotation: {type(exc).__name__}: {exc}")) from exc
+        return CalibrationRotation(self.rig, self.hw, self.machine, self.safety, self.tracker, target,
+                                   rotation_id, folder)
 
-    async def _run_calibration(self, rotation: Any) -> RotationReport:
+    async def _run_job(self, job: RigJob) -> Any:
+        """Run ``job`` in a task of its own: a cancel of this task aborts the job, which still
+        stops the beam and closes its folder; the cancel is passed on once the job ended (a second
+        one at once, the job then ending by itself)."""
         await self._panel("SCANNING", light=True)
+        run = asyncio.create_task(job.run(), name=f"{job.kind}-{job.job_id}-end")
         try:
-            report = await rotation.run()
+            try:
+                report = await asyncio.shield(run)
+            except asyncio.CancelledError:
+                job.abort(AbortCause(AbortSource.DAEMON_STOPPING, "daemon", f"the {job.kind}'s task was cancelled"))
+                await asyncio.wait([run])
+                raise
         finally:
             await self._panel("FAULT" if self.safety.latched else "IDLE", light=False)
-        self.last_calibration = report
+        if isinstance(job, Scan):
+            self.last_report = report
+        else:
+            self.last_calibration = report
         return report
 
     def _close_left_open(self) -> None:
-        """Close the last scan's folder if the disk did not let the scan close it."""
+        """Close the last job's folder if the disk did not let the job close it."""
         if self.current is not None and not self.busy:
             self.current.close_folder()
 
-    def calibration(self, scan_id: str | None = None) -> Calibration | None:
-        """The rig's installed calibration (read afresh for each scan), None for nominal poses.
+    async def calibration(self, scan_id: str | None = None) -> Calibration | None:
+        """The rig's installed calibration (read afresh for each scan, in a thread), None for
+        nominal poses.
 
         Raises CalibrationRefused (a ScanRefused: nothing started, no folder) when the file is
         unreadable or for other cameras; an old calibration (rig file ``calibration.max_age_days``)
         is used with a warning.
         """
-        from daemon.utc import utc_now
-        from planner.calibration.installed import CalibrationMismatch, age_days, calibration_path, installed_calibration
-        from planner.calibration.model import CalibrationFileError
-
         try:
-            calibration = installed_calibration(self.rig)
+            calibration = await asyncio.to_thread(installed_calibration, self.rig)
         except (CalibrationMismatch, CalibrationFileError) as exc:
             refused = CalibrationRefused(scan_id, str(calibration_path(self.rig)), str(exc))
-            log.warning("scan_refused", scan_id=str(scan_id)[:80], error=str(refused))
-            self.machine.progress("scan refused", error=str(refused))
-            raise refused from exc
+            raise self._refused("scan", scan_id, refused) from exc
         if calibration is None:
             log.warning("calibration_missing", path=str(calibration_path(self.rig)),
                         effect="planning and the TSDF use the rig file's nominal poses")
@@ -258,21 +274,8 @@ class RigController:
             self.machine.progress("calibration_old", made=calibration.created_utc, max_age_days=limit)
         return calibration
 
-    async def scan(self, scan_id: str | None = None) -> ScanReport:
-        """Run one scan to its end (completed, aborted or faulted) and return its report."""
-        return await (await self.start_scan(scan_id))
-
-    async def _run_scan(self, scan: Scan) -> ScanReport:
-        await self._panel("SCANNING", light=True)
-        try:
-            report = await scan.run()
-        finally:
-            await self._panel("FAULT" if self.safety.latched else "IDLE", light=False)
-        self.last_report = report
-        return report
-
     def abort(self, cause: AbortCause) -> bool:
-        """Abort the running scan (stop button, control API); False when none runs."""
+        """Abort the running job (stop button, control API); False when none runs."""
         if not self.busy or self.current is None:
             return False
         self.current.abort(cause)
@@ -288,7 +291,10 @@ class RigController:
         if panel is not None and panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop still pressed: release it before reset")
         if self.busy:
-            raise ScanBusy(self.machine.state.value, "the faulted scan is still closing its folder")
+            kind = self.current.kind if self.current is not None else "job"
+            raise ScanBusy(self.machine.state.value,
+                           f"the faulted {kind} is still closing its folder" if self.safety.latched
+                           else f"a {kind} is running: abort it first")
 
         self._close_left_open()
 
@@ -355,6 +361,7 @@ class RigController:
         latest = self.tracker.latest
         return {
             "state": self.machine.state.value,
+            "states": state_groups(),
             "scan_id": self.machine.scan_id,
             "fault_causes": [cause.as_dict() for cause in self.safety.causes],
             "beam_angle_deg": None if latest is None else latest.angle_deg,

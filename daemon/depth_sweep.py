@@ -27,6 +27,7 @@ import structlog
 
 from daemon.beam import BeamTracker
 from daemon.errors import SweepFailed
+from daemon.tasks import stop_tasks
 from drivers.depth.base import DepthCamera, DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from planner.calibration.model import Calibration
@@ -180,10 +181,9 @@ class DepthSweeper:
 
     async def _wind_down(self, tasks: list[asyncio.Task[Any]], error: BaseException | None) -> None:
         """Cancel what still runs and stop every camera (idempotent stops), even those never started."""
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-        failures: list[DepthCameraError] = []
+        failures: list[DepthCameraError] = [
+            DepthCameraError(task.get_name(), f"sweep task did not stop within {self.STOP_TIMEOUT_S:g} s")
+            for task in await stop_tasks(tasks, self.STOP_TIMEOUT_S)]
         for camera in self.cameras:
             try:
                 async with asyncio.timeout(self.STOP_TIMEOUT_S):

@@ -4,11 +4,11 @@ A board stands square-on in front of the phone, its centre on the optical axis, 
 known distances in turn (``place_board`` is awaited before each: the operator moves the stand and
 confirms). At each distance the lens setting itself (Camera2's LENS_FOCUS_DISTANCE, diopters, not
 the focus table's millimetres) is stepped coarsely over the lens' range, then finely around the
-sharpest coarse setting; every picture is pulled, measured (variance of the Laplacian over the
-centre of the picture that the board covers at that distance, so the background's blur does not
-count) and deleted from the phone. The sharpest picture of each distance is kept in ``workdir``
-for the report. ``planner/calibration/focus_fit.py`` turns the sweeps into the phone's focus
-table. The same code sweeps a real phone and a simulated one.
+sharpest coarse setting; every picture is pulled (daemon/pulls.py: verified, retried), measured
+(variance of the Laplacian over the centre of the picture that the board covers at that distance,
+so the background's blur does not count) and deleted from the phone. The sharpest picture of each
+distance is kept in ``workdir`` for the report. ``planner/calibration/focus_fit.py`` turns the
+sweeps into the phone's focus table. The same code sweeps a real phone and a simulated one.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import numpy as np
 import structlog
 
 from daemon.errors import DaemonError
+from daemon.pulls import Pull, pull_verified
 from planner.calibration.detect import sharpness
 from planner.calibration.focus_fit import DISTANCES_MM, TABLE_DIOPTERS, FocusSweep, fit_focus_table, table_yaml
 from planner.rig import Optics
@@ -96,7 +97,8 @@ async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
     """Sweep a connected ``PhoneCamera`` (lens: ``optics``) at every distance of ``settings``; one
     FocusSweep per distance.
 
-    Phone errors (a phone that vanishes, a capture that fails) propagate, naming the phone."""
+    Phone errors (a phone that vanishes, a capture that fails, a picture that cannot be pulled
+    whole: ImagePullFailed) propagate, naming the phone."""
     phone = camera.phone.id
     highest = float(camera.info.min_focus_diopters)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -118,7 +120,7 @@ async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
             await camera.set_lens_diopters(diopters)
             shot = await camera.capture()
             picture = workdir / "sweep.jpg"
-            await camera.pull(shot.path, picture)
+            await pull_verified(Pull(shot.path, phone, None, shot.path, picture, camera.pull, shot.size_bytes))
             await camera.delete(shot.path)
             value = board_sharpness(picture, width_share, phone)
             measured[float(diopters)] = value

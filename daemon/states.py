@@ -38,7 +38,7 @@ class ScanState(enum.Enum):
 
 
 class ScanOutcome(enum.Enum):
-    """How a scan ended (recorded in its manifest)."""
+    """How a job ended, a scan or a calibration rotation (recorded in its folder)."""
 
     COMPLETED = "COMPLETED"
     ABORTED = "ABORTED"
@@ -46,7 +46,12 @@ class ScanOutcome(enum.Enum):
 
 
 S = ScanState
-_ACTIVE = (S.PREPARING, S.DEPTH_SWEEP, S.RECONSTRUCTING, S.PLANNING, S.CAPTURING, S.RETAKING, S.CALIBRATING)
+
+SCAN_STEPS = (S.PREPARING, S.DEPTH_SWEEP, S.RECONSTRUCTING, S.PLANNING, S.CAPTURING, S.RETAKING)
+"""A scan's states in order, each run by its step (daemon/scan_steps.py); a step that has
+nothing for the next state to do (no missed capture to retake) skips it."""
+
+_ACTIVE = (*SCAN_STEPS, S.CALIBRATING)
 
 TRANSITIONS: dict[ScanState, frozenset[ScanState]] = {
     S.IDLE: frozenset({S.PREPARING, S.CALIBRATING, S.FAULT}),
@@ -68,6 +73,13 @@ ACTIVE_STATES = frozenset(_ACTIVE)
 
 SCAN_STATES = frozenset({*_ACTIVE, S.STORING, S.ABORTING})
 """States only a running scan may be in: every one is left by the scan itself."""
+
+
+def state_groups() -> dict[str, list[str]]:
+    """The status answer's state lists, in the table's order: ``active`` (the beam may move, an
+    abort is taken) and ``job`` (a scan or calibration rotation runs: START is refused)."""
+    return {"active": [s.value for s in ScanState if s in ACTIVE_STATES],
+            "job": [s.value for s in ScanState if s in SCAN_STATES]}
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ exact capture. The subject is a capsule of human height: cheap to ray cast and t
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -35,6 +36,14 @@ def capsule_subject() -> trimesh.Trimesh:
     return body
 
 
+@functools.cache
+def capsule_scene() -> Any:
+    """The capsule ready for ray casting, built once per process (the cameras only read it)."""
+    from drivers.sim.depth import DepthScene
+
+    return DepthScene(capsule_subject())
+
+
 @dataclass
 class MockWorld:
     sim_drive: Any
@@ -43,18 +52,19 @@ class MockWorld:
     depth_cameras: list[Any] = field(default_factory=list)
 
 
-async def build_rig(rig: Rig, seed: int) -> tuple[RigHardware, MockWorld]:
+async def build_rig(rig: Rig, seed: int, *, phone: type[MockPhone] = MockPhone,
+                    depth_decimation: int = 4) -> tuple[RigHardware, MockWorld]:
     from drivers.motor.drive import BeamDrive
     from drivers.motor.port import LoopbackCanBus
-    from drivers.sim.depth import DepthScene, SimulatedDepthCamera
+    from drivers.sim.depth import SimulatedDepthCamera
     from drivers.sim.drive import SimulatedDrive
 
     bus = LoopbackCanBus("test")
     sim_drive = SimulatedDrive(bus.port("drive"), rig.motor)
-    world = MockWorld(sim_drive, [MockPhone(p.serial, seed=seed * 10 + i) for i, p in enumerate(rig.phones)])
+    world = MockWorld(sim_drive, [phone(p.serial, seed=seed * 10 + i) for i, p in enumerate(rig.phones)])
     world.tasks.append(asyncio.create_task(sim_drive.run()))
-    scene = DepthScene(capsule_subject())
-    model = sim_depth_model(rig.depth_camera_model, 4, 10.0)
+    scene = capsule_scene()
+    model = sim_depth_model(rig.depth_camera_model, depth_decimation, 10.0)
     cameras = [SimulatedDepthCamera(c, model, scene, lambda _t: sim_drive.true_angle_deg, seed=seed * 10 + i)
                for i, c in enumerate(rig.depth_cameras)]
     world.depth_cameras = cameras
@@ -116,6 +126,7 @@ async def wait_captured(controller: RigController, count: int) -> None:
     """Until the running scan has captured ``count`` images."""
     while True:
         scan = controller.current
-        if scan is not None and scan.runner is not None and scan.runner.captured >= count:
+        runner = getattr(getattr(scan, "steps", None), "runner", None)
+        if runner is not None and runner.captured >= count:
             return
         await asyncio.sleep(0.05)

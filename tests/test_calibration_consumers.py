@@ -93,7 +93,7 @@ def test_a_calibration_for_other_cameras_refuses_the_scan(tmp_path: Path) -> Non
 def test_an_old_calibration_warns(tmp_path: Path) -> None:
     rig = rig_with_calibration(tmp_path, created="2020-01-01T00:00:00+00:00")
     controller = _controller(rig)
-    calibration = controller.calibration()
+    calibration = asyncio.run(controller.calibration())
     assert calibration is not None
     warnings = [e for e in controller.machine.history if e.cause == "calibration_old"]
     assert warnings and warnings[0].data["max_age_days"] == 30

@@ -29,7 +29,8 @@ async def _run(phones: list[MockPhone], *, speed_error: float = 0.0,
     schedule = compile_plan(focus, RIG, phone_timings(RIG, trigger_latency_s=[p.value_s for p in prep.latency]),
                             profile=profile, angles_deg=angles_deg)
     runner = CaptureRunner(RIG, schedule, drive, tracker, phones, prep.clocks, prep.latency)
-    await runner.run()
+    await runner.main_pass()
+    await runner.retake_pass()
     await tracker.stop()
     await drive.close()
     return runner, drive

@@ -139,3 +139,27 @@ async def test_wait_for_state() -> None:
     assert not waiter.done()
     machine.transition(ScanState.DEPTH_SWEEP, "y")
     assert await asyncio.wait_for(waiter, 1.0) is ScanState.DEPTH_SWEEP
+
+
+def test_the_scan_steps_follow_the_table() -> None:
+    """Each scan step hands over to the next one the table allows; RETAKING may be skipped."""
+    from daemon.states import SCAN_STEPS
+
+    assert SCAN_STEPS[0] in TRANSITIONS[S.IDLE]
+    for state, after in zip(SCAN_STEPS, SCAN_STEPS[1:]):
+        assert after in TRANSITIONS[state], (state, after)
+    assert S.STORING in TRANSITIONS[SCAN_STEPS[-1]] and S.STORING in TRANSITIONS[S.CAPTURING]
+
+
+def test_the_status_carries_the_state_lists_the_console_reads() -> None:
+    """The console (web/static/console.js) keeps no state list of its own: it reads these."""
+    from pathlib import Path
+
+    from daemon.states import ACTIVE_STATES, SCAN_STATES, state_groups
+
+    groups = state_groups()
+    assert set(groups["active"]) == {s.value for s in ACTIVE_STATES}
+    assert set(groups["job"]) == {s.value for s in SCAN_STATES}
+    assert groups["active"][:2] == ["PREPARING", "DEPTH_SWEEP"] and "ABORTING" not in groups["active"]
+    console = (Path(__file__).parents[1] / "web" / "static" / "console.js").read_text()
+    assert '"RECONSTRUCTING"' not in console and "s.states" in console

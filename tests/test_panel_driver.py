@@ -152,6 +152,58 @@ def test_protocol_version_mismatch_fails_connect() -> None:
     run(scenario, connect=False, protocol_version=2)
 
 
+async def _cancel_after_answer(start: Awaitable[Any], answer: Callable[[], bool], turns: int) -> None:
+    """Start ``start``, give it its answer as soon as ``answer()`` can (True), cancel it ``turns``
+    loop turns later: unless it finished first, the cancel must win, not the answer."""
+    task = asyncio.ensure_future(start)
+    for _ in range(50):
+        await asyncio.sleep(0)
+        if answer():
+            break
+    else:
+        pytest.fail("never asked for its answer")
+    for _ in range(turns):
+        await asyncio.sleep(0)
+    if task.done():
+        return
+    task.cancel()
+    try:
+        result = await task
+    except asyncio.CancelledError:
+        return
+    pytest.fail(f"the cancel {turns} turn(s) after the answer was lost: returned {result!r}")
+
+
+@pytest.mark.parametrize("turns", range(4))
+def test_a_cancel_just_after_the_ack_cancels_the_command(turns: int) -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        def ack() -> bool:
+            for seq, future in panel._pending.items():
+                future.set_result(Line(seq, "ACK", (str(seq),)))
+                return True
+            return False
+
+        await _cancel_after_answer(panel.set_status(StatusLed.SCANNING), ack, turns)
+
+    run(scenario)
+
+
+@pytest.mark.parametrize("turns", range(4))
+def test_a_cancel_just_after_the_hello_cancels_the_connect(turns: int) -> None:
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        sim.ignore_commands = True
+
+        def hello() -> bool:
+            if panel._hello is None or panel._hello.done():
+                return False
+            panel._hello.set_result(Line(0, "HELLO", ("TBP-PANEL", "1", "0")))
+            return True
+
+        await _cancel_after_answer(panel.connect(), hello, turns)
+
+    run(scenario, connect=False)
+
+
 # ---------------------------------------------------------------------- events
 
 

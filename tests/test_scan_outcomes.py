@@ -16,6 +16,7 @@ import pytest
 
 import daemon.fusion
 import daemon.scan
+import daemon.scan_steps
 import daemon.store
 from daemon.controller import RigController
 from daemon.errors import ScanBusy, ScanRefused
@@ -72,11 +73,11 @@ class _Failure:
 
 
 @pytest.mark.parametrize("phase, owner, name", [
-    ("PREPARING", daemon.scan, "prepare_phones"),
-    ("DEPTH_SWEEP", daemon.scan.DepthSweeper, "run"),
+    ("PREPARING", daemon.scan_steps, "prepare_phones"),
+    ("DEPTH_SWEEP", daemon.scan_steps.DepthSweeper, "run"),
     ("RECONSTRUCTING", daemon.fusion, "fused_mesh"),
-    ("PLANNING", daemon.scan, "plan_capture"),
-    ("CAPTURING", daemon.scan.CaptureRunner, "main_pass"),
+    ("PLANNING", daemon.scan_steps, "plan_capture"),
+    ("CAPTURING", daemon.scan_steps.CaptureRunner, "main_pass"),
 ])
 def test_an_oserror_in_any_phase_aborts_the_scan_on_record_within_5_s(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, phase: str, owner: Any, name: str) -> None:
@@ -246,3 +247,41 @@ def test_a_second_start_while_the_first_scan_s_folder_is_made_is_refused_as_busy
         assert [p.name.endswith("first") for p in (tmp_path / "store").iterdir() if p.is_dir()] == [True]
 
     _controller_run(tmp_path, store, scenario)
+
+
+def test_reset_during_a_running_scan_says_it_runs(tmp_path: Path) -> None:
+    """`tbp reset` while a scan runs (no fault): the answer says what is true, and the status
+    carries the state lists the console reads."""
+    store = ScanStore(tmp_path / "store")
+
+    async def scenario(controller: RigController, events: Any) -> None:
+        task = await controller.start_scan("running")
+        await controller.machine.wait_for(ScanState.DEPTH_SWEEP)
+        with pytest.raises(ScanBusy, match="a scan is running: abort it first"):
+            await controller.reset("operator")
+        status = controller.status()
+        assert "DEPTH_SWEEP" in status["states"]["active"] and "STORING" in status["states"]["job"]
+        controller.abort(AbortCause(AbortSource.CONTROL_API, "test", "enough"))
+        assert (await task).outcome is ScanOutcome.ABORTED
+
+    _controller_run(tmp_path, store, scenario)
+
+
+def test_the_installed_calibration_is_read_off_the_event_loop(tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    import daemon.controller
+
+    readers: list[threading.Thread] = []
+
+    def installed(rig: Any) -> None:
+        readers.append(threading.current_thread())
+
+    monkeypatch.setattr(daemon.controller, "installed_calibration", installed)
+
+    async def scenario(controller: RigController, events: Any) -> None:
+        assert await controller.calibration("x") is None
+
+    _controller_run(tmp_path, ScanStore(tmp_path / "store"), scenario)
+    assert readers and readers[0] is not threading.main_thread()

@@ -18,7 +18,7 @@ import pytest
 from daemon.atomic import AtomicWriter, StoreError, StoreFull
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.manifest import ManifestError, ScanEnd
-from daemon.pulls import PullQueue
+from daemon.pulls import PullPolicy, PullQueue, ScanImages
 from daemon.store import ScanStore
 from planner.rig import load_rig
 
@@ -191,14 +191,14 @@ class FakePhone:
         return len(data), hashlib.sha256(data).hexdigest()
 
 
-async def test_background_pulls_verify_retry_and_record(tmp_path, rig, monkeypatch):
+async def test_background_pulls_verify_retry_and_record(tmp_path, rig):
     folder = _planned(ScanStore(tmp_path), rig)
     good, flaky, broken = FakePhone(), FakePhone(fail_first=1), FakePhone(corrupt=True)
-    monkeypatch.setattr(PullQueue, "RETRY_DELAY_S", 0.0)
-    async with PullQueue(folder, workers=2) as q:
-        q.submit(0, 0, "/sdcard/a.jpg", good.pull, expected_size=130)
-        q.submit(1, 0, "/sdcard/b.jpg", flaky.pull)
-        q.submit(2, 0, "/sdcard/c.jpg", broken.pull)
+    images = ScanImages(folder)
+    async with PullQueue(images, workers=2, policy=PullPolicy(retry_delay_s=0.0)) as q:
+        q.submit(images.pull(0, 0, "/sdcard/a.jpg", good.pull, expected_size=130))
+        q.submit(images.pull(1, 0, "/sdcard/b.jpg", flaky.pull))
+        q.submit(images.pull(2, 0, "/sdcard/c.jpg", broken.pull))
         await q.join()
     m = _manifest(folder)
     img = {(i["camera_index"], i["angle_index"]): i for i in m["images"]}
@@ -206,15 +206,13 @@ async def test_background_pulls_verify_retry_and_record(tmp_path, rig, monkeypat
     assert (folder.path / "images/cam0-a00.jpg").read_bytes() == b"/sdcard/a.jpg" * 10
     assert img[(1, 0)]["status"] == "verified" and img[(1, 0)]["attempts"] == 2
     assert img[(2, 0)]["status"] == "failed" and "sha256" in img[(2, 0)]["error"]
-    assert broken.calls == PullQueue.RETRIES + 1
+    assert broken.calls == PullPolicy().retries + 1
     assert not (folder.path / "images/cam2-a00.jpg").exists()
     assert [f.camera_id for f in q.failures] == ["cam2"]
 
 
-async def test_a_hanging_pull_times_out_and_is_retried(tmp_path, rig, monkeypatch):
+async def test_a_hanging_pull_times_out_and_is_retried(tmp_path, rig):
     folder = _planned(ScanStore(tmp_path), rig)
-    monkeypatch.setattr(PullQueue, "PULL_TIMEOUT_S", 0.05)
-    monkeypatch.setattr(PullQueue, "RETRY_DELAY_S", 0.0)
     calls = []
 
     async def stuck_then_fine(phone_path: str, dest: Path) -> tuple[int, str]:
@@ -223,8 +221,9 @@ async def test_a_hanging_pull_times_out_and_is_retried(tmp_path, rig, monkeypatc
             await asyncio.Event().wait()  # the phone never answers
         return await FakePhone().pull(phone_path, dest)
 
-    async with PullQueue(folder) as q:
-        q.submit(5, 2, "/sdcard/e.jpg", stuck_then_fine)
+    images = ScanImages(folder)
+    async with PullQueue(images, policy=PullPolicy(timeout_s=0.05, retry_delay_s=0.0)) as q:
+        q.submit(images.pull(5, 2, "/sdcard/e.jpg", stuck_then_fine))
         await q.join()
     image = _manifest(folder)["images"][rig.pose_index(2, 5)]
     assert image["status"] == "verified" and image["attempts"] == 2 and len(calls) == 2
@@ -235,8 +234,9 @@ async def test_pull_onto_a_full_disk_keeps_the_image_captured(tmp_path, rig):
     folder.record_capture(3, 4, sensor_timestamp_ns=1, host_time_s=1.0, actual_angle_deg=0.0,
                           phone_path="/sdcard/d.jpg", size_bytes=100)
     phone = FakePhone(error=OSError(errno.ENOSPC, "No space left on device"))
-    async with PullQueue(folder) as q:
-        q.submit(3, 4, "/sdcard/d.jpg", phone.pull, expected_size=100)
+    images = ScanImages(folder)
+    async with PullQueue(images) as q:
+        q.submit(images.pull(3, 4, "/sdcard/d.jpg", phone.pull, expected_size=100))
         with pytest.raises(StoreFull):
             await q.join()
     image = _manifest(folder)["images"][rig.pose_index(4, 3)]
@@ -248,9 +248,10 @@ async def test_unwritable_manifest_during_pulls_is_raised_not_hung(tmp_path, rig
     writer = CrashingWriter(errno.EIO)
     folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
     writer.armed = True
-    async with PullQueue(folder, workers=1) as q:
-        q.submit(0, 0, "/sdcard/a.jpg", FakePhone().pull)
-        q.submit(1, 0, "/sdcard/b.jpg", FakePhone().pull)
+    images = ScanImages(folder)
+    async with PullQueue(images, workers=1) as q:
+        q.submit(images.pull(0, 0, "/sdcard/a.jpg", FakePhone().pull))
+        q.submit(images.pull(1, 0, "/sdcard/b.jpg", FakePhone().pull))
         with pytest.raises(StoreError, match="errno 5"):
             await asyncio.wait_for(q.join(), 30.0)
 
@@ -258,8 +259,9 @@ async def test_unwritable_manifest_during_pulls_is_raised_not_hung(tmp_path, rig
 async def test_not_enough_free_space_refused_before_pulling(tmp_path, rig):
     folder = _planned(ScanStore(tmp_path), rig)
     phone = FakePhone()
-    async with PullQueue(folder) as q:
-        q.submit(0, 1, "/sdcard/huge.dng", phone.pull, expected_size=1 << 60)
+    images = ScanImages(folder)
+    async with PullQueue(images) as q:
+        q.submit(images.pull(0, 1, "/sdcard/huge.dng", phone.pull, expected_size=1 << 60))
         with pytest.raises(StoreFull) as info:
             await q.join()
     assert info.value.bytes_needed > 1 << 60 and phone.calls == 0

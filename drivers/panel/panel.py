@@ -211,7 +211,9 @@ class OperatorPanel:
             attempts += 1
             await self._send("HELLO", str(protocol.PROTOCOL_VERSION))
             try:
-                hello = await asyncio.wait_for(asyncio.shield(self._hello), self.HELLO_RETRY_S)
+                # asyncio.timeout, not wait_for: on 3.11 wait_for drops a cancel landing with the answer
+                async with asyncio.timeout(self.HELLO_RETRY_S):
+                    hello = await asyncio.shield(self._hello)
             except TimeoutError:
                 continue
         version = int(hello.args[1])
@@ -302,7 +304,8 @@ class OperatorPanel:
             self._pending[seq] = future
             try:
                 await self._send(verb, arg)
-                answer = await asyncio.wait_for(future, self.ACK_TIMEOUT_S)
+                async with asyncio.timeout(self.ACK_TIMEOUT_S):
+                    answer = await future
             except TimeoutError:
                 self._log.warning("panel_ack_missing", command=f"{verb} {arg}", seq=seq)
                 continue

@@ -2,11 +2,13 @@
 // same control handler as the panel's buttons and `tbp scan` / `tbp abort` / `tbp reset`.
 import { getJSON, send, el, fmt } from "/static/common.js";
 
-const ACTIVE = ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "RETAKING", "CALIBRATING", "STORING", "ABORTING"];
 const $ = (id) => document.getElementById(id);
 const hooks = { events: [], status: null };
 window.tbpConsole = hooks;
 let state = null;
+// The daemon's state lists (daemon/states.py, in every status): "job" (a scan or calibration
+// rotation runs) and "active" (the beam may move under it: ABORT is taken).
+let states = { active: [], job: [] };
 let counts = { captured: 0, verified: 0 };
 let poses = 336;
 
@@ -14,16 +16,19 @@ function pill(text, kind) { return el("span", { class: `pill ${kind}` }, text); 
 
 function showState(name, cause) {
   state = name;
-  $("state").replaceChildren(pill(name, ACTIVE.includes(name) ? "busy" : name));
+  $("state").replaceChildren(pill(name, states.job.includes(name) ? "busy" : name));
   if (cause !== undefined) $("cause").textContent = cause;
   $("start").disabled = name !== "IDLE";
-  $("abort").disabled = !ACTIVE.includes(name) || name === "ABORTING" || name === "STORING";
+  $("abort").disabled = !states.active.includes(name);
   $("reset").disabled = name !== "FAULT";
 }
 
 function showStatus(s) {
   hooks.status = s;
-  if (s.state !== state) showState(s.state);
+  if (s.states && JSON.stringify(s.states) !== JSON.stringify(states)) {
+    states = s.states;
+    showState(s.state);
+  } else if (s.state !== state) showState(s.state);
   $("angle").textContent = s.beam_angle_deg === null ? "–" : `${fmt(s.beam_angle_deg, 1)}°`;
   $("speed").textContent = s.beam_speed_deg_s === null ? "–" : `${fmt(s.beam_speed_deg_s, 1)}°/s`;
   $("scan-id").textContent = s.scan_id || "";

@@ -1,0 +1,55 @@
+"""Bounded waits for tasks: a stopped task that does not end is named, never waited for for ever,
+and a cancel of the waiting task is never swallowed (``asyncio.wait`` times out with a timer,
+not by cancelling)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterable
+from typing import Any
+
+import structlog
+
+log = structlog.get_logger("daemon.tasks")
+
+
+async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], timeout_s: float) -> list[asyncio.Task[Any]]:
+    """Cancel ``tasks`` and wait up to ``timeout_s`` for them to end; returns those still running
+    (left cancelled). Their results and errors count as seen. A cancel of the caller is not
+    swallowed."""
+    tasks = list(tasks)
+    for task in tasks:
+        task.cancel()
+    if not tasks:
+        return []
+    done, pending = await asyncio.wait(tasks, timeout=timeout_s)
+    for task in done:
+        if not task.cancelled():
+            task.exception()
+    for task in pending:
+        log.error("task_did_not_stop", task=describe(task), timeout_s=timeout_s)
+    return list(pending)
+
+
+async def settle(tasks: Iterable[asyncio.Future[Any] | None], timeout_s: float) -> list[asyncio.Future[Any]]:
+    """Wait up to ``timeout_s`` for ``tasks`` to end by themselves (None entries are skipped, and
+    nothing is awaited when all have ended); returns those still running. Their errors count as
+    seen: the caller has its own to raise."""
+    futures = [t for t in tasks if t is not None]
+    running = [f for f in futures if not f.done()]
+    pending: set[asyncio.Future[Any]] = set()
+    if running:
+        _, pending = await asyncio.wait(running, timeout=timeout_s)
+    for future in futures:
+        if future.done() and not future.cancelled():
+            future.exception()
+    return list(pending)
+
+
+def describe(task: asyncio.Future[Any]) -> str:
+    """A task's name and the line it waits at."""
+    if not isinstance(task, asyncio.Task):
+        return repr(task)
+    stack = task.get_stack()
+    where = f" at {stack[-1].f_code.co_name} ({stack[-1].f_code.co_filename}:{stack[-1].f_lineno})" if stack else ""
+    return f"{task.get_name()}{where}"
