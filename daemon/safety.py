@@ -17,6 +17,7 @@ import structlog
 from daemon.errors import FaultLatched
 from daemon.faults import FaultCause, FaultSource
 from daemon.states import ScanState, ScanStateMachine
+from daemon.tasks import stop_tasks
 from drivers.motor.errors import HostStalled
 
 log = structlog.get_logger("daemon.safety")
@@ -118,13 +119,10 @@ class SafetyMonitor:
             self._watch = asyncio.create_task(self._watch_drive(), name="safety-watch")
 
     async def stop(self) -> None:
-        if self._watch is not None:
-            self._watch.cancel()
-            try:
-                await self._watch
-            except asyncio.CancelledError:
-                pass
-            self._watch = None
+        """Stop watching the drive (bounded; a cancel of the caller is not swallowed)."""
+        watch, self._watch = self._watch, None
+        if watch is not None:
+            await stop_tasks([watch], self.HANDLER_TIMEOUT_S)
 
     async def _watch_drive(self) -> None:
         reported: BaseException | None = None

@@ -24,6 +24,7 @@ from daemon.looplag import LoopLagMonitor
 from daemon.notify import SystemdNotifier, run_watchdog
 from daemon.states import SCAN_STATES
 from daemon.store import new_scan_id
+from daemon.tasks import stop_tasks
 
 
 def _led(name: str) -> Any:
@@ -131,9 +132,7 @@ class RigService:
     async def stop(self) -> list[str]:
         """Abort a running scan, stop the beam, close devices and the socket."""
         self.notifier.stopping("stopping")
-        for task in self._tasks:
-            task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await stop_tasks(self._tasks, self.TASK_STOP_TIMEOUT_S)
         self._tasks.clear()
         for server in reversed(self.attached):
             await server.close()
@@ -155,6 +154,7 @@ class RigService:
 
     # ------------------------------------------------------------------ health
 
+    TASK_STOP_TIMEOUT_S = 2.0
     MAX_LAG_S = 1.0
     """The loop is wedged when it ran this late at any moment between two watchdog pings (twice the
     stall after which the drive guard already stops the beam)."""
