@@ -37,7 +37,7 @@ from typing import Any, Protocol
 import structlog
 
 from daemon.errors import DaemonError
-from daemon.subscriber import Subscriber, close_events, hang_up, peer_of
+from daemon.subscriber import Ended, Subscriber, close_events, hang_up, peer_of
 from drivers.noise import NoiseLog
 
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
@@ -153,9 +153,11 @@ class ControlServer:
     MAX_LINE = 64 * 1024
     # Operators' clients use one connection per request plus a few `status --follow`; each is a
     # file descriptor, and the daemon needs its descriptors for phones, pulls and the store
-    # (the unit's LimitNOFILE is sized with these bounds, tests/test_systemd_units.py).
+    # (the unit's LimitNOFILE is sized with these bounds, tests/test_systemd_units.py). A
+    # subscriber that stops reading costs at most MAX_PENDING_EVENTS lines (an event is about
+    # 250 bytes) and the transport's 64 KiB.
     MAX_CONNECTIONS = 16
-    MAX_SUBSCRIBERS = 16
+    MAX_SUBSCRIBERS = 32
     MAX_PENDING_EVENTS = 256
     IDLE_TIMEOUT_S = 10.0  # a client writes its request as soon as it connects
     RESERVED = 16
@@ -177,6 +179,8 @@ class ControlServer:
         self._subscribers: set[asyncio.Task[None]] = set()
         self._overflow = 0
         self._refused_log = NoiseLog(log, "control_connection_refused", period_s=10.0)
+        self._dropped_log = NoiseLog(log, "control_subscriber_dropped", period_s=10.0)
+        self._sent_data_log = NoiseLog(log, "control_subscriber_sent_data", period_s=10.0)
 
     async def __aenter__(self) -> ControlServer:
         await self.start()
@@ -222,7 +226,8 @@ class ControlServer:
         raise SocketInUse(f"another daemon is listening on {self.path}")
 
     async def close(self) -> None:
-        self._refused_log.flush()
+        for noise in (self._refused_log, self._dropped_log, self._sent_data_log):
+            noise.flush()
         if self._server is not None:
             self._server.close()
             tasks = self._connections | self._subscribers
@@ -343,7 +348,7 @@ class ControlServer:
     async def _subscribe(self, task: asyncio.Task[None], request: dict[str, Any],
                          reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if len(self._subscribers) >= self.MAX_SUBSCRIBERS:
-            log.warning("control_subscriber_refused", limit=self.MAX_SUBSCRIBERS, **peer_of(writer))
+            self._refused_log.report(limit=self.MAX_SUBSCRIBERS, subscribers=True, **peer_of(writer))
             await self._send(writer, _error(request["id"], "TooManySubscribers",
                                             f"{self.MAX_SUBSCRIBERS} subscriptions are open; try again"))
             await hang_up(writer, self.HANG_UP_GRACE_S, reader)
@@ -357,7 +362,12 @@ class ControlServer:
         try:
             status = await _resolve(self.handler.status())
             subscriber = Subscriber(reader, writer, events, _line, max_pending=self.MAX_PENDING_EVENTS)
-            await subscriber.run(first, _line({"id": request["id"], "ok": True, "result": status}))
+            ended = await subscriber.run(first, _line({"id": request["id"], "ok": True, "result": status}))
+            if ended is Ended.TOO_SLOW:
+                self._dropped_log.report(pending_events=subscriber.dropped_pending,
+                                         unsent_bytes=writer.transport.get_write_buffer_size(), **peer_of(writer))
+            elif ended is Ended.SENT_DATA:
+                self._sent_data_log.report(**peer_of(writer))
         finally:
             first.cancel()
             with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):

@@ -3,25 +3,22 @@
 A subscriber that stops reading must cost the daemon a bounded amount of memory and never hold
 anything else up. Its events wait in a queue of at most ``max_pending`` lines (beyond the socket's
 buffers and the transport's 64 KiB high-water mark); one more and the subscriber is dropped: told
-``SubscriberTooSlow`` (if it still reads, it learns why), logged with its peer (pid, uid) and how
-many events were pending, and its connection closed. The connection carries only events: a byte
-from the client ends the subscription with a ``ProtocolError`` line, so what a client sends after
-``subscribe`` is never accumulated.
+``SubscriberTooSlow`` (if it still reads, it learns why) and its connection closed; the control
+server logs it with its peer (pid, uid) and how many events were pending. The connection carries
+only events: a byte from the client ends the subscription with a ``ProtocolError`` line, so what a
+client sends after ``subscribe`` is never accumulated.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import enum
 import socket
 import struct
 from collections import deque
 from collections.abc import AsyncIterator, Callable
 from typing import Any
-
-import structlog
-
-log = structlog.get_logger("daemon.control")
 
 _CREDENTIALS = struct.Struct("3i")
 LINGER_MAX_BYTES = 64 * 1024
@@ -70,11 +67,21 @@ async def hang_up(writer: asyncio.StreamWriter, grace_s: float, reader: asyncio.
         writer.transport.abort()
 
 
+class Ended(enum.Enum):
+    """Why a subscription ended."""
+
+    HUNG_UP = "hung up"  # the client closed, or the connection broke
+    SENT_DATA = "sent data"  # answered ProtocolError
+    TOO_SLOW = "too slow"  # answered SubscriberTooSlow
+    EVENTS_ENDED = "events ended"  # the daemon is closing
+
+
 class Subscriber:
     """Streams ``events`` to one client: the reply line first, then one line per event.
 
     encode: an object (reply, event or error) as its JSON line. Use :meth:`run`; it returns when the
-    client hangs up, sends anything, falls ``max_pending`` events behind, or the events end.
+    client hangs up, sends anything, falls ``max_pending`` events behind, or the events end, with
+    the error line (if any) written and the connection still open.
     """
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
@@ -86,21 +93,31 @@ class Subscriber:
         self.encode = encode
         self.max_pending = max_pending
         self.pending: deque[bytes] = deque()
+        self.dropped_pending = 0  # events waiting when it was dropped as too slow
         self._ready = asyncio.Event()
 
-    async def run(self, first: asyncio.Future[Any], reply: bytes) -> None:
+    async def run(self, first: asyncio.Future[Any], reply: bytes) -> Ended:
         """first: the handler's first event, already awaited (subscribed before ``reply`` was made)."""
         self._queue(reply)
-        tasks = {asyncio.ensure_future(self._pump(first)), asyncio.ensure_future(self._send()),
-                 asyncio.ensure_future(self.reader.read(1))}  # b"": the client hung up
+        pump = asyncio.ensure_future(self._pump(first))
+        hangup = asyncio.ensure_future(self.reader.read(1))  # b"": the client hung up
+        tasks = {pump, hangup, asyncio.ensure_future(self._send())}
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-        for task in done:
-            self._ended(task)
+        if pump in done and isinstance(pump.exception(), _TooSlow):
+            self.dropped_pending = len(self.pending)
+            self.pending.clear()
+            self._error("SubscriberTooSlow", f"{self.dropped_pending} events were waiting for this subscriber "
+                                             f"(at most {self.max_pending}): it is dropped; read events as they come")
+            return Ended.TOO_SLOW
+        if hangup in done and not hangup.exception() and hangup.result():
+            self._error("ProtocolError", "a subscription carries only events; send requests on another connection")
+            return Ended.SENT_DATA
+        return Ended.EVENTS_ENDED if pump in done and not pump.exception() else Ended.HUNG_UP
 
     def _queue(self, line: bytes) -> None:
         self.pending.append(line)
@@ -125,25 +142,8 @@ class Subscriber:
             self.writer.write(self.pending.popleft())
             await self.writer.drain()
 
-    def _ended(self, task: asyncio.Future[Any]) -> None:
-        exc = task.exception() if not task.cancelled() else None
-        if isinstance(exc, _TooSlow):
-            self._drop()
-        elif exc is None and task.result():  # only the reader returns something: the client sent bytes
-            self.writer.write(self.encode({"id": None, "ok": False, "error": {
-                "type": "ProtocolError",
-                "message": "a subscription carries only events; send requests on another connection"}}))
-            log.warning("control_subscriber_sent_data", **peer_of(self.writer))
-
-    def _drop(self) -> None:
-        unsent = self.writer.transport.get_write_buffer_size()
-        log.warning("control_subscriber_dropped", reason="not reading its events",
-                    pending_events=len(self.pending), unsent_bytes=unsent, **peer_of(self.writer))
-        message = (f"{len(self.pending)} events were waiting for this subscriber (at most "
-                   f"{self.max_pending}): it is dropped; read events as they come")
-        self.pending.clear()
-        self.writer.write(self.encode({"id": None, "ok": False,
-                                       "error": {"type": "SubscriberTooSlow", "message": message}}))
+    def _error(self, error_type: str, message: str) -> None:
+        self.writer.write(self.encode({"id": None, "ok": False, "error": {"type": error_type, "message": message}}))
 
 
 class _TooSlow(Exception):
