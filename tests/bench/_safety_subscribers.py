@@ -40,7 +40,7 @@ SILENT = 20
 SLOW_HEADERS = 200
 CYCLES = 20
 IDLE_S = 30.0
-RUN_S = (3.0, 8.0, 15.0)  # a scan runs this long before it is aborted: PREPARING, DEPTH_SWEEP, CAPTURING
+RUN_S = (3.0, 8.0, 15.0)  # a scan runs this long before it is aborted (wall s), each in a later state
 TBP = [sys.executable, "-m", "cli"]
 
 
