@@ -79,7 +79,14 @@ def run(args: argparse.Namespace) -> int:
     if loaded is None:
         return 2
     rig, config = loaded
-    probes, source = asyncio.run(_probe_or_ask_daemon(rig, config, args))
+    from daemon.control import CommandFailed
+
+    try:
+        probes, source = asyncio.run(_probe_or_ask_daemon(rig, config, args))
+    except CommandFailed as exc:  # a daemon runs and owns the devices: never probe them under it
+        print(f"tbp check: the running daemon refused its status ({exc}); it owns the devices, "
+              "so they are not probed", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps({"source": source, "hardware": config.path, "ok": all(p.ok for p in probes),
                           "devices": [{**asdict(p), "verdict": p.verdict} for p in probes]}, indent=1))
@@ -91,11 +98,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) -> tuple[list[Probe], str]:
-    from daemon.control import ControlClient, ControlError, default_socket
+    from daemon.control import ControlClient, DaemonUnavailable, ProtocolError, default_socket
 
     try:
         status = await ControlClient(args.socket or default_socket()).status()
-    except (ControlError, OSError):
+    except (DaemonUnavailable, ProtocolError, OSError):  # no daemon (or not ours) on the socket
         return await probe_devices(rig, config, options.state_dir(args.state_dir)), "probe"
     return [Probe(d["device"], d["kind"], d["address"], bool(d["ok"]), error=d.get("error"), check=d.get("check"))
             for d in status.get("devices", [])], "daemon"

@@ -9,10 +9,13 @@ nothing else. The socket is mode 0660 (optionally owned by a group) so only the 
 user and the operators' group can drive the rig; a stale socket left by a killed daemon is
 removed, a live one is refused.
 
-Bounded, never silent: at most MAX_CONNECTIONS connections at once (one more gets a
-``TooManyConnections`` error line and is closed), a connection that sends no request for
-IDLE_TIMEOUT_S is closed, a line is at most MAX_LINE bytes, and a request that is not JSON,
-nested too deeply or not an object gets a ``ProtocolError`` reply on a connection that stays open.
+Bounded, never silent (see :class:`ControlServer`): requests and subscriptions have pools of
+their own, and ``status``, ``abort`` and ``reset`` are served even when both are full; a
+subscriber that stops reading is dropped, one that sends anything is answered and hung up on; a
+connection idle for IDLE_TIMEOUT_S is closed, a line is at most MAX_LINE bytes, and a request that
+is not JSON, nested too deeply or not an object gets a ``ProtocolError`` reply on a connection that
+stays open. Every refusal is a typed error line: ``ProtocolError``, ``TooManyConnections``,
+``TooManySubscribers``, ``SubscriberTooSlow``.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from typing import Any, Protocol
 import structlog
 
 from daemon.errors import DaemonError
+from daemon.subscriber import Ended, Subscriber, close_events, hang_up, peer_of
 from drivers.noise import NoiseLog
 
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
@@ -131,17 +135,38 @@ async def _resolve(value: Any) -> Any:
 
 
 class ControlServer:
-    """Serves the control API on ``path`` for ``handler``; use ``async with``."""
+    """Serves the control API on ``path`` for ``handler``; use ``async with``.
+
+    Three pools of connections, each bounded, so that no kind of client can lock the operator
+    out of ``status``, ``abort`` and ``reset``:
+
+    * requests: at most MAX_CONNECTIONS at once; one idle for IDLE_TIMEOUT_S, or not reading its
+      replies for as long, is closed;
+    * subscriptions: at most MAX_SUBSCRIBERS, counted apart (a subscription leaves the request
+      pool), each with a send queue of MAX_PENDING_EVENTS (daemon/subscriber.py);
+    * overflow: a connection beyond MAX_CONNECTIONS is read for one request (at most RESERVED of
+      them wait REFUSE_WAIT_S for it; beyond, only a request already received is read): ``status``,
+      ``abort`` and ``reset`` are served there, ``subscribe`` goes to its own pool, anything else
+      is told ``TooManyConnections``.
+    """
 
     MAX_LINE = 64 * 1024
     # Operators' clients use one connection per request plus a few `status --follow`; each is a
     # file descriptor, and the daemon needs its descriptors for phones, pulls and the store
-    # (the unit's LimitNOFILE is sized with this bound, tests/test_systemd_units.py).
+    # (the unit's LimitNOFILE is sized with these bounds, tests/test_systemd_units.py). A
+    # subscriber that stops reading costs at most MAX_PENDING_EVENTS lines (an event is about
+    # 250 bytes) and the transport's 64 KiB.
     MAX_CONNECTIONS = 16
+    MAX_SUBSCRIBERS = 32
+    MAX_PENDING_EVENTS = 256
     IDLE_TIMEOUT_S = 10.0  # a client writes its request as soon as it connects
-    MAX_REFUSING = 16
+    RESERVED = 16
     BACKLOG = 16
     REFUSE_WAIT_S = 0.5
+    HANG_UP_GRACE_S = 1.0
+    URGENT = ("status", "abort", "reset")
+    MAX_DESCRIPTORS = MAX_CONNECTIONS + MAX_SUBSCRIBERS + RESERVED + BACKLOG
+    """Descriptors the control socket holds at most, beyond those closed as soon as accepted."""
 
     def __init__(self, path: Path | str, handler: ControlHandler, *, group: str | None = None,
                  mode: int = 0o660) -> None:
@@ -151,8 +176,11 @@ class ControlServer:
         self.mode = mode
         self._server: asyncio.Server | None = None
         self._connections: set[asyncio.Task[None]] = set()
-        self._refusing = 0
+        self._subscribers: set[asyncio.Task[None]] = set()
+        self._overflow = 0
         self._refused_log = NoiseLog(log, "control_connection_refused", period_s=10.0)
+        self._dropped_log = NoiseLog(log, "control_subscriber_dropped", period_s=10.0)
+        self._sent_data_log = NoiseLog(log, "control_subscriber_sent_data", period_s=10.0)
 
     async def __aenter__(self) -> ControlServer:
         await self.start()
@@ -198,12 +226,14 @@ class ControlServer:
         raise SocketInUse(f"another daemon is listening on {self.path}")
 
     async def close(self) -> None:
-        self._refused_log.flush()
+        for noise in (self._refused_log, self._dropped_log, self._sent_data_log):
+            noise.flush()
         if self._server is not None:
             self._server.close()
-            for task in list(self._connections):
+            tasks = self._connections | self._subscribers
+            for task in tasks:
                 task.cancel()
-            await asyncio.gather(*self._connections, return_exceptions=True)
+            await asyncio.gather(*tasks, return_exceptions=True)
             await self._server.wait_closed()
             self._server = None
             with contextlib.suppress(FileNotFoundError):
@@ -211,88 +241,96 @@ class ControlServer:
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
-        if len(self._connections) >= self.MAX_CONNECTIONS:
-            await self._refuse(reader, writer)
-            return
-        if task is not None:
-            self._connections.add(task)
+        assert task is not None
         try:
-            while True:
-                try:
-                    async with asyncio.timeout(self.IDLE_TIMEOUT_S):
-                        raw = await reader.readline()
-                except TimeoutError:
-                    return  # an idle connection holds a descriptor and a connection slot
-                except ValueError:  # longer than MAX_LINE
-                    writer.write(_line({"id": None, "ok": False, "error": {
-                        "type": "ProtocolError", "message": f"line longer than {self.MAX_LINE} bytes"}}))
-                    await writer.drain()
-                    return
-                if not raw:
-                    return
-                request = self._parse(raw)
-                if "error" in request:
-                    writer.write(_line(request))
-                    await writer.drain()
-                    continue
-                if request["cmd"] == "subscribe":
-                    await self._stream(request, reader, writer)
-                    return
-                writer.write(_line(await self._call(request)))
-                await writer.drain()
-        except (ConnectionError, asyncio.IncompleteReadError):
-            return
+            if len(self._connections) >= self.MAX_CONNECTIONS:
+                await self._serve_overflow(task, reader, writer)
+            else:
+                self._connections.add(task)
+                await self._serve_requests(task, reader, writer)
+        except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
+            pass  # gone, or not reading its replies: hung up on below
         finally:
-            if task is not None:
-                self._connections.discard(task)
-            writer.close()
-            with contextlib.suppress(ConnectionError, asyncio.CancelledError):
-                await writer.wait_closed()
+            writer.transport.abort()  # a no-op after a hang-up; else nobody may keep the descriptor
+            self._connections.discard(task)
+            self._subscribers.discard(task)
 
-    async def _refuse(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """Tell a client over the connection limit why, and hang up.
-
-        The refusal waits (at most REFUSE_WAIT_S) for the client's request line before it
-        answers: a reply sent before the client has written makes the client's write fail and
-        it never reads why. At most MAX_REFUSING connections wait like that; beyond them a flood
-        is closed at once, so refusals never hold more than that many descriptors."""
-        self._refused_log.report(limit=self.MAX_CONNECTIONS)
-        if self._refusing < self.MAX_REFUSING:
-            self._refusing += 1
+    async def _serve_requests(self, task: asyncio.Task[None], reader: asyncio.StreamReader,
+                              writer: asyncio.StreamWriter) -> None:
+        while True:
             try:
-                async with asyncio.timeout(self.REFUSE_WAIT_S):
-                    await reader.readline()
-            except (TimeoutError, ValueError, ConnectionError):
-                pass
-            finally:
-                self._refusing -= 1
-        writer.write(_line({"id": None, "ok": False, "error": {
-            "type": "TooManyConnections",
-            "message": f"{self.MAX_CONNECTIONS} control connections are open; try again"}}))
-        with contextlib.suppress(ConnectionError):
+                async with asyncio.timeout(self.IDLE_TIMEOUT_S):
+                    raw = await reader.readline()
+            except TimeoutError:
+                break  # an idle connection holds a descriptor and a connection slot
+            except ValueError:  # longer than MAX_LINE
+                await self._send(writer, _error(None, "ProtocolError", f"line longer than {self.MAX_LINE} bytes"))
+                break
+            if not raw:
+                break
+            request = self._parse(raw)
+            if "error" in request:
+                await self._send(writer, request)
+                continue
+            if request["cmd"] == "subscribe":
+                self._connections.discard(task)
+                await self._subscribe(task, request, reader, writer)
+                return
+            await self._send(writer, await self._call(request))
+        await hang_up(writer, self.HANG_UP_GRACE_S, reader)
+
+    async def _send(self, writer: asyncio.StreamWriter, reply: dict[str, Any]) -> None:
+        """Write one reply; a client that does not read it within IDLE_TIMEOUT_S is hung up on."""
+        writer.write(_line(reply))
+        async with asyncio.timeout(self.IDLE_TIMEOUT_S):
             await writer.drain()
-        writer.close()
-        with contextlib.suppress(ConnectionError):
-            await writer.wait_closed()
+
+    async def _serve_overflow(self, task: asyncio.Task[None], reader: asyncio.StreamReader,
+                              writer: asyncio.StreamWriter) -> None:
+        """A connection beyond MAX_CONNECTIONS: its one request is read and an urgent one served.
+
+        The wait for the request line (REFUSE_WAIT_S) also lets a refused client read why: a reply
+        sent before the client has written makes its write fail and it never reads the answer. At
+        most RESERVED connections wait like that; beyond them only a request already received is
+        read, so a flood never holds more descriptors than that."""
+        waiting = self._overflow < self.RESERVED
+        self._overflow += waiting
+        try:
+            request: dict[str, Any] | None = None
+            with contextlib.suppress(TimeoutError, ValueError):
+                async with asyncio.timeout(self.REFUSE_WAIT_S if waiting else 0.0):
+                    raw = await reader.readline()
+                request = self._parse(raw) if raw else None
+            if request is not None and request.get("cmd") == "subscribe":
+                self._overflow -= waiting  # it leaves the overflow for the subscribers' pool
+                waiting = False
+                await self._subscribe(task, request, reader, writer)
+                return
+            if request is not None and request.get("cmd") in self.URGENT:
+                await self._send(writer, await self._call(request))
+            else:
+                self._refused_log.report(limit=self.MAX_CONNECTIONS)
+                await self._send(writer, _error(request.get("id") if request else None, "TooManyConnections",
+                                                f"{self.MAX_CONNECTIONS} control connections are open; try "
+                                                "again (status, abort and reset are always served)"))
+            await hang_up(writer, self.REFUSE_WAIT_S if waiting else 0.0, reader)
+        finally:
+            self._overflow -= waiting
 
     def _parse(self, raw: bytes) -> dict[str, Any]:
         try:
             request = json.loads(raw)
         except ValueError as exc:
-            return {"id": None, "ok": False,
-                    "error": {"type": "ProtocolError", "message": f"not JSON: {exc}"}}
+            return _error(None, "ProtocolError", f"not JSON: {exc}")
         except RecursionError:
-            return {"id": None, "ok": False,
-                    "error": {"type": "ProtocolError", "message": "JSON nested too deeply"}}
+            return _error(None, "ProtocolError", "JSON nested too deeply")
         if not isinstance(request, dict) or request.get("cmd") not in COMMANDS:
             cmd = request.get("cmd") if isinstance(request, dict) else None
-            return {"id": request.get("id") if isinstance(request, dict) else None, "ok": False,
-                    "error": {"type": "ProtocolError",
-                              "message": f"unknown command {cmd!r}; commands: {', '.join(COMMANDS)}"}}
+            return _error(request.get("id") if isinstance(request, dict) else None, "ProtocolError",
+                          f"unknown command {cmd!r}; commands: {', '.join(COMMANDS)}")
         args = request.get("args", {})
         if not isinstance(args, dict):
-            return {"id": request.get("id"), "ok": False,
-                    "error": {"type": "ProtocolError", "message": "args must be an object"}}
+            return _error(request.get("id"), "ProtocolError", "args must be an object")
         return {"id": request.get("id"), "cmd": request["cmd"], "args": args}
 
     async def _call(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -303,42 +341,43 @@ class ControlServer:
         except Exception as exc:  # reported to the client with its type, and logged
             log.warning("control_command_failed", cmd=cmd, error_type=type(exc).__name__,
                         error=str(exc))
-            return {"id": request["id"], "ok": False,
-                    "error": {"type": type(exc).__name__, "message": str(exc)}}
+            return _error(request["id"], type(exc).__name__, str(exc))
         (log.debug if cmd == "status" else log.info)("control_command", cmd=cmd)
         return {"id": request["id"], "ok": True, "result": result}
 
-    async def _stream(self, request: dict[str, Any], reader: asyncio.StreamReader,
-                      writer: asyncio.StreamWriter) -> None:
-        iterator = aiter(self.handler.subscribe())
+    async def _subscribe(self, task: asyncio.Task[None], request: dict[str, Any],
+                         reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if len(self._subscribers) >= self.MAX_SUBSCRIBERS:
+            self._refused_log.report(limit=self.MAX_SUBSCRIBERS, subscribers=True, **peer_of(writer))
+            await self._send(writer, _error(request["id"], "TooManySubscribers",
+                                            f"{self.MAX_SUBSCRIBERS} subscriptions are open; try again"))
+            await hang_up(writer, self.HANG_UP_GRACE_S, reader)
+            return
+        self._subscribers.add(task)
+        events = aiter(self.handler.subscribe())
         # Start waiting for the first event before taking the snapshot, so an async generator
         # handler has subscribed by then and nothing between the two is missed.
-        nxt: asyncio.Future[Any] = asyncio.ensure_future(anext(iterator))
+        first: asyncio.Future[Any] = asyncio.ensure_future(anext(events))
         await asyncio.sleep(0)
-        hangup = asyncio.create_task(reader.read())  # EOF when the client goes
         try:
             status = await _resolve(self.handler.status())
-            writer.write(_line({"id": request["id"], "ok": True, "result": status}))
-            await writer.drain()
-            while True:
-                done, _ = await asyncio.wait({nxt, hangup}, return_when=asyncio.FIRST_COMPLETED)
-                if nxt not in done:
-                    return
-                try:
-                    event = nxt.result()
-                except StopAsyncIteration:
-                    return
-                writer.write(_line({"event": event}))
-                await writer.drain()
-                nxt = asyncio.ensure_future(anext(iterator))
+            subscriber = Subscriber(reader, writer, events, _line, max_pending=self.MAX_PENDING_EVENTS)
+            ended = await subscriber.run(first, _line({"id": request["id"], "ok": True, "result": status}))
+            if ended is Ended.TOO_SLOW:
+                self._dropped_log.report(pending_events=subscriber.dropped_pending,
+                                         unsent_bytes=writer.transport.get_write_buffer_size(), **peer_of(writer))
+            elif ended is Ended.SENT_DATA:
+                self._sent_data_log.report(**peer_of(writer))
         finally:
-            hangup.cancel()
-            nxt.cancel()
+            first.cancel()
             with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
-                await nxt
-            closer = getattr(iterator, "aclose", None)
-            if closer is not None:
-                await closer()
+                await first
+            await close_events(events)
+        await hang_up(writer, self.HANG_UP_GRACE_S, reader)
+
+
+def _error(request_id: Any, error_type: str, message: str) -> dict[str, Any]:
+    return {"id": request_id, "ok": False, "error": {"type": error_type, "message": message}}
 
 
 class ControlClient:
@@ -421,7 +460,10 @@ class ControlClient:
         return await self.request("reset")
 
     async def subscribe(self) -> AsyncIterator[dict[str, Any]]:
-        """The current status first, then every status event as the daemon publishes it."""
+        """The current status first, then every status event as the daemon publishes it.
+
+        CommandFailed when the daemon refuses the subscription (TooManySubscribers) or ends it
+        (SubscriberTooSlow: the client fell MAX_PENDING_EVENTS behind)."""
         reader, writer = await self._open()
         try:
             yield await self._exchange(reader, writer, "subscribe", {})
@@ -433,6 +475,9 @@ class ControlClient:
                 if not raw:
                     raise DaemonUnavailable(self.path, "the daemon closed the subscription")
                 message = _parse_reply(raw)
+                if message.get("ok") is False:  # the daemon ends the subscription and says why
+                    err = message.get("error") or {}
+                    raise CommandFailed("subscribe", str(err.get("type", "Error")), str(err.get("message", "")))
                 if "event" not in message:
                     raise ProtocolError(f"expected an event line, got {raw[:200]!r}")
                 yield message["event"]

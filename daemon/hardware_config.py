@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from daemon.errors import DaemonError
-from planner.rig import Rig, RigConfigError, _int, _num, _Reader, _str, show
+from planner.rig import MAX_STRING, Rig, RigConfigError, _int, _key_name, _num, _Reader, _str, show
 from planner.yaml_files import read_yaml
 
 MAX_FILE_BYTES = 256 * 1024
@@ -160,16 +160,17 @@ def load_hardware(path: Path | str, rig: Rig) -> HardwareConfig:
     """Read and validate a hardware file against the rig it wires."""
     path = Path(path)
     raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="hardware file",
-                          error=lambda problem: HardwareConfigError(path, "<file>", problem))
+                          error=lambda problem: HardwareConfigError(path, "<file>", problem),
+                          key_error=lambda key, problem: HardwareConfigError(path, key, problem))
     return hardware_from_mapping(raw, rig, path, hashlib.sha256(text).hexdigest())
 
 
 def hardware_from_mapping(raw: Any, rig: Rig, path: Path | str = "<memory>", digest: str = "") -> HardwareConfig:
     reader = _HardwareReader(path)
     raw = reader.mapping(raw, "<top>")
-    unknown = sorted(str(k) for k in raw if k not in _TOP)
+    unknown = sorted(_key_name(k) for k in raw if k not in _TOP)
     if unknown:
-        raise reader.error(unknown[0][:40], f"unknown section; allowed: {', '.join(sorted(_TOP))}")
+        raise reader.error(unknown[0], f"unknown section; allowed: {', '.join(sorted(_TOP))}")
     for name in ("can", "phones", "depth_cameras", "panel"):
         if name not in raw:
             raise reader.error(name, "missing section" + (" (write 'panel: null' for a rig without one)"
@@ -210,9 +211,9 @@ def _can(reader: _HardwareReader, raw: Any) -> CanBus:
 
 def _by_id(reader: _HardwareReader, raw: Any, key: str, ids: list[str]) -> dict[str, Any]:
     raw = reader.mapping(raw, key)
-    unknown = sorted(str(k) for k in raw if k not in ids)
+    unknown = sorted(_key_name(k) for k in raw if k not in ids)
     if unknown:
-        raise reader.error(f"{key}.{unknown[0][:40]}", f"not in the rig file; its ids are {', '.join(ids)}")
+        raise reader.error(f"{key}.{unknown[0]}", f"not in the rig file; its ids are {', '.join(ids)}")
     for name in ids:
         if name not in raw:
             raise reader.error(f"{key}.{name}", "missing: every device of the rig file needs an address")
@@ -236,7 +237,7 @@ def _phones(reader: _HardwareReader, raw: Any, rig: Rig) -> dict[str, PhoneLink]
         key = f"phones.{name}"
         kind, value = _one_key(reader, entry, key, ("usb", "tcp"))
         if kind == "usb":
-            if value is not None and value != serials[name]:
+            if value is not None and _serial(reader, value, f"{key}.usb") != serials[name]:
                 raise reader.error(f"{key}.usb", f"serial {show(value)} is not the rig file's {serials[name]!r} "
                                                  "for this phone (the rig file names each phone; write 'usb')")
             links[name] = PhoneLink(serials[name])
@@ -253,13 +254,23 @@ def _depth(reader: _HardwareReader, raw: Any, rig: Rig, base: Path) -> dict[str,
         key = f"depth_cameras.{name}"
         kind, value = _one_key(reader, entry, key, ("realsense", "recording"))
         if kind == "realsense":
-            if value is not None and str(value) != serials[name]:
+            if value is not None and _serial(reader, value, f"{key}.realsense") != serials[name]:
                 raise reader.error(f"{key}.realsense", f"serial {show(value)} is not the rig file's "
                                                        f"{serials[name]!r} (write 'realsense')")
             sources[name] = DepthSource(serials[name])
         else:
             sources[name] = DepthSource(serials[name], base / reader.value(value, f"{key}.recording", _str()))
     return sources
+
+
+def _serial(reader: _HardwareReader, value: Any, key: str) -> str:
+    """A serial as text, checked before it is converted: a string of at most MAX_STRING
+    characters, or a number YAML read from digits (RealSense serials are digits)."""
+    if isinstance(value, str) and len(value) <= MAX_STRING:
+        return value
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value and value.bit_length() <= 64:
+        return str(value)
+    raise reader.error(key, f"got {show(value)}; expected the device's serial (text or digits)")
 
 
 def _host_port(reader: _HardwareReader, value: Any, key: str) -> tuple[str, int]:

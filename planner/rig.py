@@ -140,7 +140,7 @@ class _Reader:
 
     def section(self, raw: Any, key: str, table: dict[str, _Field]) -> dict[str, Any]:
         raw = self.mapping(raw, key)
-        unknown = sorted((k for k in raw if k not in table), key=str)
+        unknown = sorted((k for k in raw if k not in table), key=_key_name)
         if unknown:
             raise self.error(
                 f"{key}.{_key_name(unknown[0])}", f"unknown key; allowed keys: {', '.join(sorted(table))}"
@@ -622,7 +622,8 @@ def load_rig(path: Path | str = DEFAULT_RIG_PATH) -> Rig:
     """
     path = Path(path)
     raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="rig file",
-                          error=lambda problem: RigConfigError(path, "<file>", problem))
+                          error=lambda problem: RigConfigError(path, "<file>", problem),
+                          key_error=lambda key, problem: RigConfigError(path, key, problem))
     return rig_from_mapping(raw, path, hashlib.sha256(text).hexdigest())
 
 
@@ -630,7 +631,7 @@ def rig_from_mapping(raw: Any, path: Path | str = "<memory>", digest: str = "") 
     """Validate an already-parsed rig mapping (see :func:`load_rig`)."""
     reader = _Reader(path)
     raw = reader.mapping(raw, "<top>")
-    unknown = sorted((k for k in raw if k not in _TOP), key=str)
+    unknown = sorted((k for k in raw if k not in _TOP), key=_key_name)
     if unknown:
         raise reader.error(_key_name(unknown[0]), f"unknown section; allowed: {', '.join(sorted(_TOP))}")
     for name in sorted(_TOP - _OPTIONAL - set(raw)):

@@ -1,9 +1,16 @@
 """Reading a configuration YAML file with every size bounded.
 
-Rig files, calibration files, target files and focus tables are read the same way: at most
-``max_bytes`` bytes, flow collections ([ ], { }) nested at most 32 deep (PyYAML's scanner is
-quadratic in that depth), safe_load only, and any failure (unreadable, too large, not YAML, a
-5000-digit number, nesting thousands deep) turned into the caller's typed error naming the file.
+Rig files, hardware files, calibration files, target files and focus tables are read the same
+way: at most ``max_bytes`` bytes, flow collections ([ ], { }) nested at most 32 deep (PyYAML's
+scanner is quadratic in that depth), the safe loader only, and any failure (unreadable, too large,
+not YAML, a 5000-digit number, nesting thousands deep) turned into the caller's typed error naming
+the file.
+
+Aliases are counted as what they stand for: a document whose nodes, each alias expanded, number
+more than ``max_bytes`` (more than a file of the allowed size can hold without aliases) is refused
+while it is composed, naming the key where the count passed the bound. Loaded, an alias is a
+shared reference, but merging mappings (``<<``), ``str()`` or walking the value expands it: nine
+aliases of nine aliases, twelve deep, are 9**12 values.
 """
 
 from __future__ import annotations
@@ -42,11 +49,80 @@ def flow_nesting(text: bytes) -> int:
     return deepest
 
 
-def read_yaml(path: Path, *, max_bytes: int, what: str,
-              error: Callable[[str], Exception]) -> tuple[Any, bytes]:
+class ExpansionTooLarge(ValueError):
+    """A YAML document stands for more nodes than allowed once its aliases are expanded."""
+
+    def __init__(self, key: str, nodes: int, limit: int) -> None:
+        self.key = key
+        self.nodes = nodes
+        self.limit = limit
+        super().__init__(f"{key}: aliases make it {nodes} values, more than the {limit} a file of "
+                         f"the allowed size holds without aliases")
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """The safe loader, counting each node as the nodes it stands for (an alias: its anchor's)."""
+
+    def __init__(self, text: bytes, max_nodes: int) -> None:
+        super().__init__(text)
+        self.max_nodes = max_nodes
+        self._expanded: dict[int, int] = {}  # id(node) -> nodes it stands for; every node stays referenced
+        self._path: list[str] = []
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        step = _step(parent, index)
+        if step is not None:
+            self._path.append(step)
+        try:
+            alias = self.check_event(yaml.AliasEvent)
+            node = super().compose_node(parent, index)
+            if alias:  # its anchor, counted once composed; one still being composed (a cycle) counts once
+                size = self._expanded.get(id(node), 1)
+            else:
+                size = self._expanded[id(node)] = self._count(node)
+            if size > self.max_nodes:
+                raise ExpansionTooLarge("".join(self._path).lstrip(".") or "<document>", size, self.max_nodes)
+            return node
+        finally:
+            if step is not None:
+                self._path.pop()
+
+    def _count(self, node: yaml.Node) -> int:
+        if isinstance(node, yaml.SequenceNode):
+            children: list[yaml.Node] = list(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            children = [part for pair in node.value for part in pair]
+        else:
+            return 1
+        return 1 + sum(self._expanded.get(id(child), 1) for child in children)
+
+
+def _step(parent: yaml.Node | None, index: Any) -> str | None:
+    """The path step of a child: ".key" for a mapping's value, "[i]" for a list item, None for a key."""
+    if isinstance(parent, yaml.SequenceNode):
+        return f"[{index}]"
+    if isinstance(parent, yaml.MappingNode) and index is not None:
+        key = index.value if isinstance(index, yaml.ScalarNode) else "<key>"
+        return f".{key[:40]}"
+    return None
+
+
+def load_bounded(text: bytes, max_nodes: int) -> Any:
+    """``yaml.safe_load(text)`` of a document of at most max_nodes, aliases expanded
+    (:class:`ExpansionTooLarge` otherwise)."""
+    loader = _BoundedLoader(text, max_nodes)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
+def read_yaml(path: Path, *, max_bytes: int, what: str, error: Callable[[str], Exception],
+              key_error: Callable[[str, str], Exception] | None = None) -> tuple[Any, bytes]:
     """(parsed document, raw bytes) of a YAML file; ``error(problem)`` builds the exception raised.
 
-    what: the kind of file, for messages ("rig file", "focus table").
+    what: the kind of file, for messages ("rig file", "focus table"). key_error(key, problem): the
+    exception for a problem at one key (aliases expanding too far); default: ``error`` naming it.
     """
     try:
         with open(path, "rb") as f:
@@ -58,7 +134,10 @@ def read_yaml(path: Path, *, max_bytes: int, what: str,
     if flow_nesting(text) > MAX_FLOW_NESTING:
         raise error(f"lists or mappings nested more than {MAX_FLOW_NESTING} deep: not a {what}")
     try:
-        return yaml.safe_load(text), text
+        return load_bounded(text, max_bytes), text
+    except ExpansionTooLarge as exc:
+        problem = f"aliases make it {exc.nodes} values, more than the {exc.limit} a {what} holds without aliases"
+        raise (key_error(exc.key, problem) if key_error else error(f"{exc.key}: {problem}")) from None
     except yaml.YAMLError as exc:
         raise error(f"not valid YAML: {str(exc)[:300]}") from exc
     except (ValueError, RecursionError) as exc:

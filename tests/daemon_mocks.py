@@ -200,13 +200,16 @@ class MockPhone:
 
 
 @contextmanager
-def answering_daemon(sock: Path, status: dict[str, Any]) -> Iterator[None]:
-    """A stand-in daemon answering ``status`` on the control socket ``sock``, served by the real
-    ControlServer from its own event loop in a thread (the command under test runs its own loop)."""
+def answering_daemon(sock: Path, status: dict[str, Any] | Exception) -> Iterator[None]:
+    """A stand-in daemon answering ``status`` (or refusing it with the exception) on the control
+    socket ``sock``, served by the real ControlServer from its own event loop in a thread (the
+    command under test runs its own loop)."""
     from daemon.control import ControlServer
 
     class Daemon:
         def status(self) -> dict[str, Any]:
+            if isinstance(status, Exception):
+                raise status
             return status
 
     loop = asyncio.new_event_loop()

@@ -212,3 +212,22 @@ def test_while_the_daemon_runs_the_check_shows_its_view_without_touching_the_dev
         report = json.loads(out[out.index("{\n"):])  # after the stand-in daemon's own log line
         assert report["source"] == "daemon"
         assert [(d["device"], d["found"]) for d in report["devices"]] == [("drive", True), ("cam0", False)]
+
+
+def test_a_daemon_that_refuses_its_status_is_not_probed_under(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A refusal is an answer: a daemon runs and owns the devices (probing the drive would reset
+    its CANopen communication mid-scan), so the check stops instead of probing."""
+    from tests.daemon_mocks import answering_daemon
+
+    sock = tmp_path / "control.sock"
+    with answering_daemon(sock, RuntimeError("status is broken")):
+        hardware = tmp_path / "hw.yaml"
+        hardware.write_text(yaml.safe_dump({
+            "can": {"interface": "socketcan", "channel": "can0"},
+            "phones": {p.id: "usb" for p in RIG.phones},
+            "depth_cameras": {c.id: "realsense" for c in RIG.depth_cameras}, "panel": None}))
+        argv = ["check", "--rig", str(DEFAULT_RIG_PATH), "--hardware", str(hardware), "--socket", str(sock),
+                "--state-dir", str(tmp_path / "state")]
+        assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "refused its status" in err and "RuntimeError: status is broken" in err

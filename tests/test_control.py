@@ -94,6 +94,30 @@ async def test_subscription_streams_events_as_they_happen(sock):
         assert not daemon.machine._subscribers
 
 
+async def test_a_subscription_the_daemon_ends_is_a_typed_refusal(sock):
+    """The daemon drops a subscriber that falls behind with a SubscriberTooSlow line: the client
+    raises it as the daemon's refusal, not as a malformed line."""
+    sock.parent.mkdir(parents=True)
+
+    async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.readline()
+        writer.write(b'{"id": 1, "ok": true, "result": {"state": "IDLE"}}\n'
+                     b'{"id": null, "ok": false, "error": {"type": "SubscriberTooSlow", "message": "256 events"}}\n')
+        await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_unix_server(serve, path=str(sock))
+    try:
+        stream = ControlClient(sock).subscribe()
+        assert (await anext(stream))["state"] == "IDLE"
+        with pytest.raises(CommandFailed) as dropped:
+            await anext(stream)
+        assert (dropped.value.error_type, dropped.value.message) == ("SubscriberTooSlow", "256 events")
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
 class GeneratorDaemon(FakeDaemon):
     """A handler whose subscribe() is an async generator (subscribes on first iteration)."""
 

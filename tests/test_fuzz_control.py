@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.control import COMMANDS, ControlServer
+from daemon.subscriber import LINGER_MAX_BYTES
 from sim.clock import run_virtual
 from tests.fuzz import EXAMPLES, FUZZ
 
@@ -35,7 +36,7 @@ class Handler:
         return {"state": "IDLE"}
 
     async def subscribe(self) -> Any:
-        return
+        await asyncio.Event().wait()  # no event until the subscriber goes
         yield
 
 
@@ -76,3 +77,30 @@ def test_every_line_gets_one_reply_and_the_connection_stays(sent: list[bytes]) -
 
     with tempfile.TemporaryDirectory() as folder:
         run_virtual(main(Path(folder) / "c.sock"))
+
+
+@settings(FUZZ, max_examples=max(EXAMPLES // 4, 10))
+@given(st.binary(min_size=1, max_size=3 * LINGER_MAX_BYTES))
+def test_anything_sent_after_subscribe_ends_the_subscription_with_a_protocol_error(sent: bytes) -> None:
+    """The reply is readable when the client sent at most LINGER_MAX_BYTES; beyond, the daemon
+    stops reading and the client may see a reset instead. Either way the subscription ends."""
+
+    async def main(sock: Path) -> None:
+        async with ControlServer(sock, Handler()) as server:
+            reader, writer = await asyncio.open_unix_connection(str(sock), limit=ControlServer.MAX_LINE)
+            writer.write(b'{"id": 1, "cmd": "subscribe"}\n')
+            assert json.loads(await reader.readline())["ok"] is True
+            writer.write(sent)
+            try:
+                await writer.drain()
+                reply = json.loads(await reader.readline())
+                assert reply["error"]["type"] == "ProtocolError"
+                assert await reader.read() == b""
+            except ConnectionError:
+                assert len(sent) > LINGER_MAX_BYTES
+            writer.transport.abort()
+            while server._subscribers:
+                await asyncio.sleep(0.01)
+
+    with tempfile.TemporaryDirectory() as folder:
+        run_virtual(main(Path(folder) / "c.sock"), idle_real_timeout=5.0)

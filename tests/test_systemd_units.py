@@ -58,8 +58,10 @@ def test_unit_has_the_required_directives():
     assert "/srv/tbp-rig/scans" in one["ReadWritePaths"].split()
     assert "PrivateDevices" not in svc
     from daemon.control import ControlServer
+    from web.server import WebServer
 
-    assert int(one["LimitNOFILE"]) >= 4096 > 64 * ControlServer.MAX_CONNECTIONS  # set, with a wide margin
+    clients = ControlServer.MAX_DESCRIPTORS + WebServer.MAX_CONNECTIONS + WebServer.BACKLOG
+    assert int(one["LimitNOFILE"]) >= 4096 > 16 * clients  # set, with a wide margin for the devices
     assert set(one["RestrictAddressFamilies"].split()) == {
         "AF_UNIX", "AF_INET", "AF_INET6", "AF_CAN", "AF_NETLINK"}
     devices = {v.split()[0] for v in svc["DeviceAllow"]}

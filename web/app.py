@@ -16,6 +16,7 @@ from web.access import Access
 STATIC = Path(__file__).with_name("static")
 THREE = Path(__file__).with_name("node_modules") / "three"
 MAX_REQUEST_BYTES = 64 * 1024
+READ_TIMEOUT_S = 10.0
 
 log = structlog.get_logger("web.app")
 
@@ -26,12 +27,13 @@ class AssetsMissing(RuntimeError):
 
 @web.middleware
 async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
-    """Host check, JSON errors for the API, and headers that keep pages to themselves."""
+    """Host check, JSON errors for the API, a deadline for the body, and headers that keep pages
+    to themselves."""
     access = request.app[keys.ACCESS]
     access.check_host(request)
     try:
         access.check_read(request)
-        response = await handler(request)
+        response = await _body_in_time(request, handler)
     except web.HTTPException as exc:
         if request.path.startswith("/api/") and exc.content_type != "application/json" and exc.status >= 400:
             return web.json_response({"error": {"type": type(exc).__name__, "message": exc.text or exc.reason}},
@@ -41,6 +43,32 @@ async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
     response.headers.setdefault("Referrer-Policy", "no-referrer")
     response.headers.setdefault("X-Frame-Options", "DENY")
     return response
+
+
+async def _body_in_time(request: web.Request, handler: Any) -> web.StreamResponse:
+    """Run the handler; a body that has not arrived READ_TIMEOUT_S after the header closes the
+    connection (a client trickling its body would hold it, and a descriptor, for ever)."""
+    if not request.body_exists:
+        return await handler(request)
+    cut = False
+
+    def deadline() -> None:
+        nonlocal cut
+        if not request.content.is_eof() and request.transport is not None:
+            cut = True
+            log.warning("web_slow_body_closed", peer=request.remote, path=request.path,
+                        timeout_s=READ_TIMEOUT_S)
+            request.transport.close()
+
+    timer = asyncio.get_running_loop().call_later(READ_TIMEOUT_S, deadline)
+    try:
+        return await handler(request)
+    except ConnectionError:
+        if cut:  # the answer has no connection to go to; aiohttp drops it quietly
+            raise web.HTTPRequestTimeout(text=f"the request body did not arrive within {READ_TIMEOUT_S:g} s") from None
+        raise
+    finally:
+        timer.cancel()
 
 
 def _page(name: str) -> Any:
