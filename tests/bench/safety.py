@@ -1,5 +1,10 @@
-"""Safety benchmark (issue 28): ``./dev bench safety``.
+"""Safety benchmark (issue 28): ``./dev bench safety [PART ...]`` through TBP_BENCH_SAFETY_PARTS
+(comma-separated; default every part, about an hour and a half on a 2-core machine).
 
+reactions (tests/bench/_safety_react.py): every stop path's reaction time on the loopback rig.
+loaded (tests/bench/_safety_loaded.py): loaded loopback scans, then SIGTERMs mid-scan.
+idle (tests/bench/_safety_idle.py): the real daemon idling with devices missing.
+subscribers (tests/bench/_safety_subscribers.py): the control API under silent and flooding subscribers.
 cancellation: 1,000 scans on the short simulated rig of tests/cancellation.py, each stopped once
 at a seeded random point of its sweep or capture (or the steps between) in virtual time: the
 operator's abort, an e-stop, the job's task cancelled, the daemon stopped (RigService.stop).
@@ -10,11 +15,13 @@ on disk.
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 from daemon.logs import configure_logging
@@ -53,11 +60,28 @@ def cancellation() -> None:
                   f"{r.problems[:2]}")
 
 
-PARTS = {"cancellation": cancellation}
+def _part(module: str) -> Callable[[], None]:
+    def run_part() -> None:
+        importlib.import_module(f"tests.bench.{module}").run()
+
+    return run_part
+
+
+PARTS: dict[str, Callable[[], None]] = {
+    "reactions": _part("_safety_react"),
+    "loaded": _part("_safety_loaded"),
+    "idle": _part("_safety_idle"),
+    "subscribers": _part("_safety_subscribers"),
+    "cancellation": cancellation,
+}
 
 
 def run() -> None:
     configure_logging(level="critical", stream=sys.stderr)
-    for name, part in PARTS.items():
+    chosen = [p for p in os.environ.get("TBP_BENCH_SAFETY_PARTS", ",".join(PARTS)).split(",") if p]
+    unknown = sorted(set(chosen) - set(PARTS))
+    if unknown:
+        raise SystemExit(f"unknown safety part {unknown[0]!r}; parts: {', '.join(PARTS)}")
+    for name in chosen:
         print(f"-- {name}", flush=True)
-        part()
+        PARTS[name]()
