@@ -27,7 +27,7 @@ import structlog
 
 from daemon.beam import BeamTracker
 from daemon.errors import SweepFailed
-from daemon.tasks import stop_tasks
+from daemon.tasks import despite_cancel, stop_tasks
 from drivers.depth.base import DepthCamera, DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from planner.calibration.model import Calibration
@@ -180,7 +180,13 @@ class DepthSweeper:
         self._unposed = waiting
 
     async def _wind_down(self, tasks: list[asyncio.Task[Any]], error: BaseException | None) -> None:
-        """Cancel what still runs and stop every camera (idempotent stops), even those never started."""
+        """Cancel what still runs and stop every camera (idempotent stops), even those never started,
+        to the end even if the sweep is stopped again meanwhile (a camera left streaming would refuse
+        the next scan's start)."""
+        bound = self.STOP_TIMEOUT_S * (len(self.cameras) + 1)
+        await despite_cancel(self._release(tasks, error), bound)
+
+    async def _release(self, tasks: list[asyncio.Task[Any]], error: BaseException | None) -> None:
         failures: list[DepthCameraError] = [
             DepthCameraError(task.get_name(), f"sweep task did not stop within {self.STOP_TIMEOUT_S:g} s")
             for task in await stop_tasks(tasks, self.STOP_TIMEOUT_S)]

@@ -5,12 +5,14 @@ not by cancelling)."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterable
-from typing import Any
+from collections.abc import Awaitable, Iterable
+from typing import Any, TypeVar
 
 import structlog
 
 log = structlog.get_logger("daemon.tasks")
+
+T = TypeVar("T")
 
 
 async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], timeout_s: float) -> list[asyncio.Task[Any]]:
@@ -44,6 +46,27 @@ async def settle(tasks: Iterable[asyncio.Future[Any] | None], timeout_s: float) 
         if future.done() and not future.cancelled():
             future.exception()
     return list(pending)
+
+
+async def despite_cancel(work: Awaitable[T], timeout_s: float) -> T:
+    """Run ``work`` to its end even when the caller is cancelled meanwhile: releasing a device (the
+    depth cameras at a sweep's end) must not be cut short by a second stop arriving while the first
+    unwinds. The caller's cancel is raised once ``work`` ended, or after ``timeout_s``; ``work``
+    itself runs on as its own task in any case."""
+    task = asyncio.ensure_future(work)
+    try:
+        return await asyncio.shield(task)
+    except asyncio.CancelledError:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while not task.done() and loop.time() < deadline:
+            try:
+                await asyncio.wait([task], timeout=deadline - loop.time())
+            except asyncio.CancelledError:  # one more stop: the first is raised below all the same
+                continue
+        if task.done() and not task.cancelled():
+            task.exception()  # seen: the cancel is what the caller gets
+        raise
 
 
 def describe(task: asyncio.Future[Any]) -> str:

@@ -247,6 +247,40 @@ def test_a_drive_error_ends_the_sweep_with_every_camera_stopped():
     assert all(c._t0 is None for c in cameras)
 
 
+def test_a_second_stop_while_the_sweep_unwinds_still_stops_every_camera():
+    """The drive's error ends the sweep and, while its cameras are being stopped (each stop takes a
+    while, as the SDK's does), the job is stopped too: the cameras are stopped all the same, and the
+    stop reaches the caller once they are."""
+
+    class SlowStop(SimulatedDepthCamera):
+        async def stop(self) -> None:
+            await asyncio.sleep(0.2)
+            await super().stop()
+
+    class FaultyDrive(MockDrive):
+        async def move_to(self, angle_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> None:
+            await asyncio.sleep(0.3)
+            raise RuntimeError("drive fault 0x2310")
+
+    drive = FaultyDrive()
+    cameras = [SlowStop(SHORT.depth_cameras[i], SWEEP_MODEL, sphere(), _true_angle(drive), seed=i) for i in range(3)]
+
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        sweep = asyncio.create_task(_sweep(drive, cameras))
+        await asyncio.sleep(0.35)  # the drive failed; the first camera is stopping
+        sweep.cancel()
+        await asyncio.sleep(0.05)
+        sweep.cancel()  # and once more
+        with pytest.raises(asyncio.CancelledError):
+            await sweep
+        return loop.time()
+
+    ended = run_virtual(main())
+    assert all(c._t0 is None for c in cameras)
+    assert ended >= 0.3 + 3 * 0.2 - 1e-6  # the cancel came after the last camera's stop
+
+
 def test_a_camera_with_too_few_usable_frames_fails_the_sweep():
     drive = _beam()
     cameras = [_sim_camera(0, drive), _sim_camera(1, drive, DepthFaults(empty_frames=set(range(4, 10_000))))]
