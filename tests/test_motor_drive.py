@@ -266,6 +266,21 @@ def test_commands_before_connect_are_refused() -> None:
     run(scenario, connect=False)
 
 
+def test_a_second_connect_while_the_first_runs_is_refused() -> None:
+    """Two bring-ups at once must not start two guards on one drive (the orphaned one, unfed,
+    would trip the rig as a stalled host)."""
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        first = asyncio.create_task(drive.connect())
+        await asyncio.sleep(0)
+        with pytest.raises(DriveNotReady, match="connecting"):
+            await drive.connect()
+        await first
+        await asyncio.sleep(2.0)
+        assert drive.fault is None and drive.guard is not None and drive.guard.logic.trip is None
+
+    run(scenario, connect=False)
+
+
 def test_orderly_close_leaves_the_drive_disabled_and_unwatched() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         await drive.move_to(5.0, 10.0, 20.0)

@@ -138,6 +138,7 @@ class BeamDrive:
         self._connected = False
         self._closed = False
         self._halted = False  # a quick stop was commanded: nothing re-enables motion but enable()
+        self._connecting = False
 
     # ------------------------------------------------------------------ public API
 
@@ -150,8 +151,15 @@ class BeamDrive:
         """NMT reset communication, heartbeat producer and consumer, PDO mapping, NMT start;
         returns once the first position sample arrived. A drive found in FAULT connects with the
         fault latched (code read from the drive if its EMCY went unheard)."""
-        if self._connected or self._closed:
-            raise DriveNotReady(self.name, self.state.value, "connect() on a connected or closed drive")
+        if self._connected or self._closed or self._connecting:
+            raise DriveNotReady(self.name, self.state.value, "connect() on a connected, connecting or closed drive")
+        self._connecting = True
+        try:
+            await self._connect()
+        finally:
+            self._connecting = False
+
+    async def _connect(self) -> None:
         self._start(self._receive(), "receive")
         self._boot.clear()
         await self._nmt(nmt.NmtCommand.RESET_COMMUNICATION)
