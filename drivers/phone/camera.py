@@ -92,6 +92,11 @@ class ClockSample:
     host_recv_s: float
 
 
+def _read_jar(path: Path) -> tuple[bytes, int]:
+    """The capture agent jar's bytes and modification time (s)."""
+    return path.read_bytes(), int(path.stat().st_mtime)
+
+
 class PhoneCamera:
     """A rig phone's camera over ADB. States: disconnected -> connecting -> ready -> closed."""
 
@@ -191,9 +196,8 @@ class PhoneCamera:
                     raise AgentMissing(self.serial, "connecting", f"{protocol.AGENT_PATH} is not on the phone "
                                        f"and no local jar is set (${self.AGENT_JAR_ENV})")
                 return
-            try:
-                jar = self.agent_jar.read_bytes()
-                mtime = int(self.agent_jar.stat().st_mtime)
+            try:  # read in a thread: a re-probe connects while the loop carries the heartbeats
+                jar, mtime = await asyncio.to_thread(_read_jar, self.agent_jar)
             except OSError as exc:
                 raise AgentMissing(self.serial, "connecting", f"cannot read {self.agent_jar}: {exc.strerror}") from exc
             if (remote.size, remote.mtime) != (len(jar), mtime):  # the phone's copy is another build
