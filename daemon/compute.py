@@ -83,15 +83,15 @@ def _started() -> None:
     """The first job: makes the pool start its worker (and run :func:`_warm_up`) at once."""
 
 
-def _warm_up(logging: dict[str, Any]) -> None:
-    """In the worker: log as the daemon does (``logging``: :func:`daemon.logs.log_settings`), run
+def _warm_up(log_setup: dict[str, Any]) -> None:
+    """In the worker: log as the daemon does (``log_setup``: :func:`daemon.logs.log_settings`), run
     as a batch job and import what every scan's jobs need, so the first scan's do not (their
     modules, not the daemon's: importing ``daemon.scan`` here took 0.3 s of the first scan's gap
     between the sweep and the capture), and compile the planner's descent loop (seconds the first
     time, from numba's cache after)."""
     import structlog
 
-    configure_logging(json=logging["json"], level=logging["level"])
+    configure_logging(json=log_setup["json"], level=log_setup["level"])
     structlog.contextvars.bind_contextvars(process="compute")
     os.sched_setscheduler(0, WORKER_POLICY, os.sched_param(0))
     import open3d  # noqa: F401
