@@ -25,6 +25,9 @@ import structlog
 
 log = structlog.get_logger("daemon.looplag")
 
+WARN_S = 0.05
+"""A wake this late is logged as ``loop_lag`` (and a collection this long as ``gc_pause``)."""
+
 
 def freeze_startup_heap() -> int:
     """Move every object alive now (modules, classes, drivers, the rig) out of the collector's
@@ -107,7 +110,7 @@ class StateLag:
 class LoopLagMonitor:
     """Samples the loop's lateness every ``period_s`` under the state ``state()`` names."""
 
-    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = 0.05) -> None:
+    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = WARN_S) -> None:
         self.state = state
         self.period_s = period_s
         self.warn_s = warn_s

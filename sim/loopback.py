@@ -364,15 +364,16 @@ class LoopbackRig:
                 raise LoopbackError(f"daemon stdout line {number} is not JSON: {raw[:200]!r}") from None
         return lines
 
-    def late_states(self, max_ms: float = 50.0) -> dict[str, dict[str, float | int]]:
-        """The scan states whose loop lag (``tbp status``, and each state's ``loop_lag_summary``
-        line so far) went past ``max_ms``, with their figures: empty when the loop kept time."""
-        late = {state: figures for state, figures in self.control("status")["loop_lag"].items()
-                if figures["max_ms"] > max_ms}
+    def loop_stalls(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """The daemon's ``loop_lag`` lines so far (each a wake more than 50 ms late), split into
+        its own stalls and the ones the machine caused: the loop thread waited at least half the
+        stall for a CPU (``runqueue_ms``; other processes kept the cores, e.g. parallel test runs)."""
+        own, starved = [], []
         for line in self.daemon_lines():
-            if line.get("event") == "loop_lag_summary" and line["max_ms"] > max_ms:
-                late.setdefault(line["lag_state"], {k: line[k] for k in ("samples", "p50_ms", "p99_ms", "max_ms")})
-        return late
+            if line.get("event") == "loop_lag":
+                waited = line.get("runqueue_ms")
+                (starved if waited is not None and waited >= line["lag_ms"] / 2 else own).append(line)
+        return own, starved
 
     @property
     def socket_path(self) -> Path:

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from daemon.control import CommandFailed
+from daemon.looplag import WARN_S
 from daemon.manifest import ImageStatus
 from daemon.store import ScanStore
 from sim.loopback import LoopbackRig, scan_from_panel
@@ -28,10 +29,16 @@ LOOP_LAG_MAX_MS = 50.0  # issue 28: the event loop carries the heartbeats, the e
 
 
 def _assert_loop_kept_time(rig: LoopbackRig) -> None:
-    """No state's loop lag past LOOP_LAG_MAX_MS; names the states, their figures and the stalls."""
-    late = rig.late_states(LOOP_LAG_MAX_MS)
-    stalls = [(x["lag_state"], x["lag_ms"]) for x in rig.daemon_lines() if x.get("event") == "loop_lag"]
-    assert not late, f"loop lag past {LOOP_LAG_MAX_MS:g} ms in {late}; loop_lag lines {stalls[:20]}"
+    """No stall of the daemon's own past LOOP_LAG_MAX_MS in any state (every wake that late is a
+    loop_lag line); a stall while the loop thread waited for a CPU is the machine's, and shown."""
+    assert WARN_S * 1000 == LOOP_LAG_MAX_MS
+    own, starved = rig.loop_stalls()
+    figures = rig.control("status")["loop_lag"]
+    assert not own, (f"the loop stalled past {LOOP_LAG_MAX_MS:g} ms: "
+                     f"{[(x['lag_state'], x['lag_ms'], x.get('cpu_ms'), x.get('runqueue_ms')) for x in own[:20]]}; "
+                     f"per state {figures}")
+    if starved:
+        print(f"loop stalls while other processes kept the CPUs: {[(x['lag_state'], x['lag_ms']) for x in starved]}")
 
 
 def _manifest(folder: Path):  # noqa: ANN202

@@ -61,21 +61,23 @@ def idle(root: Path, missing: frozenset[str], duration_s: float) -> dict[str, An
         rig.start_daemon()
         rig.wait_status(lambda s: bool(s.get("devices")), "the daemon's first status", 120.0)
         started = time.monotonic()
+        load = 0.0
         while time.monotonic() - started < duration_s:
             if not rig.procs["daemon"].alive():
                 break
             time.sleep(min(5.0, max(duration_s - (time.monotonic() - started), 0.0)))
+            load = max(load, os.getloadavg()[0])
         ran_s = time.monotonic() - started
         status = rig.control("status")
     finally:
         rig.close()
     lines = _log_lines(root / "logs" / "daemon.log")
     return {
-        "ran_s": ran_s, "lag": status["loop_lag"], "state": status["state"],
+        "ran_s": ran_s, "lag": status["loop_lag"], "state": status["state"], "load": load,
         "faults": sum(1 for x in lines if x.get("event") == "safety_trip"),
         "probes": {d["device"]: d.get("probes") for d in status["devices"] if not d["ok"]},
         "up": sorted(d["device"] for d in status["devices"] if d["ok"]),
-        "lag_lines": sum(1 for x in lines if x.get("event") == "loop_lag"),
+        "stalls": [x for x in lines if x.get("event") == "loop_lag"],
         "not_json": sum(1 for x in lines if x.get("event") == "not_json"),
     }
 
@@ -87,8 +89,13 @@ def run() -> None:
         r = idle(root, missing, duration_s)
         print(f"idle with {','.join(sorted(missing))} missing: ran {r['ran_s']:.0f} s; "
               f"up {', '.join(r['up']) or 'nothing'}; state {r['state']}")
-        print(f"  faults {r['faults']}   (goal 0); loop_lag lines {r['lag_lines']}; "
-              f"stdout lines not JSON {r['not_json']}")
+        starved = [x for x in r["stalls"] if (x.get("runqueue_ms") or 0) >= x["lag_ms"] / 2]
+        print(f"  faults {r['faults']}   (goal 0); stdout lines not JSON {r['not_json']}; loop stalls > 50 ms: "
+              f"{len(r['stalls']) - len(starved)} the daemon's, {len(starved)} while it waited for a CPU "
+              f"(machine load average up to {r['load']:.1f} on {os.cpu_count()} cores)")
+        for x in r["stalls"][:10]:
+            print(f"    {x['timestamp'][11:23]} {x['lag_state']:<10} {x['lag_ms']:7.1f} ms  "
+                  f"cpu {x.get('cpu_ms')} ms  waiting for a CPU {x.get('runqueue_ms')} ms")
         probes = r["probes"]
         print(f"  probes made: {sum(p or 0 for p in probes.values())} "
               f"({', '.join(f'{k} {v}' for k, v in sorted(probes.items()))})")
