@@ -47,7 +47,7 @@ def build_real_rig(rig: Rig, config: HardwareConfig, *, state_dir: Path) -> RigH
     probe = _depth_probe(config)
     hardware = RigHardware(
         drive=new_drive(), phones=phones, depth_cameras=cameras, panel=panel,
-        addresses=dict(config.devices()), drive_factory=new_drive,
+        addresses=dict(config.devices()), drive_factory=new_drive, closers=[probe.close],
         depth_probe=lambda index: probe_depth_source(rig, config, index, probe), timeouts=config.timeouts,
     )
     log.info("real_rig_built", hardware=config.path, devices=len(config.devices()),
@@ -92,10 +92,12 @@ def _depth_camera(rig: Rig, camera: Any, config: HardwareConfig) -> Any:
 
 
 def _depth_probe(config: HardwareConfig) -> Any:
-    """The process's RealSense probe, with pyrealsense2 loaded now, before any device's heartbeat
-    runs on the loop (the import holds the interpreter lock 25-35 ms). Without it the probe names
-    the missing backend for each camera, so it is not an error here."""
-    from drivers.depth.realsense import DepthBackendMissing, RealSenseProbe, import_pyrealsense2
+    """The daemon's RealSense probe (its own process: drivers/depth/realsense_probe.py), and
+    pyrealsense2 loaded now for the cameras' streams, before any device's heartbeat runs on the
+    loop (the import holds the interpreter lock 25-35 ms). Without it the probe names the missing
+    backend for each camera, so it is not an error here."""
+    from drivers.depth.realsense import DepthBackendMissing, import_pyrealsense2
+    from drivers.depth.realsense_probe import RealSenseProbe
 
     if config.depth_cameras:
         with contextlib.suppress(DepthBackendMissing):
@@ -108,10 +110,12 @@ async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int, probe
     (DepthBackendMissing), its RealSense is not enumerated (a :class:`DepthCameraNotFound` listing
     the serials that are), or its recording is not a file.
 
-    ``probe``: the daemon's :class:`drivers.depth.realsense.RealSenseProbe` (a one-off command
-    makes its own). The probe does not stream: the sweep starts the camera when the scan needs it."""
+    ``probe``: the daemon's :class:`drivers.depth.realsense_probe.RealSenseProbe` (a one-off
+    command makes its own). The probe does not stream: the sweep starts the camera when the scan
+    needs it."""
     from drivers.depth.errors import RecordingUnreadable
-    from drivers.depth.realsense import DepthCameraNotFound, RealSenseProbe, import_pyrealsense2
+    from drivers.depth.realsense import DepthCameraNotFound, import_pyrealsense2
+    from drivers.depth.realsense_probe import RealSenseProbe
 
     camera = rig.depth_cameras[index]
     source = config.depth_cameras[camera.id]
@@ -122,7 +126,14 @@ async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int, probe
         if not source.recording.is_file():
             raise RecordingUnreadable(camera.id, source.recording, "no recording at this path")
         return
-    found = await (probe or RealSenseProbe()).serials(camera.id)
+    if probe is None:
+        probe = RealSenseProbe()
+        try:
+            found = await probe.serials(camera.id)
+        finally:
+            await probe.close()
+    else:
+        found = await probe.serials(camera.id)
     if source.serial not in found:
         raise DepthCameraNotFound(camera.id, source.serial, found)
 

@@ -18,13 +18,7 @@ from hypothesis import strategies as st
 from drivers.depth.bag import BagPlayback
 from drivers.depth.base import DepthCamera
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled, InfraredUnavailable
-from drivers.depth.realsense import (
-    DepthBackendMissing,
-    DepthCameraNotFound,
-    HostClockMap,
-    RealSenseCamera,
-    RealSenseProbe,
-)
+from drivers.depth.realsense import DepthBackendMissing, DepthCameraNotFound, HostClockMap, RealSenseCamera
 from planner.rig import load_rig
 from tests.depth_fake_realsense import FakeDevice, FakeRealSense, depth_value, infrared_image, intrinsics
 from tests.depth_fake_realsense import format as rs_format
@@ -67,53 +61,6 @@ async def test_unknown_serial_names_it_and_the_connected_ones(world: FakeRealSen
         await RealSenseCamera(CAMERA).start()
     assert info.value.serial == CAMERA.serial and info.value.available == ["111122223333"]
     assert repr(CAMERA.serial) in str(info.value) and "111122223333" in str(info.value)
-
-
-async def test_the_probe_keeps_one_context_and_asks_it_off_the_loop(world: FakeRealSense) -> None:
-    """Destroying an rs.context holds the interpreter lock ~100 ms: the probe makes one, in its
-    own thread, keeps it, and still sees a camera plugged in later."""
-    import gc
-
-    probe = RealSenseProbe()
-    for _ in range(5):  # re-probes of three missing cameras, at once
-        answers = await asyncio.gather(*(probe.serials(f"depth{i}") for i in range(3)))
-        assert answers == [[], [], []]
-        gc.collect()
-    world.devices.append(FakeDevice(CAMERA.serial))
-    assert await probe.serials("depth0") == [CAMERA.serial]
-    assert world.contexts_made == 1 and world.contexts_destroyed == 0
-    assert world.query_threads and all(name.startswith("realsense-probe") for name in world.query_threads)
-    assert len(world.query_threads) < 3 * 5  # cameras asking together share one query
-
-
-async def test_the_daemons_reprobes_of_missing_cameras_make_one_context(world: FakeRealSense, tmp_path: Path) -> None:
-    """A rig PC with the depth cameras not plugged in: every re-probe of the three used to make
-    and destroy a context (300 ms of the loop, every re-probe)."""
-    import gc
-
-    from daemon.hardware_config import hardware_from_mapping
-    from daemon.real_rig import build_real_rig
-
-    config = hardware_from_mapping({
-        "can": {"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": 29536},
-        "phones": {p.id: {"tcp": "127.0.0.1:5555"} for p in RIG.phones},
-        "depth_cameras": {c.id: "realsense" for c in RIG.depth_cameras}, "panel": None,
-    }, RIG)
-    hardware = build_real_rig(RIG, config, state_dir=tmp_path)
-    for _ in range(4):
-        for index in range(len(RIG.depth_cameras)):
-            with pytest.raises(DepthCameraNotFound):
-                await hardware.depth_probe(index)
-        gc.collect()
-    assert world.contexts_made == 1 and world.contexts_destroyed == 0
-
-
-async def test_the_probe_names_each_camera_when_pyrealsense2_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(sys.modules, "pyrealsense2", None)
-    probe = RealSenseProbe()
-    errors = await asyncio.gather(probe.serials("depth0"), probe.serials("depth1"), return_exceptions=True)
-    assert [type(e) for e in errors] == [DepthBackendMissing, DepthBackendMissing]
-    assert "depth0" in str(errors[0]) and "depth1" in str(errors[1])
 
 
 async def test_frames_carry_depth_scale_intrinsics_and_host_times(world: FakeRealSense) -> None:

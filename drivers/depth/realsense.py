@@ -16,7 +16,6 @@ import importlib
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import AsyncIterator, Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, NamedTuple
@@ -69,39 +68,6 @@ def import_pyrealsense2(camera_id: str) -> ModuleType:
         return importlib.import_module("pyrealsense2")
     except ImportError as exc:
         raise DepthBackendMissing(camera_id, "pyrealsense2", exc) from exc
-
-
-class RealSenseProbe:
-    """Which RealSense serials are connected, asked of one ``rs.context`` kept for the process's life.
-
-    Destroying a context joins librealsense's device-watcher thread while holding the
-    interpreter lock: about 100 ms each, whatever thread it happens on, so a probe that made and
-    dropped a context per missing camera stopped the event loop for 300 ms at every re-probe of
-    three cameras. The one context here is made, asked and kept in the probe's own thread (the
-    import of pyrealsense2 too); probes asked for while one runs share its answer, so a stuck SDK
-    call holds one thread, never the executor's.
-    """
-
-    def __init__(self) -> None:
-        self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="realsense-probe")
-        self._context: Any = None
-        self._running: asyncio.Future[list[str]] | None = None
-
-    async def serials(self, camera_id: str) -> list[str]:
-        """Serial numbers of the connected RealSense devices; DepthBackendMissing (naming
-        ``camera_id``) when pyrealsense2 cannot be imported."""
-        if self._running is None or self._running.done():
-            self._running = asyncio.get_running_loop().run_in_executor(self._thread, self._query, camera_id)
-        try:
-            return await asyncio.shield(self._running)
-        except DepthBackendMissing as exc:  # a shared answer: name the camera that asked
-            raise DepthBackendMissing(camera_id, exc.module, exc.__cause__ or exc) from exc.__cause__
-
-    def _query(self, camera_id: str) -> list[str]:
-        rs = import_pyrealsense2(camera_id)
-        if self._context is None:
-            self._context = rs.context()
-        return [d.get_info(rs.camera_info.serial_number) for d in self._context.query_devices()]
 
 
 def copy_image(frame: Any, dtype: type, kind: str) -> np.ndarray:
