@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import sys
 from typing import Any
 
@@ -119,6 +120,11 @@ def _answer(line: bytes) -> list[str]:
     return serials
 
 
+NICENESS = 10
+"""The probe process's CPU weight below the daemon's (its start-up, an import and librealsense's
+enumeration, comes with the daemon's own bring-up)."""
+
+
 def serve(requests: Any, answers: Any) -> None:
     """The probe process: one context for its life, one answer line per request line."""
     try:
@@ -136,4 +142,5 @@ def serve(requests: Any, answers: Any) -> None:
 
 
 if __name__ == "__main__":
+    os.nice(NICENESS)
     serve(sys.stdin, sys.stdout)
