@@ -48,10 +48,19 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from daemon.control import default_group, default_socket
-    from daemon.logs import configure_logging
+    """The daemon; its log lines leave through a queue (daemon/log_sink.py), written out before it exits."""
+    from daemon.logs import close_logging, configure_logging
 
-    configure_logging(level=args.log_level, stream=sys.stdout)
+    configure_logging(level=args.log_level, stream=sys.stdout, queued=True)
+    try:
+        return _serve(args)
+    finally:
+        close_logging()
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from daemon.control import default_group, default_socket
+
     socket_path = args.socket or default_socket()
     group = args.group or default_group()
     attach = None

@@ -60,7 +60,7 @@ def raise_for(path: Path, exc: OSError, needed: int) -> None:
 
 
 class AtomicWriter:
-    """Writes whole files atomically and appends fsync'd lines; ENOSPC becomes StoreFull."""
+    """Writes whole files atomically and appends fdatasync'd lines; ENOSPC becomes StoreFull."""
 
     def write(self, path: Path, data: bytes) -> None:
         tmp = path.with_name(f".{path.name}.tmp")
@@ -78,15 +78,20 @@ class AtomicWriter:
             raise_for(path, exc, len(data))
 
     def append_line(self, path: Path, line: bytes) -> None:
+        self.append_lines(path, [line])
+
+    def append_lines(self, path: Path, lines: list[bytes]) -> None:
+        """Append ``lines`` (each ending in a newline) and fdatasync once."""
+        data = b"".join(lines)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o640)
             try:
-                self._write_all(fd, line)
+                self._write_all(fd, data)
                 os.fdatasync(fd)
             finally:
                 os.close(fd)
         except OSError as exc:
-            raise_for(path, exc, len(line))
+            raise_for(path, exc, len(data))
 
     def _write_all(self, fd: int, data: bytes) -> None:
         view = memoryview(data)

@@ -1,9 +1,12 @@
 """Bringing the rig's devices up and keeping track of them: health per device, re-probing.
 
 Every device is opened under a bounded timeout. One that is missing or fails is recorded
-(:class:`DeviceHealth`: its address, the error, what to check) and tried again every
-``reprobe_s`` by the service; the rig is READY only when every device answers, and a scan is
-refused until then. Once up, a device that vanishes is the safety system's business: a lost
+(:class:`DeviceHealth`: its address, the error, what to check) and tried again by the service,
+after ``reprobe_s`` and then at twice the previous wait up to :attr:`BringUp.BACKOFF_MAX_S` (a
+rig being commissioned runs for hours with devices not yet plugged in); the rig is READY only
+when every device answers, and a scan is refused until then. Each device is opened with its name
+bound to the log context (:func:`daemon.logs.bound_device`), so the tasks its driver starts
+name it in every line. Once up, a device that vanishes is the safety system's business: a lost
 drive or panel latches FAULT, a lost phone fails its own captures; the operator's reset brings
 the drive back on a fresh link.
 """
@@ -18,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import structlog
 
 from daemon.faults import FaultCause, FaultSource
+from daemon.logs import bound_device
 
 if TYPE_CHECKING:
     from daemon.controller import RigController
@@ -35,7 +39,8 @@ CHECK = {
 
 @dataclass
 class DeviceHealth:
-    """One device as the daemon last found it."""
+    """One device as the daemon last found it: ``probes`` made so far, the next one due at
+    loop time ``next_probe_s``, ``retry_s`` after the one before."""
 
     name: str
     kind: str
@@ -43,6 +48,9 @@ class DeviceHealth:
     ok: bool = False
     error: str | None = None
     since_s: float = 0.0
+    probes: int = 0
+    retry_s: float = 0.0
+    next_probe_s: float = 0.0
 
     @property
     def check(self) -> str:
@@ -50,7 +58,8 @@ class DeviceHealth:
 
     def as_dict(self) -> dict[str, Any]:
         return {"device": self.name, "kind": self.kind, "address": self.address, "ok": self.ok,
-                "error": self.error, "check": None if self.ok else self.check}
+                "error": self.error, "check": None if self.ok else self.check, "probes": self.probes,
+                "retry_s": None if self.ok else self.retry_s}
 
     def line(self) -> str:
         return f"{self.name} ({self.address}): {self.error or 'not answering'}; {self.check}"
@@ -58,6 +67,11 @@ class DeviceHealth:
 
 class BringUp:
     """Opens the controller's devices; :meth:`once` tries every one that is not up."""
+
+    BACKOFF_MAX_S = 8.0
+    """The longest wait between two probes of a device that stays missing (unless ``reprobe_s``
+    is longer): a device plugged in is found within this, and one that never comes costs a
+    probe every few seconds, not every ``reprobe_s``."""
 
     def __init__(self, controller: RigController) -> None:
         self.ctl = controller
@@ -90,8 +104,9 @@ class BringUp:
             return "every device answers"
         return "NOT READY: " + "; ".join(d.line() for d in missing)
 
-    async def once(self) -> bool:
-        """Try every device that is not up (concurrently, each under its timeout); True when all are."""
+    async def once(self, *, due_only: bool = False) -> bool:
+        """Try every device that is not up (concurrently, each under its timeout; with
+        ``due_only`` those whose back-off has run out); True when all are."""
         steps: list[tuple[str, Callable[[], Awaitable[None]]]] = []
         if not self.devices["drive"].ok:
             steps.append(("drive", self._drive))
@@ -103,10 +118,14 @@ class BringUp:
                 steps.append((name, lambda i=i: self._depth(i)))
         if "panel" in self.devices and not self.devices["panel"].ok:
             steps.append(("panel", self._panel))
-        results = await asyncio.gather(*(step() for _, step in steps), return_exceptions=True)
+        if due_only:
+            now = asyncio.get_running_loop().time()
+            steps = [(name, step) for name, step in steps if self.devices[name].next_probe_s <= now]
+        results = await asyncio.gather(*(self._probe(name, step) for name, step in steps), return_exceptions=True)
         now = asyncio.get_running_loop().time()
         for (name, _), result in zip(steps, results, strict=True):
             device = self.devices[name]
+            device.probes += 1
             if isinstance(result, asyncio.CancelledError):
                 raise result
             if isinstance(result, BaseException):
@@ -114,24 +133,36 @@ class BringUp:
                 if device.error != error:
                     log.warning("device_missing", device=name, address=device.address, error=error,
                                 check=device.check)
+                retry = self.timeouts.reprobe_s if device.ok or not device.retry_s else device.retry_s * 2
+                device.retry_s = min(retry, max(self.BACKOFF_MAX_S, self.timeouts.reprobe_s))
                 device.ok, device.error, device.since_s = False, error, now
+                device.next_probe_s = now + device.retry_s
             else:
                 log.info("device_up", device=name, address=device.address,
-                         after_error=device.error)
+                         after_error=device.error, probes=device.probes)
                 device.ok, device.error, device.since_s = True, None, now
+                device.retry_s = 0.0
         if self.devices["drive"].ok and not self._safety_started:
             self.ctl.safety.start()
             self._safety_started = True
         return self.ready
 
+    @staticmethod
+    async def _probe(name: str, step: Callable[[], Awaitable[None]]) -> None:
+        """One device's open, with the device named in the log context of every task it starts."""
+        with bound_device(name):
+            await step()
+
     async def run(self, on_change: Callable[[bool], None]) -> None:
-        """Re-probe the missing devices every ``reprobe_s``; ``on_change(ready)`` on each change."""
+        """Re-probe the missing devices as their back-off runs out; ``on_change(ready)`` on each change."""
         ready = self.ready
+        loop = asyncio.get_running_loop()
         while True:
-            await asyncio.sleep(self.timeouts.reprobe_s)
+            due = [d.next_probe_s for d in self.missing()]
+            await asyncio.sleep(max(min(due) - loop.time(), 0.0) if due else self.timeouts.reprobe_s)
             if self.ready and ready:
                 continue
-            now = await self.once()
+            now = await self.once(due_only=True)
             if now != ready:
                 ready = now
                 on_change(now)

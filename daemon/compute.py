@@ -5,7 +5,8 @@ they never hold the daemon's interpreter lock: the drive's heartbeat (100 ms, lo
 300 ms) and the panel's keep running while a body is fused and planned. The worker starts
 from a fresh interpreter (``forkserver``: nothing of the daemon's threads or sockets is
 inherited), as a batch job (SCHED_BATCH: it never preempts the daemon when it wakes, yet keeps its
-fair share of a core), and imports the heavy libraries once.
+fair share of a core), imports the heavy libraries once and logs as the daemon does (JSON lines
+on the daemon's stdout, each with ``process: compute``).
 
 A sweep is hundreds of megabytes of depth images; pickling it to the worker would hold the
 lock for as long as the copy takes. :func:`share_frames` copies the images into one shared
@@ -28,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from daemon.logs import configure_logging, log_settings
 
 WORKER_POLICY = os.SCHED_BATCH
 """The worker's scheduling policy. It was nice 10 before: with the other core busy, the scheduler
@@ -58,7 +61,7 @@ def compute_pool() -> ProcessPoolExecutor:
     os.environ.update({name: str(compute_threads()) for name in THREAD_VARIABLES})
     try:
         pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"),
-                                   initializer=_warm_up)
+                                   initializer=_warm_up, initargs=(log_settings(),))
         pool.submit(_started)  # starts the worker now, with the environment above
     finally:
         for name, value in saved.items():
@@ -80,11 +83,16 @@ def _started() -> None:
     """The first job: makes the pool start its worker (and run :func:`_warm_up`) at once."""
 
 
-def _warm_up() -> None:
-    """In the worker: run as a batch job and import what every scan's jobs need, so the
-    first scan's do not (their modules, not the daemon's: importing ``daemon.scan`` here took
-    0.3 s of the first scan's gap between the sweep and the capture), and compile the planner's
-    descent loop (seconds the first time, from numba's cache after)."""
+def _warm_up(log_setup: dict[str, Any]) -> None:
+    """In the worker: log as the daemon does (``log_setup``: :func:`daemon.logs.log_settings`), run
+    as a batch job and import what every scan's jobs need, so the first scan's do not (their
+    modules, not the daemon's: importing ``daemon.scan`` here took 0.3 s of the first scan's gap
+    between the sweep and the capture), and compile the planner's descent loop (seconds the first
+    time, from numba's cache after)."""
+    import structlog
+
+    configure_logging(json=log_setup["json"], level=log_setup["level"])
+    structlog.contextvars.bind_contextvars(process="compute")
     os.sched_setscheduler(0, WORKER_POLICY, os.sched_param(0))
     import open3d  # noqa: F401
 

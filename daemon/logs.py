@@ -2,10 +2,14 @@
 
 Every line carries timestamp (UTC ISO 8601), level, event and the context keys scan_id,
 state and device (null when unset), bound with contextvars so each asyncio task carries its
-own: the daemon binds the scan id and state (or sets a process-wide source for them with
-:func:`set_context_source`), a driver task binds its device. Under
+own: the daemon sets a process-wide source for the scan id and state from its state machine
+(:func:`follow_machine`), a driver task binds its device (:func:`bound_device`). Under
 journald (stdout is the $JOURNAL_STREAM) each line starts with a syslog priority prefix
-"<N>" so `journalctl -p err` works. No patient data: the subject is only an opaque scan id.
+"<N>" so `journalctl -p err` works. Lines of the standard library's logging (python-can,
+asyncio, any library) and of ``warnings`` are rendered the same way, so the daemon's stdout is
+JSON lines only. With ``queued`` (the daemon) lines are written by one thread from a bounded
+queue (daemon/log_sink.py): logging never waits for the journal. No patient data: the subject
+is only an opaque scan id.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ from collections.abc import Callable, Iterator, Mapping, MutableMapping
 from typing import Any, TextIO
 
 import structlog
+
+from daemon.log_sink import DirectSink, LineSink
 
 CONTEXT_KEYS = ("scan_id", "state", "device")
 _PRIORITY = {"critical": 2, "exception": 3, "error": 3, "warning": 4, "warn": 4, "info": 6,
@@ -69,16 +75,51 @@ def under_journald(stream: TextIO) -> bool:
     return f"{st.st_dev}:{st.st_ino}" == f"{dev}:{ino}"
 
 
+_sink: LineSink | DirectSink | None = None
+_handler: logging.Handler | None = None
+_settings: dict[str, Any] = {"json": None, "level": "info"}
+
+
+class _SinkLogger:
+    """structlog's logger: every method hands the rendered line to the sink."""
+
+    def __init__(self, sink: LineSink | DirectSink) -> None:
+        self._put = sink.put
+
+    def msg(self, message: str) -> None:
+        self._put(message)
+
+    log = debug = info = warn = warning = error = critical = exception = fatal = failure = msg
+
+
+class _SinkHandler(logging.Handler):
+    """The standard library's records, rendered by structlog's processors, to the same sink."""
+
+    def __init__(self, sink: LineSink | DirectSink, formatter: logging.Formatter) -> None:
+        super().__init__()
+        self.sink = sink
+        self.setFormatter(formatter)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.sink.put(self.format(record))
+        except Exception:  # a record that cannot be rendered: logging's own report, on stderr
+            self.handleError(record)
+
+
 def configure_logging(*, json: bool | None = None, level: str = "info",
-                      stream: TextIO | None = None) -> None:
-    """Configure structlog for the process.
+                      stream: TextIO | None = None, queued: bool = False) -> None:
+    """Configure structlog and the standard library's logging for the process.
 
     Args:
         json: JSON lines (True) or readable console lines (False); None picks console when
             ``stream`` is a TTY, JSON otherwise.
         level: lowest level written ("debug", "info", "warning", "error").
         stream: where lines go (default stdout, which journald collects under systemd).
+        queued: lines are written by a writer thread from a bounded queue (the daemon: its
+            event loop never waits for the journal); otherwise at once, on the calling thread.
     """
+    global _sink, _handler
     stream = stream if stream is not None else sys.stdout
     if json is None:
         json = not (hasattr(stream, "isatty") and stream.isatty())
@@ -95,15 +136,59 @@ def configure_logging(*, json: bool | None = None, level: str = "info",
         render: Any = structlog.processors.JSONRenderer(sort_keys=False, default=str)
         if under_journald(stream):
             render = _JournalPrefix(render)
-        processors = [*shared, structlog.processors.dict_tracebacks, render]
+        tail = [structlog.processors.dict_tracebacks, render]
     else:
-        processors = [*shared, structlog.dev.ConsoleRenderer(colors=stream.isatty())]
+        tail = [structlog.dev.ConsoleRenderer(colors=stream.isatty())]
+
+    def dropped_line(count: int) -> str:
+        event = {"event": "log_lines_dropped", "dropped": count,
+                 "why": "the log's reader fell behind; lines were dropped rather than stall the daemon"}
+        for processor in [_context_defaults, structlog.processors.add_log_level,
+                          structlog.processors.TimeStamper(fmt="iso", utc=True), *tail]:
+            event = processor(None, "warning", event)
+        return str(event)
+
+    close_logging()
+    sink = _sink = LineSink(stream, dropped_line) if queued else DirectSink(stream)
+    _settings.update(json=json, level=level)
     structlog.configure(
-        processors=processors,
+        processors=[*shared, *tail],
         wrapper_class=structlog.make_filtering_bound_logger(numeric),
-        logger_factory=structlog.PrintLoggerFactory(stream),
+        logger_factory=lambda *args: _SinkLogger(sink),
         cache_logger_on_first_use=False,
     )
+    formatter = structlog.stdlib.ProcessorFormatter(
+        foreign_pre_chain=[structlog.stdlib.add_logger_name, *shared],
+        processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, *tail],
+    )
+    root = logging.getLogger()
+    _handler = _SinkHandler(sink, formatter)
+    root.addHandler(_handler)
+    root.setLevel(numeric)
+    logging.captureWarnings(True)
+
+
+def close_logging() -> None:
+    """Write out queued lines and detach the standard library's logging from the sink; idempotent."""
+    global _sink, _handler
+    if _handler is not None:
+        logging.getLogger().removeHandler(_handler)
+        logging.captureWarnings(False)
+        _handler = None
+    if _sink is not None:
+        _sink.close()
+        _sink = None
+
+
+def log_settings() -> dict[str, Any]:
+    """``json`` and ``level`` as :func:`configure_logging` set them last: a worker process the
+    daemon starts logs the way the daemon does."""
+    return dict(_settings)
+
+
+def follow_machine(machine: Any) -> None:
+    """Every line names the state machine's current scan id and state (unless bound otherwise)."""
+    set_context_source(lambda: {"scan_id": machine.scan_id, "state": machine.state.value})
 
 
 def bind_scan(scan_id: str | None) -> None:

@@ -5,8 +5,10 @@ loop, so anything that holds the loop (compute on its interpreter lock, a large 
 fsync) shows here first. A sleep of ``period_s`` that wakes late by more than ``warn_s`` is
 logged as ``loop_lag`` with the state it happened in; leaving a state logs that state's
 ``loop_lag_summary`` (samples, p50, p99, max); ``tbp status`` shows the same per state. A
-garbage collection that long is logged as ``gc_pause``: the two together say whether a stall
-was the collector or something else.
+``loop_lag`` line says why the loop was late: ``cpu_ms`` the loop thread ran meanwhile (code
+on the loop), ``runqueue_ms`` it waited for a CPU (the machine was busy: the process was not
+scheduled), neither (it was blocked: a system call, or waiting for the interpreter lock a thread
+held). A garbage collection that long is logged as ``gc_pause``.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,6 +24,9 @@ from dataclasses import dataclass, field
 import structlog
 
 log = structlog.get_logger("daemon.looplag")
+
+WARN_S = 0.05
+"""A wake this late is logged as ``loop_lag`` (and a collection this long as ``gc_pause``)."""
 
 
 def freeze_startup_heap() -> int:
@@ -38,6 +44,31 @@ def freeze_startup_heap() -> int:
     frozen = gc.get_freeze_count()
     log.info("startup_heap_frozen", objects=frozen)
     return frozen
+
+
+class ThreadTimes:
+    """The calling thread's CPU time and time spent waiting for a CPU (s), from the kernel's
+    /proc/thread-self/schedstat; the wait is None where the kernel does not report it."""
+
+    def __init__(self) -> None:
+        try:
+            self._fd: int | None = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+        except OSError:
+            self._fd = None
+
+    def read(self) -> tuple[float, float | None]:
+        if self._fd is not None:
+            try:
+                cpu_ns, wait_ns, _ = os.pread(self._fd, 128, 0).split()
+                return int(cpu_ns) / 1e9, int(wait_ns) / 1e9
+            except (OSError, ValueError):
+                pass
+        return time.thread_time(), None
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 @dataclass
@@ -79,7 +110,7 @@ class StateLag:
 class LoopLagMonitor:
     """Samples the loop's lateness every ``period_s`` under the state ``state()`` names."""
 
-    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = 0.05) -> None:
+    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = WARN_S) -> None:
         self.state = state
         self.period_s = period_s
         self.warn_s = warn_s
@@ -93,12 +124,21 @@ class LoopLagMonitor:
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
         gc.callbacks.append(self._collection)
+        times = ThreadTimes()
         try:
             while True:
-                before = loop.time()
+                before, (cpu0, wait0) = loop.time(), times.read()
                 await asyncio.sleep(self.period_s)
-                self.record(self.state(), max(loop.time() - before - self.period_s, 0.0))
+                lag_s = max(loop.time() - before - self.period_s, 0.0)
+                if lag_s > self.warn_s:
+                    cpu1, wait1 = times.read()
+                    why = {"cpu_ms": round((cpu1 - cpu0) * 1000, 1),
+                           "runqueue_ms": None if wait1 is None or wait0 is None else round((wait1 - wait0) * 1000, 1)}
+                    self.record(self.state(), lag_s, **why)
+                else:
+                    self.record(self.state(), lag_s)
         finally:
+            times.close()
             gc.callbacks.remove(self._collection)
 
     def _collection(self, phase: str, info: dict[str, int]) -> None:
@@ -113,7 +153,7 @@ class LoopLagMonitor:
             log.warning("gc_pause", lag_state=self.state(), generation=info.get("generation"),
                         collected=info.get("collected"), pause_ms=round(held * 1000, 1))
 
-    def record(self, state: str, lag_s: float) -> None:
+    def record(self, state: str, lag_s: float, **why: float | None) -> None:
         if state != self._current:
             if self._current is not None and self._current in self.by_state:
                 log.info("loop_lag_summary", lag_state=self._current, **self.by_state[self._current].summary())
@@ -122,7 +162,7 @@ class LoopLagMonitor:
         self.worst_since_s = max(self.worst_since_s, lag_s)
         self.by_state.setdefault(state, StateLag()).add(lag_s)
         if lag_s > self.warn_s:
-            log.warning("loop_lag", lag_state=state, lag_ms=round(lag_s * 1000, 1))
+            log.warning("loop_lag", lag_state=state, lag_ms=round(lag_s * 1000, 1), **why)
 
     def take_worst(self) -> float:
         """The worst lag since the last call (s); starts the next interval."""

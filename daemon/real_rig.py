@@ -11,6 +11,7 @@ back.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
 from collections.abc import Callable
 from pathlib import Path
@@ -43,10 +44,11 @@ def build_real_rig(rig: Rig, config: HardwareConfig, *, state_dir: Path) -> RigH
     panel = None
     if config.panel is not None:
         panel = OperatorPanel.at(config.panel.device, baudrate=config.panel.baud, name="panel")
+    probe = _depth_probe(config)
     hardware = RigHardware(
         drive=new_drive(), phones=phones, depth_cameras=cameras, panel=panel,
-        addresses=dict(config.devices()), drive_factory=new_drive,
-        depth_probe=lambda index: probe_depth_source(rig, config, index), timeouts=config.timeouts,
+        addresses=dict(config.devices()), drive_factory=new_drive, closers=[probe.close],
+        depth_probe=lambda index: probe_depth_source(rig, config, index, probe), timeouts=config.timeouts,
     )
     log.info("real_rig_built", hardware=config.path, devices=len(config.devices()),
              can=config.can.address, panel=config.panel.address if config.panel else None)
@@ -89,30 +91,49 @@ def _depth_camera(rig: Rig, camera: Any, config: HardwareConfig) -> Any:
     return RealSenseCamera(camera, fps=rig.depth_camera_model.fps)
 
 
-async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int) -> None:
+def _depth_probe(config: HardwareConfig) -> Any:
+    """The daemon's RealSense probe (its own process: drivers/depth/realsense_probe.py), and
+    pyrealsense2 loaded now for the cameras' streams, before any device's heartbeat runs on the
+    loop (the import holds the interpreter lock 25-35 ms). Without it the probe names the missing
+    backend for each camera, so it is not an error here."""
+    from drivers.depth.realsense import DepthBackendMissing, import_pyrealsense2
+    from drivers.depth.realsense_probe import RealSenseProbe
+
+    if config.depth_cameras:
+        with contextlib.suppress(DepthBackendMissing):
+            import_pyrealsense2("-")
+    return RealSenseProbe()
+
+
+async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int, probe: Any = None) -> None:
     """Raise when depth camera ``index`` cannot be found: pyrealsense2 is missing
     (DepthBackendMissing), its RealSense is not enumerated (a :class:`DepthCameraNotFound` listing
     the serials that are), or its recording is not a file.
 
-    The probe does not stream: the sweep starts the camera when the scan needs it."""
+    ``probe``: the daemon's :class:`drivers.depth.realsense_probe.RealSenseProbe` (a one-off
+    command makes its own). The probe does not stream: the sweep starts the camera when the scan
+    needs it."""
     from drivers.depth.errors import RecordingUnreadable
     from drivers.depth.realsense import DepthCameraNotFound, import_pyrealsense2
+    from drivers.depth.realsense_probe import RealSenseProbe
 
     camera = rig.depth_cameras[index]
     source = config.depth_cameras[camera.id]
-    # Live or played back, the camera streams through pyrealsense2: imported here, at bring-up,
-    # not by the sweep's first start (loading the library held the loop 75-130 ms mid-scan),
-    # and a missing backend is named before READY.
-    rs = await asyncio.to_thread(import_pyrealsense2, camera.id)
     if source.recording is not None:
+        # Played back, the camera streams through pyrealsense2 too: a missing backend is named
+        # before READY (loaded by :func:`_depth_probe`, the import is a dictionary look-up).
+        import_pyrealsense2(camera.id)
         if not source.recording.is_file():
             raise RecordingUnreadable(camera.id, source.recording, "no recording at this path")
         return
-
-    def serials() -> list[str]:
-        return [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
-
-    found = await asyncio.get_running_loop().run_in_executor(None, serials)
+    if probe is None:
+        probe = RealSenseProbe()
+        try:
+            found = await probe.serials(camera.id)
+        finally:
+            await probe.close()
+    else:
+        found = await probe.serials(camera.id)
     if source.serial not in found:
         raise DepthCameraNotFound(camera.id, source.serial, found)
 
@@ -127,6 +148,7 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
     the drive's heartbeat."""
     from daemon.compute import compute_pool
     from daemon.controller import RigController
+    from daemon.logs import follow_machine
     from daemon.looplag import freeze_startup_heap
     from daemon.notify import SystemdNotifier
     from daemon.scan import ScanSettings
@@ -146,5 +168,6 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                              notifier=SystemdNotifier.from_env())
         if attach is not None:
             attach(service)
+        follow_machine(controller.machine)
         freeze_startup_heap()
         return await service.run(stop)

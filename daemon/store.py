@@ -32,9 +32,8 @@ import os
 import re
 import secrets
 import shutil
-import threading
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -44,6 +43,7 @@ import structlog
 
 from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
 from daemon.faults import Cause
+from daemon.folder_writer import FolderWriter
 from daemon.manifest import (
     MANIFEST,
     ImageRecord,
@@ -113,49 +113,6 @@ def _writer_thread() -> ThreadPoolExecutor:
     return _WRITER
 
 
-class ManifestSaver:
-    """Writes the newest manifest bytes in the store's writer thread; bytes submitted while a
-    write waits replace it. A failed write is kept and raised by the next submit or flush."""
-
-    def __init__(self, write: Callable[[bytes], None]) -> None:
-        self._write = write
-        self._lock = threading.Lock()
-        self._pending: bytes | None = None
-        self._queued: Future[None] | None = None
-        self._last: Future[None] | None = None
-        self._error: BaseException | None = None
-
-    def submit(self, data: bytes) -> None:
-        with self._lock:
-            error, self._error = self._error, None
-            self._pending = data
-            if self._queued is None:
-                self._queued = self._last = _writer_thread().submit(self._run)
-        if error is not None:
-            raise error
-
-    def _run(self) -> None:
-        with self._lock:
-            data, self._pending, self._queued = self._pending, None, None
-        if data is None:
-            return
-        try:
-            self._write(data)
-        except BaseException as exc:  # raised on the loop by the next submit or flush
-            with self._lock:
-                self._error = exc
-
-    def flush(self) -> None:
-        """Wait for the last write (blocking, milliseconds) and raise its error, if any."""
-        last = self._last
-        if last is not None:
-            last.result()
-        with self._lock:
-            error, self._error = self._error, None
-        if error is not None:
-            raise error
-
-
 class ScanFolder:
     """One scan's folder. All writes go through the store's AtomicWriter."""
 
@@ -165,7 +122,8 @@ class ScanFolder:
         self.writer = writer
         self._index = {(i.camera_index, i.angle_index): i for i in manifest.images}
         self._renderer = ManifestRenderer()
-        self._saver: ManifestSaver | None = None
+        self._ordered: FolderWriter | None = None
+        self._events_listing = False
 
     @property
     def scan_id(self) -> str:
@@ -182,16 +140,22 @@ class ScanFolder:
         return self.path / RESERVE
 
     def save(self) -> None:
-        """Rewrite manifest.json atomically.
+        """Rewrite manifest.json atomically (in the background, see :meth:`save_in_background`).
 
         On a full disk the folder's reserve file is released once so the manifest can still
         record what was captured; without a reserve StoreFull leaves the previous manifest.
         """
-        data = self._renderer.render(self.manifest)
-        if self._saver is not None:
-            self._saver.submit(data)
+        if self._ordered is not None:
+            self._ordered.raise_failure()
+            self._queue_manifest()
         else:
-            self._write_manifest(data)
+            self._write_manifest(self._renderer.render(self.manifest))
+
+    def _queue_manifest(self, *, done: bool = False) -> asyncio.Future[None] | None:
+        """The manifest as it is now (rendered here: a consistent snapshot), queued for writing."""
+        assert self._ordered is not None
+        data = self._renderer.render(self.manifest)
+        return self._ordered.manifest(lambda: self._write_manifest(data), done=done)
 
     def _write_manifest(self, data: bytes) -> None:
         try:
@@ -205,24 +169,40 @@ class ScanFolder:
             self.writer.write(self.path / MANIFEST, data)
 
     def save_in_background(self, enabled: bool = True) -> None:
-        """From now on :meth:`save` renders the manifest here (a consistent snapshot) and leaves
-        writing it to the store's writer thread, where saves asked for while one waits are
-        coalesced: a capture rotation saves twice per image, 14 times at each angle, and each
-        write is an fdatasync and a folder fsync the event loop should not wait for. A failed
-        write is raised by the next save. Turning it off (and :meth:`finish`) waits for the
-        last write and raises its error."""
-        if enabled and self._saver is None:
-            self._saver = ManifestSaver(self._write_manifest)
-        elif not enabled and self._saver is not None:
-            saver, self._saver = self._saver, None
-            saver.flush()
+        """From now on every write of the folder (events.jsonl lines, whole files, the manifest)
+        leaves the event loop: they are queued in order for the store's writer thread
+        (daemon/folder_writer.py), saves asked for while one waits are coalesced (a capture
+        rotation saves twice per image, 14 times at each angle, each write an fdatasync and a
+        folder fsync), and a file is listed in the manifest once it is durable. A failed write
+        is raised by the next one. Needs the running event loop. Turning it off (and
+        :meth:`finish`) waits for what is queued and raises its error; :meth:`close` ends the
+        scan without waiting on the loop."""
+        if enabled and self._ordered is None:
+            self._ordered = FolderWriter(self.writer, _writer_thread())
+        elif not enabled and self._ordered is not None:
+            ordered, self._ordered = self._ordered, None
+            ordered.wait()
 
     def _write_file(self, key: str, name: str, data: bytes) -> Path:
-        """Write a whole file of the scan, list it in the manifest as key, save the manifest."""
+        """Write a whole file of the scan, list it in the manifest as key, save the manifest
+        (in the background: listed once the file is durable)."""
         path = self.path / name
-        self.writer.write(path, data)
-        self.manifest.files[key] = name
-        self.save()
+        if self._ordered is None:
+            self.writer.write(path, data)
+            self.manifest.files[key] = name
+            self.save()
+            return path
+        ordered = self._ordered
+        ordered.raise_failure()
+
+        def listed(written: asyncio.Future[None]) -> None:
+            if written.exception() is not None:
+                ordered.keep_failure(written.exception())
+            elif self._ordered is ordered:
+                self.manifest.files[key] = name
+                self._queue_manifest()
+
+        ordered.file(lambda: self.writer.write(path, data)).add_done_callback(listed)
         return path
 
     def write_calibration(self, data: bytes) -> Path:
@@ -255,7 +235,10 @@ class ScanFolder:
         disk. Only listing the file in the manifest (and saving it) runs on the loop. ``make``
         must read values nobody changes meanwhile (a finished mesh, a copied trace)."""
         path = self.path / name
-        await asyncio.get_running_loop().run_in_executor(_writer_thread(), lambda: self.writer.write(path, make()))
+        if self._ordered is not None:
+            await self._ordered.file(lambda: self.writer.write(path, make()))
+        else:
+            await asyncio.get_running_loop().run_in_executor(_writer_thread(), lambda: self.writer.write(path, make()))
         self.manifest.files[key] = name
         if save:
             self.save()
@@ -278,11 +261,31 @@ class ScanFolder:
         return path
 
     def log_event(self, event: str, **fields: Any) -> None:
-        """Append one line to events.jsonl (fsync'd): what happened, with wall-clock UTC."""
+        """Append one line to events.jsonl (fdatasync'd; in the background, queued): what
+        happened, with wall-clock UTC."""
         record = {"utc": utc_stamp(), "event": event, **json_safe(fields)}
         line = (json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n").encode()
-        self.writer.append_line(self.path / "events.jsonl", line)
-        self.manifest.files.setdefault("events", "events.jsonl")
+        path = self.path / "events.jsonl"
+        if self._ordered is None:
+            self.writer.append_line(path, line)
+            self.manifest.files.setdefault("events", "events.jsonl")
+            return
+        ordered = self._ordered
+        ordered.raise_failure()
+        first = "events" not in self.manifest.files and not self._events_listing
+        written = ordered.append(path, line, done=first)
+        if written is not None:
+            self._events_listing = True
+
+            def listed(future: asyncio.Future[None]) -> None:
+                self._events_listing = False
+                if future.exception() is not None:
+                    ordered.keep_failure(future.exception())
+                elif self._ordered is ordered:
+                    self.manifest.files.setdefault("events", "events.jsonl")
+                    self._queue_manifest()
+
+            written.add_done_callback(listed)
 
     # ------------------------------------------------------------------ images
 
@@ -427,7 +430,44 @@ class ScanFolder:
         """End the scan: planned images become missing; the manifest leaves 'in progress'.
 
         ``causes``: why it ended early (none for a complete scan); ``reason`` is their text.
+        Blocking (what the background queued is waited for, the last manifest written here):
+        on the event loop of a real-time scan, :meth:`close` instead.
         """
+        self._end(state, causes)
+        ordered, self._ordered = self._ordered, None
+        if ordered is not None:
+            try:
+                ordered.wait()
+            except Exception as exc:  # the final save below writes the whole manifest again
+                log.warning("manifest_background_write_failed", scan_id=self.scan_id, error=str(exc))
+        self.save()
+        self.reserve_path.unlink(missing_ok=True)
+        self._stored()
+
+    async def close(self, state: ScanEnd, causes: Sequence[Cause] = ()) -> None:
+        """:meth:`finish` without waiting on the loop: with background writes on, what is queued,
+        the final manifest and the release of the space reserve are written in the store's
+        writer thread, and this returns once they are durable (or raises the final write's
+        error). Without, the same as :meth:`finish` (a virtual-time scan stays deterministic)."""
+        ordered = self._ordered
+        if ordered is None:
+            self.finish(state, causes)
+            return
+        self._end(state, causes)
+        try:
+            await ordered.drain()
+        except Exception as exc:  # the final save below writes the whole manifest again
+            log.warning("manifest_background_write_failed", scan_id=self.scan_id, error=str(exc))
+        final = self._queue_manifest(done=True)
+        assert final is not None
+        try:
+            await final
+            await ordered.file(lambda: self.reserve_path.unlink(missing_ok=True))
+        finally:
+            self._ordered = None
+        self._stored()
+
+    def _end(self, state: ScanEnd, causes: Sequence[Cause]) -> None:
         for image in self.manifest.images:
             if image.status is ImageStatus.PLANNED:
                 image.status = ImageStatus.MISSING
@@ -437,15 +477,9 @@ class ScanFolder:
         self.manifest.reason = "; ".join(map(str, causes)) or None
         self.manifest.in_progress = False
         self.manifest.ended_utc = utc_stamp()
-        saver, self._saver = self._saver, None
-        if saver is not None:
-            try:
-                saver.flush()
-            except Exception as exc:  # the final save below writes the whole manifest again
-                log.warning("manifest_background_write_failed", scan_id=self.scan_id, error=str(exc))
-        self.save()
-        self.reserve_path.unlink(missing_ok=True)
-        log.info("scan_stored", scan_id=self.scan_id, state=state.value, path=str(self.path),
+
+    def _stored(self) -> None:
+        log.info("scan_stored", scan_id=self.scan_id, state=self.manifest.state.value, path=str(self.path),
                  **self.manifest.counts())
 
 

@@ -20,6 +20,7 @@ import argparse
 import asyncio
 import contextlib
 import grp
+import json
 import os
 import re
 import shlex
@@ -29,7 +30,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -44,6 +45,7 @@ UNIT = ROOT / "systemd" / "tbp-rig.service"
 RECORDINGS_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tbp" / "recordings"
 WATCHDOG_USEC = 10_000_000
 PHONE_NICENESS = 10
+DEVICE_KINDS = frozenset({"drive", "phones", "depth", "panel"})
 
 
 class LoopbackError(RuntimeError):
@@ -188,17 +190,25 @@ class LoopbackRig:
         http: give the daemon its web server on a free loopback port.
         missing_phones: indices of phones whose simulator is not started (plug them in later
             with :meth:`start_phone`).
+        missing: kinds of device (:data:`DEVICE_KINDS`) the hardware file names but this rig PC
+            lacks, as on a rig being commissioned: "drive" a socketcand port nobody listens on,
+            "phones" no phone simulator, "depth" live RealSense serials (none is plugged in here),
+            "panel" a serial device that does not exist. The daemon re-probes them while it runs.
     """
 
     def __init__(self, root: Path, *, body_seed: int = 0, decimation: int = 2, rig_path: Path = DEFAULT_RIG_PATH,
-                 http: bool = False, missing_phones: tuple[int, ...] = (), out: IO[str] | None = None) -> None:
+                 http: bool = False, missing_phones: tuple[int, ...] = (), missing: Iterable[str] = (),
+                 out: IO[str] | None = None) -> None:
         self.root = Path(root)
         self.body_seed = body_seed
         self.decimation = decimation
         self.rig_path = Path(rig_path).resolve()
         self.rig: Rig = load_rig(self.rig_path)
         self.http = http
-        self.missing_phones = set(missing_phones)
+        self.missing = frozenset(missing)
+        if not self.missing <= DEVICE_KINDS:
+            raise LoopbackError(f"missing devices {sorted(self.missing - DEVICE_KINDS)}: not among {sorted(DEVICE_KINDS)}")
+        self.missing_phones = set(range(len(self.rig.phones))) if "phones" in self.missing else set(missing_phones)
         self.out = out or sys.stderr
         self.procs: dict[str, Proc] = {}
         self.phone_ports: dict[int, int] = {}
@@ -215,9 +225,9 @@ class LoopbackRig:
     # ------------------------------------------------------------------ simulators
 
     def _spawn(self, name: str, argv: list[str], *, stdin: Any = subprocess.DEVNULL,
-               env: dict[str, str] | None = None) -> Proc:
+               env: dict[str, str] | None = None, stderr: Path | None = None) -> Proc:
         log = self.root / "logs" / f"{name}.log"
-        popen = subprocess.Popen(argv, stdin=stdin, stdout=subprocess.PIPE, stderr=open(log, "ab"),  # noqa: SIM115
+        popen = subprocess.Popen(argv, stdin=stdin, stdout=subprocess.PIPE, stderr=open(stderr or log, "ab"),  # noqa: SIM115
                                  cwd=ROOT, env=env, start_new_session=True)
         proc = Proc(name, popen, log)
         self.procs[name] = proc
@@ -255,15 +265,21 @@ class LoopbackRig:
     def start_simulators(self) -> None:
         rig = str(self.rig_path)
         recordings = record_depth(self.rig_path, self.body_seed, self.decimation, self.say)
-        # At info level the drive logs its state changes and controlwords, stamped for log_events().
-        motor = self._spawn("motor", _tbp("sim", "--log-level", "info", "motor", "--port", "0", "--rig", rig),
-                            stdin=subprocess.PIPE)
-        self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
+        if "drive" in self.missing:
+            self.bridge_port = free_port()
+        else:
+            # At info level the drive logs its state changes and controlwords, stamped for log_events().
+            motor = self._spawn("motor", _tbp("sim", "--log-level", "info", "motor", "--port", "0", "--rig", rig),
+                                stdin=subprocess.PIPE)
+            self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
         for index in range(len(self.rig.phones)):
             if index not in self.missing_phones:
                 self.start_phone(index)
-        panel = self._spawn("panel", _tbp("sim", "panel"), stdin=subprocess.PIPE)
-        self.panel_tty = self._first_line(panel, r"simulated panel on (\S+)")[1]
+        if "panel" in self.missing:
+            self.panel_tty = str(self.root / "dev" / "ttyACM-panel")
+        else:
+            panel = self._spawn("panel", _tbp("sim", "panel"), stdin=subprocess.PIPE)
+            self.panel_tty = self._first_line(panel, r"simulated panel on (\S+)")[1]
         self.write_hardware(recordings)
         self.say(f"simulators up: drive on socketcand 127.0.0.1:{self.bridge_port}, "
                  f"{len(self.phone_ports)} phones, panel on {self.panel_tty}")
@@ -272,10 +288,12 @@ class LoopbackRig:
         """Start (or restart, on the port it had) phone ``index``'s simulator: a phone plugged in."""
         phone = self.rig.phones[index]
         port = self.phone_ports.get(index) or free_port()
+        # Without a drive there is no beam to follow (and python-can retries a refused bridge
+        # in a tight loop for 10 s at a time, which would take the cores from the daemon).
+        follow = () if "drive" in self.missing else ("--follow-beam", f"127.0.0.1:{self.bridge_port}")
         proc = self._spawn(phone.id, _tbp("sim", "phone", "--port", str(port), "--serial", phone.serial,
                                           "--camera", phone.id, "--seed", str(index), "--rig", str(self.rig_path),
-                                          "--body-seed", str(self.body_seed),
-                                          "--follow-beam", f"127.0.0.1:{self.bridge_port}"))
+                                          "--body-seed", str(self.body_seed), *follow))
         # A phone is its own computer; here seven renderers share the rig PC's cores, so they run
         # at a lower priority, as the daemon's compute worker does, to leave the daemon and the
         # drive's simulator the real-time share a rig PC gives them.
@@ -357,7 +375,8 @@ class LoopbackRig:
         config = {
             "can": {"interface": "socketcand", "channel": "can0", "host": "127.0.0.1", "port": self.bridge_port},
             "phones": phones,
-            "depth_cameras": {c.id: {"recording": str(recordings / f"{c.id}.db3")} for c in self.rig.depth_cameras},
+            "depth_cameras": {c.id: "realsense" if "depth" in self.missing else {"recording": str(recordings / f"{c.id}.db3")}
+                              for c in self.rig.depth_cameras},
             "panel": {"device": self.panel_tty, "baud": 115200},
             "timeouts": {"open_s": 5.0, "phone_authorisation_s": 60.0, "reprobe_s": 1.0},
         }
@@ -377,7 +396,7 @@ class LoopbackRig:
         environ.pop("TBP_CAPTURE_AGENT_JAR", None)
         # systemd-sysusers makes the operators' group on a rig PC; here it is the user's own.
         environ["TBP_CONTROL_GROUP"] = grp.getgrgid(os.getgid()).gr_name
-        daemon = self._spawn("daemon", argv, env=environ)
+        daemon = self._spawn("daemon", argv, env=environ, stderr=self.root / "logs" / "daemon.stderr.log")
         log = self.root / "logs" / "daemon.log"
 
         def pump() -> None:
@@ -390,6 +409,28 @@ class LoopbackRig:
         threading.Thread(target=pump, name="out-daemon", daemon=True).start()
         self.say(f"daemon: {shlex.join(argv)}")
         return daemon
+
+    def daemon_lines(self) -> list[dict[str, Any]]:
+        """The daemon's stdout so far (logs/daemon.log), one JSON object a line; LoopbackError
+        naming the first line that is not JSON (its stderr is logs/daemon.stderr.log)."""
+        lines = []
+        for number, raw in enumerate((self.root / "logs" / "daemon.log").read_text(errors="replace").splitlines(), 1):
+            try:
+                lines.append(json.loads(raw))
+            except ValueError:
+                raise LoopbackError(f"daemon stdout line {number} is not JSON: {raw[:200]!r}") from None
+        return lines
+
+    def loop_stalls(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """The daemon's ``loop_lag`` lines so far (each a wake more than 50 ms late), split into
+        its own stalls and the ones the machine caused: the loop thread waited at least half the
+        stall for a CPU (``runqueue_ms``; other processes kept the cores, e.g. parallel test runs)."""
+        own, starved = [], []
+        for line in self.daemon_lines():
+            if line.get("event") == "loop_lag":
+                waited = line.get("runqueue_ms")
+                (starved if waited is not None and waited >= line["lag_ms"] / 2 else own).append(line)
+        return own, starved
 
     @property
     def socket_path(self) -> Path:

@@ -104,6 +104,7 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
     Compute runs in a worker process as on the real rig (daemon/compute.py): in a thread, the
     TSDF extraction held the interpreter lock the console's events and the panel wait for."""
     from daemon.compute import compute_pool
+    from daemon.logs import follow_machine
     from daemon.looplag import freeze_startup_heap
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
@@ -125,6 +126,7 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                              notifier=SystemdNotifier.from_env())
         if attach is not None:
             attach(service)
+        follow_machine(controller.machine)
         freeze_startup_heap()
         return await service.run(stop)
 

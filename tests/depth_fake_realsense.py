@@ -192,6 +192,9 @@ class FakeRealSense:
 
     def __init__(self) -> None:
         self.devices: list[FakeDevice] = []
+        self.contexts_made = 0
+        self.contexts_destroyed = 0
+        self.query_threads: list[str] = []  # the thread each query_devices() ran on
 
     def module(self) -> types.ModuleType:
         world = self
@@ -200,7 +203,14 @@ class FakeRealSense:
             setattr(rs, enum_type.__name__, enum_type)
 
         class context:  # noqa: N801
+            def __init__(self) -> None:
+                world.contexts_made += 1
+
+            def __del__(self) -> None:  # librealsense joins its device watcher here (~100 ms, GIL held)
+                world.contexts_destroyed += 1
+
             def query_devices(self) -> list[FakeDevice]:
+                world.query_threads.append(threading.current_thread().name)
                 return list(world.devices)
 
         class config:  # noqa: N801

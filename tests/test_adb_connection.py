@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import os
+import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -389,3 +390,48 @@ def test_a_pull_cancelled_during_its_fsync_waits_for_it_before_closing_the_file(
 
     asyncio.run(scenario())
     assert order == ["fsync done", "cleanup"]
+
+
+class _ThreadsOf:
+    """The ``os`` module as drivers.adb.sync sees it, noting which thread each file call runs on."""
+
+    CALLS = ("open", "write", "fsync", "close", "replace")
+
+    def __init__(self, real: Any) -> None:
+        self._real = real
+        self.threads: dict[str, set[str]] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        attribute = getattr(self._real, name)
+        if name not in self.CALLS:
+            return attribute
+
+        def noted(*args: Any, **kwargs: Any) -> Any:
+            self.threads.setdefault(name, set()).add(threading.current_thread().name)
+            return attribute(*args, **kwargs)
+
+        return noted
+
+
+def test_a_pull_opens_writes_hashes_fsyncs_and_renames_off_the_event_loop(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    import drivers.adb.sync as sync_module
+
+    data = os.urandom(5 * 1024 * 1024 + 3)
+    spy = _ThreadsOf(os)
+    monkeypatch.setattr(sync_module, "os", spy)
+
+    async def scenario(conn: AdbConnection, device: SimulatedAdbd, link: SimLink) -> None:
+        await conn.connect()
+        device.fs.write("/sdcard/DCIM/big.jpg", data)
+        loop_thread = threading.current_thread().name
+        async with await conn.sync() as sync:
+            size, sha = await sync.pull("/sdcard/DCIM/big.jpg", tmp_path / "big.jpg")
+            with pytest.raises(SyncFail):
+                await sync.pull("/sdcard/DCIM/none.jpg", tmp_path / "none.jpg")
+        assert (size, sha) == (len(data), hashlib.sha256(data).hexdigest())
+        assert (tmp_path / "big.jpg").read_bytes() == data and not list(tmp_path.glob("*.part"))
+        assert set(spy.threads) == {"open", "write", "fsync", "close", "replace"}
+        assert loop_thread not in set().union(*spy.threads.values())
+
+    run(scenario)

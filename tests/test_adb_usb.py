@@ -190,3 +190,26 @@ async def test_a_flooding_phone_queues_at_most_queue_high_messages(no_release: N
     await asyncio.sleep(0.05)
     assert transport._messages.qsize() <= UsbTransport.QUEUE_HIGH  # one slot freed, one more read
     await transport.close()
+
+
+async def test_closing_joins_the_threads_and_releases_the_interface_off_the_event_loop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A write may wait out its 5 s timeout and a release is a control transfer: close() waits
+    for them in a thread, never on the loop that carries the heartbeats."""
+    import threading
+
+    threads: dict[str, str] = {}
+    monkeypatch.setattr(usb.util, "release_interface",
+                        lambda device, number: threads.setdefault("release", threading.current_thread().name))
+    monkeypatch.setattr(usb.util, "dispose_resources",
+                        lambda device: threads.setdefault("dispose", threading.current_thread().name))
+    device = SimulatedAdbd("USB0001", known_keys=[KEY.public_blob()])
+    transport, endpoints, task = await _usb_session(device)
+    shutdown = transport._writer.shutdown
+    transport._writer.shutdown = lambda wait=True: (threads.setdefault("shutdown", threading.current_thread().name),
+                                                    shutdown(wait))
+    await transport.close()
+    loop_thread = threading.current_thread().name
+    assert set(threads) == {"release", "dispose", "shutdown"} and loop_thread not in threads.values()
+    endpoints.sock.close()
+    await task

@@ -5,21 +5,48 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
 import os
+import threading
+import warnings
 
 import pytest
 import structlog
 
-from daemon.logs import bind_scan, bind_state, bound_device, configure_logging, set_context_source, under_journald
-from daemon.states import ScanState
+from daemon.logs import (
+    bind_scan,
+    bind_state,
+    bound_device,
+    close_logging,
+    configure_logging,
+    follow_machine,
+    set_context_source,
+    under_journald,
+)
+from daemon.states import ScanState, ScanStateMachine
 
 
 @pytest.fixture(autouse=True)
 def _restore():
     yield
+    close_logging()
     set_context_source(None)
     structlog.contextvars.clear_contextvars()
     structlog.reset_defaults()
+
+
+class StuckStream(io.StringIO):
+    """A journal pipe nobody reads: write() waits until ``release`` is set."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.release = threading.Event()
+        self.entered = threading.Event()
+
+    def write(self, text: str) -> int:
+        self.entered.set()
+        self.release.wait(30.0)
+        return super().write(text)
 
 
 def test_json_lines_carry_context_in_every_line():
@@ -89,3 +116,53 @@ def test_journald_priority_prefix(tmp_path, monkeypatch):
 def test_unknown_level_is_refused():
     with pytest.raises(ValueError, match="loud"):
         configure_logging(level="loud", stream=io.StringIO())
+
+
+def test_a_stuck_reader_never_blocks_the_logger_and_dropped_lines_are_counted_in_the_next_line():
+    stream = StuckStream()
+    configure_logging(json=True, stream=stream, queued=True)
+    log = structlog.get_logger()
+    log.info("first")
+    assert stream.entered.wait(10.0)  # the writer thread is stuck in write()
+    from daemon import logs
+
+    capacity = logs._sink.capacity
+    for n in range(capacity + 500):  # returns although nothing can be written
+        log.info("line", n=n)
+    stream.release.set()
+    logs._sink.flush()
+    log.info("after")
+    close_logging()
+    lines = [json.loads(x) for x in stream.getvalue().splitlines()]
+    events = [x["event"] for x in lines]
+    assert events[:2] == ["first", "log_lines_dropped"] and events[-1] == "after"
+    assert lines[1]["level"] == "warning" and lines[1]["dropped"] == 500
+    assert events.count("log_lines_dropped") == 1
+    assert [x["n"] for x in lines if x["event"] == "line"] == list(range(capacity))  # in order, none torn
+
+
+def test_standard_library_records_and_warnings_are_json_lines_with_the_context():
+    out = io.StringIO()
+    configure_logging(json=True, level="info", stream=out, queued=True)
+    machine = ScanStateMachine()
+    machine.scan_id = "feed02"
+    follow_machine(machine)
+    logging.getLogger("can.interfaces.socketcand").warning("Got incomplete message => waiting for more data")
+    logging.getLogger("asyncio").debug("below the level")
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        logging.getLogger("asyncio").exception("Task exception was never retrieved")
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.warn("deprecated call", DeprecationWarning, stacklevel=1)
+    close_logging()
+    lines = [json.loads(x) for x in out.getvalue().splitlines()]
+    assert [x["event"].split(":")[0] for x in lines[:2]] == ["Got incomplete message => waiting for more data",
+                                                             "Task exception was never retrieved"]
+    assert lines[0]["logger"] == "can.interfaces.socketcand" and lines[0]["level"] == "warning"
+    assert lines[1]["level"] == "error" and lines[1]["exception"][0]["exc_type"] == "ValueError"
+    assert lines[2]["logger"] == "py.warnings" and "deprecated call" in lines[2]["event"]
+    assert len(lines) == 3
+    for line in lines:
+        assert (line["scan_id"], line["state"]) == ("feed02", machine.state.value)

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from daemon.control import CommandFailed
+from daemon.looplag import WARN_S
 from daemon.manifest import ImageStatus
 from daemon.store import ScanStore
 from sim.loopback import LoopbackRig, scan_from_panel
@@ -24,6 +25,20 @@ from sim.loopback import LoopbackRig, scan_from_panel
 pytestmark = pytest.mark.slow
 
 UNIT_STOP_TIMEOUT_S = 30.0  # systemd/tbp-rig.service TimeoutStopSec
+LOOP_LAG_MAX_MS = 50.0  # issue 28: the event loop carries the heartbeats, the e-stop and the triggers
+
+
+def _assert_loop_kept_time(rig: LoopbackRig) -> None:
+    """No stall of the daemon's own past LOOP_LAG_MAX_MS in any state (every wake that late is a
+    loop_lag line); a stall while the loop thread waited for a CPU is the machine's, and shown."""
+    assert WARN_S * 1000 == LOOP_LAG_MAX_MS
+    own, starved = rig.loop_stalls()
+    figures = rig.control("status")["loop_lag"]
+    assert not own, (f"the loop stalled past {LOOP_LAG_MAX_MS:g} ms: "
+                     f"{[(x['lag_state'], x['lag_ms'], x.get('cpu_ms'), x.get('runqueue_ms')) for x in own[:20]]}; "
+                     f"per state {figures}")
+    if starved:
+        print(f"loop stalls while other processes kept the CPUs: {[(x['lag_state'], x['lag_ms']) for x in starved]}")
 
 
 def _manifest(folder: Path):  # noqa: ANN202
@@ -65,10 +80,21 @@ def test_a_scan_started_from_the_panel_completes_on_the_real_code_path(tmp_path:
         assert rig.notify is not None
         assert rig.notify.count("WATCHDOG", "1") >= 2  # pinged through the whole scan
         assert rig.notify.count("READY", "1") == 1
+        _assert_loop_kept_time(rig)
         daemon = rig.procs["daemon"]
         daemon.popen.send_signal(signal.SIGTERM)
         assert daemon.popen.wait(UNIT_STOP_TIMEOUT_S) == 0
         assert rig.notify.count("STOPPING", "1") == 1
+        # The daemon's stdout is JSON lines only; its own lines name the scan and the state, and
+        # its drivers' lines the device (issue 28 item 9).
+        lines = rig.daemon_lines()
+        assert lines[-1]["event"] == "daemon_stopped"
+        scan_id = manifest.scan_id
+        states = {x["state"] for x in lines if x["scan_id"] == scan_id}
+        assert {"PREPARING", "DEPTH_SWEEP", "CAPTURING", "STORING"} <= states, states
+        drivers = {x["device"] for x in lines if x["device"] and x["event"] not in ("device_up", "device_missing")}
+        expected = {"drive", "panel"} | {p.id for p in rig.rig.phones} | {c.id for c in rig.rig.depth_cameras}
+        assert expected <= drivers, expected - drivers
 
 
 def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Path) -> None:
@@ -127,6 +153,7 @@ def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Pa
         # SIGTERM during a capture: the beam stops, the scan folder is closed, the daemon exits in time.
         rig.control("scan")
         rig.wait_status(lambda s: s["state"] == "CAPTURING", "capture", 120.0)
+        _assert_loop_kept_time(rig)  # through the missing phone's re-probes, the faults and the stops
         daemon = rig.procs["daemon"]
         daemon.popen.send_signal(signal.SIGTERM)
         assert daemon.popen.wait(UNIT_STOP_TIMEOUT_S) == 0

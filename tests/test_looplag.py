@@ -42,6 +42,35 @@ def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -
     assert summaries == ["IDLE", "PLANNING"]  # each state summarised when the loop leaves it
 
 
+def test_a_stall_says_whether_the_loop_ran_code_or_was_blocked() -> None:
+    """cpu_ms: the loop thread computing (code on the loop); neither it nor runqueue_ms: blocked
+    (a system call, the interpreter lock); runqueue_ms: waiting for a CPU (a busy machine)."""
+    state = ["IDLE"]
+    monitor = LoopLagMonitor(lambda: state[0], period_s=0.01, warn_s=0.05)
+
+    async def scenario() -> None:
+        task = asyncio.create_task(monitor.run())
+        await asyncio.sleep(0.05)
+        state[0] = "PLANNING"
+        await asyncio.sleep(0.02)
+        started = time.thread_time()
+        while time.thread_time() - started < 0.1:  # 100 ms of CPU on the loop
+            pass
+        await asyncio.sleep(0.03)
+        state[0] = "STORING"
+        await asyncio.sleep(0.02)
+        time.sleep(0.12)  # a blocking call on the loop
+        await asyncio.sleep(0.03)
+        task.cancel()
+
+    with structlog.testing.capture_logs() as logs:
+        asyncio.run(scenario())
+    stalls = {e["lag_state"]: e for e in logs if e["event"] == "loop_lag"}
+    assert stalls["PLANNING"]["cpu_ms"] >= 100.0
+    assert stalls["STORING"]["cpu_ms"] < stalls["STORING"]["lag_ms"] / 2
+    assert "runqueue_ms" in stalls["STORING"]
+
+
 @given(st.lists(st.tuples(st.sampled_from(["IDLE", "DEPTH_SWEEP", "PLANNING"]),
                           st.floats(0.0, 2.0, allow_nan=False)), min_size=1, max_size=200))
 def test_per_state_figures_are_those_of_the_state_samples(samples: list[tuple[str, float]]) -> None:

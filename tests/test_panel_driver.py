@@ -422,6 +422,40 @@ async def test_over_a_pty_like_a_real_serial_port() -> None:
         sim.close()
 
 
+async def test_the_port_is_opened_and_its_line_finally_closed_off_the_event_loop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """pyserial's open (a USB serial adapter may take its time) and the last close of the line (a
+    tty drains its output first) run in threads: the loop carries the heartbeats."""
+    import os
+    import threading
+    from types import SimpleNamespace
+
+    import drivers.panel.serial_link as serial_link
+
+    threads: dict[str, str] = {}
+    real_serial = serial_link.serial.Serial
+
+    def opened(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        threads["open"] = threading.current_thread().name
+        return real_serial(*args, **kwargs)
+
+    def closed(fd: int) -> None:
+        threads["close"] = threading.current_thread().name
+        os.close(fd)
+
+    monkeypatch.setattr(serial_link.serial, "Serial", opened)
+    monkeypatch.setattr(serial_link, "os", SimpleNamespace(dup=os.dup, fdopen=os.fdopen, close=closed))
+    sim, path = await SimulatedPanel.on_pty()
+    try:
+        reader, writer = await open_serial(path)
+        writer.close()
+        await writer.wait_closed()
+    finally:
+        sim.close()
+    assert set(threads) == {"open", "close"}
+    assert threading.current_thread().name not in threads.values()
+
+
 async def test_missing_serial_port_names_the_path() -> None:
     with pytest.raises(PanelDisconnected, match="/dev/tbp-no-such-panel"):
         await open_serial("/dev/tbp-no-such-panel")

@@ -8,6 +8,7 @@ import hashlib
 import json
 import os
 import subprocess
+import threading
 import uuid
 from datetime import UTC, datetime
 from pathlib import Path
@@ -19,7 +20,7 @@ from daemon.atomic import AtomicWriter, StoreError, StoreFull
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.manifest import ManifestError, ScanEnd
 from daemon.pulls import PullPolicy, PullQueue, ScanImages
-from daemon.store import ScanStore
+from daemon.store import ScanStore, _writer_thread
 from planner.rig import load_rig
 
 NOW = datetime(2026, 11, 22, 9, 30, 0, tzinfo=UTC)
@@ -345,22 +346,38 @@ def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
 
 
 class CountingWriter(AtomicWriter):
-    """Counts manifest writes and can fail the next one like a full disk."""
+    """Counts manifest writes, can fail the next one like a full disk, checks that every file a
+    manifest lists is already on disk, and records the order in which files reach the disk
+    (whole files by name, appended lines as ``events.jsonl+``)."""
 
     def __init__(self) -> None:
         self.manifest_writes = 0
         self.fail_next = False
+        self.order: list[str] = []
+        self.gate: threading.Event | None = None  # when set: writes wait for it
 
     def write(self, path: Path, data: bytes) -> None:
+        if self.gate is not None:
+            self.gate.wait(10.0)
         if path.name == "manifest.json":
             if self.fail_next:
                 self.fail_next = False
                 raise StoreFull(path, len(data), 0)
             self.manifest_writes += 1
+            files = json.loads(data)["files"]
+            missing = [name for name in files.values() if not (path.parent / name).is_file()]
+            assert not missing, f"the manifest lists {missing} before they are on disk"
         super().write(path, data)
+        self.order.append(path.name)
+
+    def append_lines(self, path: Path, lines: list[bytes]) -> None:
+        if self.gate is not None:
+            self.gate.wait(10.0)
+        super().append_lines(path, lines)
+        self.order.append(path.name + "+")
 
 
-def test_background_saves_coalesce_and_the_closed_manifest_holds_the_last_state(tmp_path, rig):
+async def test_background_saves_coalesce_and_the_closed_manifest_holds_the_last_state(tmp_path, rig):
     writer = CountingWriter()
     folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
     before = writer.manifest_writes
@@ -368,7 +385,7 @@ def test_background_saves_coalesce_and_the_closed_manifest_holds_the_last_state(
     for angle in range(rig.n_angles):
         for camera in range(rig.n_cameras):
             folder.update_image(camera, angle, status="verified", size_bytes=angle * 10 + camera)
-    folder.finish(ScanEnd.COMPLETE)
+    await folder.close(ScanEnd.COMPLETE)
     on_disk = _manifest(folder)
     assert on_disk["in_progress"] is False and on_disk["state"] == "complete"
     sizes = sorted(i["size_bytes"] for i in on_disk["images"])
@@ -377,15 +394,65 @@ def test_background_saves_coalesce_and_the_closed_manifest_holds_the_last_state(
     assert writer.manifest_writes - before < rig.n_poses
 
 
-def test_a_failed_background_write_is_raised_by_the_next_save_and_the_close_writes_again(tmp_path, rig):
+async def test_a_failed_background_write_is_raised_by_the_next_save_and_the_close_writes_again(tmp_path, rig):
     writer = CountingWriter()
     folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
     folder.save_in_background()
     writer.fail_next = True
     folder.update_image(0, 0, status="verified")
-    folder._saver._last.result()  # the failing write has run in the writer thread
     with pytest.raises(StoreFull):
-        folder.update_image(0, 1, status="verified")
-    folder.finish(ScanEnd.COMPLETE)  # the final, synchronous save writes the whole manifest
+        await folder._ordered.drain()  # the failing write has run in the writer thread
+    writer.fail_next = True
+    folder.update_image(0, 1, status="verified")
+    await asyncio.wrap_future(_writer_thread().submit(lambda: None))  # the failing write has run
+    with pytest.raises(StoreFull):
+        folder.update_image(0, 2, status="verified")
+    await folder.close(ScanEnd.COMPLETE)  # the final save writes the whole manifest
     status = {(i["camera_index"], i["angle_index"]): i["status"] for i in _manifest(folder)["images"]}
-    assert status[0, 0] == status[0, 1] == "verified" and _manifest(folder)["in_progress"] is False
+    assert status[0, 0] == status[0, 1] == status[0, 2] == "verified"
+    assert _manifest(folder)["in_progress"] is False
+
+
+async def test_background_writes_leave_the_loop_in_order_and_list_a_file_once_it_is_durable(tmp_path, rig):
+    """Events, a whole file and manifest saves queue in the writer thread in the order asked;
+    nothing waits for the disk on the loop; the manifest never names a file not yet written."""
+    writer = CountingWriter()
+    folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
+    folder.save_in_background()
+    writer.order.clear()
+    writer.gate = threading.Event()  # the disk stalls
+    folder.log_event("scan_started")
+    folder.write_calibration(b"cameras: {}\n")
+    folder.log_event("prepared", phones=7)
+    folder.log_event("depth_sweep", frames=3)
+    folder.update_image(0, 0, status="captured")
+    assert "calibration" not in folder.manifest.files and "events" not in folder.manifest.files
+    assert not (folder.path / "events.jsonl").exists()  # nothing was written on the loop
+    writer.gate.set()
+    await folder._ordered.drain()
+    await folder.close(ScanEnd.COMPLETE)
+    assert writer.order[:2] == ["events.jsonl+", "calibration.yaml"]
+    assert writer.order.count("events.jsonl+") == 2  # the two lines queued together shared one fdatasync
+    events = [json.loads(x)["event"] for x in (folder.path / "events.jsonl").read_text().splitlines()]
+    assert events == ["scan_started", "prepared", "depth_sweep"]
+    assert _manifest(folder)["files"] == {"events": "events.jsonl", "calibration": "calibration.yaml"}
+    assert _manifest(folder)["images"][0]["status"] == "captured"
+    assert not folder.check()
+
+
+async def test_a_file_the_background_could_not_write_is_never_listed(tmp_path, rig):
+    class FullForYaml(CountingWriter):
+        def write(self, path: Path, data: bytes) -> None:
+            if path.suffix == ".yaml":
+                raise StoreFull(path, len(data), 0)
+            super().write(path, data)
+
+    writer = FullForYaml()
+    folder = _planned(ScanStore(tmp_path, writer=writer, reserve_bytes=0), rig)
+    folder.save_in_background()
+    folder.write_calibration(b"cameras: {}\n")
+    with pytest.raises(StoreFull):  # the folder's next write, or a drain, raises it
+        await folder._ordered.drain()
+    folder.save()  # raised once
+    await folder.close(ScanEnd.INCOMPLETE)
+    assert "calibration" not in _manifest(folder)["files"] and not folder.check()

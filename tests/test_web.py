@@ -362,3 +362,36 @@ def test_daemon_refuses_a_bad_http_address(capsys):
 
     assert main(["daemon", "--sim", "--http", "localhost"]) == 2
     assert "expected HOST:PORT" in capsys.readouterr().err
+
+
+async def test_a_scan_is_read_off_the_loop_once_per_manifest_and_again_when_it_is_rewritten(scan_store, monkeypatch):
+    """A scan in progress rewrites its manifest after every image while the console polls it:
+    each manifest is read once, in a thread (the daemon's loop carries the rig's heartbeats)."""
+    import asyncio
+    import threading
+
+    import web.scans
+    from daemon.store import ScanStore
+
+    reads: list[str] = []
+    real = web.scans.open_scan
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        reads.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(web.scans, "open_scan", counted)
+    name = folder_of(scan_store)
+    client = await client_for(scan_store)
+    try:
+        answers = await asyncio.gather(*(client.get(f"/api/scans/{name}") for _ in range(4)))
+        assert [a.status for a in answers] == [200] * 4
+        assert (await client.get(f"/api/scans/{name}/images/none.jpg")).status == 404
+        assert len(reads) == 1
+        folder = ScanStore(scan_store).open(scan_store / name)
+        folder.update_image(0, 0, error="re-checked")  # rewritten (atomically: another file)
+        detail = await (await client.get(f"/api/scans/{name}")).json()
+        assert detail["images"][0]["error"] == "re-checked" and len(reads) == 2
+        assert threading.current_thread().name not in reads
+    finally:
+        await client.close()

@@ -73,7 +73,7 @@ class Carriers:
         self._lock = asyncio.Lock()
 
     async def get(self, library: ScanLibrary, earlier: str, later: str) -> CarriedPair:
-        a, b = library.opened(earlier), library.opened(later)
+        a, b = await library.opened(earlier), await library.opened(later)
         key = (earlier, a.stamp, later, b.stamp)
         async with self._lock:
             if key not in self._fits:

@@ -2,8 +2,11 @@
 
 A scan is named in URLs by its folder name and found by listing the store, never by joining
 a request's text onto a path; image files are the ones the manifest lists as verified.
-Heavy work (loading a mesh, building the ray-casting scene) runs off the event loop and is
-kept for the few most recently opened scans.
+Reading a scan (its manifest, plan, rig and calibration files) and the heavy work (loading a
+mesh, building the ray-casting scene) run off the event loop, which carries the rig's
+heartbeats in the daemon; what was read is kept for the few most recently opened scans and read
+again only when the manifest or the mesh is another file (a scan in progress rewrites its
+manifest after every image).
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ def json_error(status: type[web.HTTPException], error: Exception | str) -> web.H
 class OpenScan:
     """What the viewer keeps of one scan: record, navigator, mesh bytes, previews."""
 
-    def __init__(self, record: ScanRecord, stamp: tuple[int, int]) -> None:
+    def __init__(self, record: ScanRecord, stamp: tuple[Any, ...]) -> None:
         self.record = record
         self.stamp = stamp
         self.navigator: Navigator | None = None
@@ -87,6 +90,7 @@ class ScanLibrary:
         self.store = store
         self.rig_path = rig_path
         self._open: OrderedDict[str, OpenScan] = OrderedDict()
+        self._reading: dict[str, asyncio.Lock] = {}
 
     def folder(self, name: str) -> Path:
         """The scan folder called ``name``; 404 unless it is one of the store's folders."""
@@ -118,22 +122,38 @@ class ScanLibrary:
             })
         return rows
 
-    def _stamp(self, path: Path) -> tuple[int, int]:
+    def _stamp(self, path: Path) -> tuple[Any, ...]:
+        """The identity of the scan's manifest and mesh: a rewrite (atomic rename) is another file."""
         manifest = (path / "manifest.json").stat()
-        mesh = path / "mesh.ply"
-        return manifest.st_mtime_ns, mesh.stat().st_mtime_ns if mesh.exists() else 0
+        try:
+            mesh = (path / "mesh.ply").stat()
+        except FileNotFoundError:  # the scan has not reached its depth sweep
+            return manifest.st_ino, manifest.st_size, manifest.st_mtime_ns, None
+        return manifest.st_ino, manifest.st_size, manifest.st_mtime_ns, (mesh.st_ino, mesh.st_mtime_ns)
 
-    def opened(self, name: str) -> OpenScan:
-        """The scan, reloaded when its manifest or mesh changed since last time (a scan in progress)."""
+    def _read(self, name: str, known: tuple[Any, ...] | None) -> tuple[tuple[Any, ...], ScanRecord | None]:
+        """In a thread: the scan's current stamp, and its record when the stamp is not ``known``."""
         path = self.folder(name)
-        stamp = self._stamp(path)
-        scan = self._open.get(name)
-        if scan is None or scan.stamp != stamp:
-            try:
-                scan = OpenScan(open_scan(path, self.rig_path), stamp)
-            except StoreError as exc:  # no manifest, a listed file missing, another rig file
-                raise json_error(web.HTTPConflict, exc) from exc
-            self._open[name] = scan
+        try:
+            stamp = self._stamp(path)
+            if stamp == known:
+                return stamp, None
+            return stamp, open_scan(path, self.rig_path)
+        except OSError as exc:  # removed or unreadable meanwhile: read as a scan folder, it says why
+            raise json_error(web.HTTPConflict, f"{name[:80]}: {exc.strerror or exc}") from exc
+        except StoreError as exc:  # no manifest, a listed file missing, another rig file
+            raise json_error(web.HTTPConflict, exc) from exc
+
+    async def opened(self, name: str) -> OpenScan:
+        """The scan, read again (in a thread) when its manifest or mesh changed since last time;
+        requests for one scan at once share one read."""
+        lock = self._reading.setdefault(name, asyncio.Lock())
+        async with lock:
+            scan = self._open.get(name)
+            stamp, record = await _off_loop(self._read, name, scan.stamp if scan is not None else None)
+            if record is not None:
+                scan = self._open[name] = OpenScan(record, stamp)
+        assert scan is not None
         self._open.move_to_end(name)
         while len(self._open) > self.KEEP:
             self._open.popitem(last=False)
@@ -153,7 +173,7 @@ async def list_scans(request: web.Request) -> web.Response:
 
 
 async def scan_detail(request: web.Request) -> web.Response:
-    scan = _library(request).opened(request.match_info["folder"])
+    scan = await _library(request).opened(request.match_info["folder"])
     rec = scan.record
     rig = rec.rig
     images_out = [{"file": i.file, "camera_id": i.camera_id, "camera_index": i.camera_index,
@@ -172,7 +192,7 @@ async def scan_detail(request: web.Request) -> web.Response:
 
 
 async def scan_mesh(request: web.Request) -> web.Response:
-    scan = _library(request).opened(request.match_info["folder"])
+    scan = await _library(request).opened(request.match_info["folder"])
     async with scan.lock:
         try:
             payload = await _off_loop(scan.mesh_payload)
@@ -200,7 +220,7 @@ def _number(request: web.Request, key: str, kind: type = float) -> Any:
 
 async def navigate(request: web.Request) -> web.Response:
     """?x=&y=&z= (mm) or ?vertex=I; &count=N (default every image that sees the spot)."""
-    scan = _library(request).opened(request.match_info["folder"])
+    scan = await _library(request).opened(request.match_info["folder"])
     vertex = _number(request, "vertex", int)
     xyz = [_number(request, k) for k in ("x", "y", "z")]
     count = _number(request, "count", int)
@@ -229,7 +249,7 @@ def _image_path(scan: OpenScan, name: str) -> Path:
 async def image(request: web.Request) -> web.StreamResponse:
     """images/NAME: the original; ?size=thumb|preview scaled; ?u=&v=&half= a zoomed crop (full-resolution px)."""
     library = _library(request)
-    scan = library.opened(request.match_info["folder"])
+    scan = await library.opened(request.match_info["folder"])
     path = _image_path(scan, request.match_info["name"])
     size = request.query.get("size")
     u, v, half = _number(request, "u"), _number(request, "v"), _number(request, "half")

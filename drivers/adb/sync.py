@@ -18,9 +18,11 @@ import hashlib
 import os
 import stat as statmod
 import struct
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from drivers.adb.errors import AdbError, AdbLimitExceeded, SyncFail
 from drivers.adb.streams import AdbStream
@@ -31,6 +33,7 @@ MAX_PATH = 1024
 MAX_PULL_BYTES = 64 * 1024 * 1024  # a whole file (phone images are ~25 MB); callers may pass their own bound
 MAX_LIST_ENTRIES = 100_000
 MAX_FAIL_MESSAGE = 4096
+T = TypeVar("T")
 _U32 = struct.Struct("<I")
 _ID_LEN = struct.Struct("<4sI")
 _STAT = struct.Struct("<4sIII")
@@ -96,17 +99,77 @@ def data_chunks(data: bytes | memoryview, chunk: int = SYNC_DATA_MAX) -> bytes:
                     for i in range(0, len(view), chunk))
 
 
-class _FileSink:
-    """Hashes and writes each received chunk at once (the chunk is a view valid until the next read)."""
+_WRITERS: ThreadPoolExecutor | None = None
 
-    def __init__(self, fd: int) -> None:
-        self.fd = fd
+
+def _writer_threads() -> ThreadPoolExecutor:
+    """The threads pulled files are hashed and written in (a few pulls run at once)."""
+    global _WRITERS
+    if _WRITERS is None:
+        _WRITERS = ThreadPoolExecutor(max_workers=4, thread_name_prefix="adb-pull")
+    return _WRITERS
+
+
+async def _in_thread(func: Callable[[], T]) -> T:
+    """``func()`` in a writer thread; a cancellation still waits for it to end (it uses a file
+    descriptor the caller closes next)."""
+    return await _finished(asyncio.get_running_loop().run_in_executor(_writer_threads(), func))
+
+
+async def _finished(job: asyncio.Future[T]) -> T:
+    """A writer thread's result; a cancellation still waits for the thread's job to end."""
+    try:
+        return await asyncio.shield(job)
+    except asyncio.CancelledError:
+        await asyncio.wait([job])
+        raise
+
+
+class _FileSink:
+    """A pulled file's bytes to ``part``, hashed and written in a writer thread.
+
+    The event loop only copies each received chunk (a view valid until the next read) into a
+    buffer; every BUFFER_BYTES the buffer goes to the thread, which hashes it, writes it and
+    starts its writeback (so the final fsync has only the tail left), while the loop fills the
+    next one. Opening, the fsync, closing, and the rename or removal run in the thread too:
+    nothing of a pull waits for the disk on the loop.
+    """
+
+    BUFFER_BYTES = 1 << 20
+
+    def __init__(self, part: Path) -> None:
+        self.part = part
+        self.fd: int | None = None
         self.digest = hashlib.sha256()
+        self._buffer = bytearray()
+        self._writing: asyncio.Future[None] | None = None
         self._written = 0
         self._flushed = 0
 
-    def __call__(self, view: memoryview) -> None:
-        self.digest.update(view)
+    async def open(self) -> None:
+        def create() -> None:
+            self.fd = os.open(self.part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+
+        await _in_thread(create)
+
+    async def __call__(self, view: memoryview) -> None:
+        self._buffer += view
+        if len(self._buffer) >= self.BUFFER_BYTES:
+            await self._hand_over()
+
+    async def _hand_over(self) -> None:
+        """Wait for the buffer before (at most one is in the thread), then give the thread this one."""
+        if self._writing is not None:
+            writing, self._writing = self._writing, None
+            await _finished(writing)
+        data, self._buffer = self._buffer, bytearray()
+        if data:
+            self._writing = asyncio.get_running_loop().run_in_executor(_writer_threads(), self._write, data)
+
+    def _write(self, data: bytearray) -> None:
+        assert self.fd is not None
+        self.digest.update(data)
+        view = memoryview(data)
         while view:
             n = os.write(self.fd, view)
             view = view[n:]
@@ -115,20 +178,36 @@ class _FileSink:
             _START_WRITEBACK(self.fd, self._flushed, self._written - self._flushed, _SYNC_FILE_RANGE_WRITE)
             self._flushed = self._written
 
-    def finish(self) -> None:
-        """fsync: the data is on disk before the file gets its final name."""
-        os.fsync(self.fd)
+    async def finish(self, dest: Path) -> None:
+        """Write the rest, fsync, close and rename to ``dest``: the data is on disk before the
+        file gets its final name."""
+        await self._hand_over()
+        await self._hand_over()  # waits for the last buffer
 
+        def commit() -> None:
+            assert self.fd is not None
+            fd, self.fd = self.fd, None
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.replace(self.part, dest)
 
-async def _in_thread(func: Callable[[], None]) -> None:
-    """``func()`` in a worker thread; a cancellation still waits for it to end (it uses a file
-    descriptor the caller closes next)."""
-    job = asyncio.ensure_future(asyncio.to_thread(func))
-    try:
-        await asyncio.shield(job)
-    except asyncio.CancelledError:
-        await asyncio.wait([job])
-        raise
+        await _in_thread(commit)
+
+    async def discard(self) -> None:
+        """After a failure or a cancellation: wait for the thread's write, close, remove ``part``."""
+        if self._writing is not None:
+            writing, self._writing = self._writing, None
+            await asyncio.wait([writing])
+
+        def remove() -> None:
+            fd, self.fd = self.fd, None
+            if fd is not None:
+                os.close(fd)
+            self.part.unlink(missing_ok=True)
+
+        await _in_thread(remove)
 
 
 class SyncClient:
@@ -180,7 +259,7 @@ class SyncClient:
             name = (await self.stream.readexactly(namelen)).decode("utf-8", "replace")
             entries.append(DirEntry(name, mode, size, mtime))
 
-    async def _receive(self, path: str, sink: Callable[[memoryview], object], max_bytes: int) -> int:
+    async def _receive(self, path: str, sink: Callable[[memoryview], Awaitable[None]], max_bytes: int) -> int:
         """RECV path, feeding each chunk to sink (a view valid until the next read); returns the byte count.
 
         AdbLimitExceeded once the file passes max_bytes (nothing past the bound is read).
@@ -194,7 +273,7 @@ class SyncClient:
                     raise self._fail(path, f"DATA chunk of {length} bytes > {SYNC_DATA_MAX}")
                 if total + length > max_bytes:
                     raise await self._too_much(f"file {path!r}", max_bytes)
-                sink(await self.stream.readview(length))
+                await sink(await self.stream.readview(length))
                 total += length
             elif ident == b"DONE":
                 return total
@@ -206,7 +285,11 @@ class SyncClient:
     async def pull_bytes(self, path: str, *, max_bytes: int = MAX_PULL_BYTES) -> bytes:
         """The whole file in memory (at most max_bytes, else AdbLimitExceeded)."""
         parts: list[bytes] = []
-        await self._receive(path, lambda view: parts.append(bytes(view)), max_bytes)
+
+        async def keep(view: memoryview) -> None:
+            parts.append(bytes(view))
+
+        await self._receive(path, keep, max_bytes)
         return b"".join(parts)
 
     async def pull(self, path: str, dest: Path, *, max_bytes: int = MAX_PULL_BYTES) -> tuple[int, str]:
@@ -216,17 +299,14 @@ class SyncClient:
         removed and dest is untouched.
         """
         dest = Path(dest)
-        part = dest.with_name(dest.name + ".part")
-        sink = _FileSink(os.open(part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
+        sink = _FileSink(dest.with_name(dest.name + ".part"))
         try:
+            await sink.open()
             size = await self._receive(path, sink, max_bytes)
-            await _in_thread(sink.finish)  # an image's fsync held the event loop up to tens of ms
+            await sink.finish(dest)
         except BaseException:
-            os.close(sink.fd)
-            part.unlink(missing_ok=True)
+            await asyncio.shield(asyncio.ensure_future(sink.discard()))
             raise
-        os.close(sink.fd)
-        os.replace(part, dest)
         return size, sink.digest.hexdigest()
 
     async def push(self, data: bytes, path: str, *, mode: int = 0o644, mtime: int = 0) -> None:

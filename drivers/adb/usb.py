@@ -175,16 +175,21 @@ class UsbTransport:
         return item
 
     async def close(self) -> None:
-        """Stop both threads and release the interface; idempotent."""
+        """Stop both threads and release the interface; idempotent. Joining the threads (a write
+        may wait out its WRITE_TIMEOUT_MS) and releasing the interface (control transfers) run in
+        a thread: the event loop carries the heartbeats."""
         if self.closed:
             return
         self.closed = True
         self._stop.set()
-        await self._loop.run_in_executor(None, self._reader.join)
-        self._writer.shutdown(wait=True)
+        await self._loop.run_in_executor(None, self._release)
+
+    def _release(self) -> None:
         import usb.core
         import usb.util
 
+        self._reader.join()
+        self._writer.shutdown(wait=True)
         try:
             usb.util.release_interface(self.device, self.interface.bInterfaceNumber)
             usb.util.dispose_resources(self.device)

@@ -157,7 +157,7 @@ class RealSenseStream(ABC):
         self._failure: BaseException | None = None
         self._early: list[RawFrame] = []
         self._described = asyncio.Event()  # set once start() knows the depth scale and intrinsics
-        self._log = log.bind(camera=camera_id)
+        self._log = log.bind(device=camera_id)
         self._dropped_log = NoiseLog(self._log, "realsense_frame_dropped", self.DROPPED_LOG_PERIOD_S)
 
     # ------------------------------------------------------------------ DepthCamera protocol

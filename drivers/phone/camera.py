@@ -92,6 +92,11 @@ class ClockSample:
     host_recv_s: float
 
 
+def _read_jar(path: Path) -> tuple[bytes, int]:
+    """The capture agent jar's bytes and modification time (s)."""
+    return path.read_bytes(), int(path.stat().st_mtime)
+
+
 class PhoneCamera:
     """A rig phone's camera over ADB. States: disconnected -> connecting -> ready -> closed."""
 
@@ -124,6 +129,7 @@ class PhoneCamera:
         self._pending: dict[int, tuple[str, asyncio.Future[protocol.AgentResponse]]] = {}
         self._ids = itertools.count(1)
         self._lost: PhoneError | None = None
+        self._log = log.bind(device=phone.id)  # whichever task calls, its lines name the phone
 
     def __repr__(self) -> str:
         return f"PhoneCamera({self.phone.id}, {self.serial}, {self.state})"
@@ -153,7 +159,7 @@ class PhoneCamera:
             raise
         self.info = info
         self.state = "ready"
-        log.info("phone_ready", serial=self.serial, model=info.model, min_focus_diopters=info.min_focus_diopters,
+        self._log.info("phone_ready", serial=self.serial, model=info.model, min_focus_diopters=info.min_focus_diopters,
                  focus_calibration=info.focus_calibration_quality, timestamp_source=info.timestamp_source)
         return info
 
@@ -190,14 +196,13 @@ class PhoneCamera:
                     raise AgentMissing(self.serial, "connecting", f"{protocol.AGENT_PATH} is not on the phone "
                                        f"and no local jar is set (${self.AGENT_JAR_ENV})")
                 return
-            try:
-                jar = self.agent_jar.read_bytes()
-                mtime = int(self.agent_jar.stat().st_mtime)
+            try:  # read in a thread: a re-probe connects while the loop carries the heartbeats
+                jar, mtime = await asyncio.to_thread(_read_jar, self.agent_jar)
             except OSError as exc:
                 raise AgentMissing(self.serial, "connecting", f"cannot read {self.agent_jar}: {exc.strerror}") from exc
             if (remote.size, remote.mtime) != (len(jar), mtime):  # the phone's copy is another build
                 await sync.push(jar, protocol.AGENT_PATH, mode=0o644, mtime=mtime)
-                log.info("phone_agent_pushed", serial=self.serial, bytes=len(jar))
+                self._log.info("phone_agent_pushed", serial=self.serial, bytes=len(jar))
 
     async def _start_agent(self, adb: AdbConnection) -> None:
         command = (f"CLASSPATH={protocol.AGENT_PATH} app_process / {protocol.AGENT_CLASS} "
@@ -226,7 +231,7 @@ class PhoneCamera:
                 if pending is not None and not pending[1].done():
                     pending[1].set_result(answer)
                 else:  # its request already timed out and raised; the phone caught up since
-                    log.info("phone_late_answer", serial=self.serial, request_id=answer.id, ok=answer.ok)
+                    self._log.info("phone_late_answer", serial=self.serial, request_id=answer.id, ok=answer.ok)
             cause: PhoneError = PhoneDisconnected(self.serial, self.state, "the capture agent closed its stream")
         except AdbError as exc:
             cause = PhoneDisconnected(self.serial, self.state, str(exc))
@@ -236,7 +241,7 @@ class PhoneCamera:
         self._lost = cause
         if self.state == "ready":
             self.state = "disconnected"
-            log.warning("phone_disconnected", serial=self.serial, error=str(cause))
+            self._log.warning("phone_disconnected", serial=self.serial, error=str(cause))
         for _, future in self._pending.values():
             if not future.done():
                 future.set_exception(cause)

@@ -1,0 +1,83 @@
+"""The bring-up's re-probe of missing devices (daemon/bringup.py), in virtual time."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import structlog
+
+from daemon.bringup import BringUp
+from daemon.controller import RigController
+from daemon.hardware_config import Timeouts
+from daemon.store import ScanStore
+from sim.clock import run_virtual
+from tests.daemon_rigs import RIG, build_rig
+
+
+def test_a_device_that_stays_missing_is_probed_less_often_and_found_soon_after_it_comes(tmp_path: Path) -> None:
+    async def main() -> tuple[list[float], float, int]:
+        hardware, _world = await build_rig(RIG, 0)
+        phone = hardware.phones[3]
+        phone.reconnectable = False
+        attempts: list[float] = []
+        connect = phone.connect
+
+        async def counted() -> None:
+            attempts.append(asyncio.get_running_loop().time())
+            await connect()
+
+        phone.connect = counted
+        controller = RigController(RIG, hardware, ScanStore(tmp_path / "scans"))
+        changes: list[bool] = []
+        assert not await controller.bringup.once()
+        reprobe = asyncio.create_task(controller.bringup.run(changes.append))
+        try:
+            await asyncio.sleep(60.0)
+            phone.reconnectable = True
+            plugged = asyncio.get_running_loop().time()
+            while not changes:
+                await asyncio.sleep(0.1)
+            found_after = asyncio.get_running_loop().time() - plugged
+            probes = controller.bringup.devices[RIG.phones[3].id].probes
+        finally:
+            reprobe.cancel()
+            await asyncio.gather(reprobe, return_exceptions=True)
+            await controller.close()
+        return attempts, found_after, probes
+
+    attempts, found_after, probes = run_virtual(main())
+    gaps = [round(b - a, 1) for a, b in zip(attempts, attempts[1:], strict=False)]  # + a round's own probes
+    reprobe_s = Timeouts().reprobe_s  # the hardware default
+    assert gaps[:4] == [reprobe_s, 2 * reprobe_s, 4 * reprobe_s, BringUp.BACKOFF_MAX_S]
+    assert set(gaps[3:]) == {BringUp.BACKOFF_MAX_S}
+    assert found_after <= BringUp.BACKOFF_MAX_S
+    assert probes == len(attempts)
+
+
+def test_each_device_is_opened_with_its_name_in_the_log_context_of_the_tasks_it_starts(tmp_path: Path) -> None:
+    async def main() -> dict[str, str | None]:
+        hardware, _world = await build_rig(RIG, 0)
+        seen: dict[str, str | None] = {}
+        for index in (0, 5):
+            phone = hardware.phones[index]
+            connect = phone.connect
+
+            async def bound(phone=phone, connect=connect) -> None:
+                async def reader() -> None:  # a driver task started by connect(), e.g. its reader
+                    seen[phone.serial] = structlog.contextvars.get_contextvars().get("device")
+
+                await asyncio.create_task(reader())
+                await connect()
+
+            phone.connect = bound
+        controller = RigController(RIG, hardware, ScanStore(tmp_path / "scans"))
+        try:
+            assert await controller.bringup.once()
+            seen["after"] = structlog.contextvars.get_contextvars().get("device")
+        finally:
+            await controller.close()
+        return seen
+
+    seen = run_virtual(main())
+    assert seen == {RIG.phones[0].serial: RIG.phones[0].id, RIG.phones[5].serial: RIG.phones[5].id, "after": None}
