@@ -198,13 +198,14 @@ class CalibrationRotation(RigJob):
     def note(self, text: str) -> None:
         self.report.problems.append(text)
 
-    def close_folder(self) -> bool:
-        """Write the final captures.json if not done yet; False (logged) when the disk refuses."""
+    async def close_folder(self) -> bool:
+        """Write the final captures.json (in a thread) if not done yet; False (logged) when the disk
+        refuses."""
         if self._state != "in progress":
             return True
         state = JOB_END[self.report.outcome].value
         try:
-            self._save(state)
+            await asyncio.to_thread(self._save, state)
         except Exception as exc:  # retried at the next reset or rotation
             self.report.problems.append(f"captures.json: {type(exc).__name__}: {exc}")
             log.error("calibration_folder_not_closed", folder=str(self.folder), error=str(exc))
@@ -235,7 +236,7 @@ class CalibrationRotation(RigJob):
         report.pictures = len(self.captures)
         expected = (len(self.rig.phones) + len(self.hw.depth_cameras)) * len(self.rig.capture.angles_deg)
         report.missing = expected - report.pictures
-        self.close_folder()
+        await self.close_folder()
         log.info("calibration_rotation_stored", outcome=report.outcome.value, pictures=report.pictures,
                  problems=len(report.problems), folder=str(self.folder))
 

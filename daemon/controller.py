@@ -177,6 +177,7 @@ class RigController:
         self._check_startable(job_id)
         self._starting = True  # a second START meanwhile is refused as busy
         try:
+            await self._close_left_open()
             job = await make(job_id)
         finally:
             self._starting = False
@@ -195,7 +196,6 @@ class RigController:
             raise self._refused("scan", job_id, ScanRefused(job_id, self.bringup.summary()))
         if self.hw.panel is not None and self.hw.panel.estop_active:
             raise ScanBusy(self.machine.state.value, "e-stop pressed or its state unknown")
-        self._close_left_open()
 
     def _refused(self, kind: str, job_id: object, refused: ScanRefused) -> ScanRefused:
         """Log and stream a refusal; returns it to raise."""
@@ -243,10 +243,10 @@ class RigController:
             self.last_calibration = report
         return report
 
-    def _close_left_open(self) -> None:
+    async def _close_left_open(self) -> None:
         """Close the last job's folder if the disk did not let the job close it."""
-        if self.current is not None and not self.busy:
-            self.current.close_folder()
+        if self.current is not None and not (self.scan_task is not None and not self.scan_task.done()):
+            await self.current.close_folder()
 
     async def calibration(self, scan_id: str | None = None) -> Calibration | None:
         """The rig's installed calibration (read afresh for each scan, in a thread), None for
@@ -296,7 +296,7 @@ class RigController:
                            f"the faulted {kind} is still closing its folder" if self.safety.latched
                            else f"a {kind} is running: abort it first")
 
-        self._close_left_open()
+        await self._close_left_open()
 
         async def recover() -> None:
             drive = self.hw.drive

@@ -76,9 +76,9 @@ class RigJob:
         """Keep what the job has (the body has ended) and close its folder."""
         raise NotImplementedError
 
-    def close_folder(self) -> bool:
-        """Write the job's end into its folder if not done yet; False when the disk refuses (the
-        controller tries again at the next reset or job)."""
+    async def close_folder(self) -> bool:
+        """Write the job's end into its folder if not done yet, off the event loop; False when the
+        disk refuses (the controller tries again at the next reset or job)."""
         raise NotImplementedError
 
     def note(self, text: str) -> None:
@@ -229,7 +229,7 @@ class RigJob:
         await self.safety.trip(FaultCause.of_error(FaultSource.SCAN_FAILED, self.kind, error,
                                                    f"closing the {self.kind}"))
         report.outcome, report.causes = ScanOutcome.FAULTED, list(self.safety.causes)
-        self.close_folder()
+        await self.close_folder()
         self.machine.scan_id = None
 
 

@@ -190,16 +190,17 @@ class Scan(RigJob):
         """The rig time of a milestone (the report's phases)."""
         self._marks[name] = asyncio.get_running_loop().time()
 
-    def close_folder(self) -> bool:
-        """Write the outcome into events.jsonl and close the manifest, if not done yet; False
-        (logged) when the disk does not let us: the folder stays ``in progress`` and the
-        controller tries again at the next reset or scan, the daemon's next start at the latest."""
+    async def close_folder(self) -> bool:
+        """Write the outcome into events.jsonl and close the manifest (in the store's writer thread
+        in real time), if not done yet; False (logged) when the disk does not let us: the folder
+        stays ``in progress`` and the controller tries again at the next reset or scan, the
+        daemon's next start at the latest."""
         folder, report = self.folder, self.report
         if not folder.manifest.in_progress:
             return True
         try:
             folder.log_event("scan_ended", outcome=report.outcome.value, reason=report.reason)
-            folder.finish(JOB_END[report.outcome], report.causes)
+            await folder.close(JOB_END[report.outcome], report.causes)
         except Exception as exc:  # recorded in the report and the log; retried later
             report.errors.append(f"manifest: {type(exc).__name__}: {exc}")
             log.error("scan_folder_not_closed", scan_id=folder.scan_id, error=f"{type(exc).__name__}: {exc}")
@@ -256,7 +257,7 @@ class Scan(RigJob):
             except Exception as exc:  # a full disk, too many open files: recorded, the next step runs
                 report.errors.append(f"{name}: {type(exc).__name__}: {exc}")
                 log.error("store_step_failed", step=name, error=f"{type(exc).__name__}: {exc}")
-        self.close_folder()
+        await self.close_folder()
         if report.captured and self.settings.qa_report is not None:
             await self._write_qa_report(folder, self.settings.qa_report)
 

@@ -97,16 +97,16 @@ class ScanSteps:
         scan, rig, folder = self.scan, self.scan.rig, self.scan.folder
         drive, calibration = scan.hw.drive, scan.calibration
         self.profile = rig_profile(rig)
-        folder.log_event("scan_started", rig_digest=rig.digest,
-                         calibration=calibration.digest if calibration else "nominal poses")
-        if calibration is not None:  # read and written in a thread: nothing else writes the folder yet
-            await asyncio.to_thread(lambda: folder.write_calibration(Path(calibration.path).read_bytes()))
-        scan.mark("start")
         scan.report.compute_stops_clock = bool(getattr(asyncio.get_running_loop(), "compute_stops_clock", False))
         if not scan.report.compute_stops_clock:
-            # Real time: manifest writes leave the loop (the virtual-time loop keeps them in line,
-            # so simulated scans stay deterministic to the byte, faults included).
+            # Real time: every write of the folder leaves the loop (the virtual-time loop keeps them
+            # in line, so simulated scans stay deterministic to the byte, faults included).
             folder.save_in_background()
+        folder.log_event("scan_started", rig_digest=rig.digest,
+                         calibration=calibration.digest if calibration else "nominal poses")
+        if calibration is not None:
+            folder.write_calibration(await asyncio.to_thread(Path(calibration.path).read_bytes))
+        scan.mark("start")
         self.trace_mark = scan.tracker.mark()
         self._keeper = asyncio.create_task(self._keep_trace(), name="trace-keeper")
         await rebase_angle(scan.tracker, drive, rig.depth_sweep.start_deg)

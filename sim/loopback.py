@@ -45,6 +45,7 @@ UNIT = ROOT / "systemd" / "tbp-rig.service"
 RECORDINGS_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tbp" / "recordings"
 WATCHDOG_USEC = 10_000_000
 PHONE_NICENESS = 10
+DRIVE_NICENESS = -5
 DEVICE_KINDS = frozenset({"drive", "phones", "depth", "panel"})
 
 
@@ -271,6 +272,9 @@ class LoopbackRig:
             # At info level the drive logs its state changes and controlwords, stamped for log_events().
             motor = self._spawn("motor", _tbp("sim", "--log-level", "info", "motor", "--port", "0", "--rig", rig),
                                 stdin=subprocess.PIPE)
+            # The drive is hardware of its own on a rig; here it shares the PC, so it gets the
+            # priority the daemon has rather than wait behind the phones' renderers.
+            self._renice(motor, DRIVE_NICENESS)
             self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
         for index in range(len(self.rig.phones)):
             if index not in self.missing_phones:
@@ -297,9 +301,17 @@ class LoopbackRig:
         # A phone is its own computer; here seven renderers share the rig PC's cores, so they run
         # at a lower priority, as the daemon's compute worker does, to leave the daemon and the
         # drive's simulator the real-time share a rig PC gives them.
-        os.setpriority(os.PRIO_PROCESS, proc.popen.pid, PHONE_NICENESS)
+        self._renice(proc, PHONE_NICENESS)
         self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")
         self.phone_ports[index] = port
+
+    def _renice(self, proc: Proc, niceness: int) -> None:
+        """Give ``proc`` the priority its counterpart has on a rig PC; a user who may not raise a
+        priority (not root) runs it at the default, and says so."""
+        try:
+            os.setpriority(os.PRIO_PROCESS, proc.popen.pid, niceness)
+        except PermissionError:
+            self.say(f"{proc.name}: may not set niceness {niceness}; it runs at the default priority")
 
     def stop_phone(self, index: int, sig: int = signal.SIGKILL) -> None:
         """A phone that vanishes (unplugged, crashed)."""
@@ -397,6 +409,7 @@ class LoopbackRig:
         # systemd-sysusers makes the operators' group on a rig PC; here it is the user's own.
         environ["TBP_CONTROL_GROUP"] = grp.getgrgid(os.getgid()).gr_name
         daemon = self._spawn("daemon", argv, env=environ, stderr=self.root / "logs" / "daemon.stderr.log")
+        self._renice(daemon, unit_nice(UNIT))
         log = self.root / "logs" / "daemon.log"
 
         def pump() -> None:
@@ -483,6 +496,12 @@ class LoopbackRig:
             proc.stop(signal.SIGTERM, timeout_s=5.0)
         if self.notify is not None:
             self.notify.close()
+
+
+def unit_nice(unit: Path) -> int:
+    """The unit's Nice= (0 when it sets none)."""
+    found = re.search(r"^Nice=(-?\d+)$", unit.read_text(), re.MULTILINE)
+    return int(found[1]) if found else 0
 
 
 def free_port() -> int:

@@ -190,7 +190,7 @@ class BeamDrive:
             "drive_connected",
             drive=self.name,
             node=self.node_id,
-            state=self.state.value,
+            drive_state=self.state.value,
             angle_deg=round(self.latest.angle_deg, 3) if self.latest else None,
         )
 
@@ -386,7 +386,7 @@ class BeamDrive:
             speed / self.config.max_acceleration_deg_s2 + self.MOTION_MARGIN_S,
             self._transition_timeout("standstill after quick stop", cia402.QUICK_STOP),
         )
-        log.info("drive_quick_stopped", drive=self.name, state=self.state.value)
+        log.info("drive_quick_stopped", drive=self.name, drive_state=self.state.value)
 
     LIVE_SAMPLE_AGE_S = 0.5
     """A connected, healthy drive whose newest sample is older than this is not being heard."""
