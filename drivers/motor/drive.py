@@ -400,6 +400,8 @@ class BeamDrive:
                     if t.done() and t.get_name().endswith(("-receive", "-guard-feed"))]
         if self.guard is not None and not self.guard.alive:
             problems.append(f"{self.name}: drive guard not running")
+        if isinstance(self.port, RealtimePort):
+            problems += [f"{self.name}: CAN thread {name} ended" for name in self.port.stopped_threads()]
         if self.fault is None:
             limit = self.guard_timing.drive_timeout_s + self.guard_timing.pause_allowance_s
             if self.heartbeat_age_s() > limit:
