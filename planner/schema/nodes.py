@@ -130,7 +130,9 @@ def _is_number(value: Any) -> bool:
 
 
 def _bound(x: float | None, none: str) -> str:
-    return none if x is None else f"{x:g}"
+    if x is None:
+        return none
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:.12g}"
 
 
 @dataclass(frozen=True)
