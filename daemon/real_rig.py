@@ -144,9 +144,8 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                        attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the real rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
 
-    Compute runs in a worker process (daemon/compute.py), so fusing and planning never stall
+    Compute runs in a worker process (daemon/worker.py), so fusing and planning never stall
     the drive's heartbeat."""
-    from daemon.compute import compute_pool
     from daemon.controller import RigController
     from daemon.logs import follow_machine
     from daemon.looplag import freeze_startup_heap
@@ -154,6 +153,7 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
     from daemon.scan import ScanSettings
     from daemon.service import RigService
     from daemon.store import ScanStore
+    from daemon.worker import compute_pool
 
     hardware = build_real_rig(rig, config, state_dir=state_dir)
     stop = asyncio.Event()

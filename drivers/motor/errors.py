@@ -7,6 +7,9 @@ waits on the drive, so a fault can never be missed by a caller that was busy els
 
 from __future__ import annotations
 
+from drivers.motor.emcy import emcy_meaning
+from drivers.motor.sdo_aborts import abort_meaning
+
 
 class DriveError(Exception):
     """Base of the motor area's errors.
@@ -34,8 +37,6 @@ class SdoAbort(SdoError):
     """The server answered an SDO request with an abort code (CiA 301 section 7.2.4.3.17)."""
 
     def __init__(self, device: str, state: str, index: int, subindex: int, code: int) -> None:
-        from drivers.motor.sdo import abort_meaning
-
         self.index = index
         self.subindex = subindex
         self.code = code
@@ -72,8 +73,6 @@ class DriveFault(DriveError):
     """
 
     def __init__(self, device: str, state: str, code: int | None, register: int = 0) -> None:
-        from drivers.motor.emcy import emcy_meaning
-
         self.code = code
         self.register = register
         self.meaning = emcy_meaning(code) if code is not None else "statusword FAULT without EMCY"
@@ -170,8 +169,6 @@ class SettingRefused(DriveSettingError):
 
     def __init__(self, device: str, state: str, index: int, subindex: int, setting: str, required: int,
                  code: int) -> None:
-        from drivers.motor.sdo import abort_meaning
-
         self.code = code
         super().__init__(device, state, index, subindex, setting, required,
                          f"refused with SDO abort 0x{code:08X} ({abort_meaning(code)})")
