@@ -169,9 +169,8 @@ async def _phone(rig: Any, config: Any, phone: Any, key: Any) -> tuple[str, floa
     from daemon.real_rig import make_phone
 
     camera = make_phone(rig, phone, config.phones[phone.id], key, config.capture_agent)
-    camera.CONNECT_TIMEOUT_S = config.timeouts.open_s
     try:
-        info = await camera.connect()
+        info = await camera.connect(timeout_s=config.timeouts.open_s)
         sample = await camera.clock_sample()
         return (f"{info.model}, serial {info.serial}, focus calibration {info.focus_calibration_quality}",
                 sample.host_recv_s - sample.host_send_s)

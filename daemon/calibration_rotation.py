@@ -43,6 +43,8 @@ from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.store import SCAN_ID, StoreError, new_scan_id
 from daemon.utc import utc_now
+from drivers.depth.base import DepthFrame
+from drivers.phone.camera import CaptureDone
 from planner.calibration.target import CuboidTarget
 from planner.poses import rgb_poses
 from planner.rig import Rig
@@ -181,7 +183,7 @@ class CalibrationRotation(RigJob):
         self.pulls: PullQueue | None = None
         self._state = "in progress"
         self._shots: dict[tuple[int, int], tuple[float, float]] = {}
-        self._streams: dict[int, AsyncIterator[Any]] = {}
+        self._streams: dict[int, AsyncIterator[DepthFrame]] = {}
 
     # ------------------------------------------------------------------ the job's parts
 
@@ -283,7 +285,7 @@ class CalibrationRotation(RigJob):
             raise CalibrationRotationError("the encoder has given no angle at a calibration stop")
         return float(angle)
 
-    async def _shoot(self, c: int, focus_mm: float) -> Any:
+    async def _shoot(self, c: int, focus_mm: float) -> CaptureDone | None:
         """Focus phone ``c`` on the cuboid and take one picture; None on failure: the phone is named and
         left out of the rest of the rotation (its pictures so far stay)."""
         phone = self.hw.phones[c]
@@ -298,7 +300,7 @@ class CalibrationRotation(RigJob):
                           "of the rotation")
             return None
 
-    def _submit(self, c: int, index: int, encoder: float, shot: Any, focus_mm: float) -> None:
+    def _submit(self, c: int, index: int, encoder: float, shot: CaptureDone, focus_mm: float) -> None:
         """Pull the picture in the background (the beam moves on); it is deleted on the phone once
         verified and listed in captures.json then."""
         phone = self.hw.phones[c]
@@ -352,7 +354,7 @@ class CalibrationRotation(RigJob):
                 camera.infrared = False
         self._streams.clear()
 
-    async def _infrared(self, d: int, settled_s: float) -> Any:
+    async def _infrared(self, d: int, settled_s: float) -> DepthFrame | None:
         """The first frame of depth camera ``d`` taken after the beam settled (older queued frames are
         skipped); None (named) when it has no infrared image or does not come in time."""
         camera = self.hw.depth_cameras[d]
@@ -380,7 +382,7 @@ class CalibrationRotation(RigJob):
             return None
         return frame
 
-    async def _keep_infrared(self, d: int, index: int, encoder: float, frame: Any) -> None:
+    async def _keep_infrared(self, d: int, index: int, encoder: float, frame: DepthFrame) -> None:
         import cv2
 
         camera = self.hw.depth_cameras[d].id

@@ -7,6 +7,7 @@ waits on the drive, so a fault can never be missed by a caller that was busy els
 
 from __future__ import annotations
 
+from drivers.errors import DeviceGone
 from drivers.motor.emcy import emcy_meaning
 from drivers.motor.sdo_aborts import abort_meaning
 
@@ -25,7 +26,7 @@ class DriveError(Exception):
         super().__init__(f"{device} [{state}]: {message}")
 
 
-class CanBusError(DriveError):
+class CanBusError(DriveError, DeviceGone):
     """The CAN port is closed or the bus interface failed (device = port name)."""
 
 
@@ -86,7 +87,7 @@ class FollowingError(DriveFault):
     """The drive stopped because its position lagged the demand beyond the window (EMCY 0x8611)."""
 
 
-class HeartbeatLost(DriveError):
+class HeartbeatLost(DriveError, DeviceGone):
     """The drive's heartbeat did not arrive within the consumer time."""
 
     def __init__(self, device: str, state: str, silent_s: float, timeout_s: float) -> None:
