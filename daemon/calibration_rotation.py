@@ -382,7 +382,7 @@ class CalibrationRotation(RigJob):
             return None
         return frame
 
-    async def _keep_infrared(self, d: int, index: int, encoder: float, frame: DepthFrame) -> None:
+    async def _keep_infrared(self, d: int, index: int, encoder: float, frame: Any) -> None:
         import cv2
 
         camera = self.hw.depth_cameras[d].id

@@ -33,8 +33,12 @@ class Drive(Protocol):
     """
 
     name: str
-    fault: BaseException | None
-    latest: BeamSample | None
+
+    @property
+    def fault(self) -> BaseException | None: ...
+
+    @property
+    def latest(self) -> BeamSample | None: ...
 
     @property
     def closed(self) -> bool: ...
@@ -83,8 +87,12 @@ class Phone(Protocol):
 
     serial: str
     name: str
-    focus_table: FocusCalibration | None
-    info: PhoneInfo | None
+
+    @property
+    def focus_table(self) -> FocusCalibration | None: ...
+
+    @property
+    def info(self) -> PhoneInfo | None: ...
 
     async def connect(self, timeout_s: float | None = None) -> PhoneInfo:
         """Link, authenticate and start the capture agent, all within ``timeout_s`` (None: the
