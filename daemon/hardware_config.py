@@ -17,7 +17,8 @@ this PC reaches them, and nothing else::
     capture_agent: /opt/tbp-rig/agent/tbp-capture-agent.jar   # optional: pushed to phones without it
     timeouts: {open_s: 5.0, phone_authorisation_s: 60.0, reprobe_s: 2.0}   # optional
 
-``{usb: SERIAL}`` and ``{realsense: SERIAL}`` are accepted when SERIAL is the rig file's. Relative
+The depth cameras' kinds are drivers/depth/kinds.py's. ``{usb: SERIAL}`` and ``{realsense: SERIAL}``
+are accepted when SERIAL is the rig file's. Relative
 paths are relative to the hardware file. Unknown keys, missing devices and out-of-range values
 are refused with :class:`HardwareConfigError` naming the file, the key and what is allowed.
 """
@@ -31,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from daemon.errors import DaemonError
+from drivers.depth.base import DepthSource
+from drivers.depth.kinds import DEPTH_KINDS
 from planner.rig import MAX_STRING, Rig, RigConfigError, _int, _key_name, _num, _Reader, _str, show
 from planner.yaml_files import read_yaml
 
@@ -85,18 +88,6 @@ class PhoneLink:
     @property
     def address(self) -> str:
         return f"usb:{self.serial}" if self.usb else f"tcp:{self.host}:{self.port}"
-
-
-@dataclass(frozen=True)
-class DepthSource:
-    """A live RealSense by serial, or a recorded sweep (``.db3`` with its ``.beam.json``)."""
-
-    serial: str
-    recording: Path | None = None
-
-    @property
-    def address(self) -> str:
-        return f"realsense:{self.serial}" if self.recording is None else f"recording:{self.recording}"
 
 
 @dataclass(frozen=True)
@@ -248,18 +239,23 @@ def _phones(reader: _HardwareReader, raw: Any, rig: Rig) -> dict[str, PhoneLink]
 
 
 def _depth(reader: _HardwareReader, raw: Any, rig: Rig, base: Path) -> dict[str, DepthSource]:
+    """Each depth camera's kind (drivers/depth/kinds.py) and what it names: the rig file's serial,
+    or a file (relative to the hardware file)."""
     serials = {c.id: c.serial for c in rig.depth_cameras}
     sources = {}
     for name, entry in _by_id(reader, raw, "depth_cameras", list(serials)).items():
         key = f"depth_cameras.{name}"
-        kind, value = _one_key(reader, entry, key, ("realsense", "recording"))
-        if kind == "realsense":
-            if value is not None and _serial(reader, value, f"{key}.realsense") != serials[name]:
-                raise reader.error(f"{key}.realsense", f"serial {show(value)} is not the rig file's "
-                                                       f"{serials[name]!r} (write 'realsense')")
-            sources[name] = DepthSource(serials[name])
+        if isinstance(entry, str) and entry in DEPTH_KINDS and DEPTH_KINDS[entry].takes == "serial":
+            kind, value = entry, None
         else:
-            sources[name] = DepthSource(serials[name], base / reader.value(value, f"{key}.recording", _str()))
+            kind, value = _one_key(reader, entry, key, tuple(DEPTH_KINDS))
+        if DEPTH_KINDS[kind].takes == "serial":
+            if value is not None and _serial(reader, value, f"{key}.{kind}") != serials[name]:
+                raise reader.error(f"{key}.{kind}", f"serial {show(value)} is not the rig file's "
+                                                    f"{serials[name]!r} (write '{kind}')")
+            sources[name] = DepthSource(kind, serials[name])
+        else:
+            sources[name] = DepthSource(kind, serials[name], base / reader.value(value, f"{key}.{kind}", _str()))
     return sources
 
 

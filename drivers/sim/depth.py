@@ -20,13 +20,13 @@ import math
 from collections.abc import AsyncIterator, Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import structlog
 import trimesh
 
-from drivers.depth.base import DepthFrame
+from drivers.depth.base import DepthCamera, DepthFrame
 from drivers.depth.errors import InfraredUnavailable
 from drivers.sim.trapezoid import Trajectory, position_move
 from planner.poses import depth_camera_pose
@@ -309,6 +309,21 @@ class SimulatedDepthCamera:
             raise ValueError(f"depth camera {self.id}: the infrared source gave a {image.shape} {image.dtype} "
                              f"image, not {wanted} uint8")
         return image
+
+
+class DepthTwin(Protocol):
+    """How the simulated rig makes a depth camera kind's twin: the rig camera, its model, the scene
+    it sees, the beam's angle over time, a seed and (for calibration) its infrared pictures."""
+
+    def __call__(self, camera: DepthCameraConfig, model: DepthCameraModel, subject: DepthScene,
+                 beam_angle_deg: Callable[[float], float], *, seed: int,
+                 infrared_source: Callable[[int, float], np.ndarray] | None) -> DepthCamera: ...
+
+
+DEPTH_TWINS: dict[str, DepthTwin] = {"realsense": SimulatedDepthCamera}
+"""Depth camera kind (drivers/depth/kinds.py) -> its twin, which the simulated rig streams from
+(``SimOptions.depth_kind``). The ``recording`` kind plays a file: its twin is the recording
+:func:`record_sweep` writes of a simulated sweep (the loopback rig plays those)."""
 
 
 def sweep_frame_times(rig: Rig) -> np.ndarray:
