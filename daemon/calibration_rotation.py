@@ -29,6 +29,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import structlog
 
@@ -383,8 +384,6 @@ class CalibrationRotation(RigJob):
         return frame
 
     async def _keep_infrared(self, d: int, index: int, encoder: float, frame: Any) -> None:
-        import cv2
-
         camera = self.hw.depth_cameras[d].id
         name = f"{camera}/a{index:02d}.png"
         loop = asyncio.get_running_loop()

@@ -18,6 +18,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import structlog
 
@@ -89,8 +90,6 @@ class SweepSettings:
 def board_sharpness(path: Path, width_share: float, phone: str) -> float:
     """Sharpness of the centre square of a picture file whose side is ``width_share`` of the
     picture's width (at most its shorter side)."""
-    import cv2
-
     grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if grey is None:
         raise SweepPictureError(phone, path)

@@ -138,7 +138,7 @@ enumeration, comes with the daemon's own bring-up)."""
 def serve(requests: Any, answers: Any) -> None:
     """The probe process: one context for its life, one answer line per request line."""
     try:
-        import pyrealsense2 as rs
+        import pyrealsense2 as rs  # the SDK: in the probe process, never the daemon's
     except ImportError as exc:
         rs, missing = None, f"{exc}"
     context = rs.context() if rs is not None else None

@@ -27,7 +27,9 @@ import structlog
 import trimesh
 
 from drivers.depth.base import DepthCamera, DepthFrame
+from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
 from drivers.depth.errors import InfraredUnavailable
+from drivers.depth.recorder import DepthRecorder
 from drivers.sim.trapezoid import Trajectory, position_move
 from planner.poses import depth_camera_pose
 from planner.rig import DepthCamera as DepthCameraConfig
@@ -55,7 +57,7 @@ class DepthScene:
     """
 
     def __init__(self, mesh: trimesh.Trimesh, *, floor: bool = True) -> None:
-        import open3d as o3d
+        import open3d as o3d  # seconds to import: only where a scene is ray cast
 
         self._o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
@@ -432,9 +434,6 @@ def record_sweep(
     ``CAMERA.db3`` (RealSense recording, pyrealsense2's recorder) and ``CAMERA.beam.json`` (the
     beam angle of each frame). Camera i's noise seed is ``seed * 100 + i``; source: provenance
     stored in each beam-angle file. Returns the recordings' paths in rig order."""
-    from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
-    from drivers.depth.recorder import DepthRecorder
-
     paths = []
     for i, camera in enumerate(rig.depth_cameras):
         if camera_ids is not None and camera.id not in camera_ids:
