@@ -22,8 +22,10 @@ import structlog
 
 from daemon.beam import BeamTracker
 from daemon.clocksync import ClockSync, EncoderTrace, exposure_angle
+from daemon.devices import Drive, Phone
 from daemon.errors import BeamTimeout, CaptureMissed
 from daemon.tasks import stop_tasks
+from drivers.errors import DeviceGone
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, MotionProfile, OutsideProfile, move_duration
 
@@ -83,11 +85,6 @@ class TriggerLatency:
         self.samples += 1
 
 
-def _disconnected(exc: BaseException) -> bool:
-    names = {cls.__name__ for cls in type(exc).__mro__}
-    return bool(names & {"PhoneDisconnected", "ConnectionLost", "ConnectionError", "EOFError"})
-
-
 @dataclass(frozen=True)
 class _Target:
     angle_index: int
@@ -99,7 +96,7 @@ class CaptureRunner:
     """Executes a compiled :class:`CaptureSchedule` on the beam drive and the phones.
 
     Args:
-        phones: one ``PhoneCamera`` per rig phone, connected.
+        phones: one phone per rig phone, connected.
         clocks: one clock mapping (sensor ns -> loop s) per phone.
         latency: one :class:`TriggerLatency` per phone (measured before the rotation).
         on_capture: called with every captured record (the store pulls it in the background).
@@ -126,9 +123,9 @@ class CaptureRunner:
         self,
         rig: Rig,
         schedule: CaptureSchedule,
-        drive: Any,
+        drive: Drive,
         tracker: BeamTracker,
-        phones: Sequence[Any],
+        phones: Sequence[Phone],
         clocks: Sequence[ClockSync],
         latency: Sequence[TriggerLatency],
         *,
@@ -436,7 +433,7 @@ class CaptureRunner:
             return loop.time()
 
     def _fail(self, c: int, record: CaptureRecord, exc: BaseException, pass_name: str) -> None:
-        if _disconnected(exc):
+        if isinstance(exc, DeviceGone):  # reconnected before its retake
             self.gone[c] = True
         record.status = "missing"
         record.capture_pass = pass_name

@@ -17,7 +17,8 @@ this PC reaches them, and nothing else::
     capture_agent: /opt/tbp-rig/agent/tbp-capture-agent.jar   # optional: pushed to phones without it
     timeouts: {open_s: 5.0, phone_authorisation_s: 60.0, reprobe_s: 2.0}   # optional
 
-``{usb: SERIAL}`` and ``{realsense: SERIAL}`` are accepted when SERIAL is the rig file's. Relative
+The depth cameras' kinds are drivers/depth/kinds.py's. ``{usb: SERIAL}`` and ``{realsense: SERIAL}``
+are accepted when SERIAL is the rig file's. Relative
 paths are relative to the hardware file. Unknown keys, missing devices and out-of-range values
 are refused with :class:`HardwareConfigError` naming the file, the key and what is allowed. The
 keys, forms and defaults are the hardware file's table (planner/schema/tables.py), its depth
@@ -31,17 +32,20 @@ from pathlib import Path
 from typing import Any
 
 from daemon.errors import DaemonError
+from drivers.depth.base import DepthSource
+from drivers.depth.kinds import DEPTH_KINDS as DEPTH_DRIVERS
 from planner.rig import Rig, RigConfigError
 from planner.schema import Kind, Nullable, Serial, Text, key_name, show
 from planner.schema.tables import HOST_PORT, PHONE_LINKS, hardware_file
 
 HARDWARE_FILE = "hardware.yaml"
 DEPTH_KINDS: dict[str, Kind] = {
-    "realsense": Kind(Nullable(Serial()), bare=True,
-                      doc="the RealSense with the rig file's serial; {realsense: SERIAL} only with that serial"),
-    "recording": Kind(Text(), doc="play a recorded sweep: FILE.db3 with FILE.beam.json beside it"),
+    name: Kind(Nullable(Serial()), bare=True, doc=kind.doc) if kind.takes == "serial" else Kind(Text(), doc=kind.doc)
+    for name, kind in DEPTH_DRIVERS.items()
 }
-"""How a depth camera may be reached: kind -> the form of its value in the hardware file."""
+"""How a depth camera may be reached: the registry's kinds (drivers/depth/kinds.py) -> the form of
+their value in the hardware file: a kind that names a serial is written bare or with the rig file's
+serial, one that names a file with its path."""
 HARDWARE = hardware_file(DEPTH_KINDS)
 MAX_FILE_BYTES = HARDWARE.max_bytes
 
@@ -91,18 +95,6 @@ class PhoneLink:
     @property
     def address(self) -> str:
         return f"usb:{self.serial}" if self.usb else f"tcp:{self.host}:{self.port}"
-
-
-@dataclass(frozen=True)
-class DepthSource:
-    """A live RealSense by serial, or a recorded sweep (``.db3`` with its ``.beam.json``)."""
-
-    serial: str
-    recording: Path | None = None
-
-    @property
-    def address(self) -> str:
-        return f"realsense:{self.serial}" if self.recording is None else f"recording:{self.recording}"
 
 
 @dataclass(frozen=True)
@@ -220,15 +212,17 @@ def _phones(path: str, entries: dict[str, Any], rig: Rig) -> dict[str, PhoneLink
 
 
 def _depth(path: str, entries: dict[str, Any], rig: Rig, base: Path) -> dict[str, DepthSource]:
+    """Each depth camera's kind (drivers/depth/kinds.py) and what it names: the rig file's serial,
+    or a file (relative to the hardware file)."""
     serials = {c.id: c.serial for c in rig.depth_cameras}
     sources = {}
     for name, (kind, value) in _by_id(path, entries, "depth_cameras", list(serials)).items():
-        if kind == "realsense":
+        if DEPTH_DRIVERS[kind].takes == "serial":
             if value is not None and value != serials[name]:
-                raise HardwareConfigError(path, f"depth_cameras.{name}.realsense", f"serial {key_name(value)} is not the "
-                                                                                    f"rig file's {serials[name]!r} "
-                                                                                    "(write 'realsense')")
-            sources[name] = DepthSource(serials[name])
+                raise HardwareConfigError(path, f"depth_cameras.{name}.{kind}", f"serial {key_name(value)} is not "
+                                                                                f"the rig file's {serials[name]!r} "
+                                                                                f"(write '{kind}')")
+            sources[name] = DepthSource(kind, serials[name])
         else:
-            sources[name] = DepthSource(serials[name], base / value)
+            sources[name] = DepthSource(kind, serials[name], base / value)
     return sources

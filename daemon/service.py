@@ -17,6 +17,7 @@ from typing import Any
 
 import structlog
 
+from daemon.control import ControlServer
 from daemon.controller import RigController
 from daemon.errors import ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
@@ -25,13 +26,7 @@ from daemon.notify import SystemdNotifier, run_watchdog
 from daemon.states import SCAN_STATES
 from daemon.store import new_scan_id
 from daemon.tasks import stop_tasks
-
-
-def _led(name: str) -> Any:
-    from drivers.panel import StatusLed
-
-    return StatusLed[name]
-
+from drivers.panel import PanelEvent, StatusLed
 
 log = structlog.get_logger("daemon.service")
 
@@ -80,8 +75,6 @@ class RigService:
                         **counts)
         ready = await ctl.bringup.once()
         if self.socket_path is not None:
-            from daemon.control import ControlServer
-
             self._server = ControlServer(self.socket_path, self, group=self.group)
             await self._server.start()
         for server in self.attached:
@@ -105,7 +98,7 @@ class RigService:
             self.notifier.status(summary)
             log.warning("daemon_not_ready", missing=[d.as_dict() for d in ctl.bringup.missing()])
             if ctl.hw.panel is not None and ctl.bringup.devices["panel"].ok:
-                self._spawn(ctl.hw.panel.set_status(_led("FAULT")), "panel-not-ready")
+                self._spawn(ctl.hw.panel.set_status(StatusLed.FAULT), "panel-not-ready")
             return
         state = ctl.machine.state.value
         text = f"{state}; {len(self.recovered)} interrupted scan(s) recovered"
@@ -205,8 +198,6 @@ class RigService:
 
     async def _panel_events(self) -> None:
         """Start, stop and e-stop from the operator panel."""
-        from drivers.panel import PanelEvent
-
         ctl = self.controller
         async for event in ctl.hw.panel.events():
             log.info("panel_event", panel_event=event.name)

@@ -414,7 +414,7 @@ class ScanFolder:
 
     def read_mesh(self) -> Any:
         """mesh.ply as a ``trimesh.Trimesh`` (mm); ScanFileError if the scan has none."""
-        import trimesh
+        import trimesh  # a second to import: only readers of a scan's mesh need it
 
         path = self.listed("mesh")
         if path is None:

@@ -60,7 +60,7 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
-        # As the daemon's worker does (daemon/compute.py): compile the planner's loops, or load
+        # As the daemon's worker does (daemon/worker.py): compile the planner's loops, or load
         # them from numba's cache, while the rig starts, not in the first plan between the sweep
         # and the capture (0.4-0.6 s of the 2 s there).
         executor.submit(warm_up, rig)
@@ -101,13 +101,13 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
 
-    Compute runs in a worker process as on the real rig (daemon/compute.py): in a thread, the
+    Compute runs in a worker process as on the real rig (daemon/worker.py): in a thread, the
     TSDF extraction held the interpreter lock the console's events and the panel wait for."""
-    from daemon.compute import compute_pool
     from daemon.logs import follow_machine
     from daemon.looplag import freeze_startup_heap
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
+    from daemon.worker import compute_pool
     from planner.plan import load_subject_mesh
 
     rig = load_rig(config or DEFAULT_RIG_PATH)

@@ -129,6 +129,7 @@ class MockPhone:
     def __init__(self, serial: str, *, seed: int = 0, latency_s: float = 0.04, jitter_s: float = 0.002,
                  clock_offset_s: float = 1234.5, lens_s: float = 0.03) -> None:
         self.serial = serial
+        self.name = f"phone-{serial}"
         self.rng = np.random.default_rng(seed)
         self.latency_s = latency_s
         self.jitter_s = jitter_s
@@ -153,7 +154,7 @@ class MockPhone:
         if not self.connected:
             raise PhoneDisconnected(self.serial, "ready", "link lost")
 
-    async def connect(self) -> None:
+    async def connect(self, timeout_s: float | None = None) -> None:
         if not self.reconnectable:
             raise PhoneDisconnected(self.serial, "connecting", "connection refused")
         self.connected = True
@@ -164,6 +165,9 @@ class MockPhone:
         self.focus_mm = focus_mm
         now = asyncio.get_running_loop().time()
         return FocusDone(1000.0 / focus_mm, focus_mm, self._device_ns(now))
+
+    async def set_lens_diopters(self, diopters: float) -> FocusDone:
+        return await self.set_focus_mm(1000.0 / diopters)
 
     async def capture(self) -> CaptureDone:
         self._check()

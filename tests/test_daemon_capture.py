@@ -20,8 +20,8 @@ async def _run(phones: list[MockPhone], *, speed_error: float = 0.0,
                angles_deg: np.ndarray | None = None) -> tuple[CaptureRunner, MockDrive]:
     drive = MockDrive(speed_error=speed_error)
     await drive.connect()
-    tracker = BeamTracker(drive)
-    await tracker.start()
+    tracker = BeamTracker()
+    await tracker.start(drive)
     profile = rig_profile(RIG)
     await drive.move_to(profile.start_deg, 40.0, 60.0)
     prep = await prepare_phones(phones, RIG)

@@ -442,6 +442,7 @@ def _bound_writes(bus: can.BusABC, timeout_s: float, name: str) -> None:
     Raises:
         CanBusError: the installed python-can keeps them where this port cannot reach.
     """
+    # python-can's serial and bridge backends (0.2 s to import), only for a port that uses one
     from can.interfaces.slcan import slcanBus
     from can.interfaces.socketcand import SocketCanDaemonBus
 

@@ -115,6 +115,7 @@ class PhoneCamera:
                  key: AdbKey, agent_jar: Path | None = None) -> None:
         self.transport_factory = transport_factory
         self.phone = phone
+        self.name = phone.id
         self.serial = phone.serial
         self.focus_table = focus_table
         self.key = key
@@ -135,19 +136,21 @@ class PhoneCamera:
         return f"PhoneCamera({self.phone.id}, {self.serial}, {self.state})"
 
     # ---------------------------------------------------------------- connect
-    async def connect(self) -> PhoneInfo:
-        """Link, authenticate, start the agent and say hello; reconnects if already connected."""
+    async def connect(self, timeout_s: float | None = None) -> PhoneInfo:
+        """Link, authenticate, start the agent and say hello, within ``timeout_s`` (None:
+        CONNECT_TIMEOUT_S; a first connection waits for someone to accept the USB debugging
+        prompt); reconnects if already connected."""
+        limit = self.CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
         await self._teardown()
         self.state = "connecting"
         self._lost = None
         try:
-            async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
+            async with asyncio.timeout(limit):
                 info = await self._bring_up()
         except TimeoutError:
             await self._teardown()
             self.state = "disconnected"
-            raise PhoneDisconnected(self.serial, "connecting",
-                                    f"not ready within {self.CONNECT_TIMEOUT_S:g} s") from None
+            raise PhoneDisconnected(self.serial, "connecting", f"not ready within {limit:g} s") from None
         except AdbError as exc:
             await self._teardown()
             self.state = "disconnected"
