@@ -194,17 +194,22 @@ class ScanSteps:
         return Next("plan feasible, beam at the run-up", {"poses": rig.n_poses})
 
     async def capturing(self) -> Next | None:
-        """The capture rotation; RETAKING next when poses were missed."""
+        """The capture rotation; RETAKING next when poses of phones not dropped were missed."""
         scan, prep = self.scan, self.prep
         assert prep is not None and self.schedule is not None
         self.runner = CaptureRunner(
             scan.rig, self.schedule, scan.hw.drive, scan.tracker, scan.hw.phones, prep.clocks, prep.latency,
             on_capture=self.captured, progress=scan.machine.progress, gone=[not ready for ready in prep.ready],
+            on_drop=self._phone_dropped,
         )
         await self.runner.main_pass()
         scan.mark("capture_end")
-        missed = sum(r.status != "captured" for r in self.runner.records)
+        missed = len(self.runner.retakeable())
         return Next("missed captures to retake", {"missed": missed}) if missed else None
+
+    def _phone_dropped(self, camera: str, failures: int, why: str) -> None:
+        """A phone is dropped for the rest of the scan: the scan's event log says so."""
+        self.scan.folder.log_event("phone_dropped", camera=camera, failures=failures, error=why)
 
     async def retaking(self) -> None:
         """A partial rotation over the missed poses, for the phones that are back."""
