@@ -121,9 +121,9 @@ class CaptureRunner:
     DROP_AFTER_FAILURES = 3
     """Failed captures in a row that drop a phone for the rest of the scan. A healthy phone
     misses one pose now and then (a slow answer, the lens late once), and the retake pass takes
-    it again; three in a row (about 2.5 s of rotation at the sides) means it stopped answering: a
-    frozen camera, a lost link. Retaking a frozen phone's poses cost the patient a slow partial
-    rotation at CAPTURE_TIMEOUT_S per pose. Counted: no answer within its timeout, an error
+    it again; three in a row (2.5 to 7.5 s of rotation) means it stopped answering: a frozen
+    camera, a lost link. Retaking a frozen phone's poses would cost the patient a slow partial
+    rotation, CAPTURE_TIMEOUT_S waited out at each. Counted: no answer within its timeout, an error
     from the phone, its link lost. Not counted: a trigger the beam's timing missed with the
     phone answering (CaptureMissed, BeamTimeout from the beam's side). A capture resets it."""
 

@@ -209,7 +209,10 @@ class ScanSteps:
 
     def _phone_dropped(self, camera: str, failures: int, why: str) -> None:
         """A phone is dropped for the rest of the scan: the scan's event log says so."""
-        self.scan.folder.log_event("phone_dropped", camera=camera, failures=failures, error=why)
+        try:
+            self.scan.folder.log_event("phone_dropped", camera=camera, failures=failures, error=why)
+        except StoreError as exc:
+            self._store_failed(exc)
 
     async def retaking(self) -> None:
         """A partial rotation over the missed poses, for the phones that are back."""
@@ -300,8 +303,7 @@ class ScanSteps:
         scan = self.scan
         assert self.pulls is not None and self.images is not None
         if self.pulls.fatal is not None and scan.store_error is None:
-            scan.store_error = self.pulls.fatal
-            scan.abort(AbortCause.of_error(AbortSource.STORE, "store", self.pulls.fatal))
+            self._store_failed(self.pulls.fatal)
         try:
             # The pull's verification rewrites the manifest; one rewrite per image, not two.
             scan.folder.update_image(
@@ -314,9 +316,13 @@ class ScanSteps:
             self.pulls.submit(self.images.pull(record.camera_index, record.angle_index, record.phone_path or "",
                                                scan.hw.phones[record.camera_index].pull,
                                                expected_size=record.size_bytes))
-        except StoreError as exc:  # the disk cannot take the scan: stop the rotation, keep the rest
-            scan.store_error = exc
-            scan.abort(AbortCause.of_error(AbortSource.STORE, "store", exc))
+        except StoreError as exc:
+            self._store_failed(exc)
+
+    def _store_failed(self, error: StoreError) -> None:
+        """The disk cannot take the scan: stop the rotation, keep the rest."""
+        self.scan.store_error = error
+        self.scan.abort(AbortCause.of_error(AbortSource.STORE, "store", error))
 
 
 def plan_summary(plan_json: dict[str, Any]) -> dict[str, Any]:
