@@ -122,11 +122,11 @@ def test_the_planner_is_warmed_up_before_the_first_plan(tmp_path: Path, monkeypa
     planner's loops first, so the first plan does not compile them between the sweep and the capture."""
     import threading
 
-    import daemon.scan
+    import daemon.scan_steps
     import sim.run
 
     calls: list[tuple[str, str]] = []
-    warm_up, plan_capture = sim.run.warm_up, daemon.scan.plan_capture
+    warm_up, plan_capture = sim.run.warm_up, daemon.scan_steps.plan_capture
 
     def warming(rig):
         calls.append(("warm_up", threading.current_thread().name))
@@ -137,7 +137,7 @@ def test_the_planner_is_warmed_up_before_the_first_plan(tmp_path: Path, monkeypa
         return plan_capture(*args, **kwargs)
 
     monkeypatch.setattr(sim.run, "warm_up", warming)
-    monkeypatch.setattr(daemon.scan, "plan_capture", planning)
+    monkeypatch.setattr(daemon.scan_steps, "plan_capture", planning)
     assert _scan(tmp_path).outcome is ScanOutcome.COMPLETED
     assert [name for name, _ in calls][:2] == ["warm_up", "plan"]
     assert calls[0][1] == calls[1][1] and calls[0][1].startswith("compute")
