@@ -297,7 +297,8 @@ async function renderMarks() {
   const earlier = scans.filter((s) => s.folder < folder && s.has_mesh);
   const select = el("select", { id: "previous" }, el("option", { value: "" }, "— none —"));
   for (const s of earlier) {
-    const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}`);
+    const ended = ending(s);
+    const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}${ended.done ? "" : ` · ${ended.label}`}`);
     if (s.folder === m.previous_scan) opt.selected = true;
     select.append(opt);
   }
