@@ -85,7 +85,10 @@ def _summary(report: Any) -> None:
     """The scan's figures against the rig goals, one line each."""
     lines = [
         f"outcome {report.outcome.value}" + (f": {report.reason}" if report.reason else ""),
-        f"images {report.captured} captured, {report.missing} missing, {report.retaken} retaken",
+        (f"images {report.captured} captured, {report.verified} in the folder, {report.missing} missing, "
+         f"{report.retaken} retaken"),
+        *(f"phone {d['camera']} dropped after {d['failures']} failed captures in a row: {d['first_error']}"
+          for d in report.dropped_phones if not d["rejoined"]),
         f"max |exposure angle - planned| {report.max_abs_angle_error_deg or 0.0:.3f} deg (goal <= 0.2)",
         f"lens late {report.lens_late}; min beam speed / profile {report.min_speed_ratio or 0.0:.4f}",
         f"sweep end -> capture start {report.sweep_to_capture_s:.2f} s (goal <= 2 s); "

@@ -40,9 +40,16 @@ class ScanState(enum.Enum):
 
 
 class ScanOutcome(enum.Enum):
-    """How a job ended, a scan or a calibration rotation (recorded in its folder)."""
+    """How a job ended, a scan or a calibration rotation (recorded in its folder).
+
+    COMPLETED: every step ran and every planned image is in the folder. PARTIAL: every step ran
+    (the rotation and its retakes finished) but planned images are missing (a scan's report
+    counts them per phone and reason). ABORTED: stopped by the operator, the daemon's stop or
+    an error. FAULTED: stopped by the safety latch.
+    """
 
     COMPLETED = "COMPLETED"
+    PARTIAL = "PARTIAL"
     ABORTED = "ABORTED"
     FAULTED = "FAULTED"
 

@@ -51,6 +51,7 @@ from daemon.manifest import (
     Manifest,
     ManifestError,
     ManifestRenderer,
+    MissingReason,
     ScanEnd,
     json_bytes,
     json_safe,
@@ -328,7 +329,9 @@ class ScanFolder:
         for name, value in changes.items():
             if not hasattr(image, name):
                 raise StoreError(self.path, f"image record has no field {name!r}")
-            setattr(image, name, ImageStatus(value) if name == "status" else value)
+            if value is not None and name in _TYPED:
+                value = _TYPED[name](value)
+            setattr(image, name, value)
         if save:
             self.save()
         return image
@@ -347,8 +350,9 @@ class ScanFolder:
         return self.update_image(camera_index, angle_index, **changes)
 
     def record_failure(self, camera_index: int, angle_index: int, error: str, *,
-                       status: ImageStatus = ImageStatus.FAILED) -> ImageRecord:
-        return self.update_image(camera_index, angle_index, status=status, error=error)
+                       status: ImageStatus = ImageStatus.FAILED,
+                       reason: MissingReason = MissingReason.PULL_FAILED) -> ImageRecord:
+        return self.update_image(camera_index, angle_index, status=status, error=error, missing_reason=reason)
 
     def check(self) -> list[str]:
         """Re-read the folder against its manifest; returns the problems found (none: consistent).
@@ -429,7 +433,9 @@ class ScanFolder:
     def finish(self, state: ScanEnd, causes: Sequence[Cause] = ()) -> None:
         """End the scan: planned images become missing; the manifest leaves 'in progress'.
 
-        ``causes``: why it ended early (none for a complete scan); ``reason`` is their text.
+        ``causes``: why it ended early (none for a complete scan); ``reason`` is their text. A
+        scan asked to end ``complete`` with planned images not in the folder ends ``partial``,
+        its reason the missing images per phone (a complete scan has every image).
         Blocking (what the background queued is waited for, the last manifest written here):
         on the event loop of a real-time scan, :meth:`close` instead.
         """
@@ -470,11 +476,16 @@ class ScanFolder:
     def _end(self, state: ScanEnd, causes: Sequence[Cause]) -> None:
         for image in self.manifest.images:
             if image.status is ImageStatus.PLANNED:
+                image.missing_reason = image.why_missing()
                 image.status = ImageStatus.MISSING
                 image.error = image.error or f"not captured: scan ended {state.value}"
+            image.missing_reason = image.why_missing()
+        missing = self.manifest.missing_summary(ended=True)
+        if state is ScanEnd.COMPLETE and missing is not None:
+            state = ScanEnd.PARTIAL
         self.manifest.state = state
         self.manifest.causes = list(causes)
-        self.manifest.reason = "; ".join(map(str, causes)) or None
+        self.manifest.reason = "; ".join(map(str, causes)) or (missing if state is ScanEnd.PARTIAL else None)
         self.manifest.in_progress = False
         self.manifest.ended_utc = utc_stamp()
 
@@ -631,13 +642,19 @@ def read_folder(path: Path | str, *, writer: AtomicWriter | None = None) -> Scan
     return ScanFolder(path, Manifest.from_dict(data, manifest), writer or AtomicWriter())
 
 
+_TYPED: dict[str, Any] = {"status": ImageStatus, "missing_reason": MissingReason}
+"""Image fields held as enums (update_image takes their values too)."""
+
+
 def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:
     for image in images:
         if image.status is ImageStatus.PLANNED:
             image.status = ImageStatus.MISSING
             image.error = "not captured: scan interrupted"
+            image.missing_reason = MissingReason.NOT_REACHED
         elif image.status is ImageStatus.CAPTURED:
             image.error = "not pulled from the phone: scan interrupted"
+            image.missing_reason = MissingReason.NOT_PULLED
         elif image.status is ImageStatus.PULLED:
             path = folder.path / (image.file or "")
             ok = (image.file and path.is_file() and path.stat().st_size == image.size_bytes
@@ -647,3 +664,4 @@ def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:
             else:
                 image.status = ImageStatus.FAILED
                 image.error = "pulled file does not match its size and checksum after interruption"
+                image.missing_reason = MissingReason.PULL_FAILED

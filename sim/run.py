@@ -40,7 +40,8 @@ def progress_printer(out: TextIO) -> Callable[[StatusEvent], None]:
         elif event.cause in ("captured",) and event.data.get("captured", 0) % 48 == 0:
             print(f"[{event.time_s:8.2f} s] {'':<14} {event.data['captured']} images captured",
                   file=out, flush=True)
-        elif event.cause in ("capture_missed", "retake_started", "phone_reconnected"):
+        elif event.cause in ("capture_missed", "retake_started", "phone_reconnected", "phone_dropped",
+                             "phone_rejoined"):
             print(f"[{event.time_s:8.2f} s] {'':<14} {event.cause} {event.data}", file=out, flush=True)
 
     return show

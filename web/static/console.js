@@ -46,16 +46,28 @@ function showStatus(s) {
   showLast(s.last_scan);
 }
 
+// The last scan's outcome in colour (COMPLETED green, PARTIAL yellow, ABORTED orange, FAULTED
+// red), its images, and for each phone the images missing and why; phones dropped are named.
 function showLast(last) {
   if (!last) { $("last").replaceChildren(); return; }
   const name = last.folder.split("/").pop();
-  $("last").replaceChildren(el("b", {}, "Last scan "), `${last.scan_id}: ${last.outcome.toLowerCase()}, ${last.captured} captured, ${last.missing} missing `,
+  const phones = Object.entries(last.missing_by_phone || {}).map(([camera, reasons]) => el("li", {},
+    `${camera}: ${Object.values(reasons).reduce((a, b) => a + b, 0)} missing (`,
+    Object.entries(reasons).map(([why, n]) => `${n} ${why.replace("_", " ")}`).join(", "), ")"));
+  const dropped = (last.dropped_phones || []).filter((d) => !d.rejoined)
+    .map((d) => el("li", {}, `${d.camera} dropped after ${d.failures} failed captures in a row (${d.pass_name} pass): ${d.first_error}`));
+  $("last").replaceChildren(el("b", {}, "Last scan "), `${last.scan_id} `,
+    el("span", { class: `pill ${last.outcome}`, id: "last-outcome" }, last.outcome),
+    ` ${last.verified} of ${last.verified + last.missing} images in the folder, ${last.missing} missing `,
     el("a", { id: "report-link", href: `/scans/${encodeURIComponent(name)}/report/` }, "QA report"), " · ",
-    el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"));
+    el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"),
+    last.reason ? el("div", { class: "why" }, last.reason) : null,
+    phones.length || dropped.length ? el("ul", { id: "last-missing", class: "why" }, ...phones, ...dropped) : null);
 }
 
 function logLine(e) {
-  const line = `${fmt(e.time_s, 2).padStart(9)} s  ${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}`;
+  const about = e.data && e.data.camera ? ` ${e.data.camera}${e.data.error ? `: ${e.data.error}` : ""}` : "";
+  const line = `${fmt(e.time_s, 2).padStart(9)} s  ${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}${about}`;
   const log = $("log");
   log.prepend(el("div", {}, line));
   while (log.childElementCount > 200) log.lastChild.remove();
