@@ -50,13 +50,20 @@ public class JsonTest {
     public void nestingIsBounded() throws Exception {
         StringBuilder ok = new StringBuilder();
         StringBuilder deep = new StringBuilder();
-        for (int i = 0; i < Json.MAX_DEPTH - 1; i++) {
+        for (int i = 0; i < Json.MAX_DEPTH; i++) {
             ok.append('[');
         }
-        for (int i = 0; i < Json.MAX_DEPTH - 1; i++) {
+        ok.append('1');
+        for (int i = 0; i < Json.MAX_DEPTH; i++) {
             ok.append(']');
         }
         Json.parse(ok.toString());
+        try {
+            Json.parse("[" + ok + "]");
+            fail("accepted " + (Json.MAX_DEPTH + 1) + " nested arrays");
+        } catch (Json.SyntaxError expected) {
+            assertEquals(true, expected.getMessage().contains("nested deeper"));
+        }
         for (int i = 0; i < 100_000; i++) {
             deep.append('[');
         }

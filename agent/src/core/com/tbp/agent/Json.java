@@ -9,7 +9,7 @@ import java.util.Map;
  * Strict JSON (RFC 8259) for one protocol line: objects become {@code Map<String, Object>} (the last
  * of duplicate keys wins), arrays {@code List<Object>}, integers without fraction or exponent that fit
  * a long {@code Long}, every other number {@code Double}, and true/false/null Boolean or null.
- * Nesting is limited to {@link #MAX_DEPTH} so a hostile line cannot exhaust the stack.
+ * At most {@link #MAX_DEPTH} arrays and objects may nest, so a hostile line cannot exhaust the stack.
  */
 public final class Json {
 
@@ -58,14 +58,15 @@ public final class Json {
         }
     }
 
+    /** A value inside {@code depth} arrays and objects. */
     private Object value(int depth) throws SyntaxError {
-        if (depth >= MAX_DEPTH) {
-            throw error("nested deeper than " + MAX_DEPTH);
-        }
         if (pos >= text.length()) {
             throw error("expected a value, found the end");
         }
         char c = text.charAt(pos);
+        if ((c == '{' || c == '[') && depth >= MAX_DEPTH) {
+            throw error("nested deeper than " + MAX_DEPTH);
+        }
         switch (c) {
             case '{':
                 return object(depth);
