@@ -190,6 +190,7 @@ class SimulatedAdbd:
         self.listeners: dict[str, ServiceHandler] = {}
         self.links: set[StreamMux] = set()
         self.connections = 0
+        self._sessions: set[asyncio.Task[None]] = set()
         self._rng = random.Random(seed)
 
     @staticmethod
@@ -210,9 +211,19 @@ class SimulatedAdbd:
     def reappear(self) -> None:
         self.vanished = False
 
+    async def shut_down(self) -> None:
+        """Drop every link and wait until their sessions (and what they run, the agent) have ended."""
+        for mux in list(self.links):
+            mux.transport.writer.transport.abort()
+        await asyncio.gather(*self._sessions, return_exceptions=True)
+
     # ---------------------------------------------------------------- link
     async def accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Serve one host link (socketpair or TCP) until it closes."""
+        session = asyncio.current_task()
+        if session is not None:
+            self._sessions.add(session)
+            session.add_done_callback(self._sessions.discard)
         transport = StreamTransport(reader, writer, name=self.serial)
         if self.vanished:
             writer.transport.abort()

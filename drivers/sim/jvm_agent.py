@@ -235,18 +235,18 @@ class _JvmProcess:
 
     async def _end(self, exited: asyncio.Task[int]) -> bool:
         """The shell stream ended or the process did: close stdin, wait for the exit with the clock
-        held (the agent exits by itself; a hold over HOLD_LIMIT_S kills it). True if cancelled."""
+        held (the agent exits by itself; a hold over HOLD_LIMIT_S kills it). True if cancelled
+        meanwhile: the cancellation is passed on once the agent has gone."""
         self.hold.acquire()
         cancelled = False
         assert self.proc is not None
         if self.proc.stdin is not None and not self.proc.stdin.is_closing():
             self.proc.stdin.close()
-        while not exited.done():
+        while not exited.done():  # adbd cancels its services again as it closes the link: keep waiting
             try:
                 await asyncio.wait({exited})
             except asyncio.CancelledError:
                 cancelled = True
-                self.kill("cancelled while exiting")
         self.runtime.exits.append(exited.result())
         log.info("sim_phone_agent_stopped", serial=self.phone.serial, runtime="jvm", status=exited.result())
         return cancelled

@@ -108,6 +108,7 @@ async def serve(args: argparse.Namespace) -> int:
         loop.add_signal_handler(sig, stop.set)
     async with server:
         await stop.wait()
+    await phone.shut_down()  # the host links and the agent end before the process does
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
     if follower is not None:
