@@ -19,7 +19,7 @@ final class Fakes {
     static final CameraBackend.Info INFO = new CameraBackend.Info("Fake Phone", "FAKE0001", 10.0, 1, "realtime",
             0.002, 50, 64, 48, 1e-5, 0.5, 50, 3200);
 
-    static final class Camera implements CameraBackend {
+    static class Camera implements CameraBackend {
         final ArrayDeque<Result<Focused>> focuses = new ArrayDeque<>();
         final ArrayDeque<Double> focusTargets = new ArrayDeque<>();
         final ArrayDeque<Result<Still>> captures = new ArrayDeque<>();
