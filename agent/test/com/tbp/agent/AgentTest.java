@@ -313,6 +313,18 @@ public class AgentTest {
     }
 
     @Test
+    public void bytesAfterTheClientClosedAreDropped() {
+        agent.closed(client);
+        assertTrue(send("{\"id\": 1, \"op\": \"hello\"}\n").isEmpty());
+        Fakes.Client other = new Fakes.Client();
+        agent.opened(other);
+        byte[] hello = "{\"id\": 2, \"op\": \"hello\"}\n".getBytes(StandardCharsets.UTF_8);
+        agent.received(other, hello, 0, hello.length);
+        agent.runPending();
+        assertEquals(2L, only(other.take()).get("id"));
+    }
+
+    @Test
     public void stopClosesTheClientsAndTheCamera() {
         agent.stop();
         agent.runPending();

@@ -53,7 +53,9 @@ public final class Agent {
         post(new Runnable() {
             @Override
             public void run() {
-                framer(connection);
+                if (!stopping) {
+                    connections.put(connection, new LineFramer(MAX_LINE));
+                }
             }
         });
     }
@@ -132,20 +134,12 @@ public final class Agent {
 
     // ------------------------------------------------------------------ dispatcher
 
-    private LineFramer framer(Connection connection) {
-        LineFramer framer = connections.get(connection);
-        if (framer == null) {
-            framer = new LineFramer(MAX_LINE);
-            connections.put(connection, framer);
-        }
-        return framer;
-    }
-
     private void onBytes(final Connection connection, byte[] data) {
-        if (stopping) {
+        LineFramer framer = connections.get(connection);
+        if (framer == null) {  // bytes that were on their way as the client closed
             return;
         }
-        framer(connection).feed(data, 0, data.length, new LineFramer.Sink() {
+        framer.feed(data, 0, data.length, new LineFramer.Sink() {
             @Override
             public void line(byte[] line) {
                 handle(connection, line);
