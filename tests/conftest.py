@@ -25,6 +25,15 @@ def _structlog_defaults() -> Iterator[None]:
 
 
 @pytest.fixture(scope="session")
+def agent_jvm_jar(request: pytest.FixtureRequest):
+    """The capture agent's JVM build, built once per version of agent/ (tests/agent_jar.py);
+    the test is skipped when no JDK is installed."""
+    from tests.agent_jar import session_jar
+
+    return session_jar(request)
+
+
+@pytest.fixture(scope="session")
 def web_store(tmp_path_factory: pytest.TempPathFactory):
     """A store with one small simulated scan (capsule subject, QA report), shared by the web tests."""
     from analysis.qa_report import generate_report

@@ -123,6 +123,7 @@ class PhoneCamera:
         self.agent_jar = Path(jar) if jar else None
         self.state = "disconnected"
         self.info: PhoneInfo | None = None
+        self.agent_pushed_bytes = 0  # the jar pushed by the last connect(), 0 when the phone's copy was used
         self.adb: AdbConnection | None = None
         self._agent_shell: AdbStream | None = None
         self._agent: AdbStream | None = None
@@ -192,6 +193,7 @@ class PhoneCamera:
                          float(answer.number("min_focus_diopters", device=self.serial)), quality, source)
 
     async def _install_agent(self, adb: AdbConnection) -> None:
+        self.agent_pushed_bytes = 0
         async with await adb.sync() as sync:
             remote = await sync.stat(protocol.AGENT_PATH)
             if self.agent_jar is None:
@@ -205,6 +207,7 @@ class PhoneCamera:
                 raise AgentMissing(self.serial, "connecting", f"cannot read {self.agent_jar}: {exc.strerror}") from exc
             if (remote.size, remote.mtime) != (len(jar), mtime):  # the phone's copy is another build
                 await sync.push(jar, protocol.AGENT_PATH, mode=0o644, mtime=mtime)
+                self.agent_pushed_bytes = len(jar)
                 self._log.info("phone_agent_pushed", serial=self.serial, bytes=len(jar))
 
     async def _start_agent(self, adb: AdbConnection) -> None:
