@@ -17,6 +17,7 @@ from typing import Any
 
 import structlog
 
+from daemon.clinic.patient import PatientError, ScanSubject
 from daemon.controller import RigController
 from daemon.errors import ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
@@ -238,10 +239,20 @@ class RigService:
         status["loop_lag"] = self.lag.summary()
         return status
 
+    SCAN_ARGS = ("scan_id", *ScanSubject.ARGS)
+
     async def scan(self, **args: Any) -> dict[str, Any]:
+        """Start a scan; ``args``: optional ``scan_id`` and the patient it is for (``patient_id``,
+        ``patient_name`` as ``Family^Given``, ``birth_date``, ``sex``, ``accession_number``,
+        ``study_instance_uid``), kept in the manifest only. An unknown argument or a patient field
+        that is not valid refuses the scan (PatientError names the field, never the value)."""
+        unknown = sorted(set(args) - set(self.SCAN_ARGS))
+        if unknown:
+            raise PatientError(unknown[0][:40], f"unknown scan argument; allowed: {', '.join(self.SCAN_ARGS)}")
+        subject = ScanSubject.from_args(args)
         scan_id = args.get("scan_id") or new_scan_id()
-        await self.controller.start_scan(scan_id)
-        return {"scan_id": scan_id, "state": self.controller.machine.state.value}
+        await self.controller.start_scan(scan_id, subject)
+        return {"scan_id": scan_id, "state": self.controller.machine.state.value, "for_patient": subject is not None}
 
     async def calibrate(self, **args: Any) -> dict[str, Any]:
         """Start a calibration rotation (the cuboid in place); its folder is in the answer."""

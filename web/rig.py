@@ -17,6 +17,7 @@ from typing import Any
 import structlog
 from aiohttp import web
 
+from daemon.clinic.patient import PatientError
 from daemon.control import to_jsonable
 from daemon.errors import ScanBusy
 from web import keys
@@ -85,14 +86,16 @@ async def _act(request: web.Request, action: str) -> web.Response:
         if action == "scan":
             scan_id = body.get("scan_id")
             if scan_id is not None and not isinstance(scan_id, str):
-                raise json_error(web.HTTPBadRequest, f"scan_id {scan_id!r}: a string or absent")
-            result = await service.scan(**({"scan_id": scan_id} if scan_id else {}))
+                raise json_error(web.HTTPBadRequest, f"scan_id {str(scan_id)[:40]!r}: a string or absent")
+            result = await service.scan(**{k: v for k, v in body.items() if v not in (None, "")})
         elif action == "abort":
             result = service.abort()
         else:
             result = await service.reset()
     except ScanBusy as exc:
         raise json_error(web.HTTPConflict, exc) from exc
+    except PatientError as exc:  # names the field, never the value
+        raise json_error(web.HTTPBadRequest, exc) from exc
     except web.HTTPException:
         raise
     except Exception as exc:  # the handler's typed refusal (a bad scan id, an illegal transition)
