@@ -10,7 +10,7 @@ import structlog
 from aiohttp import web
 
 from daemon.store import ScanStore
-from web import keys, login, marks, rig, scans
+from web import keys, login, marks, patients, rig, scans
 from web.access import Access
 
 STATIC = Path(__file__).with_name("static")
@@ -109,6 +109,7 @@ def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = N
     login.routes(app)
     scans.routes(app)
     marks.routes(app)
+    patients.routes(app)
     rig.routes(app)
     app.router.add_static("/static/", STATIC, follow_symlinks=False)
     app.router.add_static("/vendor/three/", THREE, follow_symlinks=False)

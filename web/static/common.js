@@ -40,3 +40,10 @@ export function el(tag, attrs = {}, ...children) {
 }
 
 export const fmt = (x, digits = 1) => (x === null || x === undefined || Number.isNaN(x) ? "–" : Number(x).toFixed(digits));
+
+// A DICOM person name "Family^Given^Middle^Prefix^Suffix" as a person reads it: "Family, Given Middle".
+export function personName(pn) {
+  const [family = "", given = "", middle = "", prefix = "", suffix = ""] = (pn || "").split("^");
+  const first = [prefix, given, middle].filter(Boolean).join(" ");
+  return [family, first].filter(Boolean).join(", ") + (suffix ? ` ${suffix}` : "");
+}
