@@ -84,7 +84,9 @@ async def _config(request: web.Request) -> web.Response:
     return web.json_response({"rig": service is not None, "writes": access.writes_enabled,
                               "token_required": access.token is not None,
                               "login_required": access.login_required,
-                              "poses": service.controller.rig.n_poses if service is not None else None})
+                              "poses": service.controller.rig.n_poses if service is not None else None,
+                              "worklist": bool(service is not None and service.site is not None
+                                               and service.site.worklist is not None)})
 
 
 def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = None,

@@ -105,6 +105,22 @@ async def _act(request: web.Request, action: str) -> web.Response:
     return web.json_response(to_jsonable(result))
 
 
+async def worklist(request: web.Request) -> web.Response:
+    """Today's worklist (the console picks a patient from it); 404 without a provider, 502 when it
+    cannot be asked (the message names the provider and the reason)."""
+    from daemon.clinic.dimse import DicomPeerError
+    from daemon.service import WorklistUnavailable
+
+    service = _service(request)
+    try:
+        return web.json_response(await service.worklist())
+    except WorklistUnavailable as exc:
+        raise json_error(web.HTTPNotFound, exc) from exc
+    except DicomPeerError as exc:
+        log.warning("worklist_failed", error=str(exc))
+        raise json_error(web.HTTPBadGateway, exc) from exc
+
+
 async def start_scan(request: web.Request) -> web.Response:
     return await _act(request, "scan")
 
@@ -120,6 +136,7 @@ async def reset(request: web.Request) -> web.Response:
 def routes(app: web.Application) -> None:
     app.router.add_get("/api/rig/status", status)
     app.router.add_get("/api/rig/events", events)
+    app.router.add_get("/api/rig/worklist", worklist)
     app.router.add_post("/api/rig/scan", start_scan)
     app.router.add_post("/api/rig/abort", abort)
     app.router.add_post("/api/rig/reset", reset)

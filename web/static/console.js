@@ -1,6 +1,6 @@
 // The operator console: the daemon's status and event stream; START / ABORT / RESET go to the
 // same control handler as the panel's buttons and `tbp scan` / `tbp abort` / `tbp reset`.
-import { getJSON, send, el, fmt } from "/static/common.js";
+import { getJSON, send, el, fmt, personName } from "/static/common.js";
 
 const $ = (id) => document.getElementById(id);
 const hooks = { events: [], status: null };
@@ -87,9 +87,52 @@ function connect() {
   source.addEventListener("error", () => { $("link").textContent = "reconnecting…"; });
 }
 
+// The patient the next START is for: a worklist row (one click) or typed fields.
+let picked = null;
+function patientArgs() {
+  if (picked) return picked;
+  const typed = { patient_id: $("patient-id").value.trim(), patient_name: $("patient-name").value.trim(), birth_date: $("birth-date").value.trim() };
+  return typed.patient_id || typed.patient_name ? typed : {};
+}
+function showChosen() {
+  const p = patientArgs();
+  $("chosen").textContent = p.patient_id || p.patient_name
+    ? `START scans for ${personName(p.patient_name)} (${p.patient_id || "no id"})${p.accession_number ? `, order ${p.accession_number}` : ""}`
+    : "No patient chosen: START scans for nobody.";
+}
+["patient-id", "patient-name", "birth-date"].forEach((id) => $(id).addEventListener("input", () => {
+  picked = null;
+  document.querySelectorAll("#worklist tr").forEach((r) => r.classList.remove("picked"));
+  showChosen();
+}));
+
+async function loadWorklist() {
+  $("worklist-note").textContent = "Asking the worklist…";
+  const rows = document.querySelector("#worklist tbody");
+  try {
+    const { items, problems } = await getJSON("/api/rig/worklist");
+    rows.replaceChildren(...items.map((item) => {
+      const row = el("tr", { class: "pick" }, el("td", {}, el("b", {}, personName(item.patient_name))), el("td", {}, item.patient_id),
+        el("td", {}, item.birth_date || "–"), el("td", {}, item.procedure || ""), el("td", {}, item.scheduled || ""));
+      row.addEventListener("click", () => {
+        picked = item;
+        rows.querySelectorAll("tr").forEach((r) => r.classList.toggle("picked", r === row));
+        showChosen();
+      });
+      return row;
+    }));
+    $("worklist-note").replaceChildren(items.length ? "Today's worklist: click the patient, then START." : "Nothing scheduled today.",
+      ...problems.map((p) => el("div", { class: "error" }, p)));
+  } catch (error) { $("worklist-note").textContent = String(error.message || error); }
+  hooks.worklistLoaded = true;
+}
+$("worklist-refresh").addEventListener("click", loadWorklist);
+
 async function act(action) {
   $("action-error").textContent = "";
-  try { await send("POST", `/api/rig/${action}`, {}); } catch (error) { $("action-error").textContent = String(error.message || error); }
+  const body = action === "scan" ? { ...patientArgs() } : {};
+  for (const key of ["procedure", "scheduled"]) delete body[key];
+  try { await send("POST", `/api/rig/${action}`, body); } catch (error) { $("action-error").textContent = String(error.message || error); }
 }
 $("start").addEventListener("click", () => act("scan"));
 $("abort").addEventListener("click", () => act("abort"));
@@ -99,4 +142,5 @@ getJSON("/api/config").then((config) => {
   if (config.poses) { poses = config.poses; document.querySelectorAll(".n-poses").forEach((n) => { n.textContent = poses; }); }
   if (!config.rig) $("link").textContent = "no rig daemon (viewer only)";
   else connect();
+  if (config.worklist) { $("worklist-refresh").hidden = false; loadWorklist(); }
 });
