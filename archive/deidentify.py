@@ -30,8 +30,8 @@ from daemon.clinic.patient import derived_uid
 
 DUMMY_DATE, DUMMY_TIME = "19000101", "000000"
 EMPTIED = ("PatientBirthDate", "PatientSex", "AccessionNumber", "StudyID", "ReferringPhysicianName",
-           "PatientOrientation")
-REMOVED = ("StudyDescription", "SeriesDescription", "ImageComments", "DocumentTitle")
+           "PatientOrientation", "DocumentTitle")
+REMOVED = ("StudyDescription", "SeriesDescription", "ImageComments")
 UID_KEYWORDS = ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID", "ReferencedSOPInstanceUID",
                 "FrameOfReferenceUID", "MediaStorageSOPInstanceUID")
 KEPT_APP = (0xE0, 0xEE)
