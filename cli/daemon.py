@@ -72,7 +72,7 @@ def _serve(args: argparse.Namespace) -> int:
     except (RigConfigError, OSError) as exc:
         print(f"tbp daemon: {exc}", file=sys.stderr)
         return 2
-    attach = _clinic(site)
+    attach = _clinic(site, args.rig)
     if args.http != "off":
         from web.access import Access, AccessError, parse_listen, read_token
 
@@ -135,11 +135,18 @@ def _site(args: argparse.Namespace) -> Any:
     return load_site(path)
 
 
-def _clinic(site: Any) -> Any:
-    """attach(service): the site file's worklist for the console."""
+def _clinic(site: Any, rig_path: Path | None) -> Any:
+    """attach(service): the site file's worklist for the console and, with an archive, the export
+    queue that sends every completed scan (its state in the status as ``archive``)."""
 
     def attach(service: Any) -> None:
         service.site = site
+        if site is not None and site.archive is not None:
+            from archive.queue import ExportQueue
+
+            queue = ExportQueue(service.controller.store, site, rig_path=rig_path)
+            service.attach(queue)
+            service.status_parts["archive"] = queue.status
 
     return attach
 

@@ -44,6 +44,19 @@ function showStatus(s) {
     ...missing.map((d) => el("div", {}, `${d.device} (${d.address}): ${d.error || "not answering"}; ${d.check}`)),
     ...(s.recovered_scans || []).map((r) => el("div", { class: "muted" }, `Recovered interrupted scan ${r.scan_id}: ${r.reason}`)));
   showLast(s.last_scan);
+  showArchive(s.archive);
+}
+
+// The export queue (when the site file names an archive): waiting, sending, sent, failed.
+function showArchive(a) {
+  const box = $("archive");
+  if (!a) { box.replaceChildren(); return; }
+  const c = a.counts;
+  const sending = a.sending ? `, sending ${a.sending.folder} (${a.sending.sent} / ${a.sending.total ?? "?"})` : "";
+  const retry = a.retry_in_s !== null ? `, next try in ${fmt(a.retry_in_s, 0)} s` : "";
+  box.replaceChildren(el("div", {}, "Archive ", pill(c.failed ? "failed" : c.pending || c.sending ? "waiting" : "up to date",
+    c.failed ? "bad" : "ok"), ` ${a.destination}: ${c.sent} sent, ${c.pending} waiting${sending}${retry}`),
+    ...a.problems.map((p) => el("div", { class: p.state === "failed" ? "error" : "muted" }, `${p.folder}: ${p.error}`)));
 }
 
 function showLast(last) {
