@@ -102,8 +102,7 @@ def _queue_killed(root: Path) -> None:
         uids = Counter(i["MainDicomTags"]["SOPInstanceUID"] for i in server.instances_of(study))
         total = sum(i.status.value == "verified" for i in read_folder(folder).manifest.images) + 2
         print(f"Orthanc killed after 100 instances, restarted: complete in {time.perf_counter() - started:.1f} s after "
-              f"the restart; {len(uids)} of {total} instances, each once: {set(uids.values()) == {1}} "
-              f"(attempts {daemon.status()['archive']['problems'] or 'no error left'})")
+              f"the restart; {len(uids)} of {total} instances, each once: {set(uids.values()) == {1}}")
     finally:
         daemon.stop()
         server.stop()
