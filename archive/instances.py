@@ -223,6 +223,7 @@ class StudyBuilder:
 
         deg, mm = ("deg", "degree"), ("mm", "millimeter")
         text("camera", "Camera", image.camera_id)
+        number("angle-index", "Capture angle index", float(image.angle_index), ("1", "no units"))
         number("angle", "Beam angle at exposure", image.actual_angle_deg, deg)
         number("planned", "Planned beam angle", image.planned_angle_deg, deg)
         number("focus", "Focus distance", image.focus_mm, mm)

@@ -90,8 +90,9 @@ async def _config(request: web.Request) -> web.Response:
 
 
 def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = None,
-             rig_path: Path | None = None) -> web.Application:
-    """The application for a scan store; service: the daemon's RigService (None: viewer only)."""
+             rig_path: Path | None = None, archive_url: str | None = None) -> web.Application:
+    """The application for a scan store; service: the daemon's RigService (None: viewer only);
+    archive_url: a DICOMweb archive whose studies the viewer lists and retrieves into the store."""
     if not (THREE / "build" / "three.module.js").is_file():
         raise AssetsMissing(f"{THREE}: three.js is not installed; run ./dev (npm ci in web/)")
     app = web.Application(middlewares=[guard], client_max_size=MAX_REQUEST_BYTES)
@@ -113,6 +114,11 @@ def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = N
     marks.routes(app)
     patients.routes(app)
     rig.routes(app)
+    if archive_url is not None:
+        from planner.rig import DEFAULT_RIG_PATH, load_rig
+        from web import archive
+
+        archive.routes(app, archive_url, load_rig(rig_path or DEFAULT_RIG_PATH))
     app.router.add_static("/static/", STATIC, follow_symlinks=False)
     app.router.add_static("/vendor/three/", THREE, follow_symlinks=False)
     return app
