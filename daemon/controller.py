@@ -8,6 +8,7 @@ both run exactly the same scan code against whatever hardware they were given.
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -16,6 +17,7 @@ import structlog
 from daemon.beam import BeamTracker, trace_capacity
 from daemon.bringup import BringUp
 from daemon.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
+from daemon.clinic.patient import ScanSubject
 from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
@@ -137,19 +139,21 @@ class RigController:
     def busy(self) -> bool:
         return self._starting or (self.scan_task is not None and not self.scan_task.done())
 
-    async def start_scan(self, scan_id: str | None = None) -> asyncio.Task[ScanReport]:
+    async def start_scan(self, scan_id: str | None = None, subject: ScanSubject | None = None
+                         ) -> asyncio.Task[ScanReport]:
         """Start a scan in the background once its folder exists (refused while busy, faulted,
-        not ready or e-stopped, or when the installed calibration cannot be used)."""
-        return await self._start(scan_id, self._new_scan)
+        not ready or e-stopped, or when the installed calibration cannot be used); ``subject``: the
+        patient it is for, kept in its manifest."""
+        return await self._start(scan_id, functools.partial(self._new_scan, subject=subject))
 
     async def start_calibration(self, rotation_id: str | None = None) -> asyncio.Task[RotationReport]:
         """Start a calibration rotation (the cuboid in place) in the background once its folder
         exists; refused like a scan."""
         return await self._start(rotation_id, self._new_rotation)
 
-    async def scan(self, scan_id: str | None = None) -> ScanReport:
+    async def scan(self, scan_id: str | None = None, subject: ScanSubject | None = None) -> ScanReport:
         """Run one scan to its end (completed, aborted or faulted) and return its report."""
-        return await (await self.start_scan(scan_id))
+        return await (await self.start_scan(scan_id, subject))
 
     async def _start(self, job_id: str | None, make: Callable[[str | None], Awaitable[RigJob]]) -> asyncio.Task[Any]:
         """The one start path of every job: the refusals, then the job made (its folder exists
@@ -183,10 +187,10 @@ class RigController:
         self.machine.progress(f"{kind} refused", error=str(refused))
         return refused
 
-    async def _new_scan(self, scan_id: str | None) -> Scan:
+    async def _new_scan(self, scan_id: str | None, subject: ScanSubject | None = None) -> Scan:
         calibration = await self.calibration(scan_id)
         try:  # mkdir, manifest, fsyncs in a thread: on a busy disk that took 90 ms on the loop
-            folder = await asyncio.to_thread(self.store.create, self.rig, scan_id=scan_id)
+            folder = await asyncio.to_thread(self.store.create, self.rig, scan_id=scan_id, subject=subject)
         except Exception as exc:  # StoreError, or an OSError the store did not expect
             raise self._refused("scan", scan_id, ScanRefused(scan_id, f"{type(exc).__name__}: {exc}")) from exc
         return Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, folder,

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from daemon.atomic import StoreError
+from daemon.clinic.patient import Patient, PatientError, Study
 from daemon.faults import Cause
 
 FORMAT_VERSION = 1
@@ -78,7 +79,7 @@ _REASON_OF_STATUS = {ImageStatus.PLANNED: MissingReason.NOT_REACHED, ImageStatus
 
 def json_safe(value: Any) -> Any:
     """JSON-safe: non-finite floats become null, numpy scalars become Python numbers."""
-    if isinstance(value, Cause):
+    if isinstance(value, (Cause, Patient, Study)):
         return value.as_dict()
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
@@ -175,6 +176,10 @@ class Manifest:
     ended_utc: str | None = None
     plan_summary: dict[str, Any] = field(default_factory=dict)
     files: dict[str, str] = field(default_factory=dict)
+    patient: Patient | None = None
+    """Who the scan is of (None: no patient was given)."""
+    study: Study | None = None
+    """The DICOM study and series the scan is (given with a patient)."""
     images: list[ImageRecord] = field(default_factory=list)
 
     def counts(self) -> dict[str, int]:
@@ -228,13 +233,17 @@ class Manifest:
                                MissingReason(i["missing_reason"]) if i.get("missing_reason") else None})
                 for i in data["images"]
             ]
-            names = {f.name for f in dataclasses.fields(cls)} - {"images", "state", "causes"}
+            names = {f.name for f in dataclasses.fields(cls)} - {"images", "state", "causes", "patient", "study"}
             return cls(
                 **{k: data[k] for k in names if k in data},
                 state=ScanEnd(data["state"]),
                 causes=[Cause.from_dict(c) for c in data.get("causes", [])],
+                patient=None if data.get("patient") is None else Patient.from_dict(data["patient"]),
+                study=None if data.get("study") is None else Study.from_dict(data["study"]),
                 images=images,
             )
+        except PatientError as exc:  # names the field, never the value
+            raise ManifestError(path, f"not a valid manifest: {exc}") from exc
         except (KeyError, TypeError, ValueError) as exc:
             raise ManifestError(path, f"not a valid manifest: {exc}") from exc
 
@@ -275,6 +284,8 @@ _MANIFEST_FIELDS: dict[str, _FieldRule] = {
     "plan_summary": (lambda v: isinstance(v, dict), False, True),
     "files": (lambda v: isinstance(v, dict) and all(isinstance(n, str) for n in v.values()), False, True),
     "causes": (lambda v: isinstance(v, list) and all(isinstance(c, dict) for c in v), False, True),
+    "patient": (lambda v: isinstance(v, dict), True, True),
+    "study": (lambda v: isinstance(v, dict), True, True),
     "images": (lambda v: isinstance(v, list), False, False),
 }
 _IMAGE_FIELDS: dict[str, _FieldRule] = {

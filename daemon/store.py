@@ -17,8 +17,9 @@ Every file is written atomically (daemon/atomic.py: temp file in the same folder
 rename, fsync of the folder), so a reader sees the previous or the new version, never a
 torn one. The manifest
 says ``incomplete`` and ``in_progress: true`` from the moment the folder exists until the scan
-ends; :meth:`ScanStore.recover` closes folders a killed daemon left in progress. The subject
-is identified only by an opaque scan id: no patient data is written here.
+ends; :meth:`ScanStore.recover` closes folders a killed daemon left in progress. A scan for a
+patient keeps the patient and the study in its manifest, and only there; folders are readable by
+the store's group (the operators) and nobody else (:attr:`ScanStore.FOLDER_MODE`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
@@ -42,6 +44,7 @@ import numpy as np
 import structlog
 
 from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
+from daemon.clinic.patient import ScanSubject
 from daemon.faults import Cause
 from daemon.folder_writer import FolderWriter
 from daemon.manifest import (
@@ -73,7 +76,7 @@ class ScanFileError(StoreError):
 
 
 def new_scan_id() -> str:
-    """An opaque scan id (12 hex digits): the only identity of a subject in the store."""
+    """An opaque scan id (12 hex digits): never patient data (the patient is in the manifest)."""
     return secrets.token_hex(6)
 
 
@@ -505,10 +508,15 @@ class ScanStore:
         self.writer = writer or AtomicWriter()
         self.reserve_bytes = self.RESERVE_BYTES if reserve_bytes is None else reserve_bytes
 
-    def create(self, rig: Rig, *, scan_id: str | None = None,
-               now: datetime | None = None) -> ScanFolder:
+    FOLDER_MODE = 0o750
+    """A scan folder (and its images/): the daemon writes, the store's group (the operators) reads,
+    nobody else; the store's set-group-id bit is kept, so its group is the operators'."""
+
+    def create(self, rig: Rig, *, scan_id: str | None = None, now: datetime | None = None,
+               subject: ScanSubject | None = None) -> ScanFolder:
         """A new scan folder with an initial manifest (incomplete, in progress) and its space
-        reserve: when this returns, the scan can be stored.
+        reserve: when this returns, the scan can be stored. ``subject``: the patient and the
+        order the scan is for (its study UIDs are made here, once).
 
         Raises StoreError (StoreFull, StoreWriteError) naming the path when the store cannot
         take a scan; a folder begun before the failure is removed again, so nothing is left
@@ -527,20 +535,25 @@ class ScanStore:
         except OSError as exc:
             raise_for(self.root, exc, 0)
         try:
-            path.mkdir()
+            path.mkdir(mode=self.FOLDER_MODE)
         except FileExistsError:
             raise StoreError(path, "scan folder already exists") from None
         except OSError as exc:
             raise_for(path, exc, 0)
         try:
             try:
-                (path / "images").mkdir()
+                self._private(path)
+                (path / "images").mkdir(mode=self.FOLDER_MODE)
+                self._private(path / "images")
                 fsync_dir(self.root)
             except OSError as exc:
                 raise_for(path, exc, 0)
+            created = now.isoformat()
             manifest = Manifest(
-                scan_id=scan_id, created_utc=now.isoformat(), rig_digest=rig.digest,
+                scan_id=scan_id, created_utc=created, rig_digest=rig.digest,
                 calibration_digest=calibration_digest(rig), cameras=[p.id for p in rig.phones],
+                patient=None if subject is None else subject.patient,
+                study=None if subject is None else subject.study(scan_id, created),
             )
             folder = ScanFolder(path, manifest, self.writer)
             folder.save()
@@ -549,6 +562,10 @@ class ScanStore:
             shutil.rmtree(path, ignore_errors=True)  # holds nothing yet: no half-made scan stays behind
             raise
         return folder
+
+    def _private(self, folder: Path) -> None:
+        """FOLDER_MODE whatever the umask, keeping the set-group-id bit the store gave it."""
+        os.chmod(folder, self.FOLDER_MODE | (folder.stat().st_mode & stat.S_ISGID))
 
     def _reserve(self, path: Path) -> None:
         """Set disk space aside so the manifest can still be rewritten when the disk fills."""

@@ -13,6 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from daemon.clinic.patient import ScanSubject
 from daemon.controller import RigController
 from daemon.scan import ScanReport, ScanSettings
 from daemon.states import StatusEvent
@@ -51,10 +52,12 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
                    plan_points: int | None = None, depth_decimation: int = 2,
                    out: TextIO | None = None, subject: Any | None = None, panel: bool = True,
                    qa_report: Callable[..., Path] | None = None,
-                   on_ready: Callable[[RigController, Any], None] | None = None) -> ScanReport:
+                   on_ready: Callable[[RigController, Any], None] | None = None,
+                   patient: ScanSubject | None = None) -> ScanReport:
     """Build the simulated rig, run one scan, close everything; returns the scan's report.
 
-    on_ready(controller, world) is called once the rig is up (tests inject faults from it).
+    on_ready(controller, world) is called once the rig is up (tests inject faults from it);
+    patient: who the scan is for (a synthetic identity), kept in its manifest.
     """
     rig = load_rig(config or DEFAULT_RIG_PATH)
     hardware, world = await build_sim_rig(
@@ -73,7 +76,7 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
             await controller.start()
             if on_ready is not None:
                 on_ready(controller, world)
-            report = await controller.scan(sim_scan_id(seed))
+            report = await controller.scan(sim_scan_id(seed), patient)
         finally:
             if printer is not None:
                 printer.cancel()

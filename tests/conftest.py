@@ -35,12 +35,15 @@ def agent_jvm_jar(request: pytest.FixtureRequest):
 
 @pytest.fixture(scope="session")
 def web_store(tmp_path_factory: pytest.TempPathFactory):
-    """A store with one small simulated scan (capsule subject, QA report), shared by the web tests."""
+    """A store with one small simulated scan (capsule subject, QA report) for a synthetic patient,
+    shared by the web tests."""
     from analysis.qa_report import generate_report
+    from daemon.clinic.patient import ScanSubject
     from sim.run import run_sim_scan
     from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
     root = tmp_path_factory.mktemp("web-store")
+    patient = ScanSubject.from_args({"patient_id": "SYN-0001", "patient_name": "Testperson^Capsule"})
     run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
-                 panel=False, qa_report=generate_report)
+                 panel=False, qa_report=generate_report, patient=patient)
     return root

@@ -10,6 +10,8 @@ Layers, lowest first (a package may import itself and what its row allows, nothi
 - ``daemon``: the scan runtime, on ``drivers`` and ``planner``, never a simulator;
 - ``sim``: the simulated world (virtual clock, bodies, the simulated rig, device processes);
 - ``analysis``: evaluation, QA report, navigation, on scan folders and the simulated world;
+- ``archive``: the scan folder as a DICOM study, its export (C-STORE, STOW-RS) and the export queue,
+  on ``analysis`` (marks, navigation) and the daemon's store and clinic modules;
 - ``web``: the browser's viewer and console (aiohttp), on ``analysis`` and the daemon's handler;
 - ``cli``: the ``tbp`` command, on everything.
 
@@ -32,8 +34,9 @@ ALLOWED: dict[str, frozenset[str]] = {
     "daemon": frozenset({"daemon", "drivers", "planner"}),
     "sim": frozenset({"sim", "daemon", "drivers.sim", "drivers", "planner"}),
     "analysis": frozenset({"analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
-    "web": frozenset({"web", "analysis", "daemon", "drivers", "planner"}),
-    "cli": frozenset({"cli", "web", "analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
+    "archive": frozenset({"archive", "analysis", "daemon", "drivers", "planner"}),
+    "web": frozenset({"web", "archive", "analysis", "daemon", "drivers", "planner"}),
+    "cli": frozenset({"cli", "web", "archive", "analysis", "sim", "daemon", "drivers.sim", "drivers", "planner"}),
 }
 """Importer layer -> the layers it may import."""
 
@@ -71,7 +74,7 @@ def module_name(path: Path) -> str:
 
 
 def source_files() -> list[Path]:
-    return sorted(p for layer in ("planner", "drivers", "daemon", "sim", "analysis", "web", "cli")
+    return sorted(p for layer in ("planner", "drivers", "daemon", "sim", "analysis", "archive", "web", "cli")
                   for p in (ROOT / layer).rglob("*.py"))
 
 
@@ -151,6 +154,9 @@ def test_only_the_clock_owners_read_the_wall_clock() -> None:
     ("daemon/service.py", "web.app", False),
     ("web/rig.py", "sim.run", False),
     ("web/scans.py", "analysis.navigate", True),
+    ("archive/instances.py", "analysis.marks", True),
+    ("archive/instances.py", "web.app", False),
+    ("daemon/service.py", "archive.queue", False),
 ])
 def test_the_rule_itself(importer: str, module: str, allowed: bool) -> None:
     """The checker catches a forbidden arrow (so an empty violation list means something)."""

@@ -29,6 +29,7 @@ from analysis.navigate import NavigationError, Navigator
 from analysis.scan_views import ScanRecord, open_scan
 from analysis.skin_map import mesh_digest, payload_shares, read_skin_mesh, read_skin_shares, skin_mesh, vertex_skin
 from daemon.atomic import StoreError
+from daemon.clinic.patient import Patient
 from daemon.manifest import ImageStatus, Manifest, ManifestError
 from daemon.store import ScanStore
 from web import images, keys
@@ -131,8 +132,18 @@ class ScanLibrary:
                 "sharp_skin": (read_skin_shares(path) or {}).get("sharp"),
                 "has_mesh": "mesh" in m.files,
                 "report": (path / "report" / "index.html").is_file(), "marks": marks,
+                "patient": None if m.patient is None else m.patient.as_dict(),
+                "accession_number": None if m.study is None else m.study.accession_number,
             })
         return rows
+
+    def patient_of(self, name: str) -> Patient | None:
+        """The patient of the scan called ``name`` (404 unless it is in the store, 409 when its
+        manifest cannot be read)."""
+        try:
+            return self.store.open(self.folder(name)).manifest.patient
+        except StoreError as exc:
+            raise json_error(web.HTTPConflict, exc) from exc
 
     def _stamp(self, path: Path) -> tuple[Any, ...]:
         """The identity of the scan's manifest and mesh: a rewrite (atomic rename) is another file."""
@@ -208,6 +219,8 @@ async def scan_detail(request: web.Request) -> web.Response:
         "cameras": [p.id for p in rig.phones], "angles_deg": [float(a) for a in rig.capture.angles_deg],
         "image_width_px": rig.optics.image_width_px, "image_height_px": rig.optics.image_height_px,
         "has_mesh": "mesh" in m.files, "report": (rec.path / "report" / "index.html").is_file(),
+        "patient": None if m.patient is None else m.patient.as_dict(),
+        "study": None if m.study is None else m.study.as_dict(),
         "images": images_out,
     })
 

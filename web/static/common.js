@@ -57,3 +57,10 @@ export function ending(scan) {
   if (scan.missing) why.push(scan.missing);
   return { kind: scan.state, label: ENDED[scan.state] || scan.state, why, done: scan.state === "complete" };
 }
+
+// A DICOM person name "Family^Given^Middle^Prefix^Suffix" as a person reads it: "Family, Given Middle".
+export function personName(pn) {
+  const [family = "", given = "", middle = "", prefix = "", suffix = ""] = (pn || "").split("^");
+  const first = [prefix, given, middle].filter(Boolean).join(" ");
+  return [family, first].filter(Boolean).join(", ") + (suffix ? ` ${suffix}` : "");
+}

@@ -2,7 +2,7 @@
 // best image of the spot (the server's navigator, the same as `tbp navigate`); marks; gallery.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
-import { getJSON, send, el, fmt, ending } from "/static/common.js";
+import { getJSON, send, el, fmt, ending, personName } from "/static/common.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
 const api = `/api/scans/${encodeURIComponent(folder)}`;
@@ -293,10 +293,10 @@ async function compare(mark) {
 async function renderMarks() {
   const root = document.getElementById("marks");
   const m = state.marks;
-  const { scans } = await getJSON("/api/scans");
-  const earlier = scans.filter((s) => s.folder < folder && s.has_mesh);
+  // Only the same patient's earlier visits: the server offers no other (and refuses any other).
+  const { visits, note } = await getJSON(`${api}/earlier`);
   const select = el("select", { id: "previous" }, el("option", { value: "" }, "— none —"));
-  for (const s of earlier) {
+  for (const s of visits) {
     const ended = ending(s);
     const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}${ended.done ? "" : ` · ${ended.label}`}`);
     if (s.folder === m.previous_scan) opt.selected = true;
@@ -320,7 +320,7 @@ async function renderMarks() {
   }
   if (!m.marks.length) root.append(el("p", { class: "muted" }, "None yet."));
   root.append(el("div", { style: "margin:10px 0" }, name), add);
-  root.append(el("h2", {}, "Compare with an earlier scan of this person"), select);
+  root.append(el("h2", {}, "Compare with an earlier scan of this patient"), note ? el("p", { class: "muted", id: "no-patient" }, note) : select);
   if (m.registration && m.registration.error) root.append(el("p", { class: "error" }, m.registration.error));
   else if (m.registration) root.append(el("p", { class: "muted" }, `Bodies registered: ${fmt(100 * m.registration.fitness, 0)} % overlap, ${fmt(m.registration.rmse_mm, 1)} mm rms.`));
   for (const mark of m.carried) {
@@ -341,7 +341,8 @@ try {
   scanPromise.then(showEnding, () => {});  // said even when the body cannot be shown
   await loadMesh();
   state.scan = await scanPromise;
-  document.getElementById("title").textContent = `Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.in_progress ? "in progress" : state.scan.state}`;
+  const who = state.scan.patient ? `${personName(state.scan.patient.name)} (${state.scan.patient.patient_id}) · ` : "";
+  document.getElementById("title").textContent = `${who}Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.in_progress ? "in progress" : state.scan.state}`;
   loadShares().catch((error) => { document.getElementById("stage-msg").textContent = String(error); });
   renderer.render(scene, camera);
   requestAnimationFrame(() => {
