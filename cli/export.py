@@ -14,7 +14,6 @@ the reason); 2 the scan or the options cannot be used.
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from pathlib import Path
@@ -44,20 +43,20 @@ def run(args: argparse.Namespace) -> int:
     from archive.send import send_dimse, send_stow
     from daemon.atomic import StoreError
     from daemon.clinic.dimse import DicomPeerError
-    from daemon.clinic.site import Peer, SiteConfigError, _SiteReader
+    from daemon.clinic.site import Peer, SiteConfigError, ae_title
+    from planner.schema.tables import HOST_PORT
 
     started = time.perf_counter()
     try:
         peer = None
         if args.pacs is not None:
-            match = re.fullmatch(r"(?P<host>[A-Za-z0-9.-]{1,253}|\[[0-9A-Fa-f:]{2,39}\]):(?P<port>[0-9]{1,5})", args.pacs)
+            match = HOST_PORT.fullmatch(args.pacs)
             if match is None or not 0 < int(match["port"]) < 65536:
                 raise SiteConfigError("--pacs", "HOST:PORT", f"got {args.pacs[:80]!r}")
             if args.called_aet is None:
                 raise SiteConfigError("--called-aet", "AET", "required with --pacs: the archive's AE title")
-            reader = _SiteReader("command line")
-            peer = Peer(match["host"].strip("[]"), int(match["port"]), reader.ae(args.called_aet, "--called-aet"))
-            calling = reader.ae(args.calling_aet, "--calling-aet")
+            peer = Peer(match["host"].strip("[]"), int(match["port"]), ae_title(args.called_aet, "--called-aet"))
+            calling = ae_title(args.calling_aet, "--calling-aet")
         builder = StudyBuilder(args.scan_dir, args.rig)
         instances = deidentified(builder) if args.deidentify else builder.instances()
     except (ExportError, StoreError, SiteConfigError) as exc:

@@ -34,7 +34,8 @@ from typing import Any
 
 from daemon.errors import DaemonError
 from planner.rig import RigConfigError
-from planner.schema.tables import SITE_FILE
+from planner.schema.nodes import Reader
+from planner.schema.tables import AE, SITE_FILE
 
 SITE_FILE_NAME = "site.yaml"
 
@@ -135,6 +136,11 @@ def _site(values: dict[str, Any], path: Path | str) -> Site:
                           None if a["dicomweb"] is None else a["dicomweb"].rstrip("/"),
                           a["deidentify"], retry["first_s"], retry["max_s"])
     return Site(str(path), values["ae_title"].strip(), worklist, archive, tls)
+
+
+def ae_title(value: Any, key: str, where: str = "command line") -> str:
+    """An AE title given outside the site file (a command's option), checked as the site file's."""
+    return str(AE.read(value, key, Reader(where, SiteConfigError))).strip()
 
 
 def _peer(values: dict[str, Any]) -> Peer:

@@ -339,13 +339,13 @@ def hardware_file(depth_kinds: Mapping[str, Kind]) -> ConfigFile:
 
 AE_TITLE = re.compile(r"(?=.*[^ ])[ -\[\]-~]{1,16}")
 """An AE title: 1-16 characters of DICOM's default repertoire, no backslash, not only spaces."""
-_AE = Text(pattern=AE_TITLE, max_len=16, shape="an AE title: 1-16 printable ASCII characters, no backslash")
+AE = Text(pattern=AE_TITLE, max_len=16, shape="an AE title: 1-16 printable ASCII characters, no backslash")
 URL = re.compile(r"https?://[^\s]+")
 
 
 def _peer(**more: Node) -> Section:
     return Section({"host": Text(max_len=253), "port": Integer(1, 65535),
-                    "called_aet": Text(pattern=AE_TITLE, max_len=16, shape=_AE.shape, doc="the peer's AE title"),
+                    "called_aet": Text(pattern=AE_TITLE, max_len=16, shape=AE.shape, doc="the peer's AE title"),
                     **more})
 
 
@@ -354,11 +354,11 @@ SITE_FILE = ConfigFile(
     where="site.yaml beside the rig file; on a rig PC /etc/tbp-rig/site.yaml",
     max_bytes=64 * 1024,
     table=Section({
-        "ae_title": Text(pattern=AE_TITLE, max_len=16, shape=_AE.shape,
+        "ae_title": Text(pattern=AE_TITLE, max_len=16, shape=AE.shape,
                          doc="this rig's AE title: the calling AE of every association"),
         "worklist": Nullable(_peer(
             modality=Text(max_len=16, default="XC", doc="the scheduled steps asked for (XC: external-camera photography)"),
-            station_aet=Nullable(_AE, default=None, doc="only steps scheduled on this station"),
+            station_aet=Nullable(AE, default=None, doc="only steps scheduled on this station"),
         ), default=None, doc="the Modality Worklist provider (C-FIND); null: none"),
         "archive": Nullable(Section({
             "pacs": Nullable(_peer(), default=None, doc="a PACS over C-STORE"),
