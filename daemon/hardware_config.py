@@ -22,7 +22,7 @@ are accepted when SERIAL is the rig file's. Relative
 paths are relative to the hardware file. Unknown keys, missing devices and out-of-range values
 are refused with :class:`HardwareConfigError` naming the file, the key and what is allowed. The
 keys, forms and defaults are the hardware file's table (planner/schema/tables.py), its depth
-cameras reached in one of :data:`DEPTH_KINDS`; this module checks the file against the rig file.
+cameras reached in one of :func:`depth_kinds`; this module checks the file against the rig file.
 """
 
 from __future__ import annotations
@@ -35,18 +35,28 @@ from daemon.errors import DaemonError
 from drivers.depth.base import DepthSource
 from drivers.depth.kinds import DEPTH_KINDS as DEPTH_DRIVERS
 from planner.rig import Rig, RigConfigError
-from planner.schema import Kind, Nullable, Serial, Text, key_name, show
+from planner.schema import ConfigFile, Kind, Nullable, Serial, Text, key_name, show
 from planner.schema.tables import HOST_PORT, PHONE_LINKS, hardware_file
 
 HARDWARE_FILE = "hardware.yaml"
-DEPTH_KINDS: dict[str, Kind] = {
-    name: Kind(Nullable(Serial()), bare=True, doc=kind.doc) if kind.takes == "serial" else Kind(Text(), doc=kind.doc)
-    for name, kind in DEPTH_DRIVERS.items()
-}
-"""How a depth camera may be reached: the registry's kinds (drivers/depth/kinds.py) -> the form of
-their value in the hardware file: a kind that names a serial is written bare or with the rig file's
-serial, one that names a file with its path."""
-HARDWARE = hardware_file(DEPTH_KINDS)
+
+
+def depth_kinds() -> dict[str, Kind]:
+    """How a depth camera may be reached: the registry's kinds (drivers/depth/kinds.py, read at each
+    call, so a kind registered later is accepted) -> the form of their value in the hardware file:
+    a kind that names a serial is written bare or with the rig file's serial, one that names a file
+    with its path."""
+    return {name: Kind(Nullable(Serial()), bare=True, doc=kind.doc) if kind.takes == "serial"
+            else Kind(Text(), doc=kind.doc) for name, kind in DEPTH_DRIVERS.items()}
+
+
+def hardware_table() -> ConfigFile:
+    """The hardware file's table with the depth camera kinds registered now."""
+    return hardware_file(depth_kinds())
+
+
+HARDWARE = hardware_table()
+"""The hardware file's table with the registry's built-in kinds (docs/configuration.md)."""
 MAX_FILE_BYTES = HARDWARE.max_bytes
 
 
@@ -146,13 +156,13 @@ def default_hardware_path(rig_path: Path | str) -> Path:
 
 def load_hardware(path: Path | str, rig: Rig) -> HardwareConfig:
     """Read and validate a hardware file against the rig it wires."""
-    values, digest = HARDWARE.load(path, HardwareConfigError)
+    values, digest = hardware_table().load(path, HardwareConfigError)
     return _hardware(values, rig, str(path), digest)
 
 
 def hardware_from_mapping(raw: Any, rig: Rig, path: Path | str = "<memory>", digest: str = "") -> HardwareConfig:
     """Validate an already-parsed hardware mapping (see :func:`load_hardware`)."""
-    return _hardware(HARDWARE.check(raw, path, HardwareConfigError), rig, str(path), digest)
+    return _hardware(hardware_table().check(raw, path, HardwareConfigError), rig, str(path), digest)
 
 
 def _hardware(v: dict[str, Any], rig: Rig, path: str, digest: str) -> HardwareConfig:

@@ -65,7 +65,8 @@ def _config(depth: dict[str, object]) -> HardwareConfig:
 
 
 def test_a_new_kind_is_one_registry_line(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setitem(DEPTH_KINDS, "plate", DepthKind("plate", "serial", PlateCamera, PlateFinder, PlateFinder.load))
+    monkeypatch.setitem(DEPTH_KINDS, "plate", DepthKind("plate", "serial", PlateCamera, PlateFinder, PlateFinder.load,
+                                                     "a plate camera with the rig file's serial"))
     monkeypatch.setattr(PlateFinder, "plugged", {RIG.depth_cameras[0].serial})
     first, *others = RIG.depth_cameras
     config = _config({first.id: "plate", **{c.id: {"plate": c.serial} for c in others}})
