@@ -16,6 +16,15 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tiers that follow from a test's fixtures (before ``-m`` selects): a test of the shared
+    simulated scan (``web_store``) is slow."""
+    for item in items:
+        if "web_store" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture(autouse=True)
 def _structlog_defaults() -> Iterator[None]:
     """A CLI run in-process binds structlog to pytest's captured stdout, which closes after the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -53,6 +54,7 @@ def _omp_threads() -> str | None:
     return os.environ.get("OMP_NUM_THREADS")
 
 
+@pytest.mark.slow  # a worker process
 def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     import os
 
@@ -104,6 +106,7 @@ def _open_sessions() -> int:
     return len(_OPEN)
 
 
+@pytest.mark.slow  # a worker process
 def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh() -> None:
     """daemon/fusion.py: the TSDF lives in the worker between jobs; images go through shared memory."""
     import asyncio

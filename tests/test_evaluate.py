@@ -29,6 +29,7 @@ def corpus() -> dict:
     return run_corpus(2, seed=3, jobs=1, options=SMALL)
 
 
+@pytest.mark.slow  # worker processes
 def test_the_same_seed_gives_the_same_numbers_whatever_the_job_count(corpus):
     again = run_corpus(2, seed=3, jobs=2, options=SMALL)
     assert _numbers(again) == _numbers(corpus)

@@ -109,6 +109,7 @@ def test_watchdog_pings_only_while_healthy(listener):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_sim_daemon_speaks_the_type_notify_protocol(tmp_path):
     """`tbp daemon --sim` as systemd runs it: READY=1 once up, watchdog pings, STOPPING=1."""
     import subprocess

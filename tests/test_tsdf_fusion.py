@@ -32,6 +32,7 @@ def _fuse(mesh: trimesh.Trimesh, *, rig=COARSE, validate: bool = True, spacing: 
     return fuse(sweep.frames, rig, validate=validate)
 
 
+@pytest.mark.slow
 def test_sphere_is_recovered_within_a_millimetre():
     result = _fuse(sphere(200.0), rig=RIG, spacing=9.0, validate=False)
     radius = np.linalg.norm(result.mesh.vertices - [0, 0, 1000.0], axis=1)
@@ -41,6 +42,7 @@ def test_sphere_is_recovered_within_a_millimetre():
     assert set(result.per_camera) == {c.id for c in RIG.depth_cameras}
 
 
+@pytest.mark.slow
 def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
     """The daemon fuses batches during the sweep, the cameras interleaved in time order."""
     truth = cylinder(150.0, 1700.0)
@@ -56,6 +58,7 @@ def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
     assert metrics.true_to_estimate_mean_mm < 0.05 and metrics.estimate_to_true_mean_mm < 0.05
 
 
+@pytest.mark.slow
 def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
     """The plan asks the worker's fusion for the mesh the daemon was given: no second extraction."""
     frames = sorted(simulate_sweep(cylinder(150.0, 1700.0), RIG, seed=0, frame_spacing_deg=9.0).frames,
@@ -69,6 +72,7 @@ def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
     assert fusion.result() is not first and fusion.result().frames_used >= first.frames_used
 
 
+@pytest.mark.slow
 def test_standing_cylinder_is_recovered_and_passes_validation():
     truth = cylinder(150.0, 1700.0)
     result = _fuse(truth, rig=RIG, spacing=9.0)
