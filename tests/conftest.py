@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import structlog
@@ -33,9 +34,16 @@ def _structlog_defaults() -> Iterator[None]:
     structlog.reset_defaults()
 
 
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``root``: relative path -> (size, mtime ns)."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*") if p.is_file()}
+
+
 @pytest.fixture(scope="session")
-def web_store(tmp_path_factory: pytest.TempPathFactory):
-    """A store with one small simulated scan (capsule subject, QA report), shared by the web tests."""
+def web_store(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A store with one small simulated scan of the complete simulated rig (capsule subject, QA
+    report), shared read-only by the web, browser and scan report tests (a test that writes
+    works on a copy); the session fails if any test changed it."""
     from analysis.qa_report import generate_report
     from sim.run import run_sim_scan
     from tests.daemon_rigs import PLAN_POINTS, capsule_subject
@@ -43,4 +51,6 @@ def web_store(tmp_path_factory: pytest.TempPathFactory):
     root = tmp_path_factory.mktemp("web-store")
     run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
                  panel=False, qa_report=generate_report)
-    return root
+    made = _tree(root)
+    yield root
+    assert _tree(root) == made, "a test changed the shared web_store: copy it first (see test_web.scan_store)"

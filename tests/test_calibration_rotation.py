@@ -59,6 +59,12 @@ def rotate(store: Path, *, during: Any = None, prepare: Any = None, infrared: bo
     return run_job(store, calibration, during=during, prepare=set_up)
 
 
+@pytest.fixture(scope="module")
+def nominal(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, RigController, Any]:
+    """One rotation where nothing goes wrong, shared by the tests that only read its outcome."""
+    return rotate(tmp_path_factory.mktemp("nominal"))
+
+
 def captures_of(report: Any) -> dict[str, Any]:
     import hashlib
 
@@ -70,8 +76,8 @@ def captures_of(report: Any) -> dict[str, Any]:
 
 
 @pytest.mark.slow
-def test_every_camera_photographs_at_every_stop(tmp_path: Path) -> None:
-    report, controller, world = rotate(tmp_path)
+def test_every_camera_photographs_at_every_stop(nominal: tuple[Any, RigController, Any]) -> None:
+    report, controller, world = nominal
     assert report.outcome is ScanOutcome.COMPLETED, report.problems
     doc = captures_of(report)
     assert doc["state"] == "complete" and doc["rig_digest"] == RIG.digest and doc["target"] == TARGET.name
@@ -100,10 +106,10 @@ def test_every_camera_photographs_at_every_stop(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_the_pipeline_reads_the_rotation(tmp_path: Path) -> None:
+def test_the_pipeline_reads_the_rotation(nominal: tuple[Any, RigController, Any]) -> None:
     from planner.calibration.calibrate import read_captures
 
-    report, _, _ = rotate(tmp_path)
+    report, _, _ = nominal
     pictures = read_captures(report.folder / "captures.json")
     assert len(pictures) == (RIG.n_cameras + len(RIG.depth_cameras)) * N_ANGLES
     assert all(p.path.is_file() for p in pictures)
