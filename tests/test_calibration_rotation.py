@@ -76,6 +76,7 @@ def captures_of(report: Any) -> dict[str, Any]:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("calibration-nominal")  # one worker makes the shared rotation
 def test_every_camera_photographs_at_every_stop(nominal: tuple[Any, RigController, Any]) -> None:
     report, controller, world = nominal
     assert report.outcome is ScanOutcome.COMPLETED, report.problems
@@ -106,6 +107,7 @@ def test_every_camera_photographs_at_every_stop(nominal: tuple[Any, RigControlle
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("calibration-nominal")  # one worker makes the shared rotation
 def test_the_pipeline_reads_the_rotation(nominal: tuple[Any, RigController, Any]) -> None:
     from planner.calibration.calibrate import read_captures
 

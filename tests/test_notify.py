@@ -125,7 +125,7 @@ def test_sim_daemon_speaks_the_type_notify_protocol(tmp_path):
     env = dict(os.environ, NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="1000000")
     proc = subprocess.Popen(
         [str(tbp), "daemon", "--sim", "--socket", str(tmp_path / "control.sock"),
-         "--store", str(tmp_path / "store")],
+         "--store", str(tmp_path / "store"), "--http", "off"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )
     try:

@@ -43,6 +43,7 @@ def test_sphere_is_recovered_within_a_millimetre():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
     """The daemon fuses batches during the sweep, the cameras interleaved in time order."""
     frames = cylinder_sweep()
@@ -58,6 +59,7 @@ def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
     """The plan asks the worker's fusion for the mesh the daemon was given: no second extraction."""
     frames = sorted(cylinder_sweep(), key=lambda f: f.timestamp_s)
@@ -71,6 +73,7 @@ def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_standing_cylinder_is_recovered_and_passes_validation():
     truth = cylinder(150.0, 1700.0)
     result = fuse(cylinder_sweep(), RIG)
