@@ -1,10 +1,13 @@
 """The scan QA report: an offline HTML page with PNG figures, written into the scan folder.
 
-What an operator and a dermatologist check at a glance: which skin is sharp (green), blurred
-(red) or never seen (grey) in the images actually captured, seen from the front, back and both
-sides; each camera's focus against the angle for each planned method; the beam's speed with
-the capture marks; planned vs actual capture angles; the resolution of the skin in its best
-image; and every missing or failed image.
+What an operator and a dermatologist check at a glance: how the scan ended (a partial,
+aborted, faulted or interrupted scan says so first, with its missing images per phone and
+why), the sharp skin (analysis/skin_map.py: the share of the surface's area a verified image
+holds in focus, the figure the viewer and the scan lists show), which skin is sharp (green),
+blurred (red) or never seen (grey) in the images actually captured, seen from the front, back
+and both sides; each camera's focus against the angle for each planned method; the beam's
+speed with the capture marks; planned vs actual capture angles; the resolution of the skin in
+its best image; and every missing or failed image.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import numpy as np
 
 from analysis.scan_views import ScanRecord, open_scan
 from analysis.skin_map import skin_status_at, write_skin_mesh
-from daemon.manifest import ImageStatus
+from daemon.manifest import ImageStatus, Manifest, ScanEnd
 
 REPORT_DIR = "report"
 SAMPLES = 20_000
@@ -65,8 +68,9 @@ def skin_status(scan: ScanRecord, samples: int = SAMPLES, seed: int = 0) -> dict
             "resolution": skin["resolution"]}
 
 
-def _body_views(skin: dict[str, np.ndarray], out: _Figures) -> str:
-    """Orthographic point splats from four sides, nearest points drawn last."""
+def _body_views(skin: dict[str, np.ndarray], shares: dict[str, float], out: _Figures) -> str:
+    """Orthographic point splats from four sides, nearest points drawn last; titled with the
+    scan's shares (:func:`analysis.skin_map.skin_shares`)."""
     plt = _pyplot()
     points, normals, status = skin["points"], skin["normals"], skin["status"]
     colours = np.array([GREY, RED, GREEN])[status]
@@ -81,9 +85,8 @@ def _body_views(skin: dict[str, np.ndarray], out: _Figures) -> str:
         ax.set_title(name)
         ax.set_aspect("equal")
         ax.axis("off")
-    shares = [np.mean(status == k) for k in (2, 1, 0)]
-    fig.suptitle(f"sharp {100 * shares[0]:.1f} %   blurred {100 * shares[1]:.1f} %   "
-                 f"not seen {100 * shares[2]:.1f} %   (of the estimated skin surface)")
+    fig.suptitle(f"sharp skin {100 * shares['sharp']:.1f} %   blurred {100 * shares['blurred']:.1f} %   "
+                 f"not seen {100 * shares['unseen']:.1f} %   (of the estimated skin surface)")
     return out.save(fig, "body.png")
 
 
@@ -151,6 +154,34 @@ def _resolution_histogram(skin: dict[str, np.ndarray], out: _Figures) -> str:
     return out.save(fig, "resolution.png")
 
 
+def _how_it_ended(manifest: Manifest) -> list[str]:
+    """The headline's banner for a scan that is not complete: how it ended and its missing
+    images per phone and why (nothing for a complete scan)."""
+    state = manifest.state
+    if state is ScanEnd.COMPLETE and not manifest.in_progress:
+        return []
+    what = {ScanEnd.PARTIAL: "Partial scan: the rotation finished with images missing",
+            ScanEnd.ABORTED: "Aborted scan", ScanEnd.FAULT: "Scan stopped by a fault",
+            ScanEnd.INCOMPLETE: "Incomplete scan (interrupted)"}.get(state, state.value)
+    if manifest.in_progress:
+        what = "Scan in progress (or left by a daemon that stopped): this report is not final"
+    parts = [f"<p class='ended{' fault' if state is ScanEnd.FAULT else ''}' id='ended'><b>{html.escape(what)}</b>"]
+    if manifest.reason and state is not ScanEnd.PARTIAL:
+        parts.append(f": {html.escape(manifest.reason)}")
+    parts.append("</p>")
+    by_phone = manifest.missing_by_phone()
+    if by_phone:
+        missing = sum(sum(r.values()) for r in by_phone.values())
+        parts.append(f"<p>{missing} of {len(manifest.images)} images missing:</p><table id='missing-by-phone'>"
+                     "<tr><th>camera</th><th>missing</th><th>why</th></tr>")
+        for camera, reasons in by_phone.items():
+            why = ", ".join(f"{n} {reason.replace('_', ' ')}" for reason, n in reasons.items())
+            parts.append(f"<tr><td>{html.escape(camera)}</td><td>{sum(reasons.values())}</td>"
+                         f"<td>{html.escape(why)}</td></tr>")
+        parts.append("</table>")
+    return ["".join(parts)]
+
+
 def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None) -> Path:
     """Write ``<scan_dir>/report/index.html`` and its figures; returns the HTML path.
 
@@ -160,11 +191,11 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
     scan = open_scan(scan_dir, rig_path)
     out = _Figures(scan)
     figures: list[tuple[str, str | None]] = []
-    skin = None
+    skin = shares = None
     if "mesh" in scan.manifest.files and np.isfinite(scan.captured_focus_mm()).any():
         skin = skin_status(scan)
-        figures.append(("Skin in focus in the captured images", _body_views(skin, out)))
-        write_skin_mesh(scan)  # the web viewer's coloured mesh
+        shares = write_skin_mesh(scan)  # the web viewer's coloured mesh and the sharp skin
+        figures.append(("Skin in focus in the captured images", _body_views(skin, shares, out)))
     figures.append(("Focus plan", _focus_by_angle(scan, out)))
     figures.append(("Speed profile", _speed_profile(scan, out)))
     figures.append(("Planned vs actual capture angles", _angle_errors(scan, out)))
@@ -178,23 +209,27 @@ def generate_report(scan_dir: Path | str, *, rig_path: Path | str | None = None)
         "<!doctype html><meta charset='utf-8'>",
         f"<title>Scan {html.escape(manifest.scan_id)}</title>",
         "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}img{max-width:100%}"
-        "td,th{padding:2px 8px;text-align:left}</style>",
+        "td,th{padding:2px 8px;text-align:left}.ended{padding:8px 12px;border-radius:6px;background:#fdebd3;"
+        "color:#6b3a06}.ended.fault{background:#fbdcdc;color:#8e1b1b}</style>",
         f"<h1>Scan {html.escape(manifest.scan_id)}: {html.escape(manifest.state.value)}</h1>",
-        f"<p>Images: {html.escape(counts)}. {html.escape(manifest.reason or '')}</p>",
+        *_how_it_ended(manifest),
+        f"<p>Images: {html.escape(counts)}.</p>",
     ]
-    if skin is not None:
-        share = np.mean(skin["status"] == 2)
-        parts.append(f"<p>Sharp skin in the captured images: <b>{100 * share:.1f} %</b> of the estimated surface.</p>")
+    if shares is not None:
+        parts.append(f"<p>Sharp skin: <b>{100 * shares['sharp']:.1f} %</b> of the estimated skin surface "
+                     "is held in focus by a verified image.</p>")
     for title, name in figures:
         if name:
             parts.append(f"<h2>{html.escape(title)}</h2><img src='{name}' alt='{html.escape(title)}'>")
     parts.append("<h2>Missing or failed images</h2>")
     if problems:
-        parts.append("<table><tr><th>camera</th><th>angle</th><th>status</th><th>error</th></tr>")
+        parts.append("<table><tr><th>camera</th><th>angle</th><th>status</th><th>why</th><th>error</th></tr>")
         for image in problems:
+            why = image.why_missing() if not manifest.in_progress else image.missing_reason
             parts.append(
                 f"<tr><td>{html.escape(image.camera_id)}</td><td>{image.planned_angle_deg:.1f}</td>"
-                f"<td>{html.escape(image.status.value)}</td><td>{html.escape(image.error or '')}</td></tr>"
+                f"<td>{html.escape(image.status.value)}</td><td>{why.words if why else ''}</td>"
+                f"<td>{html.escape(image.error or '')}</td></tr>"
             )
         parts.append("</table>")
     else:

@@ -5,11 +5,18 @@ images see it but none in focus, *unseen* otherwise (the focus plan's own visibi
 depth-of-field test, at the actual exposure angles and the focus actually used). The QA
 report shows it from four sides; the web viewer colours the mesh with the per-vertex map,
 which the report stores beside its figures with the mesh (``report/skin_mesh.bin``).
+
+*Sharp skin*, the one figure the QA report, the viewer and the scan lists show, is the share
+of the mesh's surface area that is sharp in that per-vertex map (:func:`skin_shares`): each
+vertex stands for a third of the area of every triangle it is a corner of. Counting vertices
+instead overweighs where the TSDF mesh has many small triangles (folds, the arms by the
+torso). The report keeps the shares in ``report/skin.json`` for the lists.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import struct
 from pathlib import Path
 from typing import Any
@@ -21,6 +28,8 @@ from analysis.scan_views import ScanRecord
 UNSEEN, BLURRED, SHARP = 0, 1, 2
 REPORT_DIR = "report"
 SKIN_MESH = "skin_mesh.bin"
+SKIN_SHARES = "skin.json"
+SHARE_NAMES = {SHARP: "sharp", BLURRED: "blurred", UNSEEN: "unseen"}
 MAGIC = b"TBPM"
 HEADER = struct.Struct("<4sII32s")
 
@@ -93,12 +102,51 @@ def skin_mesh_status(payload: bytes) -> np.ndarray:
     return np.frombuffer(payload, np.uint8, nv, HEADER.size + 12 * nv + 12 * nf)
 
 
-def write_skin_mesh(scan: ScanRecord, mesh: Any | None = None) -> Path:
+def skin_shares(vertices: np.ndarray, faces: np.ndarray, status: np.ndarray) -> dict[str, float]:
+    """Shares of the surface's area that are sharp, blurred and unseen, from the per-vertex map:
+    (V, 3) vertices mm, (F, 3) faces, (V,) status. Each vertex carries a third of the area of
+    each of its triangles; a mesh without area is all unseen."""
+    corners = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    weight = np.bincount(np.asarray(faces, dtype=np.int64).ravel(), np.repeat(area / 3.0, 3),
+                         minlength=len(status))
+    total = float(weight.sum())
+    if total <= 0.0:
+        return {name: float(code == UNSEEN) for code, name in SHARE_NAMES.items()}
+    status = np.asarray(status)
+    return {name: float(weight[status == code].sum() / total) for code, name in SHARE_NAMES.items()}
+
+
+def payload_shares(payload: bytes) -> dict[str, float]:
+    """:func:`skin_shares` of a :func:`skin_mesh` payload (what the viewer shows)."""
+    _, nv, nf, _ = HEADER.unpack_from(payload)
+    vertices = np.frombuffer(payload, "<f4", 3 * nv, HEADER.size).reshape(-1, 3)
+    faces = np.frombuffer(payload, "<u4", 3 * nf, HEADER.size + 12 * nv).reshape(-1, 3)
+    return skin_shares(vertices, faces, skin_mesh_status(payload))
+
+
+def write_skin_mesh(scan: ScanRecord, mesh: Any | None = None) -> dict[str, float]:
     """Compute the per-vertex map and store the viewer's payload as ``report/skin_mesh.bin``
-    (derived, written atomically through the store), so opening the scan costs a file read."""
+    and its shares (:func:`payload_shares`) as ``report/skin.json`` (derived, written
+    atomically through the store), so opening the scan costs a file read; returns the shares."""
     mesh = scan.mesh() if mesh is None else mesh
     payload = skin_mesh(mesh, vertex_skin(scan, mesh)["status"], mesh_digest(scan))
-    return scan.folder.write_derived(f"{REPORT_DIR}/{SKIN_MESH}", payload)
+    shares = payload_shares(payload)
+    scan.folder.write_derived(f"{REPORT_DIR}/{SKIN_MESH}", payload)
+    scan.folder.write_derived(f"{REPORT_DIR}/{SKIN_SHARES}", (json.dumps(shares) + "\n").encode())
+    return shares
+
+
+def read_skin_shares(folder: Path) -> dict[str, float] | None:
+    """The shares the QA report stored for a scan folder (None: no report, or unreadable).
+    Not checked against the mesh: a scan's mesh never changes once written."""
+    try:
+        shares = json.loads((Path(folder) / REPORT_DIR / SKIN_SHARES).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(shares, dict) or not all(isinstance(shares.get(n), (int, float)) for n in SHARE_NAMES.values()):
+        return None
+    return {n: float(shares[n]) for n in SHARE_NAMES.values()}
 
 
 def read_skin_mesh(scan: ScanRecord) -> bytes | None:

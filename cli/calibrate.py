@@ -308,7 +308,6 @@ async def _focus_one_phone(args: argparse.Namespace, rig: Any, config: Any, phon
     link = config.phones[phone.id]
     camera = make_phone(rig, phone, link, AdbKey.load_or_create(options.state_dir(args.state_dir)),
                         config.capture_agent)
-    camera.CONNECT_TIMEOUT_S = config.timeouts.open_s
     loop = asyncio.get_running_loop()
 
     async def place_board(distance_mm: float) -> None:
@@ -320,7 +319,7 @@ async def _focus_one_phone(args: argparse.Namespace, rig: Any, config: Any, phon
             await loop.run_in_executor(None, input, place + "; press Enter ")
 
     print(f"{phone.id}: connecting ({link.address})", flush=True)
-    await camera.connect()
+    await camera.connect(timeout_s=config.timeouts.open_s)
     try:
         table = await calibrate_focus(camera, rig.optics, settings, place_board, args.out,
                                       measured=f"{utc_stamp()} by tbp calibrate focus",

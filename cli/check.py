@@ -3,8 +3,8 @@
 Probes every device the hardware file names, each under the file's open timeout, all at once:
 the drive (CANopen identity object, one SDO round trip, and the objects that make it stop by
 itself when the host dies), each phone (ADB, the capture agent's hello, one clock round trip),
-each depth camera (the RealSense enumerated by serial, or the recording's file) and the panel
-(its HELLO, one acknowledged command). Prints one row per device: name, address, found,
+each depth camera (its kind's finder: the RealSense enumerated by serial, the recording's file)
+and the panel (its HELLO, one acknowledged command). Prints one row per device: name, address, found,
 identity, round-trip latency, verdict with what to check; then the drive's stop configuration,
 each object beside the value the rig requires (docs/motor.md).
 Exit status 0 when every device answers and the drive holds what the rig requires, 1 when a
@@ -111,16 +111,18 @@ async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) 
 async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
     """Probe every device of ``config`` concurrently, each under ``config.timeouts.open_s``."""
     from daemon.bringup import CHECK
+    from daemon.real_rig import depth_finders
     from drivers.adb.auth import AdbKey
 
     key = AdbKey.load_or_create(key_dir)
     addresses = dict(config.devices())
+    finders = depth_finders(config)
     jobs: list[tuple[str, str, Callable[[Probe], Awaitable[tuple[str, float]]]]] = [
         ("drive", "drive", lambda probe: _drive(rig, config, probe))]
     for phone in rig.phones:
         jobs.append((phone.id, "phone", lambda _, phone=phone: _phone(rig, config, phone, key)))
     for index, camera in enumerate(rig.depth_cameras):
-        jobs.append((camera.id, "depth", lambda _, index=index: _depth(rig, config, index)))
+        jobs.append((camera.id, "depth", lambda _, index=index: _depth(rig, config, finders, index)))
     if config.panel is not None:
         jobs.append(("panel", "panel", lambda _: _panel(config)))
 
@@ -136,7 +138,11 @@ async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
             probe.error, probe.check = f"{type(exc).__name__}: {exc}", CHECK[kind]
         return probe
 
-    return list(await asyncio.gather(*(one(*job) for job in jobs)))
+    try:
+        return list(await asyncio.gather(*(one(*job) for job in jobs)))
+    finally:
+        for finder in finders.values():
+            await finder.close()
 
 
 async def _drive(rig: Any, config: Any, probe: Probe) -> tuple[str, float]:
@@ -169,9 +175,8 @@ async def _phone(rig: Any, config: Any, phone: Any, key: Any) -> tuple[str, floa
     from daemon.real_rig import make_phone
 
     camera = make_phone(rig, phone, config.phones[phone.id], key, config.capture_agent)
-    camera.CONNECT_TIMEOUT_S = config.timeouts.open_s
     try:
-        info = await camera.connect()
+        info = await camera.connect(timeout_s=config.timeouts.open_s)
         sample = await camera.clock_sample()
         return (f"{info.model}, serial {info.serial}, focus calibration {info.focus_calibration_quality}",
                 sample.host_recv_s - sample.host_send_s)
@@ -179,17 +184,12 @@ async def _phone(rig: Any, config: Any, phone: Any, key: Any) -> tuple[str, floa
         await camera.close()
 
 
-async def _depth(rig: Any, config: Any, index: int) -> tuple[str, float]:
-    from daemon.real_rig import probe_depth_source
+async def _depth(rig: Any, config: Any, finders: dict[str, Any], index: int) -> tuple[str, float]:
+    from daemon.real_rig import find_depth_camera
 
-    camera = rig.depth_cameras[index]
-    source = config.depth_cameras[camera.id]
     started = time.perf_counter()
-    await probe_depth_source(rig, config, index)
-    latency = time.perf_counter() - started
-    if source.recording is not None:
-        return f"recording, {source.recording.stat().st_size} bytes", latency
-    return f"RealSense serial {source.serial}", latency
+    identity = await find_depth_camera(rig, config, finders, index)
+    return identity, time.perf_counter() - started
 
 
 async def _panel(config: Any) -> tuple[str, float]:

@@ -41,10 +41,23 @@ def _format(message: dict[str, Any]) -> str:
     for key, value in message.items():
         if key == "fault_causes":
             text = "; ".join(cause["text"] for cause in value) or "none"
+        elif key == "last_scan" and isinstance(value, dict):
+            text = _last_scan(value)
         else:
             text = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
         lines.append(f"{key}: {text}")
     return "\n".join(lines)
+
+
+def _last_scan(report: dict[str, Any]) -> str:
+    """The last scan's outcome on one line: "sim-seed1 PARTIAL, 260 of 336 images in the folder:
+    76 of 336 images missing: cam2 28 (...); cam4 48 (48 pull failed) (/scans/...)"."""
+    planned = (report.get("verified") or 0) + (report.get("missing") or 0)
+    text = (f"{report.get('scan_id')} {report.get('outcome')}, {report.get('verified')} of {planned} "
+            "images in the folder")
+    if report.get("reason"):
+        text += f": {report['reason']}"
+    return f"{text} ({report.get('folder')})"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -43,6 +43,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--http-open-reads", action="store_true",
                         help="beyond loopback, show scans to anyone who reaches --http without a login "
                              "(patients' images on the network: a deliberate choice)")
+    parser.add_argument("--site", type=Path, default=None, metavar="FILE",
+                        help="site file: the clinic's worklist and archive (default: site.yaml beside the rig file, "
+                             "if there is one)")
     options.log_level(parser, "info")
     parser.set_defaults(func=run)
 
@@ -60,10 +63,16 @@ def run(args: argparse.Namespace) -> int:
 
 def _serve(args: argparse.Namespace) -> int:
     from daemon.control import default_group, default_socket
+    from planner.rig import RigConfigError
 
     socket_path = args.socket or default_socket()
     group = args.group or default_group()
-    attach = None
+    try:
+        site = _site(args)
+    except (RigConfigError, OSError) as exc:
+        print(f"tbp daemon: {exc}", file=sys.stderr)
+        return 2
+    attach = _clinic(site, args.rig)
     if args.http != "off":
         from web.access import Access, AccessError, parse_listen, read_token
 
@@ -74,7 +83,7 @@ def _serve(args: argparse.Namespace) -> int:
         except AccessError as exc:
             print(f"tbp daemon: {exc}", file=sys.stderr)
             return 2
-        attach = _web(args, access)
+        attach = _web(args, access, attach)
     from analysis.qa_report import generate_report
 
     if not args.sim:
@@ -115,13 +124,42 @@ def _real(args: argparse.Namespace, socket_path: Path, group: str | None, qa_rep
         return 2
 
 
-def _web(args: argparse.Namespace, access: Any) -> Any:
-    """attach(service): the web server on the daemon's store, control through the service."""
+def _site(args: argparse.Namespace) -> Any:
+    """The site file (--site, else site.yaml beside the rig file when it exists), None without."""
+    from daemon.clinic.site import default_site_path, load_site
+    from planner.rig import DEFAULT_RIG_PATH
+
+    path = args.site or default_site_path(args.rig or DEFAULT_RIG_PATH)
+    if args.site is None and not path.is_file():
+        return None
+    return load_site(path)
+
+
+def _clinic(site: Any, rig_path: Path | None) -> Any:
+    """attach(service): the site file's worklist for the console and, with an archive, the export
+    queue that sends every completed scan (its state in the status as ``archive``)."""
+
+    def attach(service: Any) -> None:
+        service.site = site
+        if site is not None and site.archive is not None:
+            from archive.queue import ExportQueue
+
+            queue = ExportQueue(service.controller.store, site, rig_path=rig_path)
+            service.attach(queue)
+            service.status_parts["archive"] = queue.status
+
+    return attach
+
+
+def _web(args: argparse.Namespace, access: Any, before: Any) -> Any:
+    """attach(service): ``before``, then the web server on the daemon's store, control through the
+    service."""
 
     def attach(service: Any) -> None:
         from web.app import make_app
         from web.server import WebServer
 
+        before(service)
         app = make_app(service.controller.store, access, service=service, rig_path=args.rig)
         service.attach(WebServer(app, access.host, access.port))
 

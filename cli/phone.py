@@ -1,9 +1,10 @@
 """``tbp phone``: commission the rig phones - list them on USB, and check one end to end.
 
 ``tbp phone check`` runs what a scan needs from one phone: ADB connect with the rig's host key
-(the phone asks to allow it on first use), start the capture agent, clock round trips, focus
-moves across its calibrated range, one capture and a verified pull. It works the same against
-``tbp sim phone`` (``--tcp 127.0.0.1:PORT``).
+(the phone asks to allow it on first use), push the capture agent when ``--agent-jar`` differs
+from the phone's copy, start it, clock round trips, focus moves across its calibrated range, one
+capture and a verified pull. It works the same against ``tbp sim phone`` (``--tcp
+127.0.0.1:PORT``; with ``--agent-runtime jvm`` the pushed jar is the agent's JVM build).
 """
 
 from __future__ import annotations
@@ -30,7 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     options.rig(check)
     check.add_argument("--state-dir", type=Path, default=Path("/var/lib/tbp-rig"),
                        help="folder of the host's ADB key (adbkey, adbkey.pub); created if missing")
-    check.add_argument("--agent-jar", type=Path, default=None, help="capture agent jar to push when needed")
+    check.add_argument("--agent-jar", type=Path, default=None,
+                       help="capture agent jar to push when the phone's copy differs (docs/phones.md: the dex jar "
+                       "for a phone, the JVM jar for tbp sim phone --agent-runtime jvm)")
     check.add_argument("--out", type=Path, default=Path("."), help="folder for the test image")
     parser.set_defaults(func=run)
 
@@ -74,10 +77,14 @@ async def _check(args: argparse.Namespace) -> int:
     table = load_focus_calibration(rig.resolve(phone.focus_calibration))
     camera = PhoneCamera(link, phone, table, key=AdbKey.load_or_create(args.state_dir), agent_jar=args.agent_jar)
     loop = asyncio.get_running_loop()
+    began = loop.time()
     try:
         info = await camera.connect()
+        agent = (f"agent pushed ({camera.agent_pushed_bytes} bytes)" if camera.agent_pushed_bytes
+                 else "the phone's agent")
         print(f"{phone.id} {info.serial} {info.model}: min focus {info.min_focus_diopters:g} D, "
-              f"focus calibration {info.focus_calibration_quality}, timestamps {info.timestamp_source}")
+              f"focus calibration {info.focus_calibration_quality}, timestamps {info.timestamp_source}; "
+              f"{agent}, started in {loop.time() - began:.2f} s")
         samples = [await camera.clock_sample() for _ in range(8)]
         best = min(samples, key=lambda s: s.host_recv_s - s.host_send_s)
         print(f"clock: best round trip {1000 * (best.host_recv_s - best.host_send_s):.2f} ms of {len(samples)}")
@@ -99,6 +106,7 @@ async def _check(args: argparse.Namespace) -> int:
             raise SystemExit(f"pulled {size} bytes, the phone reported {shot.size_bytes}")
         print(f"pulled {dest} sha256 {sha}")
         await camera.delete(shot.path)
+        print(f"connect, agent start, clock, focus, capture and pull: {loop.time() - began:.2f} s")
     finally:
         await camera.close()
     print("OK")

@@ -37,19 +37,38 @@ def register(subparsers: Any) -> None:
     options.log_level(parser, "warning")
     parser.add_argument("--verbose", action="store_const", dest="log_level", const="info",
                         help="the same as --log-level info")
+    patient = parser.add_argument_group("patient", "who the scan is for (kept in the scan's manifest only)")
+    patient.add_argument("--patient-id", default=None, metavar="ID", help="the clinic's patient id")
+    patient.add_argument("--patient-name", default=None, metavar="NAME", help='"Family^Given" (DICOM person name)')
+    patient.add_argument("--birth-date", default=None, metavar="YYYYMMDD")
+    patient.add_argument("--sex", default=None, choices=("M", "F", "O"))
+    patient.add_argument("--accession-number", default=None, metavar="N", help="the order's accession number")
     parser.set_defaults(func=run)
 
 
+def patient_args(args: argparse.Namespace) -> dict[str, str]:
+    """The control API's patient arguments from the command line (only those given)."""
+    given = {"patient_id": args.patient_id, "patient_name": args.patient_name, "birth_date": args.birth_date,
+             "sex": args.sex, "accession_number": args.accession_number}
+    return {k: v for k, v in given.items() if v is not None}
+
+
 def run(args: argparse.Namespace) -> int:
+    from daemon.clinic.patient import PatientError, ScanSubject
     from daemon.logs import configure_logging
 
     configure_logging(level=args.log_level, stream=sys.stderr)
+    try:
+        subject = ScanSubject.from_args(patient_args(args))
+    except PatientError as exc:
+        print(f"tbp scan: {exc}", file=sys.stderr)
+        return 2
     if args.sim:
-        return _simulated(args)
+        return _simulated(args, subject)
     from daemon.control import CommandFailed, ControlError, DaemonUnavailable
 
     try:
-        return asyncio.run(_remote(args.socket))
+        return asyncio.run(_remote(args.socket, patient_args(args)))
     except CommandFailed as exc:
         print(f"tbp scan: refused: {exc}", file=sys.stderr)
         return 1
@@ -58,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
 
-def _simulated(args: argparse.Namespace) -> int:
+def _simulated(args: argparse.Namespace, patient: Any) -> int:
     from analysis.qa_report import generate_report
     from daemon.errors import DaemonError
     from planner.focus_errors import FocusPlanError
@@ -71,7 +90,7 @@ def _simulated(args: argparse.Namespace) -> int:
             config=args.rig, store=args.store, seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
             subject=load_subject_mesh(args.subject) if args.subject else None,
-            panel=not args.no_panel, qa_report=generate_report,
+            panel=not args.no_panel, qa_report=generate_report, patient=patient,
         )
     except (RigConfigError, FocusPlanError, DaemonError) as exc:  # DaemonError: ScanRefused (the store)
         print(f"tbp scan: {exc}", file=sys.stderr)
@@ -85,7 +104,10 @@ def _summary(report: Any) -> None:
     """The scan's figures against the rig goals, one line each."""
     lines = [
         f"outcome {report.outcome.value}" + (f": {report.reason}" if report.reason else ""),
-        f"images {report.captured} captured, {report.missing} missing, {report.retaken} retaken",
+        (f"images {report.captured} captured, {report.verified} in the folder, {report.missing} missing, "
+         f"{report.retaken} retaken"),
+        *(f"phone {d['camera']} dropped after {d['failures']} failed captures in a row: {d['first_error']}"
+          for d in report.dropped_phones if not d["rejoined"]),
         f"max |exposure angle - planned| {report.max_abs_angle_error_deg or 0.0:.3f} deg (goal <= 0.2)",
         f"lens late {report.lens_late}; min beam speed / profile {report.min_speed_ratio or 0.0:.4f}",
         f"sweep end -> capture start {report.sweep_to_capture_s:.2f} s (goal <= 2 s); "
@@ -95,14 +117,15 @@ def _summary(report: Any) -> None:
         print(line, flush=True)
 
 
-async def _remote(socket: Path | None) -> int:
-    """Ask the running daemon for a scan and follow its events until it ends."""
+async def _remote(socket: Path | None, patient: dict[str, str]) -> int:
+    """Ask the running daemon for a scan (for ``patient``, the control API's arguments) and follow
+    its events until it ends."""
     from daemon.control import ControlClient, DaemonUnavailable
 
     client = ControlClient(socket)
     async with contextlib.aclosing(client.subscribe()) as events:
         await anext(events)  # subscribed (the current status) before the scan can emit anything
-        started = await client.scan()
+        started = await client.scan(**patient)
         scan_id = started["scan_id"]
         print(f"scan {scan_id} requested", flush=True)
         async for event in events:

@@ -1,7 +1,11 @@
 """`tbp scans [--store DIR] [--check]`: list the scan folders in the store, optionally re-verified.
 
-Reads the store directly (no daemon needed). Exit code 1 when --check finds a problem or a
-manifest is unreadable, 2 when the store folder does not exist or cannot be read.
+One line a scan: its folder, how it ended (complete, partial: images missing, aborted, fault,
+incomplete: interrupted, or in progress), images verified of those planned, the sharp skin
+(the QA report's figure, analysis/skin_map.py; "-" without a report), and why it is not
+complete: the reason and the images missing per phone and why. Reads the store directly (no
+daemon needed). Exit code 1 when --check finds a problem or a manifest is unreadable, 2 when
+the store folder does not exist or cannot be read.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from daemon.manifest import ManifestError
+    from analysis.skin_map import read_skin_shares
+    from daemon.manifest import ManifestError, ScanEnd
     from daemon.store import ScanStore
 
     root = options.store_root(args)
@@ -39,7 +44,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     store = ScanStore(root)
     status = 0
-    for path in store.folders():
+    folders = store.folders()
+    if folders and not args.json:
+        print(f"{'FOLDER':<{max(len(p.name) for p in folders)}}  {'HOW IT ENDED':<24} {'VERIFIED':>8}  "
+              f"{'SHARP SKIN':>10}  WHY")
+    for path in folders:
         try:
             folder = store.open(path)
         except ManifestError as exc:
@@ -50,16 +59,25 @@ def run(args: argparse.Namespace) -> int:
         m = folder.manifest
         problems = folder.check() if args.check else []
         status = 1 if problems else status
+        shares = read_skin_shares(path)
         if args.json:
             print(json.dumps({"folder": path.name, "scan_id": m.scan_id, "state": m.state.value,
-                              "in_progress": m.in_progress, "reason": m.reason,
-                              "counts": m.counts(), **({"problems": problems} if args.check else {})}))
+                              "in_progress": m.in_progress, "reason": m.reason, "counts": m.counts(),
+                              "missing_by_phone": m.missing_by_phone(),
+                              "sharp_skin": None if shares is None else shares["sharp"],
+                              **({"problems": problems} if args.check else {})}))
             continue
         c = m.counts()
-        state = m.state.value + (" (in progress)" if m.in_progress else "")
-        print(f"{path.name}  {state:<24} verified {c['verified']:>3}  captured {c['captured']:>3}  "
-              f"failed {c['failed']:>3}  missing {c['missing']:>3}"
-              + (f"  reason: {m.reason}" if m.reason else ""))
+        ended = "in progress" if m.in_progress else _ENDED.get(m.state.value, m.state.value)
+        why = [m.reason] if m.reason and m.state is not ScanEnd.PARTIAL else []
+        why += [text] if (text := m.missing_summary()) else []
+        sharp = "-" if shares is None else f"{100 * shares['sharp']:.1f} %"
+        line = f"{path.name}  {ended:<24} {c['verified']:>4}/{len(m.images):<3}  {sharp:>10}  {' | '.join(why)}"
+        print(line.rstrip())
         for problem in problems:
             print(f"    problem: {problem}")
     return status
+
+
+_ENDED = {"complete": "complete", "partial": "partial: images missing", "aborted": "aborted", "fault": "fault",
+          "incomplete": "incomplete: interrupted"}

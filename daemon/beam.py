@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import math
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import structlog
 
+from daemon.devices import Drive
 from daemon.errors import BeamTimeout
 
 if TYPE_CHECKING:
@@ -93,15 +94,15 @@ class TraceBuffer:
 
 
 class BeamTracker:
-    """Subscribes to ``drive.samples()`` and keeps the encoder trace of the current run.
+    """Follows a drive's encoder (``drive.samples()``, from :meth:`start`) and keeps the encoder
+    trace of the current run.
 
     The trace is (time_s, angle_deg, speed_deg_s) per sample, the event-loop clock and the
     unwrapped beam angle (:class:`TraceBuffer`); :meth:`mark` starts a fresh trace segment for
     each phase of a scan.
     """
 
-    def __init__(self, drive: Any, *, name: str = "beam", capacity: int = 1 << 19) -> None:
-        self.drive = drive
+    def __init__(self, *, name: str = "beam", capacity: int = 1 << 19) -> None:
         self.name = name
         self.latest: BeamSample | None = None
         self._trace = TraceBuffer(capacity)
@@ -109,11 +110,12 @@ class BeamTracker:
         self._task: asyncio.Task[None] | None = None
         self._new_sample = asyncio.Event()
 
-    async def start(self) -> None:
+    async def start(self, drive: Drive) -> None:
+        """Follow ``drive``'s encoder (until :meth:`stop`; a renewed drive is followed anew)."""
         if self.latest is None:
-            self.latest = self.drive.latest
+            self.latest = drive.latest
         if self._task is None:
-            self._task = asyncio.create_task(self._follow(), name=f"{self.name}-tracker")
+            self._task = asyncio.create_task(self._follow(drive), name=f"{self.name}-tracker")
             await asyncio.sleep(0)
 
     @property
@@ -130,8 +132,8 @@ class BeamTracker:
             task.cancel()
             await asyncio.wait([task], timeout=self.STOP_TIMEOUT_S)
 
-    async def _follow(self) -> None:
-        async for sample in self.drive.samples():
+    async def _follow(self, drive: Drive) -> None:
+        async for sample in drive.samples():
             self.latest = sample
             self._trace.append(sample.time_s, sample.angle_deg, sample.speed_deg_s)
             self._new_sample.set()
@@ -210,7 +212,7 @@ class BeamTracker:
             future.cancel()
 
 
-async def rebase_angle(tracker: BeamTracker, drive: Any, near_deg: float) -> None:
+async def rebase_angle(tracker: BeamTracker, drive: Drive, near_deg: float) -> None:
     """Renumber the resting beam's angle by whole turns to within half a turn of ``near_deg``."""
     angle = tracker.angle_deg
     if angle is None:

@@ -6,9 +6,11 @@ after ``reprobe_s`` and then at twice the previous wait up to :attr:`BringUp.BAC
 rig being commissioned runs for hours with devices not yet plugged in); the rig is READY only
 when every device answers, and a scan is refused until then. Each device is opened with its name
 bound to the log context (:func:`daemon.logs.bound_device`), so the tasks its driver starts
-name it in every line. Once up, a device that vanishes is the safety system's business: a lost
-drive or panel latches FAULT, a lost phone fails its own captures; the operator's reset brings
-the drive back on a fresh link.
+name it in every line. One bring-up runs at a time (the service's re-probes and the reset's
+reconnect wait for each other), so a device is never connected twice at once. Once up, a device
+that vanishes is the safety system's business: a lost drive or panel latches FAULT, a lost phone
+fails its own captures; the operator's reset brings the drive back on a fresh link
+(:meth:`BringUp.reconnect_drive`).
 """
 
 from __future__ import annotations
@@ -16,15 +18,19 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import structlog
 
+from daemon.beam import BeamTracker
+from daemon.errors import DevicesMissing
 from daemon.faults import FaultCause, FaultSource
+from daemon.hardware import RigHardware
 from daemon.logs import bound_device
-
-if TYPE_CHECKING:
-    from daemon.controller import RigController
+from daemon.safety import SafetyMonitor
+from drivers.panel.protocol import StatusLed
+from drivers.phone.errors import PhoneUnauthorized
+from planner.rig import Rig
 
 log = structlog.get_logger("daemon.bringup")
 
@@ -47,6 +53,7 @@ class DeviceHealth:
     address: str
     ok: bool = False
     error: str | None = None
+    error_type: type[BaseException] | None = None
     since_s: float = 0.0
     probes: int = 0
     retry_s: float = 0.0
@@ -66,30 +73,38 @@ class DeviceHealth:
 
 
 class BringUp:
-    """Opens the controller's devices; :meth:`once` tries every one that is not up."""
+    """Opens the rig's devices; :meth:`once` tries every one that is not up.
+
+    The drive, once connected, is followed by ``tracker``, brought to a standstill (a controlled
+    stop at ``stop_deceleration_deg_s2``) and watched by ``safety``; a drive that cannot be
+    enabled latches FAULT there."""
 
     BACKOFF_MAX_S = 8.0
     """The longest wait between two probes of a device that stays missing (unless ``reprobe_s``
     is longer): a device plugged in is found within this, and one that never comes costs a
     probe every few seconds, not every ``reprobe_s``."""
 
-    def __init__(self, controller: RigController) -> None:
-        self.ctl = controller
-        hw = controller.hw
-        self.timeouts = hw.timeouts
-        addresses = hw.addresses
+    def __init__(self, rig: Rig, hardware: RigHardware, safety: SafetyMonitor, tracker: BeamTracker, *,
+                 stop_deceleration_deg_s2: float) -> None:
+        self.hw = hardware
+        self.safety = safety
+        self.tracker = tracker
+        self.stop_deceleration_deg_s2 = stop_deceleration_deg_s2
+        self.timeouts = hardware.timeouts
+        addresses = hardware.addresses
         self.devices: dict[str, DeviceHealth] = {
-            "drive": DeviceHealth("drive", "drive", addresses.get("drive", hw.drive.name))
+            "drive": DeviceHealth("drive", "drive", addresses.get("drive", hardware.drive.name))
         }
-        self.phone_ids = [p.id for p in controller.rig.phones][:len(hw.phones)]
-        for name, phone in zip(self.phone_ids, controller.rig.phones, strict=False):
+        self.phone_ids = [p.id for p in rig.phones][:len(hardware.phones)]
+        for name, phone in zip(self.phone_ids, rig.phones, strict=False):
             self.devices[name] = DeviceHealth(name, "phone", addresses.get(name, phone.serial))
-        self.depth_ids = [c.id for c in controller.rig.depth_cameras][:len(hw.depth_cameras)]
+        self.depth_ids = [c.id for c in rig.depth_cameras][:len(hardware.depth_cameras)]
         for name in self.depth_ids:
             self.devices[name] = DeviceHealth(name, "depth", addresses.get(name, name))
-        if hw.panel is not None:
-            self.devices["panel"] = DeviceHealth("panel", "panel", addresses.get("panel", hw.panel.name))
+        if hardware.panel is not None:
+            self.devices["panel"] = DeviceHealth("panel", "panel", addresses.get("panel", hardware.panel.name))
         self._safety_started = False
+        self._lock = asyncio.Lock()
 
     @property
     def ready(self) -> bool:
@@ -106,7 +121,28 @@ class BringUp:
 
     async def once(self, *, due_only: bool = False) -> bool:
         """Try every device that is not up (concurrently, each under its timeout; with
-        ``due_only`` those whose back-off has run out); True when all are."""
+        ``due_only`` those whose back-off has run out); True when all are. A call while another
+        runs waits for it, then tries what is still missing."""
+        async with self._lock:
+            return await self._once(due_only=due_only)
+
+    async def reconnect_drive(self) -> None:
+        """Bring the drive back on a fresh link (the operator's reset after its link died): stop
+        following it, close it, connect a new one. Raises DevicesMissing when it does not come up."""
+        async with self._lock:
+            await self.tracker.stop()
+            await self.hw.retire_drive()
+            self.devices["drive"].ok = False
+            await self._once(due_only=False)
+        if not self.devices["drive"].ok:
+            raise DevicesMissing(self.summary())
+
+    async def show_idle(self) -> None:
+        """The panel's status light at rest: FAULT while a fault is latched, else IDLE."""
+        if self.hw.panel is not None:
+            await self.hw.panel.set_status(StatusLed.FAULT if self.safety.latched else StatusLed.IDLE)
+
+    async def _once(self, *, due_only: bool) -> bool:
         steps: list[tuple[str, Callable[[], Awaitable[None]]]] = []
         if not self.devices["drive"].ok:
             steps.append(("drive", self._drive))
@@ -135,15 +171,15 @@ class BringUp:
                                 check=device.check)
                 retry = self.timeouts.reprobe_s if device.ok or not device.retry_s else device.retry_s * 2
                 device.retry_s = min(retry, max(self.BACKOFF_MAX_S, self.timeouts.reprobe_s))
-                device.ok, device.error, device.since_s = False, error, now
+                device.ok, device.error, device.error_type, device.since_s = False, error, type(result), now
                 device.next_probe_s = now + device.retry_s
             else:
                 log.info("device_up", device=name, address=device.address,
                          after_error=device.error, probes=device.probes)
-                device.ok, device.error, device.since_s = True, None, now
+                device.ok, device.error, device.error_type, device.since_s = True, None, None, now
                 device.retry_s = 0.0
         if self.devices["drive"].ok and not self._safety_started:
-            self.ctl.safety.start()
+            self.safety.start(self.hw)
             self._safety_started = True
         return self.ready
 
@@ -170,42 +206,41 @@ class BringUp:
     # ------------------------------------------------------------------ one device each
 
     async def _drive(self) -> None:
-        ctl = self.ctl
-        drive = ctl.replace_drive_if_spent()
+        drive = self.hw.renew_drive()
         try:
             async with asyncio.timeout(self.timeouts.open_s):
                 await drive.connect()
-                await ctl.tracker.start()
+                await self.tracker.start(drive)
         except BaseException:
-            await ctl.retire_drive()
+            await self.tracker.stop()
+            await self.hw.retire_drive()
             raise
         try:
             async with asyncio.timeout(self.timeouts.open_s):
                 await drive.enable()
-                await drive.stop(ctl.STOP_DECELERATION_DEG_S2)
+                await drive.stop(self.stop_deceleration_deg_s2)
         except Exception as exc:  # a drive left faulted (e.g. by a killed daemon) latches FAULT
-            await ctl.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, drive.name, exc, "at start-up"))
+            await self.safety.trip(FaultCause.of_error(FaultSource.DRIVE_ERROR, drive.name, exc, "at start-up"))
 
     async def _phone(self, index: int) -> None:
-        from drivers.phone.errors import PhoneUnauthorized
-
-        phone = self.ctl.hw.phones[index]
+        phone = self.hw.phones[index]
         device = self.devices[self.phone_ids[index]]
-        waiting_for_prompt = device.error is not None and PhoneUnauthorized.__name__ in device.error
+        waiting_for_prompt = device.error_type is not None and issubclass(device.error_type, PhoneUnauthorized)
         limit = self.timeouts.phone_authorisation_s if waiting_for_prompt else self.timeouts.open_s
-        phone.CONNECT_TIMEOUT_S = limit  # the phone's own bound on link + auth + agent start
-        async with asyncio.timeout(limit + 1.0):
-            await phone.connect()
+        async with asyncio.timeout(limit + 1.0):  # the phone's own bound (link, auth, agent) comes first
+            await phone.connect(timeout_s=limit)
 
     async def _depth(self, index: int) -> None:
-        probe = self.ctl.hw.depth_probe
+        probe = self.hw.depth_probe
         if probe is None:
             return
         async with asyncio.timeout(self.timeouts.open_s):
             await probe(index)
 
     async def _panel(self) -> None:
-        panel = self.ctl.hw.panel
+        panel = self.hw.panel
+        if panel is None:
+            return
         async with asyncio.timeout(self.timeouts.open_s):
             await panel.connect()
-        await self.ctl.show_idle()
+        await self.show_idle()

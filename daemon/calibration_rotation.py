@@ -29,6 +29,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import structlog
 
@@ -43,6 +44,8 @@ from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.store import SCAN_ID, StoreError, new_scan_id
 from daemon.utc import utc_now
+from drivers.depth.base import DepthFrame
+from drivers.phone.camera import CaptureDone
 from planner.calibration.target import CuboidTarget
 from planner.poses import rgb_poses
 from planner.rig import Rig
@@ -181,7 +184,7 @@ class CalibrationRotation(RigJob):
         self.pulls: PullQueue | None = None
         self._state = "in progress"
         self._shots: dict[tuple[int, int], tuple[float, float]] = {}
-        self._streams: dict[int, AsyncIterator[Any]] = {}
+        self._streams: dict[int, AsyncIterator[DepthFrame]] = {}
 
     # ------------------------------------------------------------------ the job's parts
 
@@ -283,7 +286,7 @@ class CalibrationRotation(RigJob):
             raise CalibrationRotationError("the encoder has given no angle at a calibration stop")
         return float(angle)
 
-    async def _shoot(self, c: int, focus_mm: float) -> Any:
+    async def _shoot(self, c: int, focus_mm: float) -> CaptureDone | None:
         """Focus phone ``c`` on the cuboid and take one picture; None on failure: the phone is named and
         left out of the rest of the rotation (its pictures so far stay)."""
         phone = self.hw.phones[c]
@@ -298,7 +301,7 @@ class CalibrationRotation(RigJob):
                           "of the rotation")
             return None
 
-    def _submit(self, c: int, index: int, encoder: float, shot: Any, focus_mm: float) -> None:
+    def _submit(self, c: int, index: int, encoder: float, shot: CaptureDone, focus_mm: float) -> None:
         """Pull the picture in the background (the beam moves on); it is deleted on the phone once
         verified and listed in captures.json then."""
         phone = self.hw.phones[c]
@@ -352,7 +355,7 @@ class CalibrationRotation(RigJob):
                 camera.infrared = False
         self._streams.clear()
 
-    async def _infrared(self, d: int, settled_s: float) -> Any:
+    async def _infrared(self, d: int, settled_s: float) -> DepthFrame | None:
         """The first frame of depth camera ``d`` taken after the beam settled (older queued frames are
         skipped); None (named) when it has no infrared image or does not come in time."""
         camera = self.hw.depth_cameras[d]
@@ -381,8 +384,6 @@ class CalibrationRotation(RigJob):
         return frame
 
     async def _keep_infrared(self, d: int, index: int, encoder: float, frame: Any) -> None:
-        import cv2
-
         camera = self.hw.depth_cameras[d].id
         name = f"{camera}/a{index:02d}.png"
         loop = asyncio.get_running_loop()

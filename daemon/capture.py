@@ -7,6 +7,13 @@ phone's measured trigger latency (a running estimate) and half the exposure, so 
 the exposure lands on the angle. The rotation never waits for a phone: a pose that fails or
 cannot be taken in time is recorded and retaken in a short second pass over the missed
 angles after the main rotation, when its phone is back; otherwise it stays missing.
+
+A phone that fails :attr:`CaptureRunner.DROP_AFTER_FAILURES` captures in a row (no answer, an
+error, its link lost) is dropped for the rest of the scan: its later poses are recorded
+missing at once (:class:`PhoneDropped`) and the retake pass does not rotate for them. A dropped
+phone rides along on a retake pass the other phones need anyway, at that pass's angles only,
+if it answers a probe sent while the beam moves to the pass's start: it adds no angle, no
+speed change and no wait.
 """
 
 from __future__ import annotations
@@ -22,8 +29,11 @@ import structlog
 
 from daemon.beam import BeamTracker
 from daemon.clocksync import ClockSync, EncoderTrace, exposure_angle
-from daemon.errors import BeamTimeout, CaptureMissed
+from daemon.devices import Drive, Phone
+from daemon.errors import BeamTimeout, CaptureMissed, PhoneDropped
+from daemon.manifest import MissingReason
 from daemon.tasks import stop_tasks
+from drivers.errors import DeviceGone
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, MotionProfile, OutsideProfile, move_duration
 
@@ -61,6 +71,7 @@ class CaptureRecord:
     size_bytes: int | None = None
     error: str | None = None
     error_type: str | None = None
+    missing_reason: str | None = None  # a MissingReason value while the pose is missing
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -83,11 +94,6 @@ class TriggerLatency:
         self.samples += 1
 
 
-def _disconnected(exc: BaseException) -> bool:
-    names = {cls.__name__ for cls in type(exc).__mro__}
-    return bool(names & {"PhoneDisconnected", "ConnectionLost", "ConnectionError", "EOFError"})
-
-
 @dataclass(frozen=True)
 class _Target:
     angle_index: int
@@ -99,13 +105,24 @@ class CaptureRunner:
     """Executes a compiled :class:`CaptureSchedule` on the beam drive and the phones.
 
     Args:
-        phones: one ``PhoneCamera`` per rig phone, connected.
+        phones: one phone per rig phone, connected.
         clocks: one clock mapping (sensor ns -> loop s) per phone.
         latency: one :class:`TriggerLatency` per phone (measured before the rotation).
         on_capture: called with every captured record (the store pulls it in the background).
         progress: called with (event, fields) for status events.
-        gone: phones known to be unreachable before the rotation (their poses go to the retake).
+        gone: phones known to be unreachable before the rotation (their poses count as failures
+            and the phone is dropped, see :attr:`DROP_AFTER_FAILURES`).
+        on_drop: called with (camera id, failures, first error) when a phone is dropped.
     """
+
+    DROP_AFTER_FAILURES = 3
+    """Failed captures in a row that drop a phone for the rest of the scan. A healthy phone
+    misses one pose now and then (a slow answer, the lens late once), and the retake pass takes
+    it again; three in a row (2.5 to 7.5 s of rotation) means it stopped answering: a frozen
+    camera, a lost link. Retaking a frozen phone's poses would cost the patient a slow partial
+    rotation, CAPTURE_TIMEOUT_S waited out at each. Counted: no answer within its timeout, an error
+    from the phone, its link lost. Not counted: a trigger the beam's timing missed with the
+    phone answering (CaptureMissed, BeamTimeout from the beam's side). A capture resets it."""
 
     FOCUS_TIMEOUT_S = 2.0
     CAPTURE_TIMEOUT_S = 2.0
@@ -126,15 +143,16 @@ class CaptureRunner:
         self,
         rig: Rig,
         schedule: CaptureSchedule,
-        drive: Any,
+        drive: Drive,
         tracker: BeamTracker,
-        phones: Sequence[Any],
+        phones: Sequence[Phone],
         clocks: Sequence[ClockSync],
         latency: Sequence[TriggerLatency],
         *,
         on_capture: Callable[[CaptureRecord], None] = lambda r: None,
         progress: Callable[..., None] = lambda event, **kw: None,
         gone: Sequence[bool] | None = None,
+        on_drop: Callable[[str, int, str], None] = lambda camera, failures, why: None,
     ) -> None:
         self.rig = rig
         self.schedule = schedule
@@ -146,6 +164,13 @@ class CaptureRunner:
         self.on_capture = on_capture
         self.progress = progress
         self.gone = list(gone) if gone is not None else [False] * rig.n_cameras
+        self.on_drop = on_drop
+        self.failures_in_row = [0] * rig.n_cameras
+        self.dropped: list[str | None] = [None] * rig.n_cameras
+        """Per phone: the first error of the failures that dropped it, None while it takes part."""
+        self.drops: list[dict[str, Any]] = []
+        """Every drop and ride-along, in order: camera, pass, failures, first error, rejoined."""
+        self._first_failure = [""] * rig.n_cameras
         self.records = [
             CaptureRecord(
                 pose_index=rig.pose_index(k, c), angle_index=k, camera_index=c,
@@ -188,18 +213,17 @@ class CaptureRunner:
         self.main_ended_s = loop.time()
 
     async def retake_pass(self) -> None:
-        """Another partial rotation over the missed angles, for the phones that are back."""
+        """Another partial rotation over the angles missed by phones still taking part (a phone
+        that went away is asked to reconnect first); dropped phones ride along where they can."""
         missed = [r for r in self.records if r.status != "captured"]
         if not missed:
             return
         for c in sorted({r.camera_index for r in missed}):
-            if self.gone[c]:
+            if self.gone[c] and self.dropped[c] is None:
                 await self._reconnect(c)
-        todo = [r for r in missed if not self.gone[r.camera_index]]
+        todo = [r for r in missed if self._taking_part(r.camera_index)]
         if not todo:
             return
-        for r in todo:
-            r.focus_sent_s = r.lens_stationary_s = r.lens_settle_s = None
         angles = sorted({r.angle_index for r in todo})
         speed = self._retake_speed(angles)
         accel = self.rig.capture.acceleration_deg_s2
@@ -209,24 +233,60 @@ class CaptureRunner:
         run_up = speed**2 / (2 * accel) + self.RETAKE_MARGIN_DEG
         start = first - run_up
         self.progress("retake_started", angles=angles, poses=len(todo), speed_deg_s=speed)
-        await self.drive.move_to(start, self.rig.motor.max_speed_deg_s, a_max)
+        on_the_way = set(angles)
+        probes = {c: asyncio.create_task(self._probe(c), name=f"probe-{c}")
+                  for c in sorted({r.camera_index for r in missed})
+                  if self.dropped[c] is not None and any(r.camera_index == c and r.angle_index in on_the_way
+                                                         for r in missed)}
+        try:
+            await self.drive.move_to(start, self.rig.motor.max_speed_deg_s, a_max)
+        finally:
+            riders = await self._answered(probes)
+        todo += [r for r in missed if r.camera_index in riders and r.angle_index in on_the_way]
+        for r in todo:
+            r.focus_sent_s = r.lens_stationary_s = r.lens_settle_s = None
         per_camera: list[list[_Target]] = [[] for _ in range(self.rig.n_cameras)]
         for r in sorted(todo, key=lambda r: r.angle_index):
             per_camera[r.camera_index].append(_Target(r.angle_index, r.planned_angle_deg, r.focus_mm))
-        await self._prefocus([t[0] if t else None for t in per_camera], "retake")
-        workers = [
-            asyncio.create_task(self._phone_pass(c, per_camera[c], "retake"), name=f"retake-{c}")
-            for c in range(self.rig.n_cameras)
-            if per_camera[c]
-        ]
+        await self._prefocus([t[0] if t and c not in riders else None for c, t in enumerate(per_camera)], "retake")
+        workers = {c: asyncio.create_task(self._phone_pass(c, per_camera[c], "retake"), name=f"retake-{c}")
+                   for c in range(self.rig.n_cameras) if per_camera[c]}
         try:
             await self.drive.rotate(speed, accel)
             timeout = move_duration(last - start, speed, accel) + 5.0
             await self.tracker.wait_angle(last + self.RETAKE_MARGIN_DEG, timeout)
-            await asyncio.gather(*workers)
+            await asyncio.gather(*(w for c, w in workers.items() if c not in riders))
             await self.drive.stop(accel)
-        finally:
-            await self._stop_workers(workers)
+        finally:  # a rider still busy when the others are done is not waited for
+            await self._stop_workers(list(workers.values()))
+
+    def retakeable(self) -> list[CaptureRecord]:
+        """The missed poses the retake pass is for: those of phones not dropped."""
+        return [r for r in self.records if r.status != "captured" and self.dropped[r.camera_index] is None]
+
+    def _taking_part(self, c: int) -> bool:
+        return not self.gone[c] and self.dropped[c] is None
+
+    async def _probe(self, c: int) -> None:
+        """Is a dropped phone back? A phone whose link went away reconnects; one that stopped
+        answering answers a clock ping."""
+        if self.gone[c]:
+            await self.phones[c].connect()
+        else:
+            await self.phones[c].clock_sample()
+
+    async def _answered(self, probes: dict[int, asyncio.Task[None]]) -> set[int]:
+        """The dropped phones whose probe answered by now; the other probes are stopped. Each
+        phone that answered takes part again (its failures start from zero)."""
+        back = {c for c, task in probes.items() if task.done() and not task.cancelled() and task.exception() is None}
+        await stop_tasks([task for task in probes.values() if not task.done()], self.WORKER_STOP_S)
+        for c in sorted(back):
+            camera = self.rig.phones[c].id
+            self.dropped[c], self.gone[c], self.failures_in_row[c] = None, False, 0
+            self.drops.append({"camera": camera, "pass_name": "retake", "rejoined": True})
+            log.info("phone_rejoined", camera=camera)
+            self.progress("phone_rejoined", camera=camera)
+        return back
 
     async def _stop_workers(self, workers: list[asyncio.Task[None]]) -> None:
         """Cancel the phones' workers of a pass and wait for them, bounded (WORKER_STOP_S)."""
@@ -288,7 +348,7 @@ class CaptureRunner:
     async def _prefocus(self, first: Sequence[_Target | None], pass_name: str) -> None:
         """Set every phone's focus for its first angle before the beam moves."""
         async def one(c: int, target: _Target | None) -> None:
-            if target is None or self.gone[c]:
+            if target is None or not self._taking_part(c):
                 return
             record = self.records[self.rig.pose_index(target.angle_index, c)]
             try:
@@ -301,8 +361,11 @@ class CaptureRunner:
     async def _focus(self, c: int, record: CaptureRecord) -> None:
         loop = asyncio.get_running_loop()
         record.focus_sent_s = loop.time()
-        async with asyncio.timeout(self.FOCUS_TIMEOUT_S):
-            done = await self.phones[c].set_focus_mm(record.focus_mm)
+        try:
+            async with asyncio.timeout(self.FOCUS_TIMEOUT_S):
+                done = await self.phones[c].set_focus_mm(record.focus_mm)
+        except TimeoutError:
+            raise TimeoutError(f"no answer to the focus within {self.FOCUS_TIMEOUT_S:g} s") from None
         stationary = self.clocks[c].to_host(done.lens_stationary_at_ns)
         record.focus_diopters = done.diopters
         record.focus_mm_reported = done.focus_mm
@@ -314,9 +377,13 @@ class CaptureRunner:
         try:
             for i, target in enumerate(targets):
                 record = self.records[self.rig.pose_index(target.angle_index, c)]
+                if self.dropped[c] is not None:
+                    self._fail(c, record, PhoneDropped(record.camera_id, target.angle_index, target.angle_deg,
+                                                       self.failures_in_row[c], self.dropped[c]), pass_name)
+                    continue
                 if self.gone[c]:
-                    self._fail(c, record, CaptureMissed(record.camera_id, target.angle_index,
-                                                        target.angle_deg, "phone gone"), pass_name)
+                    self._failed(c, record, CaptureMissed(record.camera_id, target.angle_index,
+                                                          target.angle_deg, "phone gone"), pass_name, phone_fault=True)
                     continue
                 try:
                     if focus is None and record.lens_stationary_s is None:
@@ -325,9 +392,12 @@ class CaptureRunner:
                         await self._await_focus(focus, target)
                     await self._shoot(c, record, target, pass_name)
                 except Exception as exc:  # the phone's typed error, a timeout, a missed angle: recorded
-                    self._fail(c, record, exc, pass_name)
+                    self._failed(c, record, exc, pass_name,
+                                 phone_fault=not isinstance(exc, (CaptureMissed, BeamTimeout)))
+                else:
+                    self.failures_in_row[c] = 0
                 focus = None
-                if i + 1 < len(targets) and not self.gone[c]:
+                if i + 1 < len(targets) and self._taking_part(c):
                     nxt = self.records[self.rig.pose_index(targets[i + 1].angle_index, c)]
                     focus = asyncio.create_task(self._focus(c, nxt), name=f"focus-{c}")
         finally:
@@ -345,7 +415,7 @@ class CaptureRunner:
                 await asyncio.shield(focus)
         except TimeoutError:
             focus.cancel()
-            raise
+            raise TimeoutError(f"lens not at its focus before the beam left {target.angle_deg:.2f} deg") from None
 
     async def _shoot(self, c: int, record: CaptureRecord, target: _Target, pass_name: str) -> None:
         exposure = self.rig.optics.exposure_s
@@ -353,8 +423,11 @@ class CaptureRunner:
         fire = await self._wait_fire(record, target.angle_deg, lead, pass_name)
         record.trigger_s = fire
         record.trigger_latency_s = self.latency[c].value_s
-        async with asyncio.timeout(self.CAPTURE_TIMEOUT_S):
-            done = await self.phones[c].capture()
+        try:
+            async with asyncio.timeout(self.CAPTURE_TIMEOUT_S):
+                done = await self.phones[c].capture()
+        except TimeoutError:
+            raise TimeoutError(f"no answer to the capture within {self.CAPTURE_TIMEOUT_S:g} s") from None
         start = self.clocks[c].to_host(done.sensor_timestamp_ns)
         self.latency[c].update(start - fire)
         while self.tracker.latest is not None and self.tracker.latest.time_s < start + done.exposure_s:
@@ -375,7 +448,7 @@ class CaptureRunner:
         record.lens_late = record.lens_stationary_s is None or record.lens_stationary_s > start
         record.lens_slow = (record.lens_settle_s or 0.0) > self.rig.capture.lens_settle_s
         record.capture_pass = pass_name
-        record.error = record.error_type = None
+        record.error = record.error_type = record.missing_reason = None
         record.status = "captured"
         self.captured += 1
         self.on_capture(record)
@@ -435,13 +508,38 @@ class CaptureRunner:
             await asyncio.sleep(remaining)
             return loop.time()
 
+    def _failed(self, c: int, record: CaptureRecord, exc: BaseException, pass_name: str, *,
+                phone_fault: bool) -> None:
+        """Record a failed pose; the phone's fault counts towards dropping it."""
+        self._fail(c, record, exc, pass_name)
+        if not phone_fault:
+            return
+        if self.failures_in_row[c] == 0:
+            self._first_failure[c] = f"{record.error_type}: {record.error}"
+        self.failures_in_row[c] += 1
+        if self.failures_in_row[c] >= self.DROP_AFTER_FAILURES:
+            self._drop(c, pass_name)
+
+    def _drop(self, c: int, pass_name: str) -> None:
+        camera, failures, why = self.rig.phones[c].id, self.failures_in_row[c], self._first_failure[c]
+        self.dropped[c] = why
+        self.drops.append({"camera": camera, "pass_name": pass_name, "failures": failures, "first_error": why,
+                           "rejoined": False})
+        log.warning("phone_dropped", camera=camera, failures=failures, pass_name=pass_name, error=why)
+        self.progress("phone_dropped", camera=camera, failures=failures, pass_name=pass_name, error=why)
+        self.on_drop(camera, failures, why)
+
     def _fail(self, c: int, record: CaptureRecord, exc: BaseException, pass_name: str) -> None:
-        if _disconnected(exc):
+        if isinstance(exc, DeviceGone):  # reconnected before its retake
             self.gone[c] = True
         record.status = "missing"
         record.capture_pass = pass_name
         record.error_type = type(exc).__name__
         record.error = str(exc) or type(exc).__name__
+        dropped = isinstance(exc, PhoneDropped)
+        record.missing_reason = (MissingReason.PHONE_DROPPED if dropped else MissingReason.CAPTURE_MISSED).value
+        if dropped:  # the phone_dropped event named it once
+            return
         log.warning("capture_missed", camera=record.camera_id, pose=record.pose_index,
                     angle_deg=record.planned_angle_deg, pass_name=pass_name,
                     error_type=record.error_type, error=record.error)

@@ -8,6 +8,7 @@ both run exactly the same scan code against whatever hardware they were given.
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -16,6 +17,7 @@ import structlog
 from daemon.beam import BeamTracker, trace_capacity
 from daemon.bringup import BringUp
 from daemon.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
+from daemon.clinic.patient import ScanSubject
 from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.hardware import RigHardware
@@ -25,6 +27,8 @@ from daemon.scan import Scan, ScanReport, ScanSettings
 from daemon.states import ScanState, ScanStateMachine, state_groups
 from daemon.store import ScanStore, StoreError
 from daemon.utc import utc_now
+from drivers.errors import DeviceGone
+from drivers.panel.protocol import StatusLed
 from planner.calibration.installed import CalibrationMismatch, age_days, calibration_path, installed_calibration
 from planner.calibration.model import Calibration, CalibrationFileError
 from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_target
@@ -33,14 +37,10 @@ from planner.rig import Rig
 log = structlog.get_logger("daemon.controller")
 
 
-def _led(name: str) -> Any:
-    from drivers.panel import StatusLed
-
-    return StatusLed[name]
-
-
 class RigController:
-    """Owns the state machine, the safety latch, the beam tracker and the current scan."""
+    """Runs the rig's jobs on its devices: the state machine (and its fault latch), the safety
+    monitor, the beam tracker, the bring-up and the current job. The devices are the
+    ``hardware``'s (:class:`RigHardware`), read from it whenever they are used."""
 
     STOP_DECELERATION_DEG_S2 = 30.0
     STANDSTILL_TIMEOUT_S = 5.0
@@ -60,8 +60,8 @@ class RigController:
         self.store = store
         self.settings = settings
         self.machine = machine or ScanStateMachine()
-        self.safety = SafetyMonitor(self.machine, hardware.drive)
-        self.tracker = BeamTracker(hardware.drive, capacity=trace_capacity(rig))
+        self.safety = SafetyMonitor(self.machine)
+        self.tracker = BeamTracker(capacity=trace_capacity(rig))
         self.scan_task: asyncio.Task[Any] | None = None
         """The running job's task (a scan's or a calibration rotation's), None before the first."""
         self._starting = False
@@ -72,7 +72,8 @@ class RigController:
         if hardware.panel is not None:
             self.safety.add_handler("panel fault light", self._panel_fault)
         self.safety.on_trip(self._cancel_scan)
-        self.bringup = BringUp(self)
+        self.bringup = BringUp(rig, hardware, self.safety, self.tracker,
+                               stop_deceleration_deg_s2=self.STOP_DECELERATION_DEG_S2)
 
     # ------------------------------------------------------------------ bring-up
 
@@ -86,28 +87,9 @@ class RigController:
         if not self.bringup.devices["drive"].ok:
             raise DevicesMissing(self.bringup.summary())
 
-    def replace_drive_if_spent(self) -> Any:
-        """The drive to connect: the current one, or a fresh one on a new link when the current
-        one was closed (a dead link) and the rig can make another."""
-        drive = self.hw.drive
-        if drive.closed and self.hw.drive_factory is not None:
-            drive = self.hw.drive_factory()
-            self.hw.drive = self.safety.drive = self.tracker.drive = drive
-            log.debug("drive_link_renewed", drive=drive.name)  # at every re-probe of a missing drive
-        return drive
-
-    async def retire_drive(self) -> None:
-        """After a failed connect: stop following and close the drive (a fresh one comes next)."""
-        await self.tracker.stop()
-        if self.hw.drive_factory is not None:
-            try:
-                await self.hw.drive.close()
-            except Exception as exc:  # closing a link that never opened: nothing left to release
-                log.info("drive_close_after_failed_connect", error=str(exc))
-
     async def show_idle(self) -> None:
-        if self.hw.panel is not None:
-            await self.hw.panel.set_status(_led("FAULT" if self.safety.latched else "IDLE"))
+        """The panel's status light at rest (FAULT while a fault is latched)."""
+        await self.bringup.show_idle()
 
     JOB_STOP_TIMEOUT_S = 15.0
     """Longest wait for an aborted job to close its folder at shutdown (systemd waits 30 s in all)."""
@@ -157,19 +139,21 @@ class RigController:
     def busy(self) -> bool:
         return self._starting or (self.scan_task is not None and not self.scan_task.done())
 
-    async def start_scan(self, scan_id: str | None = None) -> asyncio.Task[ScanReport]:
+    async def start_scan(self, scan_id: str | None = None, subject: ScanSubject | None = None
+                         ) -> asyncio.Task[ScanReport]:
         """Start a scan in the background once its folder exists (refused while busy, faulted,
-        not ready or e-stopped, or when the installed calibration cannot be used)."""
-        return await self._start(scan_id, self._new_scan)
+        not ready or e-stopped, or when the installed calibration cannot be used); ``subject``: the
+        patient it is for, kept in its manifest."""
+        return await self._start(scan_id, functools.partial(self._new_scan, subject=subject))
 
     async def start_calibration(self, rotation_id: str | None = None) -> asyncio.Task[RotationReport]:
         """Start a calibration rotation (the cuboid in place) in the background once its folder
         exists; refused like a scan."""
         return await self._start(rotation_id, self._new_rotation)
 
-    async def scan(self, scan_id: str | None = None) -> ScanReport:
+    async def scan(self, scan_id: str | None = None, subject: ScanSubject | None = None) -> ScanReport:
         """Run one scan to its end (completed, aborted or faulted) and return its report."""
-        return await (await self.start_scan(scan_id))
+        return await (await self.start_scan(scan_id, subject))
 
     async def _start(self, job_id: str | None, make: Callable[[str | None], Awaitable[RigJob]]) -> asyncio.Task[Any]:
         """The one start path of every job: the refusals, then the job made (its folder exists
@@ -203,10 +187,10 @@ class RigController:
         self.machine.progress(f"{kind} refused", error=str(refused))
         return refused
 
-    async def _new_scan(self, scan_id: str | None) -> Scan:
+    async def _new_scan(self, scan_id: str | None, subject: ScanSubject | None = None) -> Scan:
         calibration = await self.calibration(scan_id)
         try:  # mkdir, manifest, fsyncs in a thread: on a busy disk that took 90 ms on the loop
-            folder = await asyncio.to_thread(self.store.create, self.rig, scan_id=scan_id)
+            folder = await asyncio.to_thread(self.store.create, self.rig, scan_id=scan_id, subject=subject)
         except Exception as exc:  # StoreError, or an OSError the store did not expect
             raise self._refused("scan", scan_id, ScanRefused(scan_id, f"{type(exc).__name__}: {exc}")) from exc
         return Scan(self.rig, self.hw, self.machine, self.safety, self.tracker, folder,
@@ -226,7 +210,7 @@ class RigController:
         """Run ``job`` in a task of its own: a cancel of this task aborts the job, which still
         stops the beam and closes its folder; the cancel is passed on once the job ended (a second
         one at once, the job then ending by itself)."""
-        await self._panel("SCANNING", light=True)
+        await self._panel(StatusLed.SCANNING, light=True)
         run = asyncio.create_task(job.run(), name=f"{job.kind}-{job.job_id}-end")
         try:
             try:
@@ -236,7 +220,7 @@ class RigController:
                 await asyncio.wait([run])
                 raise
         finally:
-            await self._panel("FAULT" if self.safety.latched else "IDLE", light=False)
+            await self._panel(StatusLed.FAULT if self.safety.latched else StatusLed.IDLE, light=False)
         if isinstance(job, Scan):
             self.last_report = report
         else:
@@ -300,32 +284,16 @@ class RigController:
 
         async def recover() -> None:
             drive = self.hw.drive
-            if drive.closed or self._link_lost(drive):
-                await self._reconnect_drive()
+            if drive.closed or (self.hw.renewable and isinstance(drive.fault, DeviceGone)):
+                # the link died (CAN unplugged, bridge gone, drive powered off): a fresh link
+                await self.bringup.reconnect_drive()
                 drive = self.hw.drive
             if drive.fault is not None:
                 await drive.reset_fault()
             await drive.enable()
-            await self._panel("IDLE")
+            await self._panel(StatusLed.IDLE)
 
         await self.safety.reset(cause, recover)
-
-    def _link_lost(self, drive: Any) -> bool:
-        """The drive's link died (CAN unplugged, bridge gone, drive powered off): only a fresh
-        link brings it back."""
-        from drivers.motor.errors import CanBusError, HeartbeatLost
-
-        return self.hw.drive_factory is not None and isinstance(drive.fault, (CanBusError, HeartbeatLost))
-
-    async def _reconnect_drive(self) -> None:
-        await self.tracker.stop()
-        try:
-            await self.hw.drive.close()
-        except Exception as exc:  # the old link is gone; its goodbye cannot be sent
-            log.info("drive_close_before_reconnect", error=str(exc))
-        self.bringup.devices["drive"].ok = False
-        if not await self.bringup.once() and not self.bringup.devices["drive"].ok:
-            raise DevicesMissing(self.bringup.summary())
 
     async def _quick_stop(self) -> None:
         """Quick stop, then wait until the encoder shows the beam standing still."""
@@ -341,18 +309,19 @@ class RigController:
             self.current.cancel_for_fault()
 
     async def _panel_fault(self) -> None:
-        await self.hw.panel.set_status(_led("FAULT"))
+        if self.hw.panel is not None:
+            await self.hw.panel.set_status(StatusLed.FAULT)
 
-    async def _panel(self, led: str, *, light: bool | None = None) -> None:
+    async def _panel(self, led: StatusLed, *, light: bool | None = None) -> None:
         """Status LED (and the subject lights); a panel that cannot be told is a lost panel."""
         if self.hw.panel is None:
             return
         try:
-            await self.hw.panel.set_status(_led(led))
+            await self.hw.panel.set_status(led)
             if light is not None:
                 await self.hw.panel.set_light(light)
         except Exception as exc:  # the trip records it as a fault cause
-            await self.safety.trip(FaultCause.of_error(FaultSource.PANEL, "panel", exc, f"set_status({led}) failed"))
+            await self.safety.trip(FaultCause.of_error(FaultSource.PANEL, "panel", exc, f"set_status({led.name}) failed"))
 
     # ------------------------------------------------------------------ status
 

@@ -26,9 +26,10 @@ import numpy as np
 import structlog
 
 from daemon.beam import BeamTracker
+from daemon.devices import DepthCamera, Drive
 from daemon.errors import SweepFailed
 from daemon.tasks import despite_cancel, stop_tasks
-from drivers.depth.base import DepthCamera, DepthFrame
+from drivers.depth.base import DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from planner.calibration.model import Calibration
 from planner.rig import Rig
@@ -65,7 +66,7 @@ class DepthSweeper:
     FEED_PERIOD_S = 0.5
     """How often posed frames go to the sink during the sweep."""
 
-    def __init__(self, rig: Rig, drive: Any, tracker: BeamTracker, cameras: Sequence[DepthCamera],
+    def __init__(self, rig: Rig, drive: Drive, tracker: BeamTracker, cameras: Sequence[DepthCamera],
                  calibration: Calibration | None = None,
                  sink: Callable[[list[PosedDepth]], Awaitable[None]] | None = None) -> None:
         self.rig = rig

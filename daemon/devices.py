@@ -11,13 +11,14 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 from drivers.depth.base import DepthCamera
 from drivers.motor.samples import BeamSample
 from drivers.panel.panel import PanelEvent
 from drivers.panel.protocol import StatusLed
-from drivers.phone.camera import CaptureDone, ClockSample, FocusDone
+from drivers.phone.camera import CaptureDone, ClockSample, FocusDone, PhoneInfo
+from drivers.phone.focus import FocusCalibration
 
 __all__ = ["DepthCamera", "Drive", "Panel", "Phone"]
 
@@ -32,8 +33,12 @@ class Drive(Protocol):
     """
 
     name: str
-    fault: BaseException | None
-    latest: BeamSample | None
+
+    @property
+    def fault(self) -> BaseException | None: ...
+
+    @property
+    def latest(self) -> BeamSample | None: ...
 
     @property
     def closed(self) -> bool: ...
@@ -75,23 +80,40 @@ class Drive(Protocol):
 class Phone(Protocol):
     """One phone camera of the beam's column.
 
-    serial: its ADB serial; focus_table: its focus calibration (diopter command <-> distance),
-    None when the phone reports only its range; info: what it reported when it connected.
+    serial: its ADB serial; name: the rig file's id for it (names it in logs and errors);
+    focus_table: its focus calibration (diopter command <-> distance), None when the phone reports
+    only its range; info: what it reported when it connected (None before).
     """
 
     serial: str
-    focus_table: Any | None
-    info: Any | None
+    name: str
 
-    async def connect(self) -> Any: ...
+    @property
+    def focus_table(self) -> FocusCalibration | None: ...
+
+    @property
+    def info(self) -> PhoneInfo | None: ...
+
+    async def connect(self, timeout_s: float | None = None) -> PhoneInfo:
+        """Link, authenticate and start the capture agent, all within ``timeout_s`` (None: the
+        driver's own bound); reconnects when connected."""
+        ...
 
     async def set_focus_mm(self, focus_mm: float) -> FocusDone: ...
+
+    async def set_lens_diopters(self, diopters: float) -> FocusDone:
+        """The lens setting itself, whatever the focus table says (the focus calibration's sweep)."""
+        ...
 
     async def capture(self) -> CaptureDone: ...
 
     async def clock_sample(self) -> ClockSample: ...
 
     async def pull(self, phone_path: str, dest: Path) -> tuple[int, str]: ...
+
+    async def delete(self, phone_path: str) -> None:
+        """Remove a picture from the phone (once it is safely pulled)."""
+        ...
 
     async def close(self) -> None: ...
 

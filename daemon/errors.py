@@ -108,3 +108,14 @@ class CaptureMissed(DaemonError):
         self.angle_deg = angle_deg
         self.reason = reason
         super().__init__(f"{camera}: capture at angle {angle_index} ({angle_deg:.2f} deg) missed: {reason}")
+
+
+class PhoneDropped(CaptureMissed):
+    """A pose not tried: its phone was dropped for the rest of the scan after failing
+    ``failures`` captures in a row (``why``: the first error of that run)."""
+
+    def __init__(self, camera: str, angle_index: int, angle_deg: float, failures: int, why: str) -> None:
+        self.failures = failures
+        self.why = why
+        super().__init__(camera, angle_index, angle_deg,
+                         f"phone dropped after {failures} failed captures in a row (first: {why})")

@@ -17,13 +17,15 @@ import json
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
+import cv2
 import numpy as np
 import structlog
 
+from daemon.devices import Phone
 from daemon.errors import DaemonError
 from daemon.pulls import Pull, pull_verified
+from drivers.phone.camera import PhoneInfo
 from planner.calibration.detect import sharpness
 from planner.calibration.focus_fit import DISTANCES_MM, TABLE_DIOPTERS, FocusSweep, fit_focus_table, table_yaml
 from planner.rig import Optics
@@ -37,6 +39,14 @@ class SweepPictureError(DaemonError, ValueError):
     def __init__(self, phone: str, path: Path) -> None:
         self.phone, self.path = phone, path
         super().__init__(f"focus sweep of {phone}: {path} is not a readable picture")
+
+
+class SweepPhoneNotConnected(DaemonError, RuntimeError):
+    """The focus sweep was handed a phone that has not connected (it knows no lens range yet)."""
+
+    def __init__(self, phone: str) -> None:
+        self.phone = phone
+        super().__init__(f"focus sweep of {phone}: the phone is not connected (connect it first)")
 
 
 @dataclass(frozen=True)
@@ -80,8 +90,6 @@ class SweepSettings:
 def board_sharpness(path: Path, width_share: float, phone: str) -> float:
     """Sharpness of the centre square of a picture file whose side is ``width_share`` of the
     picture's width (at most its shorter side)."""
-    import cv2
-
     grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if grey is None:
         raise SweepPictureError(phone, path)
@@ -91,16 +99,16 @@ def board_sharpness(path: Path, width_share: float, phone: str) -> float:
     return sharpness(grey[y0:y0 + side, x0:x0 + side])
 
 
-async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
+async def sweep_phone(camera: Phone, optics: Optics, settings: SweepSettings,
                       place_board: Callable[[float], Awaitable[None]], workdir: Path,
                       progress: Callable[[int, int], None] | None = None) -> list[FocusSweep]:
-    """Sweep a connected ``PhoneCamera`` (lens: ``optics``) at every distance of ``settings``; one
+    """Sweep a connected phone (lens: ``optics``) at every distance of ``settings``; one
     FocusSweep per distance.
 
     Phone errors (a phone that vanishes, a capture that fails, a picture that cannot be pulled
     whole: ImagePullFailed) propagate, naming the phone."""
-    phone = camera.phone.id
-    highest = float(camera.info.min_focus_diopters)
+    phone = camera.name
+    highest = float(_info(camera).min_focus_diopters)
     workdir.mkdir(parents=True, exist_ok=True)
     coarse = settings.coarse(highest)
     fine_guess = int(2 * settings.fine_span / settings.fine_step)
@@ -144,6 +152,13 @@ async def sweep_phone(camera: Any, optics: Optics, settings: SweepSettings,
     return sweeps
 
 
+def _info(camera: Phone) -> PhoneInfo:
+    """What a connected phone reported (its lens range, its model)."""
+    if camera.info is None:
+        raise SweepPhoneNotConnected(camera.name)
+    return camera.info
+
+
 @dataclass(frozen=True)
 class FocusTable:
     """One phone's measured focus table (commanded diopters -> sharpest distance, mm), the fit's
@@ -157,19 +172,19 @@ class FocusTable:
     path: Path
 
 
-async def calibrate_focus(camera: Any, optics: Optics, settings: SweepSettings,
+async def calibrate_focus(camera: Phone, optics: Optics, settings: SweepSettings,
                           place_board: Callable[[float], Awaitable[None]], out: Path, *, measured: str,
                           progress: Callable[[int, int], None] | None = None) -> FocusTable:
     """Sweep a connected phone, fit its focus table and write ``out/<phone>.yaml`` (the format the
     phone driver reads; ``measured`` says when and how), with the sweeps' numbers and the sharpest
     picture of each distance in ``out/<phone>/``. Raises FocusFitError when the sweeps do not
     determine a table (named: phone, distance, problem)."""
-    phone = camera.phone.id
+    phone = camera.name
     sweeps = await sweep_phone(camera, optics, settings, place_board, out / phone, progress)
     (out / phone / "sweeps.json").write_text(json.dumps([
         {"distance_mm": s.distance_mm, "diopters": s.diopters.tolist(), "sharpness": s.sharpness.tolist()}
         for s in sweeps], indent=1))
     grid, mm, rms = fit_focus_table(sweeps, TABLE_DIOPTERS, phone)
     path = out / f"{phone}.yaml"
-    path.write_text(table_yaml(camera.info.model, measured, grid, mm))
+    path.write_text(table_yaml(_info(camera).model, measured, grid, mm))
     return FocusTable(phone, grid, mm, rms, sweeps, path)

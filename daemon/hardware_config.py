@@ -17,27 +17,37 @@ this PC reaches them, and nothing else::
     capture_agent: /opt/tbp-rig/agent/tbp-capture-agent.jar   # optional: pushed to phones without it
     timeouts: {open_s: 5.0, phone_authorisation_s: 60.0, reprobe_s: 2.0}   # optional
 
-``{usb: SERIAL}`` and ``{realsense: SERIAL}`` are accepted when SERIAL is the rig file's. Relative
+The depth cameras' kinds are drivers/depth/kinds.py's. ``{usb: SERIAL}`` and ``{realsense: SERIAL}``
+are accepted when SERIAL is the rig file's. Relative
 paths are relative to the hardware file. Unknown keys, missing devices and out-of-range values
-are refused with :class:`HardwareConfigError` naming the file, the key and what is allowed.
+are refused with :class:`HardwareConfigError` naming the file, the key and what is allowed. The
+keys, forms and defaults are the hardware file's table (planner/schema/tables.py), its depth
+cameras reached in one of :data:`DEPTH_KINDS`; this module checks the file against the rig file.
 """
 
 from __future__ import annotations
 
-import hashlib
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from daemon.errors import DaemonError
-from planner.rig import MAX_STRING, Rig, RigConfigError, _int, _key_name, _num, _Reader, _str, show
-from planner.yaml_files import read_yaml
+from drivers.depth.base import DepthSource
+from drivers.depth.kinds import DEPTH_KINDS as DEPTH_DRIVERS
+from planner.rig import Rig, RigConfigError
+from planner.schema import Kind, Nullable, Serial, Text, key_name, show
+from planner.schema.tables import HOST_PORT, PHONE_LINKS, hardware_file
 
-MAX_FILE_BYTES = 256 * 1024
 HARDWARE_FILE = "hardware.yaml"
-CAN_INTERFACES = ("socketcan", "slcan", "socketcand", "virtual")
-_HOST_PORT = re.compile(r"(?P<host>[A-Za-z0-9.-]{1,253}|\[[0-9A-Fa-f:]{2,39}\]):(?P<port>[0-9]{1,5})")
+DEPTH_KINDS: dict[str, Kind] = {
+    name: Kind(Nullable(Serial()), bare=True, doc=kind.doc) if kind.takes == "serial" else Kind(Text(), doc=kind.doc)
+    for name, kind in DEPTH_DRIVERS.items()
+}
+"""How a depth camera may be reached: the registry's kinds (drivers/depth/kinds.py) -> the form of
+their value in the hardware file: a kind that names a serial is written bare or with the rig file's
+serial, one that names a file with its path."""
+HARDWARE = hardware_file(DEPTH_KINDS)
+MAX_FILE_BYTES = HARDWARE.max_bytes
 
 
 class HardwareConfigError(DaemonError, RigConfigError):
@@ -88,18 +98,6 @@ class PhoneLink:
 
 
 @dataclass(frozen=True)
-class DepthSource:
-    """A live RealSense by serial, or a recorded sweep (``.db3`` with its ``.beam.json``)."""
-
-    serial: str
-    recording: Path | None = None
-
-    @property
-    def address(self) -> str:
-        return f"realsense:{self.serial}" if self.recording is None else f"recording:{self.recording}"
-
-
-@dataclass(frozen=True)
 class PanelPort:
     device: str
     baud: int
@@ -141,16 +139,6 @@ class HardwareConfig:
         return out
 
 
-_TOP = {"can", "phones", "depth_cameras", "panel", "capture_agent", "timeouts"}
-_CAN = {"interface": _str(), "channel": _str(), "host": _str(required=False, default=None),
-        "port": _int(1, 65535, required=False, default=None),
-        "bitrate": _int(10_000, 1_000_000, required=False, default=None)}
-_PANEL = {"device": _str(), "baud": _int(1200, 4_000_000, required=False, default=115200)}
-_TIMEOUTS = {"open_s": _num(0.5, 120.0, required=False, default=5.0),
-             "phone_authorisation_s": _num(1.0, 600.0, required=False, default=60.0),
-             "reprobe_s": _num(0.2, 60.0, required=False, default=2.0)}
-
-
 def default_hardware_path(rig_path: Path | str) -> Path:
     """hardware.yaml beside the rig file."""
     return Path(rig_path).resolve().parent / HARDWARE_FILE
@@ -158,123 +146,83 @@ def default_hardware_path(rig_path: Path | str) -> Path:
 
 def load_hardware(path: Path | str, rig: Rig) -> HardwareConfig:
     """Read and validate a hardware file against the rig it wires."""
-    path = Path(path)
-    raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="hardware file",
-                          error=lambda problem: HardwareConfigError(path, "<file>", problem),
-                          key_error=lambda key, problem: HardwareConfigError(path, key, problem))
-    return hardware_from_mapping(raw, rig, path, hashlib.sha256(text).hexdigest())
+    values, digest = HARDWARE.load(path, HardwareConfigError)
+    return _hardware(values, rig, str(path), digest)
 
 
 def hardware_from_mapping(raw: Any, rig: Rig, path: Path | str = "<memory>", digest: str = "") -> HardwareConfig:
-    reader = _HardwareReader(path)
-    raw = reader.mapping(raw, "<top>")
-    unknown = sorted(_key_name(k) for k in raw if k not in _TOP)
-    if unknown:
-        raise reader.error(unknown[0], f"unknown section; allowed: {', '.join(sorted(_TOP))}")
-    for name in ("can", "phones", "depth_cameras", "panel"):
-        if name not in raw:
-            raise reader.error(name, "missing section" + (" (write 'panel: null' for a rig without one)"
-                                                          if name == "panel" else ""))
+    """Validate an already-parsed hardware mapping (see :func:`load_hardware`)."""
+    return _hardware(HARDWARE.check(raw, path, HardwareConfigError), rig, str(path), digest)
+
+
+def _hardware(v: dict[str, Any], rig: Rig, path: str, digest: str) -> HardwareConfig:
     base = Path(path).parent
-    agent = raw.get("capture_agent")
-    if agent is not None:
-        agent = base / reader.value(agent, "capture_agent", _str())
     return HardwareConfig(
-        path=str(path), digest=digest, can=_can(reader, raw["can"]),
-        phones=_phones(reader, raw["phones"], rig),
-        depth_cameras=_depth(reader, raw["depth_cameras"], rig, base),
-        panel=None if raw["panel"] is None else PanelPort(**reader.section(raw["panel"], "panel", _PANEL)),
-        capture_agent=agent,
-        timeouts=Timeouts(**reader.section(raw.get("timeouts") or {}, "timeouts", _TIMEOUTS)),
+        path=path, digest=digest, can=_can(path, v["can"]),
+        phones=_phones(path, v["phones"], rig),
+        depth_cameras=_depth(path, v["depth_cameras"], rig, base),
+        panel=None if v["panel"] is None else PanelPort(**v["panel"]),
+        capture_agent=None if v["capture_agent"] is None else base / v["capture_agent"],
+        timeouts=Timeouts(**v["timeouts"]),
     )
 
 
-class _HardwareReader(_Reader):
-    def error(self, key: str, problem: str) -> HardwareConfigError:
-        return HardwareConfigError(self.path, key, problem)
-
-
-def _can(reader: _HardwareReader, raw: Any) -> CanBus:
-    bus = CanBus(**reader.section(raw, "can", _CAN))
-    if bus.interface not in CAN_INTERFACES:
-        raise reader.error("can.interface", f"got {show(bus.interface)}; allowed: {', '.join(CAN_INTERFACES)}")
+def _can(path: str, values: dict[str, Any]) -> CanBus:
+    bus = CanBus(**values)
     needs_bridge = bus.interface == "socketcand"
     if needs_bridge and (bus.host is None or bus.port is None):
-        raise reader.error("can.host" if bus.host is None else "can.port", "socketcand needs the bridge's host and port")
+        raise HardwareConfigError(path, "can.host" if bus.host is None else "can.port",
+                                  "socketcand needs the bridge's host and port")
     if not needs_bridge and (bus.host is not None or bus.port is not None):
-        raise reader.error("can.host" if bus.host is not None else "can.port",
-                           f"only socketcand has a host and port, not {bus.interface}")
+        raise HardwareConfigError(path, "can.host" if bus.host is not None else "can.port",
+                                  f"only socketcand has a host and port, not {bus.interface}")
     if bus.bitrate is not None and bus.interface != "slcan":
-        raise reader.error("can.bitrate", f"set by the OS for {bus.interface} (ip link); only slcan takes one")
+        raise HardwareConfigError(path, "can.bitrate",
+                                  f"set by the OS for {bus.interface} (ip link); only slcan takes one")
     return bus
 
 
-def _by_id(reader: _HardwareReader, raw: Any, key: str, ids: list[str]) -> dict[str, Any]:
-    raw = reader.mapping(raw, key)
-    unknown = sorted(_key_name(k) for k in raw if k not in ids)
+def _by_id(path: str, entries: dict[str, Any], key: str, ids: list[str]) -> dict[str, Any]:
+    """The entries of the rig file's devices, in its order; every one there, no other."""
+    unknown = sorted(key_name(k) for k in entries if k not in ids)
     if unknown:
-        raise reader.error(f"{key}.{unknown[0]}", f"not in the rig file; its ids are {', '.join(ids)}")
+        raise HardwareConfigError(path, f"{key}.{unknown[0]}", f"not in the rig file; its ids are {', '.join(ids)}")
     for name in ids:
-        if name not in raw:
-            raise reader.error(f"{key}.{name}", "missing: every device of the rig file needs an address")
-    return {name: raw[name] for name in ids}
+        if name not in entries:
+            raise HardwareConfigError(path, f"{key}.{name}", "missing: every device of the rig file needs an address")
+    return {name: entries[name] for name in ids}
 
 
-def _one_key(reader: _HardwareReader, raw: Any, key: str, kinds: tuple[str, ...]) -> tuple[str, Any]:
-    if isinstance(raw, str) and raw in kinds[:1]:
-        return raw, None
-    if not isinstance(raw, dict) or len(raw) != 1 or next(iter(raw)) not in kinds:
-        raise reader.error(key, f"got {show(raw)}; expected '{kinds[0]}' or a mapping with one of "
-                                f"{', '.join(kinds)}")
-    kind, value = next(iter(raw.items()))
-    return kind, value
-
-
-def _phones(reader: _HardwareReader, raw: Any, rig: Rig) -> dict[str, PhoneLink]:
+def _phones(path: str, entries: dict[str, Any], rig: Rig) -> dict[str, PhoneLink]:
     serials = {p.id: p.serial for p in rig.phones}
     links = {}
-    for name, entry in _by_id(reader, raw, "phones", list(serials)).items():
-        key = f"phones.{name}"
-        kind, value = _one_key(reader, entry, key, ("usb", "tcp"))
+    for name, (kind, value) in _by_id(path, entries, "phones", list(serials)).items():
+        key = f"phones.{name}.{kind}"
         if kind == "usb":
-            if value is not None and _serial(reader, value, f"{key}.usb") != serials[name]:
-                raise reader.error(f"{key}.usb", f"serial {show(value)} is not the rig file's {serials[name]!r} "
-                                                 "for this phone (the rig file names each phone; write 'usb')")
+            if value is not None and value != serials[name]:
+                raise HardwareConfigError(path, key, f"serial {key_name(value)} is not the rig file's {serials[name]!r} "
+                                                     "for this phone (the rig file names each phone; write 'usb')")
             links[name] = PhoneLink(serials[name])
         else:
-            host, port = _host_port(reader, value, f"{key}.tcp")
-            links[name] = PhoneLink(serials[name], host, port)
+            match = HOST_PORT.fullmatch(value)
+            if match is None or not 0 < int(match["port"]) < 65536:
+                raise HardwareConfigError(path, key, f"got {show(value)}; expected {PHONE_LINKS['tcp'].value.form()}")
+            links[name] = PhoneLink(serials[name], match["host"].strip("[]"), int(match["port"]))
     return links
 
 
-def _depth(reader: _HardwareReader, raw: Any, rig: Rig, base: Path) -> dict[str, DepthSource]:
+def _depth(path: str, entries: dict[str, Any], rig: Rig, base: Path) -> dict[str, DepthSource]:
+    """Each depth camera's kind (drivers/depth/kinds.py) and what it names: the rig file's serial,
+    or a file (relative to the hardware file)."""
     serials = {c.id: c.serial for c in rig.depth_cameras}
     sources = {}
-    for name, entry in _by_id(reader, raw, "depth_cameras", list(serials)).items():
-        key = f"depth_cameras.{name}"
-        kind, value = _one_key(reader, entry, key, ("realsense", "recording"))
-        if kind == "realsense":
-            if value is not None and _serial(reader, value, f"{key}.realsense") != serials[name]:
-                raise reader.error(f"{key}.realsense", f"serial {show(value)} is not the rig file's "
-                                                       f"{serials[name]!r} (write 'realsense')")
-            sources[name] = DepthSource(serials[name])
+    for name, (kind, value) in _by_id(path, entries, "depth_cameras", list(serials)).items():
+        if DEPTH_DRIVERS[kind].takes == "serial":
+            if value is not None and value != serials[name]:
+                raise HardwareConfigError(path, f"depth_cameras.{name}.{kind}", f"serial {key_name(value)} is not "
+                                                                                f"the rig file's {serials[name]!r} "
+                                                                                f"(write '{kind}')")
+            sources[name] = DepthSource(kind, serials[name])
         else:
-            sources[name] = DepthSource(serials[name], base / reader.value(value, f"{key}.recording", _str()))
+            sources[name] = DepthSource(kind, serials[name], base / value)
     return sources
-
-
-def _serial(reader: _HardwareReader, value: Any, key: str) -> str:
-    """A serial as text, checked before it is converted: a string of at most MAX_STRING
-    characters, or a number YAML read from digits (RealSense serials are digits)."""
-    if isinstance(value, str) and len(value) <= MAX_STRING:
-        return value
-    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value and value.bit_length() <= 64:
-        return str(value)
-    raise reader.error(key, f"got {show(value)}; expected the device's serial (text or digits)")
-
-
-def _host_port(reader: _HardwareReader, value: Any, key: str) -> tuple[str, int]:
-    match = _HOST_PORT.fullmatch(value) if isinstance(value, str) else None
-    if match is None or not 0 < int(match["port"]) < 65536:
-        raise reader.error(key, f"got {show(value)}; expected HOST:PORT, e.g. 192.168.50.11:5555")
-    return match["host"].strip("[]"), int(match["port"])

@@ -233,6 +233,6 @@ class RigJob:
         self.machine.scan_id = None
 
 
-JOB_END = {ScanOutcome.COMPLETED: ScanEnd.COMPLETE, ScanOutcome.ABORTED: ScanEnd.ABORTED,
-           ScanOutcome.FAULTED: ScanEnd.FAULT}
+JOB_END = {ScanOutcome.COMPLETED: ScanEnd.COMPLETE, ScanOutcome.PARTIAL: ScanEnd.PARTIAL,
+           ScanOutcome.ABORTED: ScanEnd.ABORTED, ScanOutcome.FAULTED: ScanEnd.FAULT}
 """How a job's folder records its outcome."""

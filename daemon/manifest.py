@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from daemon.atomic import StoreError
+from daemon.clinic.patient import Patient, PatientError, Study
 from daemon.faults import Cause
 
 FORMAT_VERSION = 1
@@ -28,9 +29,13 @@ class ManifestError(StoreError):
 
 
 class ScanEnd(str, enum.Enum):
-    """The manifest's state. INCOMPLETE from the start until the scan ends."""
+    """The manifest's state. INCOMPLETE from the start until the scan ends; a folder a killed
+    daemon left stays INCOMPLETE (interrupted). COMPLETE: every planned image is verified.
+    PARTIAL: the rotation ran to its end but some planned images are not in the folder
+    (:meth:`Manifest.missing_by_phone` says which phone's and why)."""
 
     COMPLETE = "complete"
+    PARTIAL = "partial"
     INCOMPLETE = "incomplete"
     ABORTED = "aborted"
     FAULT = "fault"
@@ -45,9 +50,36 @@ class ImageStatus(str, enum.Enum):
     MISSING = "missing"
 
 
+class MissingReason(str, enum.Enum):
+    """Why a planned image is not in the folder (an image's ``missing_reason``).
+
+    PHONE_DROPPED: its phone had failed several captures in a row and was dropped for the rest
+    of the scan (daemon/capture.py, ``DROP_AFTER_FAILURES``). CAPTURE_MISSED: the phone did not
+    take it (an error, no answer, the lens or the trigger too late), retake included.
+    PULL_FAILED: taken, but the pull from the phone failed or did not verify. NOT_PULLED: taken
+    and still on the phone (the scan ended before its pull). NOT_REACHED: the scan ended before
+    its pose (aborted, faulted, interrupted).
+    """
+
+    PHONE_DROPPED = "phone_dropped"
+    CAPTURE_MISSED = "capture_missed"
+    PULL_FAILED = "pull_failed"
+    NOT_PULLED = "not_pulled"
+    NOT_REACHED = "not_reached"
+
+    @property
+    def words(self) -> str:
+        return self.value.replace("_", " ")
+
+
+_REASON_OF_STATUS = {ImageStatus.PLANNED: MissingReason.NOT_REACHED, ImageStatus.CAPTURED: MissingReason.NOT_PULLED,
+                     ImageStatus.PULLED: MissingReason.NOT_PULLED, ImageStatus.FAILED: MissingReason.PULL_FAILED,
+                     ImageStatus.MISSING: MissingReason.CAPTURE_MISSED}
+
+
 def json_safe(value: Any) -> Any:
     """JSON-safe: non-finite floats become null, numpy scalars become Python numbers."""
-    if isinstance(value, Cause):
+    if isinstance(value, (Cause, Patient, Study)):
         return value.as_dict()
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
@@ -82,6 +114,7 @@ class ManifestRenderer:
         head = {f.name: getattr(manifest, f.name) for f in dataclasses.fields(manifest)
                 if f.name != "images"}
         head["counts"] = manifest.counts()
+        head["missing_by_phone"] = manifest.missing_by_phone()
         head_text = json.dumps(json_safe(head), indent=1, allow_nan=False)
         lines = []
         for n, image in enumerate(manifest.images):
@@ -115,6 +148,15 @@ class ImageRecord:
     sha256: str | None = None
     attempts: int = 0
     error: str | None = None
+    missing_reason: MissingReason | None = None
+    """Set once the image is known not to reach the folder (None while it may, and once verified)."""
+
+    def why_missing(self) -> MissingReason | None:
+        """Why this image is not in a closed scan's folder: its recorded reason, or its status's
+        (None for a verified image)."""
+        if self.status is ImageStatus.VERIFIED:
+            return None
+        return self.missing_reason or _REASON_OF_STATUS[self.status]
 
 
 @dataclass
@@ -134,6 +176,10 @@ class Manifest:
     ended_utc: str | None = None
     plan_summary: dict[str, Any] = field(default_factory=dict)
     files: dict[str, str] = field(default_factory=dict)
+    patient: Patient | None = None
+    """Who the scan is of (None: no patient was given)."""
+    study: Study | None = None
+    """The DICOM study and series the scan is (given with a patient)."""
     images: list[ImageRecord] = field(default_factory=list)
 
     def counts(self) -> dict[str, int]:
@@ -141,6 +187,26 @@ class Manifest:
         for image in self.images:
             out[image.status.value] += 1
         return out
+
+    def missing_by_phone(self, *, ended: bool | None = None) -> dict[str, dict[str, int]]:
+        """Images not in the folder, per camera id and :class:`MissingReason` value (cameras and
+        reasons without any left out). While the scan runs (``ended`` False; by default: not
+        ``in_progress``) only images already known lost count; once it ended, every planned
+        image that is not verified."""
+        ended = not self.in_progress if ended is None else ended
+        out: dict[str, dict[str, int]] = {}
+        for image in self.images:
+            reason = image.why_missing() if ended else image.missing_reason
+            if reason is not None and image.status is not ImageStatus.VERIFIED:
+                per_phone = out.setdefault(image.camera_id, {})
+                per_phone[reason.value] = per_phone.get(reason.value, 0) + 1
+        order = {camera: n for n, camera in enumerate(self.cameras)}
+        return {camera: out[camera] for camera in sorted(out, key=lambda c: (order.get(c, len(order)), c))}
+
+    def missing_summary(self, *, ended: bool | None = None) -> str | None:
+        """The images not in the folder in words (None when there are none): "39 of 336 images
+        missing: cam2 39 (36 phone dropped, 3 capture missed)"."""
+        return missing_text(self.missing_by_phone(ended=ended), len(self.images))
 
     @classmethod
     def from_dict(cls, data: Any, path: Path) -> Manifest:
@@ -163,17 +229,36 @@ class Manifest:
             _check_inside(name, f"files.{key}", path)
         try:
             images = [
-                ImageRecord(**{**i, "status": ImageStatus(i["status"])}) for i in data["images"]
+                ImageRecord(**{**i, "status": ImageStatus(i["status"]), "missing_reason":
+                               MissingReason(i["missing_reason"]) if i.get("missing_reason") else None})
+                for i in data["images"]
             ]
-            names = {f.name for f in dataclasses.fields(cls)} - {"images", "state", "causes"}
+            names = {f.name for f in dataclasses.fields(cls)} - {"images", "state", "causes", "patient", "study"}
             return cls(
                 **{k: data[k] for k in names if k in data},
                 state=ScanEnd(data["state"]),
                 causes=[Cause.from_dict(c) for c in data.get("causes", [])],
+                patient=None if data.get("patient") is None else Patient.from_dict(data["patient"]),
+                study=None if data.get("study") is None else Study.from_dict(data["study"]),
                 images=images,
             )
+        except PatientError as exc:  # names the field, never the value
+            raise ManifestError(path, f"not a valid manifest: {exc}") from exc
         except (KeyError, TypeError, ValueError) as exc:
             raise ManifestError(path, f"not a valid manifest: {exc}") from exc
+
+
+def missing_text(by_phone: dict[str, dict[str, int]], planned: int) -> str | None:
+    """:meth:`Manifest.missing_by_phone` in words, out of ``planned`` images."""
+    if not by_phone:
+        return None
+    total = sum(sum(reasons.values()) for reasons in by_phone.values())
+    phones = []
+    for camera, reasons in by_phone.items():
+        detail = ", ".join(f"{n} {MissingReason(r).words}" for r, n in
+                           sorted(reasons.items(), key=lambda item: (-item[1], item[0])))
+        phones.append(f"{camera} {sum(reasons.values())} ({detail})")
+    return f"{total} of {planned} images missing: {'; '.join(phones)}"
 
 
 def _number(value: Any) -> bool:
@@ -199,6 +284,8 @@ _MANIFEST_FIELDS: dict[str, _FieldRule] = {
     "plan_summary": (lambda v: isinstance(v, dict), False, True),
     "files": (lambda v: isinstance(v, dict) and all(isinstance(n, str) for n in v.values()), False, True),
     "causes": (lambda v: isinstance(v, list) and all(isinstance(c, dict) for c in v), False, True),
+    "patient": (lambda v: isinstance(v, dict), True, True),
+    "study": (lambda v: isinstance(v, dict), True, True),
     "images": (lambda v: isinstance(v, list), False, False),
 }
 _IMAGE_FIELDS: dict[str, _FieldRule] = {
@@ -218,6 +305,7 @@ _IMAGE_FIELDS: dict[str, _FieldRule] = {
     "sha256": (_IS_STR, True, True),
     "attempts": (_count, False, True),
     "error": (_IS_STR, True, True),
+    "missing_reason": (_IS_STR, True, True),
 }
 
 

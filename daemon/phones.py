@@ -13,12 +13,12 @@ import asyncio
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import structlog
 
 from daemon.capture import TriggerLatency
 from daemon.clocksync import ClockSync
+from daemon.devices import Phone
 from planner.rig import Rig
 
 log = structlog.get_logger("daemon.phones")
@@ -40,7 +40,7 @@ DEFAULT_MIN_FOCUS_MM = 100.0
 """A phone's nearest focus when it has neither a focus table nor a reported minimum."""
 
 
-def focus_range_mm(phone: Any) -> tuple[float, float]:
+def focus_range_mm(phone: Phone) -> tuple[float, float]:
     """Nearest and farthest focus (mm) of a phone: its focus table, else its reported minimum."""
     table = phone.focus_table
     if table is not None:
@@ -59,7 +59,7 @@ class PhonePreparer:
     WARMUP_CAPTURES = 2
     STEP_TIMEOUT_S = 2.0
 
-    def __init__(self, phones: Sequence[Any], rig: Rig) -> None:
+    def __init__(self, phones: Sequence[Phone], rig: Rig) -> None:
         self.phones = list(phones)
         self.rig = rig
 
@@ -98,11 +98,11 @@ class PhonePreparer:
                  latency_s=round(prep.latency[c].value_s, 5))
 
 
-async def prepare_phones(phones: Sequence[Any], rig: Rig) -> PhonePrep:
+async def prepare_phones(phones: Sequence[Phone], rig: Rig) -> PhonePrep:
     return await PhonePreparer(phones, rig).run()
 
 
-async def keep_clocks_synced(phones: Sequence[Any], prep: PhonePrep, period_s: float = 1.0) -> None:
+async def keep_clocks_synced(phones: Sequence[Phone], prep: PhonePrep, period_s: float = 1.0) -> None:
     """Ping every ready phone's clock each ``period_s`` until cancelled (tracks drift).
 
     A phone that stops answering is left alone: its capture requests report the typed error.

@@ -1,17 +1,16 @@
 """The real rig: the hardware file turned into the daemon's :class:`RigHardware`.
 
 Nothing is opened here. The drive gets a CAN port that opens its bus on first use, each phone
-a link factory (USB by serial, or ADB over TCP), each depth camera its RealSense or recording,
-the panel its serial port; the bring-up (daemon/bringup.py) connects them under the hardware
-file's timeouts and re-probes the ones that are missing. So a rig PC whose CAN adapter or a
-phone is unplugged still starts, reports NOT READY naming the device, and comes up when it is
-back.
+a link factory (USB by serial, or ADB over TCP), each depth camera the driver of its kind
+(drivers/depth/kinds.py), the panel its serial port; the bring-up (daemon/bringup.py) connects
+them under the hardware file's timeouts and re-probes the ones that are missing. So a rig PC
+whose CAN adapter or a phone is unplugged still starts, reports NOT READY naming the device, and
+comes up when it is back.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import signal
 from collections.abc import Callable
 from pathlib import Path
@@ -19,8 +18,27 @@ from typing import Any
 
 import structlog
 
+from daemon.controller import RigController
 from daemon.hardware import RigHardware
 from daemon.hardware_config import HardwareConfig, PhoneLink
+from daemon.logs import follow_machine
+from daemon.looplag import freeze_startup_heap
+from daemon.notify import SystemdNotifier
+from daemon.scan import ScanSettings
+from daemon.service import RigService
+from daemon.store import ScanStore
+from daemon.worker import compute_pool
+from drivers.adb.auth import AdbKey
+from drivers.depth.base import DepthCamera, DepthFinder
+from drivers.depth.kinds import DEPTH_KINDS
+from drivers.motor import BeamDrive, LazyCanPort, PythonCanPort
+from drivers.motor.port import CanPort
+from drivers.panel import OperatorPanel
+from drivers.phone.camera import PhoneCamera
+from drivers.phone.focus import load_focus_calibration
+from drivers.phone.links import tcp_link, usb_link
+from planner.rig import DepthCamera as DepthCameraConfig
+from planner.rig import Phone as PhoneConfig
 from planner.rig import Rig
 
 log = structlog.get_logger("daemon.real_rig")
@@ -31,111 +49,72 @@ def build_real_rig(rig: Rig, config: HardwareConfig, *, state_dir: Path) -> RigH
 
     state_dir: where the daemon keeps its ADB key (phones authorise it once).
     """
-    from drivers.adb.auth import AdbKey
-    from drivers.panel import OperatorPanel
-
     key = AdbKey.load_or_create(state_dir)
 
-    def new_drive() -> Any:
+    def new_drive() -> BeamDrive:
         return make_drive(rig, config)
 
     phones = [make_phone(rig, phone, config.phones[phone.id], key, config.capture_agent) for phone in rig.phones]
-    cameras = [_depth_camera(rig, camera, config) for camera in rig.depth_cameras]
+    cameras = [make_depth_camera(rig, camera, config) for camera in rig.depth_cameras]
     panel = None
     if config.panel is not None:
         panel = OperatorPanel.at(config.panel.device, baudrate=config.panel.baud, name="panel")
-    probe = _depth_probe(config)
+    finders = depth_finders(config)
+
+    async def depth_probe(index: int) -> str:
+        return await find_depth_camera(rig, config, finders, index)
+
     hardware = RigHardware(
-        drive=new_drive(), phones=phones, depth_cameras=cameras, panel=panel,
-        addresses=dict(config.devices()), drive_factory=new_drive, closers=[probe.close],
-        depth_probe=lambda index: probe_depth_source(rig, config, index, probe), timeouts=config.timeouts,
+        new_drive(), phones, cameras, panel, addresses=dict(config.devices()), drive_factory=new_drive,
+        closers=[finder.close for finder in finders.values()], depth_probe=depth_probe, timeouts=config.timeouts,
     )
     log.info("real_rig_built", hardware=config.path, devices=len(config.devices()),
              can=config.can.address, panel=config.panel.address if config.panel else None)
     return hardware
 
 
-def make_drive(rig: Rig, config: HardwareConfig) -> Any:
+def make_drive(rig: Rig, config: HardwareConfig) -> BeamDrive:
     """The beam drive on the hardware file's CAN bus (opened on first use)."""
-    from drivers.motor import BeamDrive, LazyCanPort, PythonCanPort
-
     bus = config.can
     extra = bus.bus_options()
     if bus.interface == "slcan" and "bitrate" not in extra:
         extra["bitrate"] = rig.motor.bitrate
 
-    async def open_bus() -> Any:
+    async def open_bus() -> CanPort:
         return await PythonCanPort.connect(bus.interface, bus.channel, name=bus.address, **extra)
 
     return BeamDrive(LazyCanPort(open_bus, bus.address), rig.motor)
 
 
-def make_phone(rig: Rig, phone: Any, link: PhoneLink, key: Any, agent: Path | None) -> Any:
+def make_phone(rig: Rig, phone: PhoneConfig, link: PhoneLink, key: AdbKey, agent: Path | None) -> PhoneCamera:
     """One rig phone over its configured link (USB by serial, or ADB over TCP)."""
-    from drivers.phone.camera import PhoneCamera
-    from drivers.phone.focus import load_focus_calibration
-    from drivers.phone.links import tcp_link, usb_link
-
     factory = usb_link(link.serial) if link.usb else tcp_link(link.host or "", link.port or 5555)
     focus = load_focus_calibration(rig.resolve(phone.focus_calibration))
     return PhoneCamera(factory, phone, focus, key=key, agent_jar=agent)
 
 
-def _depth_camera(rig: Rig, camera: Any, config: HardwareConfig) -> Any:
-    from drivers.depth.bag import BagPlayback
-    from drivers.depth.realsense import RealSenseCamera
-
+def make_depth_camera(rig: Rig, camera: DepthCameraConfig, config: HardwareConfig) -> DepthCamera:
+    """One rig depth camera, the driver of its kind (not started)."""
     source = config.depth_cameras[camera.id]
-    if source.recording is not None:
-        return BagPlayback(source.recording, camera_id=camera.id)
-    return RealSenseCamera(camera, fps=rig.depth_camera_model.fps)
+    return DEPTH_KINDS[source.kind].open(camera, source, rig.depth_camera_model)
 
 
-def _depth_probe(config: HardwareConfig) -> Any:
-    """The daemon's RealSense probe (its own process: drivers/depth/realsense_probe.py), and
-    pyrealsense2 loaded now for the cameras' streams, before any device's heartbeat runs on the
-    loop (the import holds the interpreter lock 25-35 ms). Without it the probe names the missing
-    backend for each camera, so it is not an error here."""
-    from drivers.depth.realsense import DepthBackendMissing, import_pyrealsense2
-    from drivers.depth.realsense_probe import RealSenseProbe
-
-    if config.depth_cameras:
-        with contextlib.suppress(DepthBackendMissing):
-            import_pyrealsense2("-")
-    return RealSenseProbe()
+def depth_finders(config: HardwareConfig) -> dict[str, DepthFinder]:
+    """One finder for each depth camera kind the hardware file uses, its SDK loaded now, before any
+    device's heartbeat runs on the loop; the caller closes them."""
+    kinds = sorted({source.kind for source in config.depth_cameras.values()})
+    for kind in kinds:
+        DEPTH_KINDS[kind].load()
+    return {kind: DEPTH_KINDS[kind].finder() for kind in kinds}
 
 
-async def probe_depth_source(rig: Rig, config: HardwareConfig, index: int, probe: Any = None) -> None:
-    """Raise when depth camera ``index`` cannot be found: pyrealsense2 is missing
-    (DepthBackendMissing), its RealSense is not enumerated (a :class:`DepthCameraNotFound` listing
-    the serials that are), or its recording is not a file.
-
-    ``probe``: the daemon's :class:`drivers.depth.realsense_probe.RealSenseProbe` (a one-off
-    command makes its own). The probe does not stream: the sweep starts the camera when the scan
-    needs it."""
-    from drivers.depth.errors import RecordingUnreadable
-    from drivers.depth.realsense import DepthCameraNotFound, import_pyrealsense2
-    from drivers.depth.realsense_probe import RealSenseProbe
-
+async def find_depth_camera(rig: Rig, config: HardwareConfig, finders: dict[str, DepthFinder], index: int) -> str:
+    """Depth camera ``index``'s identity in words; raises its kind's error naming it when it cannot
+    be found (the SDK missing, not plugged in, no such recording). Nothing streams: the sweep starts
+    the camera when the scan needs it."""
     camera = rig.depth_cameras[index]
     source = config.depth_cameras[camera.id]
-    if source.recording is not None:
-        # Played back, the camera streams through pyrealsense2 too: a missing backend is named
-        # before READY (loaded by :func:`_depth_probe`, the import is a dictionary look-up).
-        import_pyrealsense2(camera.id)
-        if not source.recording.is_file():
-            raise RecordingUnreadable(camera.id, source.recording, "no recording at this path")
-        return
-    if probe is None:
-        probe = RealSenseProbe()
-        try:
-            found = await probe.serials(camera.id)
-        finally:
-            await probe.close()
-    else:
-        found = await probe.serials(camera.id)
-    if source.serial not in found:
-        raise DepthCameraNotFound(camera.id, source.serial, found)
+    return await finders[source.kind].find(camera.id, source)
 
 
 async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_path: Path | None,
@@ -144,17 +123,8 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                        attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the real rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
 
-    Compute runs in a worker process (daemon/compute.py), so fusing and planning never stall
+    Compute runs in a worker process (daemon/worker.py), so fusing and planning never stall
     the drive's heartbeat."""
-    from daemon.compute import compute_pool
-    from daemon.controller import RigController
-    from daemon.logs import follow_machine
-    from daemon.looplag import freeze_startup_heap
-    from daemon.notify import SystemdNotifier
-    from daemon.scan import ScanSettings
-    from daemon.service import RigService
-    from daemon.store import ScanStore
-
     hardware = build_real_rig(rig, config, state_dir=state_dir)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -3,7 +3,9 @@
 Modelled on Klipper's shutdown: the first trip runs every registered handler (quick stop of the
 drive, the panel's fault light...), each under its own timeout and even if another one fails;
 the failures become further fault causes instead of log lines. Only :meth:`SafetyMonitor.reset`,
-the operator's explicit reset, clears the latch.
+the operator's explicit reset, clears the latch. The latch itself is the state machine's FAULT
+and its causes (daemon/states.py): the monitor latches through it and reads it, so the two can
+never tell different stories.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import structlog
 
 from daemon.errors import FaultLatched
 from daemon.faults import FaultCause, FaultSource
+from daemon.hardware import RigHardware
 from daemon.states import ScanState, ScanStateMachine
 from daemon.tasks import stop_tasks
 from drivers.motor.errors import HostStalled
@@ -26,11 +29,13 @@ Handler = Callable[[], Awaitable[Any]]
 
 
 class SafetyMonitor:
-    """Watches the drive, runs the shutdown handlers on a trip, and holds the latch.
+    """Watches the drive and runs the shutdown handlers on a trip; the latch is ``machine``'s.
 
     Args:
         machine: the scan state machine; a trip moves it to FAULT from any state.
-        drive: the beam drive (``fault``, ``latest``); watched every ``POLL_S``.
+
+    :meth:`start` watches the rig's drive every ``POLL_S`` (its ``fault``, its samples' age), the
+    one the device set holds at each look: a drive renewed on a fresh link is watched at once.
     """
 
     POLL_S = 0.02
@@ -38,11 +43,8 @@ class SafetyMonitor:
     STALE_SAMPLE_S = 0.5
     """No encoder sample for this long while the stream is expected means the drive is gone."""
 
-    def __init__(self, machine: ScanStateMachine, drive: Any) -> None:
+    def __init__(self, machine: ScanStateMachine) -> None:
         self.machine = machine
-        self.drive = drive
-        self.tripped = asyncio.Event()
-        self.causes: list[FaultCause] = []
         self.expect_samples = False
         self._handlers: list[tuple[str, Handler]] = []
         self._listeners: list[Callable[[FaultCause], None]] = []
@@ -65,7 +67,13 @@ class SafetyMonitor:
 
     @property
     def latched(self) -> bool:
-        return self.tripped.is_set()
+        """A fault is latched: the machine is in FAULT."""
+        return self.machine.fault_latched
+
+    @property
+    def causes(self) -> list[FaultCause]:
+        """The latched fault's causes (the machine's; empty when none is latched)."""
+        return self.machine.fault_causes
 
     def check(self) -> None:
         """Raise :class:`FaultLatched` if a fault is latched (before moving anything)."""
@@ -77,8 +85,6 @@ class SafetyMonitor:
         first = not self.latched
         if first:
             self._handled.clear()
-        self.causes.append(cause)
-        self.tripped.set()
         self.machine.transition(ScanState.FAULT, cause)
         log.error("safety_trip", source=cause.source.value, device=cause.device,
                   detail=cause.detail, first=first, loop_s=asyncio.get_running_loop().time())
@@ -92,7 +98,6 @@ class SafetyMonitor:
         for (name, _), result in zip(self._handlers, results):
             if isinstance(result, BaseException):
                 failure = FaultCause.of_error(FaultSource.SHUTDOWN, name, result, "shutdown handler failed")
-                self.causes.append(failure)
                 self.machine.transition(ScanState.FAULT, failure)
         self._handled.set()
 
@@ -105,18 +110,24 @@ class SafetyMonitor:
             await handler()
 
     async def reset(self, cause: str, recover: Handler) -> None:
-        """Clear the latch after ``recover`` (fault reset, re-enable) succeeded."""
+        """Clear the latch after ``recover`` (fault reset, re-enable) succeeded.
+
+        A trip while ``recover`` runs (the e-stop pressed again, the drive failing to enable)
+        is not cleared with the faults the operator saw: the reset raises :class:`FaultLatched`
+        with every cause, and the latch stays."""
+        seen = self.machine.faults_latched
         await recover()
-        self.causes = []
-        self.tripped.clear()
-        if self.machine.fault_latched:
+        if self.machine.faults_latched != seen:
+            raise FaultLatched(self.causes)
+        if self.latched:
             self.machine.reset(cause)
 
     # ------------------------------------------------------------------ drive watch
 
-    def start(self) -> None:
+    def start(self, devices: RigHardware) -> None:
+        """Watch ``devices``' drive (idempotent)."""
         if self._watch is None:
-            self._watch = asyncio.create_task(self._watch_drive(), name="safety-watch")
+            self._watch = asyncio.create_task(self._watch_drive(devices), name="safety-watch")
 
     async def stop(self) -> None:
         """Stop watching the drive (bounded; a cancel of the caller is not swallowed)."""
@@ -124,12 +135,13 @@ class SafetyMonitor:
         if watch is not None:
             await stop_tasks([watch], self.HANDLER_TIMEOUT_S)
 
-    async def _watch_drive(self) -> None:
+    async def _watch_drive(self, devices: RigHardware) -> None:
         reported: BaseException | None = None
         while True:
             await asyncio.sleep(self.POLL_S)
-            device = self.drive.name
-            fault = self.drive.fault
+            drive = devices.drive
+            device = drive.name
+            fault = drive.fault
             if fault is not None and fault is not reported:
                 # Also while latched: a drive fault after the first trip is one more cause to read.
                 reported = fault
@@ -138,11 +150,11 @@ class SafetyMonitor:
                 continue
             if self.latched:
                 continue
-            latest = self.drive.latest
+            latest = drive.latest
             if self.expect_samples and latest is not None:
                 # Stamped where the frame was received (the drive guard's thread on a real bus),
                 # so a loop that falls behind does not make a live encoder look stalled.
-                age = self.drive.sample_age_s()
+                age = drive.sample_age_s()
                 if age > self.STALE_SAMPLE_S:
                     await self.trip(FaultCause(
                         FaultSource.ENCODER_STALLED, device,

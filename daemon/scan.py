@@ -25,7 +25,7 @@ from daemon.capture import CaptureRecord
 from daemon.faults import AbortCause, AbortSource, Cause
 from daemon.hardware import RigHardware
 from daemon.job import JOB_END, RigJob
-from daemon.manifest import ImageStatus
+from daemon.manifest import ImageStatus, MissingReason, missing_text
 from daemon.safety import SafetyMonitor
 from daemon.scan_steps import ScanSteps
 from daemon.states import SCAN_STEPS, ScanOutcome, ScanState, ScanStateMachine
@@ -65,7 +65,14 @@ class ScanReport:
     outcome: ScanOutcome
     causes: list[Cause] = field(default_factory=list)
     captured: int = 0
+    verified: int = 0
     missing: int = 0
+    """Planned images not in the folder (not verified), whatever the reason."""
+    missing_by_phone: dict[str, dict[str, int]] = field(default_factory=dict)
+    """Those images per camera id and reason (daemon.manifest.MissingReason values)."""
+    dropped_phones: list[dict[str, Any]] = field(default_factory=list)
+    """Phones dropped for the rest of the scan, and any that rode along on the retake
+    (daemon.capture.CaptureRunner.drops)."""
     retaken: int = 0
     lens_late: int = 0
     focus_clipped: int = 0
@@ -81,8 +88,13 @@ class ScanReport:
 
     @property
     def reason(self) -> str | None:
-        """The causes in words (None for a completed scan)."""
-        return "; ".join(map(str, self.causes)) or None
+        """The causes in words; for a partial scan, its missing images per phone (None for a
+        completed scan)."""
+        if self.causes:
+            return "; ".join(map(str, self.causes))
+        if self.outcome is ScanOutcome.PARTIAL:
+            return missing_text(self.missing_by_phone, self.verified + self.missing)
+        return None
 
     AFTER_SWEEP = ("tsdf", "planning")
     """The compute steps between the end of the sweep and the capture (``tsdf``: the last frames
@@ -98,8 +110,10 @@ class ScanReport:
         return {
             "scan_id": self.scan_id, "folder": str(self.folder), "outcome": self.outcome.value,
             "reason": self.reason, "causes": [c.as_dict() for c in self.causes],
-            "captured": self.captured, "missing": self.missing,
-            "retaken": self.retaken, "lens_late": self.lens_late,
+            "captured": self.captured, "verified": self.verified, "missing": self.missing,
+            "missing_by_phone": {k: dict(v) for k, v in self.missing_by_phone.items()},
+            "dropped_phones": [dict(d) for d in self.dropped_phones], "retaken": self.retaken,
+            "lens_late": self.lens_late,
             "focus_clipped": self.focus_clipped,
             "max_abs_angle_error_deg": self.max_abs_angle_error_deg,
             "min_speed_ratio": self.min_speed_ratio, "phase_s": dict(self.phase_s),
@@ -155,7 +169,8 @@ class Scan(RigJob):
         return {"folder": str(self.folder.path)}
 
     def end_data(self) -> dict[str, Any]:
-        return {"captured": self.report.captured, "missing": self.report.missing}
+        report = self.report
+        return {"captured": report.captured, "verified": report.verified, "missing": report.missing}
 
     @property
     def stop_deceleration_deg_s2(self) -> float:
@@ -238,15 +253,17 @@ class Scan(RigJob):
         if runner is not None:
             report.errors.extend(f"capture worker {name} did not stop within {runner.WORKER_STOP_S:g} s"
                                  for name in runner.abandoned)
+        try:
+            self._record_missing(records)
+        except Exception as exc:  # recorded; the folder's end settles every image all the same
+            report.errors.append(f"missing: {type(exc).__name__}: {exc}")
+            log.error("store_step_failed", step="missing", error=f"{type(exc).__name__}: {exc}")
         self._summarise(report, records)
+        if report.outcome is ScanOutcome.COMPLETED and report.missing:
+            report.outcome = ScanOutcome.PARTIAL
         trace = self.tracker.trace(steps.trace_mark)
         captures, qa = [r.as_dict() for r in records], report.as_dict()
-
-        async def missing() -> None:
-            self._record_missing(records)
-
         writes: list[tuple[str, Callable[[], Awaitable[Any]]]] = [
-            ("missing", missing),
             ("trace", lambda: folder.write_trace(trace[:, 0], trace[:, 1], trace[:, 2], save=False)),
             ("captures", lambda: folder.write_json("captures", "captures.json", captures, save=False)),
             ("qa", lambda: folder.write_json("qa", "qa.json", qa, save=False)),
@@ -272,18 +289,25 @@ class Scan(RigJob):
             log.error("qa_report_failed", error=f"{type(exc).__name__}: {exc}")
 
     def _record_missing(self, records: Sequence[CaptureRecord]) -> None:
-        assert self.folder is not None
+        """Every pose the capture tried and did not take, missing in the manifest with its error
+        and reason (poses never tried stay planned: the folder's end says the scan ended first)."""
         for record in records:
-            if record.status != "captured":
-                self.folder.update_image(record.camera_index, record.angle_index, save=False,
-                                         status=ImageStatus.MISSING,
-                                         error=f"{record.error_type}: {record.error}")
+            if record.status == "captured" or record.status == "pending":
+                continue
+            error = f"{record.error_type}: {record.error}" if record.error_type else "not captured"
+            self.folder.update_image(record.camera_index, record.angle_index, save=False,
+                                     status=ImageStatus.MISSING, error=error,
+                                     missing_reason=record.missing_reason or MissingReason.CAPTURE_MISSED)
 
     def _summarise(self, report: ScanReport, records: Sequence[CaptureRecord]) -> None:
         m = self._marks
         captured = [r for r in records if r.status == "captured"]
+        manifest = self.folder.manifest
         report.captured = len(captured)
-        report.missing = self.rig.n_poses - len(captured)
+        report.verified = manifest.counts()[ImageStatus.VERIFIED.value]
+        report.missing = self.rig.n_poses - report.verified
+        report.missing_by_phone = manifest.missing_by_phone(ended=True)
+        report.dropped_phones = list(self.steps.runner.drops) if self.steps.runner is not None else []
         report.retaken = sum(r.capture_pass == "retake" for r in captured)
         report.lens_late = sum(r.lens_late for r in captured)
         main = [r for r in captured if r.capture_pass == "main"]

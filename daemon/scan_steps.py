@@ -194,17 +194,25 @@ class ScanSteps:
         return Next("plan feasible, beam at the run-up", {"poses": rig.n_poses})
 
     async def capturing(self) -> Next | None:
-        """The capture rotation; RETAKING next when poses were missed."""
+        """The capture rotation; RETAKING next when poses of phones not dropped were missed."""
         scan, prep = self.scan, self.prep
         assert prep is not None and self.schedule is not None
         self.runner = CaptureRunner(
             scan.rig, self.schedule, scan.hw.drive, scan.tracker, scan.hw.phones, prep.clocks, prep.latency,
             on_capture=self.captured, progress=scan.machine.progress, gone=[not ready for ready in prep.ready],
+            on_drop=self._phone_dropped,
         )
         await self.runner.main_pass()
         scan.mark("capture_end")
-        missed = sum(r.status != "captured" for r in self.runner.records)
+        missed = len(self.runner.retakeable())
         return Next("missed captures to retake", {"missed": missed}) if missed else None
+
+    def _phone_dropped(self, camera: str, failures: int, why: str) -> None:
+        """A phone is dropped for the rest of the scan: the scan's event log says so."""
+        try:
+            self.scan.folder.log_event("phone_dropped", camera=camera, failures=failures, error=why)
+        except StoreError as exc:
+            self._store_failed(exc)
 
     async def retaking(self) -> None:
         """A partial rotation over the missed poses, for the phones that are back."""
@@ -295,8 +303,7 @@ class ScanSteps:
         scan = self.scan
         assert self.pulls is not None and self.images is not None
         if self.pulls.fatal is not None and scan.store_error is None:
-            scan.store_error = self.pulls.fatal
-            scan.abort(AbortCause.of_error(AbortSource.STORE, "store", self.pulls.fatal))
+            self._store_failed(self.pulls.fatal)
         try:
             # The pull's verification rewrites the manifest; one rewrite per image, not two.
             scan.folder.update_image(
@@ -309,9 +316,13 @@ class ScanSteps:
             self.pulls.submit(self.images.pull(record.camera_index, record.angle_index, record.phone_path or "",
                                                scan.hw.phones[record.camera_index].pull,
                                                expected_size=record.size_bytes))
-        except StoreError as exc:  # the disk cannot take the scan: stop the rotation, keep the rest
-            scan.store_error = exc
-            scan.abort(AbortCause.of_error(AbortSource.STORE, "store", exc))
+        except StoreError as exc:
+            self._store_failed(exc)
+
+    def _store_failed(self, error: StoreError) -> None:
+        """The disk cannot take the scan: stop the rotation, keep the rest."""
+        self.scan.store_error = error
+        self.scan.abort(AbortCause.of_error(AbortSource.STORE, "store", error))
 
 
 def plan_summary(plan_json: dict[str, Any]) -> dict[str, Any]:

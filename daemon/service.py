@@ -17,23 +17,24 @@ from typing import Any
 
 import structlog
 
+from daemon.clinic.patient import PatientError, ScanSubject
+from daemon.clinic.site import Site
+from daemon.control import ControlServer
 from daemon.controller import RigController
-from daemon.errors import ScanBusy, ScanRefused
+from daemon.errors import DaemonError, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.looplag import LoopLagMonitor
 from daemon.notify import SystemdNotifier, run_watchdog
 from daemon.states import SCAN_STATES
 from daemon.store import new_scan_id
 from daemon.tasks import stop_tasks
-
-
-def _led(name: str) -> Any:
-    from drivers.panel import StatusLed
-
-    return StatusLed[name]
-
+from drivers.panel import PanelEvent, StatusLed
 
 log = structlog.get_logger("daemon.service")
+
+
+class WorklistUnavailable(DaemonError):
+    """The site file names no worklist provider."""
 
 
 class RigService:
@@ -61,6 +62,10 @@ class RigService:
         self._server: Any = None
         self.attached: list[Any] = []
         self._ready_sent = False
+        self.site: Site | None = None
+        """How the rig reaches the clinic's worklist and archive (the site file), None: not configured."""
+        self.status_parts: dict[str, Any] = {}
+        """Sections an attached server adds to the status (name -> callable returning JSON-able data)."""
 
     def attach(self, server: Any) -> None:
         """Serve ``server`` (``await start()``, ``await close()``; the web server) while the daemon runs:
@@ -80,8 +85,6 @@ class RigService:
                         **counts)
         ready = await ctl.bringup.once()
         if self.socket_path is not None:
-            from daemon.control import ControlServer
-
             self._server = ControlServer(self.socket_path, self, group=self.group)
             await self._server.start()
         for server in self.attached:
@@ -105,7 +108,7 @@ class RigService:
             self.notifier.status(summary)
             log.warning("daemon_not_ready", missing=[d.as_dict() for d in ctl.bringup.missing()])
             if ctl.hw.panel is not None and ctl.bringup.devices["panel"].ok:
-                self._spawn(ctl.hw.panel.set_status(_led("FAULT")), "panel-not-ready")
+                self._spawn(ctl.hw.panel.set_status(StatusLed.FAULT), "panel-not-ready")
             return
         state = ctl.machine.state.value
         text = f"{state}; {len(self.recovered)} interrupted scan(s) recovered"
@@ -205,8 +208,6 @@ class RigService:
 
     async def _panel_events(self) -> None:
         """Start, stop and e-stop from the operator panel."""
-        from drivers.panel import PanelEvent
-
         ctl = self.controller
         async for event in ctl.hw.panel.events():
             log.info("panel_event", panel_event=event.name)
@@ -236,12 +237,41 @@ class RigService:
         status["healthy"] = not problems
         status["health_problems"] = problems
         status["loop_lag"] = self.lag.summary()
+        for name, part in self.status_parts.items():
+            status[name] = part()
         return status
 
+    async def worklist(self) -> dict[str, Any]:
+        """Today's scheduled steps from the clinic's worklist (C-FIND, in a thread): ``items`` (each
+        a patient to start a scan for) and ``problems`` (answers left out, naming the field).
+        Raises WorklistUnavailable without a worklist in the site file, and the DicomPeerError
+        naming the provider and the reason when it cannot be asked."""
+        from daemon.clinic.worklist import query
+        from daemon.utc import utc_now
+
+        if self.site is None or self.site.worklist is None:
+            raise WorklistUnavailable("no worklist provider in the site file (site.yaml: worklist)")
+        site = self.site
+        today = f"{utc_now().astimezone():%Y%m%d}"  # the clinic's day, in this PC's time zone
+        answer = await asyncio.to_thread(query, site.worklist, site, today)
+        log.info("worklist_read", provider=str(site.worklist.peer), items=len(answer.items),
+                 left_out=len(answer.problems))
+        return answer.as_dict()
+
+    SCAN_ARGS = ("scan_id", *ScanSubject.ARGS)
+
     async def scan(self, **args: Any) -> dict[str, Any]:
+        """Start a scan; ``args``: optional ``scan_id`` and the patient it is for (``patient_id``,
+        ``patient_name`` as ``Family^Given``, ``birth_date``, ``sex``, ``accession_number``,
+        ``study_instance_uid``), kept in the manifest only. An unknown argument or a patient field
+        that is not valid refuses the scan (PatientError names the field, never the value)."""
+        unknown = sorted(set(args) - set(self.SCAN_ARGS))
+        if unknown:
+            raise PatientError(unknown[0][:40], f"unknown scan argument; allowed: {', '.join(self.SCAN_ARGS)}")
+        subject = ScanSubject.from_args(args)
         scan_id = args.get("scan_id") or new_scan_id()
-        await self.controller.start_scan(scan_id)
-        return {"scan_id": scan_id, "state": self.controller.machine.state.value}
+        await self.controller.start_scan(scan_id, subject)
+        return {"scan_id": scan_id, "state": self.controller.machine.state.value, "for_patient": subject is not None}
 
     async def calibrate(self, **args: Any) -> dict[str, Any]:
         """Start a calibration rotation (the cuboid in place); its folder is in the answer."""

@@ -3,6 +3,8 @@
 The table is data, so a reviewer can read the whole life of a scan in one place and a test can
 walk every edge. Leaving FAULT is only possible through :meth:`ScanStateMachine.reset`
 (Klipper's latched shutdown): a scan, a retry or a restart can never clear a fault by itself.
+The machine is the rig's one fault latch: FAULT and its causes are held here, and the safety
+monitor (daemon/safety.py) latches and reads them through it, keeping no copy of its own.
 Every transition is logged with its cause and published to the subscribers (the control API
 streams them to clients).
 """
@@ -38,9 +40,16 @@ class ScanState(enum.Enum):
 
 
 class ScanOutcome(enum.Enum):
-    """How a job ended, a scan or a calibration rotation (recorded in its folder)."""
+    """How a job ended, a scan or a calibration rotation (recorded in its folder).
+
+    COMPLETED: every step ran and every planned image is in the folder. PARTIAL: every step ran
+    (the rotation and its retakes finished) but planned images are missing (a scan's report
+    counts them per phone and reason). ABORTED: stopped by the operator, the daemon's stop or
+    an error. FAULTED: stopped by the safety latch.
+    """
 
     COMPLETED = "COMPLETED"
+    PARTIAL = "PARTIAL"
     ABORTED = "ABORTED"
     FAULTED = "FAULTED"
 
@@ -133,7 +142,9 @@ class ScanStateMachine:
         self.name = name
         self.state = ScanState.IDLE
         self.scan_id: str | None = None
-        self.fault_causes: list[FaultCause] = []
+        self._fault_causes: list[FaultCause] = []
+        self.faults_latched = 0
+        """Fault causes latched since the machine was made (a reset does not lower it)."""
         self.history: list[StatusEvent] = []
         self._subscribers: set[asyncio.Queue[StatusEvent]] = set()
         self._changed = asyncio.Event()
@@ -141,6 +152,11 @@ class ScanStateMachine:
     @property
     def fault_latched(self) -> bool:
         return self.state is ScanState.FAULT
+
+    @property
+    def fault_causes(self) -> list[FaultCause]:
+        """The latched fault's causes in the order they came (a copy; empty outside FAULT)."""
+        return list(self._fault_causes)
 
     def allowed(self, to: ScanState) -> bool:
         return to in TRANSITIONS[self.state] and not (
@@ -157,7 +173,8 @@ class ScanStateMachine:
         if to is ScanState.FAULT:
             if not isinstance(cause, FaultCause):
                 raise TypeError(f"FAULT needs a FaultCause, got {type(cause).__name__}: {cause!r}")
-            self.fault_causes.append(cause)
+            self._fault_causes.append(cause)
+            self.faults_latched += 1
             if self.state is ScanState.FAULT:
                 return self._emit("progress", ScanState.FAULT, cause, data)
         if not self.allowed(to):
@@ -168,7 +185,7 @@ class ScanStateMachine:
         """Clear a latched FAULT (the operator's explicit reset); only valid in FAULT."""
         if self.state is not ScanState.FAULT:
             raise IllegalTransition(self.state.value, ScanState.IDLE.value, f"reset: {cause}")
-        self.fault_causes = []
+        self._fault_causes = []
         return self._emit("transition", ScanState.IDLE, f"reset: {cause}", {})
 
     def progress(self, cause: str, **data: Any) -> StatusEvent:

@@ -17,8 +17,9 @@ Every file is written atomically (daemon/atomic.py: temp file in the same folder
 rename, fsync of the folder), so a reader sees the previous or the new version, never a
 torn one. The manifest
 says ``incomplete`` and ``in_progress: true`` from the moment the folder exists until the scan
-ends; :meth:`ScanStore.recover` closes folders a killed daemon left in progress. The subject
-is identified only by an opaque scan id: no patient data is written here.
+ends; :meth:`ScanStore.recover` closes folders a killed daemon left in progress. A scan for a
+patient keeps the patient and the study in its manifest, and only there; folders are readable by
+the store's group (the operators) and nobody else (:attr:`ScanStore.FOLDER_MODE`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
@@ -42,6 +44,7 @@ import numpy as np
 import structlog
 
 from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
+from daemon.clinic.patient import ScanSubject
 from daemon.faults import Cause
 from daemon.folder_writer import FolderWriter
 from daemon.manifest import (
@@ -51,6 +54,7 @@ from daemon.manifest import (
     Manifest,
     ManifestError,
     ManifestRenderer,
+    MissingReason,
     ScanEnd,
     json_bytes,
     json_safe,
@@ -72,7 +76,7 @@ class ScanFileError(StoreError):
 
 
 def new_scan_id() -> str:
-    """An opaque scan id (12 hex digits): the only identity of a subject in the store."""
+    """An opaque scan id (12 hex digits): never patient data (the patient is in the manifest)."""
     return secrets.token_hex(6)
 
 
@@ -328,7 +332,9 @@ class ScanFolder:
         for name, value in changes.items():
             if not hasattr(image, name):
                 raise StoreError(self.path, f"image record has no field {name!r}")
-            setattr(image, name, ImageStatus(value) if name == "status" else value)
+            if value is not None and name in _TYPED:
+                value = _TYPED[name](value)
+            setattr(image, name, value)
         if save:
             self.save()
         return image
@@ -347,8 +353,9 @@ class ScanFolder:
         return self.update_image(camera_index, angle_index, **changes)
 
     def record_failure(self, camera_index: int, angle_index: int, error: str, *,
-                       status: ImageStatus = ImageStatus.FAILED) -> ImageRecord:
-        return self.update_image(camera_index, angle_index, status=status, error=error)
+                       status: ImageStatus = ImageStatus.FAILED,
+                       reason: MissingReason = MissingReason.PULL_FAILED) -> ImageRecord:
+        return self.update_image(camera_index, angle_index, status=status, error=error, missing_reason=reason)
 
     def check(self) -> list[str]:
         """Re-read the folder against its manifest; returns the problems found (none: consistent).
@@ -414,7 +421,7 @@ class ScanFolder:
 
     def read_mesh(self) -> Any:
         """mesh.ply as a ``trimesh.Trimesh`` (mm); ScanFileError if the scan has none."""
-        import trimesh
+        import trimesh  # a second to import: only readers of a scan's mesh need it
 
         path = self.listed("mesh")
         if path is None:
@@ -429,7 +436,9 @@ class ScanFolder:
     def finish(self, state: ScanEnd, causes: Sequence[Cause] = ()) -> None:
         """End the scan: planned images become missing; the manifest leaves 'in progress'.
 
-        ``causes``: why it ended early (none for a complete scan); ``reason`` is their text.
+        ``causes``: why it ended early (none for a complete scan); ``reason`` is their text. A
+        scan asked to end ``complete`` with planned images not in the folder ends ``partial``,
+        its reason the missing images per phone (a complete scan has every image).
         Blocking (what the background queued is waited for, the last manifest written here):
         on the event loop of a real-time scan, :meth:`close` instead.
         """
@@ -470,11 +479,16 @@ class ScanFolder:
     def _end(self, state: ScanEnd, causes: Sequence[Cause]) -> None:
         for image in self.manifest.images:
             if image.status is ImageStatus.PLANNED:
+                image.missing_reason = image.why_missing()
                 image.status = ImageStatus.MISSING
                 image.error = image.error or f"not captured: scan ended {state.value}"
+            image.missing_reason = image.why_missing()
+        missing = self.manifest.missing_summary(ended=True)
+        if state is ScanEnd.COMPLETE and missing is not None:
+            state = ScanEnd.PARTIAL
         self.manifest.state = state
         self.manifest.causes = list(causes)
-        self.manifest.reason = "; ".join(map(str, causes)) or None
+        self.manifest.reason = "; ".join(map(str, causes)) or (missing if state is ScanEnd.PARTIAL else None)
         self.manifest.in_progress = False
         self.manifest.ended_utc = utc_stamp()
 
@@ -494,10 +508,15 @@ class ScanStore:
         self.writer = writer or AtomicWriter()
         self.reserve_bytes = self.RESERVE_BYTES if reserve_bytes is None else reserve_bytes
 
-    def create(self, rig: Rig, *, scan_id: str | None = None,
-               now: datetime | None = None) -> ScanFolder:
+    FOLDER_MODE = 0o750
+    """A scan folder (and its images/): the daemon writes, the store's group (the operators) reads,
+    nobody else; the store's set-group-id bit is kept, so its group is the operators'."""
+
+    def create(self, rig: Rig, *, scan_id: str | None = None, now: datetime | None = None,
+               subject: ScanSubject | None = None) -> ScanFolder:
         """A new scan folder with an initial manifest (incomplete, in progress) and its space
-        reserve: when this returns, the scan can be stored.
+        reserve: when this returns, the scan can be stored. ``subject``: the patient and the
+        order the scan is for (its study UIDs are made here, once).
 
         Raises StoreError (StoreFull, StoreWriteError) naming the path when the store cannot
         take a scan; a folder begun before the failure is removed again, so nothing is left
@@ -516,20 +535,25 @@ class ScanStore:
         except OSError as exc:
             raise_for(self.root, exc, 0)
         try:
-            path.mkdir()
+            path.mkdir(mode=self.FOLDER_MODE)
         except FileExistsError:
             raise StoreError(path, "scan folder already exists") from None
         except OSError as exc:
             raise_for(path, exc, 0)
         try:
             try:
-                (path / "images").mkdir()
+                self._private(path)
+                (path / "images").mkdir(mode=self.FOLDER_MODE)
+                self._private(path / "images")
                 fsync_dir(self.root)
             except OSError as exc:
                 raise_for(path, exc, 0)
+            created = now.isoformat()
             manifest = Manifest(
-                scan_id=scan_id, created_utc=now.isoformat(), rig_digest=rig.digest,
+                scan_id=scan_id, created_utc=created, rig_digest=rig.digest,
                 calibration_digest=calibration_digest(rig), cameras=[p.id for p in rig.phones],
+                patient=None if subject is None else subject.patient,
+                study=None if subject is None else subject.study(scan_id, created),
             )
             folder = ScanFolder(path, manifest, self.writer)
             folder.save()
@@ -538,6 +562,10 @@ class ScanStore:
             shutil.rmtree(path, ignore_errors=True)  # holds nothing yet: no half-made scan stays behind
             raise
         return folder
+
+    def _private(self, folder: Path) -> None:
+        """FOLDER_MODE whatever the umask, keeping the set-group-id bit the store gave it."""
+        os.chmod(folder, self.FOLDER_MODE | (folder.stat().st_mode & stat.S_ISGID))
 
     def _reserve(self, path: Path) -> None:
         """Set disk space aside so the manifest can still be rewritten when the disk fills."""
@@ -631,13 +659,19 @@ def read_folder(path: Path | str, *, writer: AtomicWriter | None = None) -> Scan
     return ScanFolder(path, Manifest.from_dict(data, manifest), writer or AtomicWriter())
 
 
+_TYPED: dict[str, Any] = {"status": ImageStatus, "missing_reason": MissingReason}
+"""Image fields held as enums (update_image takes their values too)."""
+
+
 def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:
     for image in images:
         if image.status is ImageStatus.PLANNED:
             image.status = ImageStatus.MISSING
             image.error = "not captured: scan interrupted"
+            image.missing_reason = MissingReason.NOT_REACHED
         elif image.status is ImageStatus.CAPTURED:
             image.error = "not pulled from the phone: scan interrupted"
+            image.missing_reason = MissingReason.NOT_PULLED
         elif image.status is ImageStatus.PULLED:
             path = folder.path / (image.file or "")
             ok = (image.file and path.is_file() and path.stat().st_size == image.size_bytes
@@ -647,3 +681,4 @@ def _settle_images(folder: ScanFolder, images: Iterable[ImageRecord]) -> None:
             else:
                 image.status = ImageStatus.FAILED
                 image.error = "pulled file does not match its size and checksum after interruption"
+                image.missing_reason = MissingReason.PULL_FAILED

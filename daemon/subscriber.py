@@ -20,6 +20,8 @@ from collections import deque
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
+from daemon.errors import DaemonError
+
 _CREDENTIALS = struct.Struct("3i")
 LINGER_MAX_BYTES = 64 * 1024
 
@@ -146,8 +148,8 @@ class Subscriber:
         self.writer.write(self.encode({"id": None, "ok": False, "error": {"type": error_type, "message": message}}))
 
 
-class _TooSlow(Exception):
-    """The subscriber's send queue is full."""
+class _TooSlow(DaemonError):
+    """The subscriber's send queue is full (internal: the subscriber is dropped, never raised out)."""
 
 
 async def close_events(events: AsyncIterator[Any]) -> None:

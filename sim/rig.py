@@ -20,7 +20,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import structlog
 
+from daemon.devices import Panel, Phone
 from daemon.hardware import RigHardware
+from drivers.adb.auth import AdbKey
+from drivers.motor.drive import BeamDrive
+from drivers.motor.port import LoopbackCanBus
+from drivers.panel import OperatorPanel
+from drivers.phone.camera import PhoneCamera, TransportFactory
+from drivers.phone.focus import load_focus_calibration
+from drivers.sim.depth import DEPTH_TWINS, DepthScene
+from drivers.sim.drive import SimulatedDrive
+from drivers.sim.panel import SimulatedPanel
+from drivers.sim.phone import SimulatedPhone
 from planner.poses import rgb_poses
 from planner.rig import DepthCameraModel, Rig
 
@@ -37,6 +48,7 @@ class SimOptions:
     depth_decimation: the simulated depth cameras render at 1/N of the rig's resolution (ray
         casting 1280 x 720 takes ~0.5 s of CPU a frame; the TSDF fuses at half resolution anyway).
     depth_fps: simulated frame rate (the sweep keeps one frame per 3 deg: 10 fps at 30 deg/s).
+    depth_kind: the kind of depth camera simulated (drivers/depth/kinds.py): its twin streams.
     """
 
     seed: int = 0
@@ -44,6 +56,12 @@ class SimOptions:
     depth_fps: float = 10.0
     panel: bool = True
     state_dir: Path | None = None
+    depth_kind: str = "realsense"
+
+    def __post_init__(self) -> None:
+        if self.depth_kind not in DEPTH_TWINS:
+            raise ValueError(f"no simulated twin of depth camera kind {self.depth_kind!r}; "
+                             f"twins: {', '.join(DEPTH_TWINS)}")
 
 
 @dataclass
@@ -51,11 +69,11 @@ class SimWorld:
     """Handles on every simulator: fault injection and ground truth for tests."""
 
     subject: Any
-    bus: Any
-    drive: Any
-    phones: list[Any] = field(default_factory=list)
+    bus: LoopbackCanBus
+    drive: SimulatedDrive
+    phones: list[SimulatedPhone] = field(default_factory=list)
     depth_cameras: list[Any] = field(default_factory=list)
-    panel: Any | None = None
+    panel: SimulatedPanel | None = None
     tasks: list[asyncio.Task[Any]] = field(default_factory=list)
 
     def press_estop(self) -> None:
@@ -90,7 +108,7 @@ def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> Dep
 
 def default_subject(seed: int) -> Any:
     """The simulated subject for a seed: an adult body from sim/body.py."""
-    from sim.body import make_body
+    from sim.body import make_body  # the body model: seconds to import, only without a given subject
 
     return make_body(seed=seed)
 
@@ -112,11 +130,6 @@ async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *, subject
 
     stage: the calibration cuboid in place of a subject (sim/cuboid_stage.py): the phones and the
     depth cameras' infrared imagers see it from the rig's true poses."""
-    from drivers.motor.drive import BeamDrive
-    from drivers.motor.port import LoopbackCanBus
-    from drivers.sim.depth import DepthScene, SimulatedDepthCamera
-    from drivers.sim.drive import SimulatedDrive
-
     if stage is not None:
         subject = stage.mesh()
     elif subject is None:
@@ -131,9 +144,10 @@ async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *, subject
     angle = lambda _t=0.0: sim_drive.true_angle_deg  # noqa: E731
     scene = DepthScene(subject)
     model = sim_depth_model(rig.depth_camera_model, options.depth_decimation, options.depth_fps)
+    twin = DEPTH_TWINS[options.depth_kind]
     world.depth_cameras = [
-        SimulatedDepthCamera(cam, model, scene, angle, seed=options.seed * 100 + i,
-                             infrared_source=None if stage is None else stage.infrared(cam.id, model))
+        twin(cam, model, scene, angle, seed=options.seed * 100 + i,
+             infrared_source=None if stage is None else stage.infrared(cam.id, model))
         for i, cam in enumerate(rig.depth_cameras)
     ]
     phones = await _sim_phones(rig, options, world, angle, stage)
@@ -152,14 +166,9 @@ async def _stream_pair() -> tuple[tuple[asyncio.StreamReader, asyncio.StreamWrit
 
 
 async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
-                      angle: Callable[..., float], stage: CuboidStage | None) -> list[Any]:
-    from drivers.adb.auth import AdbKey
-    from drivers.phone.camera import PhoneCamera
-    from drivers.phone.focus import load_focus_calibration
-    from drivers.sim.phone import SimulatedPhone
-
+                      angle: Callable[..., float], stage: CuboidStage | None) -> list[Phone]:
     key = AdbKey.generate() if options.state_dir is None else AdbKey.load_or_create(options.state_dir)
-    phones = []
+    phones: list[Phone] = []
     for i, phone in enumerate(rig.phones):
         pose = phone_pose_source(rig, i, angle) if stage is None else stage.pose(phone.id, angle)
         sim = SimulatedPhone(
@@ -174,7 +183,7 @@ async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
     return phones
 
 
-def sim_phone_link(sim: Any, tasks: list[asyncio.Task[Any]]) -> Callable[[], Any]:
+def sim_phone_link(sim: SimulatedPhone, tasks: list[asyncio.Task[Any]]) -> TransportFactory:
     """The host's ADB link to a simulated phone: each connect is a fresh socket pair whose far
     end the phone serves (its task goes into ``tasks``)."""
 
@@ -186,10 +195,7 @@ def sim_phone_link(sim: Any, tasks: list[asyncio.Task[Any]]) -> Callable[[], Any
     return transport
 
 
-async def _sim_panel(world: SimWorld) -> Any:
-    from drivers.panel import OperatorPanel
-    from drivers.sim.panel import SimulatedPanel
-
+async def _sim_panel(world: SimWorld) -> Panel:
     (host_r, host_w), (dev_r, dev_w) = await _stream_pair()
     sim = SimulatedPanel(dev_r, dev_w)
     world.panel = sim

@@ -13,6 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from daemon.clinic.patient import ScanSubject
 from daemon.controller import RigController
 from daemon.scan import ScanReport, ScanSettings
 from daemon.states import StatusEvent
@@ -40,7 +41,8 @@ def progress_printer(out: TextIO) -> Callable[[StatusEvent], None]:
         elif event.cause in ("captured",) and event.data.get("captured", 0) % 48 == 0:
             print(f"[{event.time_s:8.2f} s] {'':<14} {event.data['captured']} images captured",
                   file=out, flush=True)
-        elif event.cause in ("capture_missed", "retake_started", "phone_reconnected"):
+        elif event.cause in ("capture_missed", "retake_started", "phone_reconnected", "phone_dropped",
+                             "phone_rejoined"):
             print(f"[{event.time_s:8.2f} s] {'':<14} {event.cause} {event.data}", file=out, flush=True)
 
     return show
@@ -50,17 +52,19 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
                    plan_points: int | None = None, depth_decimation: int = 2,
                    out: TextIO | None = None, subject: Any | None = None, panel: bool = True,
                    qa_report: Callable[..., Path] | None = None,
-                   on_ready: Callable[[RigController, Any], None] | None = None) -> ScanReport:
+                   on_ready: Callable[[RigController, Any], None] | None = None,
+                   patient: ScanSubject | None = None) -> ScanReport:
     """Build the simulated rig, run one scan, close everything; returns the scan's report.
 
-    on_ready(controller, world) is called once the rig is up (tests inject faults from it).
+    on_ready(controller, world) is called once the rig is up (tests inject faults from it);
+    patient: who the scan is for (a synthetic identity), kept in its manifest.
     """
     rig = load_rig(config or DEFAULT_RIG_PATH)
     hardware, world = await build_sim_rig(
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
-        # As the daemon's worker does (daemon/compute.py): compile the planner's loops, or load
+        # As the daemon's worker does (daemon/worker.py): compile the planner's loops, or load
         # them from numba's cache, while the rig starts, not in the first plan between the sweep
         # and the capture (0.4-0.6 s of the 2 s there).
         executor.submit(warm_up, rig)
@@ -72,7 +76,7 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
             await controller.start()
             if on_ready is not None:
                 on_ready(controller, world)
-            report = await controller.scan(sim_scan_id(seed))
+            report = await controller.scan(sim_scan_id(seed), patient)
         finally:
             if printer is not None:
                 printer.cancel()
@@ -101,13 +105,13 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
 
-    Compute runs in a worker process as on the real rig (daemon/compute.py): in a thread, the
+    Compute runs in a worker process as on the real rig (daemon/worker.py): in a thread, the
     TSDF extraction held the interpreter lock the console's events and the panel wait for."""
-    from daemon.compute import compute_pool
     from daemon.logs import follow_machine
     from daemon.looplag import freeze_startup_heap
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
+    from daemon.worker import compute_pool
     from planner.plan import load_subject_mesh
 
     rig = load_rig(config or DEFAULT_RIG_PATH)

@@ -45,17 +45,28 @@ def _tree(root: Path) -> dict[str, tuple[int, int]]:
 
 
 @pytest.fixture(scope="session")
+def agent_jvm_jar(request: pytest.FixtureRequest):
+    """The capture agent's JVM build, built once per version of agent/ (tests/agent_jar.py);
+    the test is skipped when no JDK is installed."""
+    from tests.agent_jar import session_jar
+
+    return session_jar(request)
+
+
+@pytest.fixture(scope="session")
 def web_store(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """A store with one small simulated scan of the complete simulated rig (capsule subject, QA
-    report), shared read-only by the web, browser and scan report tests (a test that writes
-    works on a copy); the session fails if any test changed it."""
+    report) for a synthetic patient, shared read-only by the web, browser and scan report tests (a
+    test that writes works on a copy); the session fails if any test changed it."""
     from analysis.qa_report import generate_report
+    from daemon.clinic.patient import ScanSubject
     from sim.run import run_sim_scan
     from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
     root = tmp_path_factory.mktemp("web-store")
+    patient = ScanSubject.from_args({"patient_id": "SYN-0001", "patient_name": "Testperson^Capsule"})
     run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
-                 panel=False, qa_report=generate_report)
+                 panel=False, qa_report=generate_report, patient=patient)
     made = _tree(root)
     yield root
     assert _tree(root) == made, "a test changed the shared web_store: copy it first (see test_web.scan_store)"

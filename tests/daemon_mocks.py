@@ -19,7 +19,7 @@ import numpy as np
 
 from drivers.motor.samples import BeamSample
 from drivers.phone.camera import CaptureDone, ClockSample, FocusDone, PhoneInfo
-from drivers.phone.errors import PhoneDisconnected
+from drivers.phone.errors import CaptureFailed, PhoneDisconnected, PullFailed
 from drivers.sim.trapezoid import hold, position_move, velocity_ramp
 
 OPERATION_ENABLED = 0x27
@@ -124,11 +124,17 @@ class MockDrive:
 
 
 class MockPhone:
-    """A phone with a lens that takes time to move and a seeded trigger latency with jitter."""
+    """A phone with a lens that takes time to move and a seeded trigger latency with jitter.
+
+    Faults: ``fail_after`` (the link drops after that many captures; ``reconnectable`` says if
+    it comes back), ``freeze_after`` (after that many captures no request is ever answered, as
+    when the camera HAL hangs, until ``frozen`` is set False), ``fail_captures_at`` (the
+    captures, counted from 0, that answer CAPTURE_FAILED), ``fail_pulls`` (every pull fails)."""
 
     def __init__(self, serial: str, *, seed: int = 0, latency_s: float = 0.04, jitter_s: float = 0.002,
                  clock_offset_s: float = 1234.5, lens_s: float = 0.03) -> None:
         self.serial = serial
+        self.name = f"phone-{serial}"
         self.rng = np.random.default_rng(seed)
         self.latency_s = latency_s
         self.jitter_s = jitter_s
@@ -137,6 +143,11 @@ class MockPhone:
         self.focus_mm = 0.0
         self.captures: list[int] = []
         self.fail_after: int | None = None
+        self.freeze_after: int | None = None
+        self.frozen = False
+        self.fail_captures_at: set[int] = set()
+        self.fail_pulls = False
+        self._tries = 0
         self.connected = True
         self.reconnectable = True
         self.focus_table = None  # no calibration: the daemon falls back to the reported range
@@ -153,20 +164,35 @@ class MockPhone:
         if not self.connected:
             raise PhoneDisconnected(self.serial, "ready", "link lost")
 
-    async def connect(self) -> None:
+    async def _answer(self) -> None:
+        """A frozen phone never answers (the caller's timeout decides)."""
+        if self.freeze_after is not None and len(self.captures) >= self.freeze_after:
+            self.frozen, self.freeze_after = True, None
+        while self.frozen:
+            await asyncio.sleep(0.1)
+
+    async def connect(self, timeout_s: float | None = None) -> None:
         if not self.reconnectable:
             raise PhoneDisconnected(self.serial, "connecting", "connection refused")
         self.connected = True
 
     async def set_focus_mm(self, focus_mm: float) -> FocusDone:
         self._check()
+        await self._answer()
         await asyncio.sleep(self.lens_s)
         self.focus_mm = focus_mm
         now = asyncio.get_running_loop().time()
         return FocusDone(1000.0 / focus_mm, focus_mm, self._device_ns(now))
 
+    async def set_lens_diopters(self, diopters: float) -> FocusDone:
+        return await self.set_focus_mm(1000.0 / diopters)
+
     async def capture(self) -> CaptureDone:
         self._check()
+        await self._answer()
+        self._tries += 1
+        if self._tries - 1 in self.fail_captures_at:
+            raise CaptureFailed(self.serial, "ready", "CAPTURE_FAILED", "sensor busy", "capture")
         latency = self.latency_s + self.jitter_s * float(self.rng.standard_normal())
         await asyncio.sleep(latency)
         start = asyncio.get_running_loop().time()
@@ -177,6 +203,7 @@ class MockPhone:
 
     async def clock_sample(self) -> ClockSample:
         self._check()
+        await self._answer()
         loop = asyncio.get_running_loop()
         send = loop.time()
         await asyncio.sleep(0.001)
@@ -187,6 +214,8 @@ class MockPhone:
     async def pull(self, phone_path: str, dest: Path) -> tuple[int, str]:
         import hashlib
 
+        if self.fail_pulls:
+            raise PullFailed(self.serial, "ready", f"{phone_path}: device I/O error")
         data = b"x" * 1000
         dest.write_bytes(data)
         return len(data), hashlib.sha256(data).hexdigest()

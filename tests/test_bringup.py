@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
+import pytest
 import structlog
 
 from daemon.bringup import BringUp
@@ -23,9 +24,9 @@ def test_a_device_that_stays_missing_is_probed_less_often_and_found_soon_after_i
         attempts: list[float] = []
         connect = phone.connect
 
-        async def counted() -> None:
+        async def counted(timeout_s: float | None = None) -> None:
             attempts.append(asyncio.get_running_loop().time())
-            await connect()
+            await connect(timeout_s)
 
         phone.connect = counted
         controller = RigController(RIG, hardware, ScanStore(tmp_path / "scans"))
@@ -63,12 +64,12 @@ def test_each_device_is_opened_with_its_name_in_the_log_context_of_the_tasks_it_
             phone = hardware.phones[index]
             connect = phone.connect
 
-            async def bound(phone=phone, connect=connect) -> None:
+            async def bound(timeout_s: float | None = None, phone=phone, connect=connect) -> None:
                 async def reader() -> None:  # a driver task started by connect(), e.g. its reader
                     seen[phone.serial] = structlog.contextvars.get_contextvars().get("device")
 
                 await asyncio.create_task(reader())
-                await connect()
+                await connect(timeout_s)
 
             phone.connect = bound
         controller = RigController(RIG, hardware, ScanStore(tmp_path / "scans"))
@@ -81,3 +82,71 @@ def test_each_device_is_opened_with_its_name_in_the_log_context_of_the_tasks_it_
 
     seen = run_virtual(main())
     assert seen == {RIG.phones[0].serial: RIG.phones[0].id, RIG.phones[5].serial: RIG.phones[5].id, "after": None}
+
+
+def test_two_bring_ups_at_once_never_connect_one_device_twice(tmp_path: Path) -> None:
+    """The service's re-probe and the reset's reconnect may ask at the same moment: one waits for
+    the other (two connects on one drive started two drive guards)."""
+
+    async def main() -> tuple[int, list[bool]]:
+        hardware, _world = await build_rig(RIG, 0)
+        drive = hardware.drive
+        connect = drive.connect
+        running, most = 0, 0
+
+        async def slow() -> None:
+            nonlocal running, most
+            running += 1
+            most = max(most, running)
+            try:
+                await asyncio.sleep(0.5)  # a CAN adapter slow to open
+                await connect()
+            finally:
+                running -= 1
+
+        drive.connect = slow  # type: ignore[method-assign]
+        controller = RigController(RIG, hardware, ScanStore(tmp_path / "scans"))
+        try:
+            ready = await asyncio.gather(controller.bringup.once(), controller.bringup.once(due_only=True))
+        finally:
+            await controller.close()
+        return most, list(ready)
+
+    most, ready = run_virtual(main())
+    assert most == 1 and ready == [True, True]
+
+
+def test_a_renewed_drive_is_everyones_drive_at_once(tmp_path: Path) -> None:
+    """A drive whose link died is replaced by the device set alone: the jobs, the safety watch and
+    the encoder follower all act on the fresh one."""
+    from daemon.hardware import RigHardware
+    from drivers.motor.errors import HeartbeatLost
+    from tests.daemon_mocks import MockDrive
+
+    async def main() -> None:
+        made: list[MockDrive] = []
+
+        def fresh() -> MockDrive:
+            made.append(MockDrive())
+            return made[-1]
+
+        hardware = RigHardware(fresh(), [], [], drive_factory=fresh)
+        controller = RigController(RIG, hardware, ScanStore(tmp_path / "scans"))
+        try:
+            assert await controller.bringup.once()
+            first = hardware.drive
+            await first.close()  # the link died
+            await controller.bringup.reconnect_drive()
+            second = hardware.drive
+            assert second is made[-1] and second is not first and controller.bringup.devices["drive"].ok
+            await asyncio.sleep(0.1)
+            assert controller.tracker.latest is second.latest
+            second.fault = HeartbeatLost("beam", "OPERATION ENABLED", 0.4, 0.35)
+            await asyncio.sleep(0.1)
+            assert controller.safety.latched and "no heartbeat" in str(controller.safety.causes[0])
+            with pytest.raises(AttributeError):
+                hardware.drive = first  # type: ignore[misc]
+        finally:
+            await controller.close()
+
+    run_virtual(main())

@@ -78,8 +78,8 @@ async def _cancel_after_result(wait: Callable[[], Awaitable[Any]], result: Calla
 def test_a_cancel_as_the_beam_reaches_the_angle_cancels_the_wait(turns: int) -> None:
     async def main() -> None:
         drive = ManualDrive()
-        tracker = BeamTracker(drive)
-        await tracker.start()
+        tracker = BeamTracker()
+        await tracker.start(drive)
         drive.send(0.0, 10.0)
         await asyncio.sleep(0)
         await _cancel_after_result(lambda: tracker.wait_angle(10.0, 5.0), lambda: drive.send(10.0, 10.0), turns)
@@ -95,8 +95,8 @@ def test_a_cancel_as_a_sample_arrives_cancels_a_capture_waiting_for_the_beam(tur
 
     async def main() -> None:
         drive = ManualDrive()
-        tracker = BeamTracker(drive)
-        await tracker.start()
+        tracker = BeamTracker()
+        await tracker.start(drive)
         drive.send(-60.0)
         await asyncio.sleep(0)
         profile = rig_profile(RIG)
@@ -142,8 +142,8 @@ def test_a_capture_worker_that_does_not_stop_is_named_and_left_behind() -> None:
     async def main() -> tuple[list[str], float]:
         drive = MockDrive()
         await drive.connect()
-        tracker = BeamTracker(drive)
-        await tracker.start()
+        tracker = BeamTracker()
+        await tracker.start(drive)
         phones = [(StubbornPhone if i == 3 else MockPhone)(p.serial, seed=i) for i, p in enumerate(RIG.phones)]
         profile = rig_profile(RIG)
         await drive.move_to(profile.start_deg, 40.0, 60.0)
@@ -172,8 +172,8 @@ def test_a_capture_worker_that_does_not_stop_is_named_and_left_behind() -> None:
 def test_stopping_the_tracker_does_not_swallow_its_callers_cancel() -> None:
     async def main() -> None:
         drive = ManualDrive()
-        tracker = BeamTracker(drive)
-        await tracker.start()
+        tracker = BeamTracker()
+        await tracker.start(drive)
         stopping = asyncio.create_task(tracker.stop())
         await asyncio.sleep(0)
         stopping.cancel()

@@ -148,7 +148,7 @@ def test_a_missing_phone_and_recording_fail_the_check_naming_each(
 
 
 def _drive_stuck_at_no_action() -> Any:
-    from drivers.motor import sdo
+    from drivers.motor import sdo_aborts
     from drivers.sim.canopen_node import SdoAbortRequest
     from drivers.sim.drive import SimulatedDrive
 
@@ -157,7 +157,7 @@ def _drive_stuck_at_no_action() -> Any:
 
         def write_object(self, index: int, subindex: int, value: int) -> None:
             if index == 0x6007 and value != 0:
-                raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+                raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
             super().write_object(index, subindex, value)
 
     return StuckDrive

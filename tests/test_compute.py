@@ -1,4 +1,5 @@
-"""The compute worker process and the depth sweep handed to it through shared memory (daemon/compute.py)."""
+"""The compute worker process (daemon/worker.py) and the depth sweep handed to it through shared memory
+(daemon/compute.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.compute import SHM_DIR, compute_pool, compute_threads, release, share_frames, unshare_frames
+from daemon.compute import SHM_DIR, release, share_frames, unshare_frames
+from daemon.worker import compute_pool, compute_threads
 from planner.sweep import PosedDepth
 
 

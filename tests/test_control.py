@@ -247,6 +247,11 @@ def test_cli_formats_status_events_on_one_line():
         FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed").as_dict(),
         FaultCause(FaultSource.DRIVE_FAULT, "beam", "EMCY 0x5441").as_dict()]})
     assert status == "state: FAULT\nfault_causes: panel: e-stop pressed; beam: EMCY 0x5441"
+    last = _format({"last_scan": {"scan_id": "abc123", "outcome": "PARTIAL", "verified": 290, "missing": 46,
+                                  "reason": "46 of 336 images missing: cam2 46 (43 phone dropped, 3 capture missed)",
+                                  "folder": "/scans/x"}})
+    assert last == ("last_scan: abc123 PARTIAL, 290 of 336 images in the folder: 46 of 336 images missing: "
+                    "cam2 46 (43 phone dropped, 3 capture missed) (/scans/x)")
 
 
 def test_cli_status_follow_streams_until_the_daemon_goes(sock, capsys):

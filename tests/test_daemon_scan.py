@@ -68,6 +68,45 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
     assert report.phase_s["total"] <= 100.0
 
 
+def test_a_scan_with_images_missing_ends_partial_naming_each_phone_and_why(tmp_path: Path) -> None:
+    """cam2 freezes after 20 poses (dropped, no retake waits for it); every pull from cam4 fails.
+    The rotation finished, so the scan is not aborted, but it is not complete either."""
+    def faults(world) -> None:
+        world.phones[2].freeze_after = 2 + 20  # after its two warm-up captures
+        world.phones[4].fail_pulls = True
+
+    async def after(controller, world) -> None:
+        last = controller.status()["last_scan"]
+        assert last["outcome"] == "PARTIAL" and last["missing_by_phone"] == report_missing
+        assert last["reason"] == text
+
+    dropped = 48 - 20 - 3
+    report_missing = {"cam2": {"capture_missed": 3, "phone_dropped": dropped}, "cam4": {"pull_failed": 48}}
+    text = (f"{28 + 48} of 336 images missing: cam2 28 ({dropped} phone dropped, 3 capture missed); "
+            "cam4 48 (48 pull failed)")
+    report, controller, _ = run_scan(tmp_path, prepare=faults, after=after)
+    assert report.outcome is ScanOutcome.PARTIAL and report.causes == []
+    assert report.captured == 336 - 28 and report.verified == 336 - 28 - 48 and report.missing == 28 + 48
+    assert report.missing_by_phone == report_missing and report.reason == text
+    assert [(d["camera"], d["failures"]) for d in report.dropped_phones] == [("cam2", 3)]
+    assert report.phase_s["retake"] == 0.0  # no retake pass for the dropped phone
+    states = [e.state for e in controller.machine.history if e.kind == "transition"]
+    assert ScanState.RETAKING not in states and states[-2:] == [ScanState.STORING, ScanState.IDLE]
+    assert controller.machine.history[-1].cause == "scan partial"
+    assert [e.data["camera"] for e in controller.machine.history if e.cause == "phone_dropped"] == ["cam2"]
+    manifest = _manifest(report)
+    assert manifest["state"] == "partial" and manifest["reason"] == text
+    assert manifest["missing_by_phone"] == report_missing
+    reasons = {(i["camera_id"], i["missing_reason"]) for i in manifest["images"] if i["status"] != "verified"}
+    assert reasons == {("cam2", "capture_missed"), ("cam2", "phone_dropped"), ("cam4", "pull_failed")}
+    events = [json.loads(line) for line in (report.folder / "events.jsonl").read_text().splitlines()]
+    drop = next(e for e in events if e["event"] == "phone_dropped")
+    assert drop["camera"] == "cam2" and drop["failures"] == 3 and "TimeoutError" in drop["error"]
+    assert events[-1]["event"] == "scan_ended" and events[-1]["outcome"] == "PARTIAL"
+    qa = json.loads((report.folder / "qa.json").read_text())
+    assert qa["outcome"] == "PARTIAL" and qa["missing_by_phone"] == report_missing
+
+
 def test_estop_during_capture_latches_fault_and_keeps_images(tmp_path: Path) -> None:
     async def press(controller, world) -> None:
         await wait_captured(controller, 40)

@@ -149,3 +149,40 @@ def test_a_missing_phone_keeps_the_rig_not_ready_until_it_is_plugged_in(tmp_path
             await service.stop()
 
     run_virtual(main())
+
+
+def test_the_watchdog_is_pinged_only_on_proof_that_every_safety_part_runs(tmp_path: Path) -> None:
+    """health() names what stopped: the worst loop lag since the last ping (not the last sample),
+    the drive guard, the drive's own tasks, the safety watch, the encoder follower."""
+    async def main() -> list[list[str]]:
+        hardware, _world = await build_rig(RIG, 0)
+        controller = RigController(RIG, hardware, ScanStore(tmp_path))
+        service = RigService(controller, notifier=_Notes())
+        await service.start()
+        seen: list[list[str]] = []
+        try:
+            await asyncio.sleep(0.5)
+            seen.append(service.health())
+            service.lag.record("IDLE", 1.2)  # one stall, then the loop is on time again
+            service.lag.record("IDLE", 0.001)
+            seen.append([p for p in service.health() if "late" in p])
+            assert not service._watchdog_check()  # the ping over that interval is withheld
+            assert service._watchdog_check()  # the next interval is clean
+            drive = controller.hw.drive
+            assert drive.guard is not None
+            await drive.guard.stop()
+            await asyncio.sleep(0.1)
+            seen.append(service.health())
+            controller.safety._watch.cancel()  # type: ignore[union-attr]
+            await controller.tracker.stop()
+            await asyncio.sleep(0.1)
+            seen.append(service.health())
+        finally:
+            await service.stop()
+        return seen
+
+    healthy, stalled, guard_gone, watch_gone = run_virtual(main())
+    assert healthy == []
+    assert stalled == ["event loop ran 1.200 s late (limit 1 s)"]
+    assert "beam: drive guard not running" in guard_gone
+    assert {"safety watch on the drive not running", "encoder not followed"} <= set(watch_gone)

@@ -251,8 +251,8 @@ async def test_the_daemons_sweep_poses_a_played_back_recording_at_its_recorded_a
     drive = MockDrive(max_accel=rig.motor.max_acceleration_deg_s2)
     await drive.connect()
     await drive.set_zero(rig.depth_sweep.start_deg)
-    tracker = BeamTracker(drive)
-    await tracker.start()
+    tracker = BeamTracker()
+    await tracker.start(drive)
     cameras = [BagPlayback(p, camera_id=p.stem) for p in paths]
     try:
         record = await Sweeper(rig, drive, tracker, cameras).run()

@@ -164,8 +164,8 @@ def _sim_camera(index: int, drive: MockDrive, faults: DepthFaults | None = None,
 async def _sweep(drive: MockDrive, cameras, *, rig=SHORT, sweeper=Sweeper, sink=None) -> SweepRecord:
     await drive.connect()
     await drive.set_zero(rig.depth_sweep.start_deg)
-    tracker = BeamTracker(drive)
-    await tracker.start()
+    tracker = BeamTracker()
+    await tracker.start(drive)
     try:
         return await sweeper(rig, drive, tracker, cameras, sink=sink).run()
     finally:

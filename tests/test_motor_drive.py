@@ -281,6 +281,35 @@ def test_a_second_connect_while_the_first_runs_is_refused() -> None:
     run(scenario, connect=False)
 
 
+def test_closing_a_turning_beam_quick_stops_it_before_the_voltage_goes_off() -> None:
+    """DISABLE_VOLTAGE on a turning beam lets it coast; close() brakes it first."""
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(30.0, 60.0)
+        await drive.wait_speed(30.0)
+        await drive.close()
+        assert sim.true_speed_deg_s == pytest.approx(0.0, abs=1e-9)  # standing when close() returns
+        words = [word for _, word, _ in sim.controlwords]
+        assert words.index(cia402.QUICK_STOP) < words.index(cia402.DISABLE_VOLTAGE)
+        assert sim.value(0x1016, 1) == 0  # seen standing: the orderly goodbye
+
+    run(scenario)
+
+
+def test_closing_a_turning_beam_that_cannot_be_seen_leaves_the_drive_to_stop_itself() -> None:
+    """No fresh sample, no goodbye: the heartbeat consumer stays on, and when the host heartbeat
+    ends the drive faults and brakes by itself."""
+    async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
+        await drive.rotate(30.0, 60.0)
+        await drive.wait_speed(30.0)
+        sim.drop_tpdos(10_000)  # the encoder falls silent for the host
+        await drive.close()
+        assert sim.value(0x1016, 1) != 0 and cia402.DISABLE_VOLTAGE not in [w for _, w, _ in sim.controlwords]
+        await asyncio.sleep(MOTOR.heartbeat_timeout_ms / 1000 + 1.0)
+        assert sim.state is S.FAULT and sim.true_speed_deg_s == pytest.approx(0.0, abs=1e-9)
+
+    run(scenario)
+
+
 def test_orderly_close_leaves_the_drive_disabled_and_unwatched() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         await drive.move_to(5.0, 10.0, 20.0)

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.motor import cia402, emcy, nmt, pdo, sdo
+from drivers.motor import cia402, emcy, nmt, pdo, sdo, sdo_aborts
 from drivers.motor.cia402 import Cia402State as S
 
 index_st = st.integers(0, 0xFFFF)
@@ -42,11 +42,11 @@ def test_sdo_expedited_upload_transcript() -> None:
 
 
 def test_sdo_abort_transcript() -> None:
-    frame = sdo.abort_frame(0x2000, 0, sdo.ABORT_NO_OBJECT)
+    frame = sdo.abort_frame(0x2000, 0, sdo_aborts.ABORT_NO_OBJECT)
     assert frame == bytes.fromhex("8000200000000206")
     parsed = sdo.parse_sdo(frame, from_client=False)
     assert parsed.kind is sdo.SdoKind.ABORT and parsed.code == 0x06020000
-    assert sdo.abort_meaning(0x06090011) == "sub-index does not exist"
+    assert sdo_aborts.abort_meaning(0x06090011) == "sub-index does not exist"
 
 
 def test_sdo_parse_rejects_bad_frames() -> None:

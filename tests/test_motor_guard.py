@@ -176,6 +176,9 @@ class FakeRealtimePort:
         self.taps.append(callback)
         return lambda: self.taps.remove(callback)
 
+    def stopped_threads(self) -> list[str]:
+        return []
+
     def receive(self, msg: can.Message) -> None:
         for callback in list(self.taps):
             callback(msg, time.monotonic())

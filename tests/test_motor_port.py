@@ -248,8 +248,14 @@ async def test_a_tap_that_raises_fails_reception_naming_it() -> None:
     try:
         port.tap(broken_guard)
         bus.incoming.put(_frame(0x185))
+        assert port.stopped_threads() == []
         with pytest.raises(CanBusError, match="tap .*broken_guard failed: ValueError\\('guard bug'\\)"):
             await asyncio.wait_for(port.recv(), 2.0)
+        for _ in range(200):  # the thread ends right after handing the failure over
+            if port.stopped_threads():
+                break
+            await asyncio.sleep(0.01)
+        assert port.stopped_threads() == ["can-rx p"]  # the watchdog sees the receive thread gone
     finally:
         port.close()
 

@@ -29,6 +29,7 @@ from drivers.motor import (
     read_stop_configuration,
     required_stop_configuration,
     sdo,
+    sdo_aborts,
 )
 from drivers.motor.sdo import SdoClient
 from drivers.sim.drive import SimulatedDrive
@@ -330,7 +331,7 @@ def test_a_drive_that_refuses_0x6007_fails_bring_up_naming_it() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
         with pytest.raises(SettingRefused) as info:
             await drive.connect()
-        assert (info.value.index, info.value.subindex, info.value.code) == (0x6007, 0, sdo.ABORT_NO_OBJECT)
+        assert (info.value.index, info.value.subindex, info.value.code) == (0x6007, 0, sdo_aborts.ABORT_NO_OBJECT)
         assert "abort connection option code 0x6007:0 = 1: refused with SDO abort 0x06020000" in str(info.value)
         assert sim.value(0x1016, 1) == 0  # bring-up stopped before the drive watched the host
 

@@ -304,6 +304,23 @@ def test_panel_heartbeat_loss_and_return() -> None:
     run(scenario)
 
 
+def test_liveness_names_a_link_task_that_ended_and_not_a_lost_panel() -> None:
+    """A lost panel is the safety system's business; a link that no longer watches is ill health."""
+    async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
+        assert panel.liveness() == []
+        sim.stop_heartbeats()
+        await next_event(panel.events())
+        assert panel.state is LinkState.LOST and panel.liveness() == []  # still watching
+        sim.resume_heartbeats()
+        await asyncio.sleep(0.5)
+        watchdog = next(t for t in panel._tasks if t.get_name().endswith("-watchdog"))
+        watchdog.cancel()
+        await asyncio.sleep(0)
+        assert panel.liveness() == [f"{panel.name}: task {panel.name}-watchdog not running"]
+
+    run(scenario)
+
+
 def test_command_to_a_lost_panel_raises_the_heartbeat_loss() -> None:
     async def scenario(panel: OperatorPanel, sim: SimulatedPanel) -> None:
         events = panel.events()

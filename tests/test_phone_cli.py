@@ -60,3 +60,26 @@ def test_check_a_phone_that_photographs_a_body(tmp_path: Path, capsys: pytest.Ca
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+
+
+@pytest.mark.realtime
+def test_check_pushes_the_agents_jvm_build_and_runs_it(agent_jvm_jar: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from cli import main; sys.exit(main())", "sim",
+                             "phone", "--port", "0", "--serial", "TBPSIM03", "--agent-runtime", "jvm"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(proc.stdout.readline().rsplit(":", 1)[1])
+        check = ["phone", "check", "--tcp", f"127.0.0.1:{port}", "--camera", "cam3",
+                 "--state-dir", str(tmp_path / "state"), "--out", str(tmp_path / "out")]
+        assert main(check) == 1  # nothing on the phone and no jar to push
+        assert "FAILED: AgentMissing" in capsys.readouterr().err
+        assert main([*check, "--agent-jar", str(agent_jvm_jar)]) == 0
+        out = capsys.readouterr().out
+        assert f"agent pushed ({agent_jvm_jar.stat().st_size} bytes)" in out and out.rstrip().endswith("OK")
+        assert (tmp_path / "out" / "cam3-check.jpg").stat().st_size > 0
+        assert main([*check, "--agent-jar", str(agent_jvm_jar)]) == 0  # the phone's copy is this build
+        assert "the phone's agent" in capsys.readouterr().out
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)

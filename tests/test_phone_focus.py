@@ -81,19 +81,22 @@ def test_default_table_covers_the_rig() -> None:
         assert table.diopters_for(450.0) == pytest.approx(1000.0 / 450.0, rel=0.05)
 
 
-@pytest.mark.parametrize("text, key", [
-    ("points: [[1, 1000], [2, 500]]\nextra: 1\n", "extra"),
-    ("points: [[1, 1000], [2]]\n", "points"),
-    ("points: [[1, 1000], [true, 500]]\n", "points"),
-    ("- 1\n- 2\n", "file"),
-    ("points: [[1, 1000]\n", "file"),
+@pytest.mark.parametrize("text, key, allowed", [
+    ("points: [[1, 1000], [2, 500]]\nextra: 1\n", "extra", "allowed keys: measured, phone_model, points"),
+    ("points: [[1, 1000], [2]]\n", "points[1]", "a list of 2 values"),
+    ("points: [[1, 1000], [true, 500]]\n", "points[1][0]", "a number in [0, 50]"),
+    ("points: [[1, 1000], [2, 5]]\n", "points[1][1]", "a number in [20, 100000]"),
+    ("points: [[1, 1000]]\n", "points", "allowed 2 to 1000"),
+    ("phone_model: [a, b]\npoints: [[1, 1000], [2, 500]]\n", "phone_model", "any text, number or date"),
+    ("- 1\n- 2\n", "<top>", "expected a mapping"),
+    ("points: [[1, 1000]\n", "<file>", "not valid YAML"),
 ])
-def test_bad_files_name_file_and_key(tmp_path: Path, text: str, key: str) -> None:
+def test_bad_files_name_file_key_and_range(tmp_path: Path, text: str, key: str, allowed: str) -> None:
     path = tmp_path / "phone.yaml"
     path.write_text(text)
     with pytest.raises(FocusCalibrationError) as info:
         load_focus_calibration(path)
-    assert info.value.key == key and str(path) in str(info.value)
+    assert info.value.key == key and str(path) in str(info.value) and allowed in str(info.value)
     with pytest.raises(FocusCalibrationError, match="cannot read"):
         load_focus_calibration(tmp_path / "missing.yaml")
 

@@ -81,3 +81,23 @@ def test_blurring_sector_speed_is_refused(tmp_path: Path, raw: dict) -> None:
     raw["capture"]["sectors"][0]["speed_deg_s"] = 30.0
     with pytest.raises(RigConfigError, match=r"capture.sectors\[0\].speed_deg_s: 30 deg/s blurs"):
         load_rig(_write(tmp_path, raw))
+
+
+@pytest.mark.parametrize("name", ["rig.yaml", "rig-dense.yaml"])
+def test_every_value_of_a_shipped_rig_file_reaches_the_rig_as_written(name: str) -> None:
+    path = DEFAULT_RIG_PATH.parent / name
+    raw, rig = yaml.safe_load(path.read_text()), load_rig(path)
+
+    def check(value: object, loaded: object, key: str) -> None:
+        if isinstance(value, dict):
+            for field, inner in value.items():
+                check(inner, getattr(loaded, field), f"{key}.{field}")
+        elif isinstance(value, list):
+            assert len(value) == len(loaded), key  # type: ignore[arg-type]
+            for i, inner in enumerate(value):
+                check(inner, loaded[i], f"{key}[{i}]")  # type: ignore[index]
+        else:
+            assert loaded == value and type(loaded) in (type(value), float), key
+
+    raw["ring_radius_mm"] = raw.pop("ring")["radius_mm"]
+    check(raw, rig, name)

@@ -8,12 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from analysis.navigate import NavigationError, navigate
 from analysis.qa_report import generate_report
 from analysis.scan_views import open_scan
+from analysis.skin_map import BLURRED, SHARP, payload_shares, read_skin_mesh, read_skin_shares, skin_shares
 from cli import main
-from daemon.manifest import ManifestError
+from daemon.manifest import ManifestError, ScanEnd
+from daemon.store import read_folder
 from planner.visibility import RayScene
 
 
@@ -43,6 +47,62 @@ def test_tbp_report_regenerates_and_lists_missing_images(scan_dir, tmp_path):
     text = (copy / "report" / "index.html").read_text()
     assert "PhoneDisconnected: cam3 vanished" in text
     assert f"<td>{lost['camera_id']}</td>" in text
+
+
+def test_sharp_skin_is_one_measure_in_the_report_the_viewer_and_the_list(scan_dir, capsys):
+    """The report's headline, the shares it stores for the lists, and the shares of the mesh the
+    viewer colours are one number: the area-weighted per-vertex map."""
+    shares = read_skin_shares(scan_dir)
+    assert shares is not None and 0.5 < shares["sharp"] < 1.0
+    assert sum(shares.values()) == pytest.approx(1.0)
+    assert payload_shares(read_skin_mesh(open_scan(scan_dir))) == shares
+    text = (scan_dir / "report" / "index.html").read_text()
+    assert f"Sharp skin: <b>{100 * shares['sharp']:.1f} %</b>" in text
+    assert main(["scans", "--store", str(scan_dir.parent)]) == 0
+    assert f"{100 * shares['sharp']:.1f} %" in capsys.readouterr().out
+
+
+def _grid(x0: float, width: float, height: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A width x height rectangle at x0 in the z = 0 plane, n x n cells of two triangles."""
+    xs, ys = np.meshgrid(np.linspace(x0, x0 + width, n + 1), np.linspace(0.0, height, n + 1), indexing="ij")
+    vertices = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    index = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[1:, 1:].ravel(), index[:-1, 1:].ravel()
+    return vertices, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(1.0, 500.0), st.floats(1.0, 500.0), st.floats(1.0, 500.0), st.floats(1.0, 500.0),
+       st.integers(1, 30), st.integers(1, 30))
+def test_skin_shares_are_shares_of_area_whatever_the_triangle_density(w1, h1, w2, h2, n1, n2):
+    """Two patches, one sharp and one blurred, meshed as finely or coarsely as may be: the
+    shares are their areas' (a count of vertices would follow the meshing instead)."""
+    v1, f1 = _grid(0.0, w1, h1, n1)
+    v2, f2 = _grid(w1 + 10.0, w2, h2, n2)
+    vertices, faces = np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)])
+    status = np.r_[np.full(len(v1), SHARP), np.full(len(v2), BLURRED)].astype(np.uint8)
+    shares = skin_shares(vertices, faces, status)
+    total = w1 * h1 + w2 * h2
+    assert shares["sharp"] == pytest.approx(w1 * h1 / total, rel=1e-9)
+    assert shares["blurred"] == pytest.approx(w2 * h2 / total, rel=1e-9) and shares["unseen"] == 0.0
+
+
+def test_a_partial_scan_says_so_first_with_its_missing_images_per_phone(scan_dir, tmp_path):
+    copy = tmp_path / scan_dir.name
+    shutil.copytree(scan_dir, copy)
+    folder = read_folder(copy)
+    for angle in range(10, 20):
+        folder.update_image(2, angle, save=False, status="missing", missing_reason="phone_dropped",
+                            error="PhoneDropped: cam2 dropped")
+    folder.finish(ScanEnd.COMPLETE)  # asked complete, closed partial
+    assert main(["report", str(copy)]) == 0
+    text = (copy / "report" / "index.html").read_text()
+    assert ": partial</h1>" in text
+    banner = text[text.index("id='ended'"):text.index("<p>Images:")]
+    assert "Partial scan" in banner and "10 of 336 images missing" in banner
+    assert "<tr><td>cam2</td><td>10</td><td>10 phone dropped</td></tr>" in banner
+    assert "<td>missing</td><td>phone dropped</td><td>PhoneDropped: cam2 dropped</td>" in text
+    assert "id='ended'" not in (scan_dir / "report" / "index.html").read_text()  # a complete scan: no banner
 
 
 def test_navigation_answers_an_image_whose_pose_sees_the_point(scan_dir):
@@ -101,6 +161,7 @@ def test_navigation_never_names_a_deleted_image(scan_dir, tmp_path, capsys):
     (lambda m: m["images"][5].update(actual_angle_deg="north"), "images[5].actual_angle_deg"),
     (lambda m: m["images"][5].update(file="../../../etc/passwd"), "is not a file inside the scan folder"),
     (lambda m: m["images"][5].update(status="lost"), "not a valid manifest"),
+    (lambda m: m["images"][5].update(missing_reason="lost in space"), "not a valid manifest"),
     (lambda m: m["images"].__setitem__(2, "nothing"), "images[2]: not an object"),
     (lambda m: m.update(images={"a": 1}), "images: "),
     (lambda m: m.update(files={"mesh": "/etc/hostname"}), "files.mesh"),

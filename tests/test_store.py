@@ -83,10 +83,14 @@ def test_full_lifecycle_writes_every_file(tmp_path, rig):
                           phone_path="/sdcard/x.jpg", size_bytes=10)
     folder.finish(ScanEnd.COMPLETE)
     m = _manifest(folder)
-    assert m["state"] == "complete" and m["in_progress"] is False
+    # a scan asked to end complete without every image is partial, its missing images named
+    assert m["state"] == "partial" and m["in_progress"] is False
     assert set(m["files"]) == {"plan", "mesh", "trace", "depth_sweep", "events", "qa"}
     img = next(i for i in m["images"] if i["camera_index"] == 2 and i["angle_index"] == 7)
     assert img["status"] == "captured" and img["actual_angle_deg"] == 48.01
+    assert img["missing_reason"] == "not_pulled"
+    assert m["missing_by_phone"]["cam2"] == {"not_reached": rig.n_angles - 1, "not_pulled": 1}
+    assert m["reason"].startswith(f"{rig.n_poses} of {rig.n_poses} images missing: cam0 48 (48 not reached); ")
     assert img["focus_diopters"] == pytest.approx(2.0)
     assert m["counts"]["missing"] == rig.n_poses - 1
     lines = (folder.path / "events.jsonl").read_text().splitlines()
@@ -151,6 +155,8 @@ def test_recover_marks_in_progress_folders_incomplete(tmp_path, rig):
     assert statuses[(0, 0)]["status"] == "verified"
     assert statuses[(1, 0)]["status"] == "captured" and "not pulled" in statuses[(1, 0)]["error"]
     assert statuses[(2, 0)]["status"] == "missing"
+    assert statuses[(1, 0)]["missing_reason"] == "not_pulled" and statuses[(2, 0)]["missing_reason"] == "not_reached"
+    assert m["missing_by_phone"]["cam1"] == {"not_pulled": 1, "not_reached": rig.n_angles - 1}
     assert not list(live.path.glob(".*.tmp"))
     assert m["files"]["trace"] == "trace.npz"  # the trace saved before the kill is kept
     events = [json.loads(line) for line in (live.path / "events.jsonl").read_text().splitlines()]
@@ -330,7 +336,7 @@ def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
     folder.finish(ScanEnd.COMPLETE)
     assert folder.check() == []
     assert tbp_main(["scans", "--store", str(tmp_path), "--check"]) == 0
-    assert "complete" in capsys.readouterr().out
+    assert "partial" in capsys.readouterr().out
 
     image.write_bytes(b"pixelz")  # bit rot
     asyncio.run(folder.write_plan({}, {}))

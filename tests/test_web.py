@@ -6,12 +6,17 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 from aiohttp.test_utils import TestClient, TestServer
 
 from analysis.marks import MARKS
 from analysis.navigate import navigate
+from analysis.skin_map import read_skin_shares
+from daemon.faults import AbortCause, AbortSource
+from daemon.manifest import ScanEnd
+from daemon.store import ScanStore, read_folder
 from web.access import Access, AccessError, parse_listen
 from web.app import make_app
 
@@ -86,6 +91,69 @@ async def test_scan_list_detail_and_mesh(scan_store):
             assert (await client.get(page)).status == 200, page
     finally:
         await client.close()
+
+
+def _variant(root: Path, name: str, tag: str, end: Any) -> str:
+    """A copy of the scan ``name`` ended otherwise by ``end(folder)``; its folder name."""
+    copy = f"{name[:15]}-{tag}"
+    shutil.copytree(root / name, root / copy)
+    end(read_folder(root / copy))
+    return copy
+
+
+def _partial(folder: Any) -> None:
+    for angle in range(5, 15):
+        folder.update_image(2, angle, save=False, status="missing", missing_reason="phone_dropped")
+    folder.update_image(4, 7, save=False, status="failed", missing_reason="pull_failed")
+    folder.finish(ScanEnd.COMPLETE)
+
+
+def _running(folder: Any) -> None:
+    folder.manifest.state, folder.manifest.in_progress = ScanEnd.INCOMPLETE, True
+    folder.save()
+
+
+async def test_every_scan_that_is_not_complete_is_flagged_in_the_list_and_the_viewer(scan_store):
+    """Partial, aborted, still running and recovered scans each say how they ended and why, with
+    their missing images per phone; a complete scan says nothing more."""
+    name = folder_of(scan_store)
+    stop = AbortCause(AbortSource.STOP_BUTTON, "panel", "stop button")
+    partial = _variant(scan_store, name, "partial", _partial)
+    aborted = _variant(scan_store, name, "aborted", lambda f: f.finish(ScanEnd.ABORTED, [stop]))
+    running = _variant(scan_store, name, "running", _running)
+    recovered = _variant(scan_store, name, "recovered", _running)
+    ScanStore(scan_store).recover("killed by test")
+    _running(read_folder(scan_store / running))  # still running: recovery runs only at the daemon's start
+    client = await client_for(scan_store)
+    try:
+        rows = {r["folder"]: r for r in (await (await client.get("/api/scans")).json())["scans"]}
+        details = {f: await (await client.get(f"/api/scans/{f}")).json() for f in rows}
+    finally:
+        await client.close()
+    for ended in (rows, details):
+        complete = ended[name]
+        assert (complete["state"], complete["in_progress"], complete["missing"], complete["reason"]) == (
+            "complete", False, None, None)
+        text = "11 of 336 images missing: cam2 10 (10 phone dropped); cam4 1 (1 pull failed)"
+        assert ended[partial]["state"] == "partial" and ended[partial]["missing"] == ended[partial]["reason"] == text
+        assert ended[partial]["missing_by_phone"] == {"cam2": {"phone_dropped": 10}, "cam4": {"pull_failed": 1}}
+        assert ended[aborted]["state"] == "aborted" and ended[aborted]["reason"] == "panel: stop button"
+        assert ended[running]["in_progress"] is True and ended[running]["missing"] is None
+        assert ended[recovered]["state"] == "incomplete" and ended[recovered]["reason"] == "killed by test"
+    images = {(i["camera_index"], i["angle_index"]): i for i in details[partial]["images"]}
+    assert images[2, 5]["missing_reason"] == "phone_dropped" and images[0, 0]["missing_reason"] is None
+
+
+async def test_the_sharp_skin_is_the_report_s_in_the_viewer_and_the_list(scan_store):
+    name = folder_of(scan_store)
+    client = await client_for(scan_store)
+    try:
+        viewer = await (await client.get(f"/api/scans/{name}/skin")).json()
+        listed = (await (await client.get("/api/scans")).json())["scans"][0]["sharp_skin"]
+    finally:
+        await client.close()
+    assert viewer == read_skin_shares(scan_store / name) and listed == viewer["sharp"]
+    assert f"Sharp skin: <b>{100 * listed:.1f} %</b>" in (scan_store / name / "report" / "index.html").read_text()
 
 
 async def test_marks_are_saved_beside_the_scan_and_never_touch_its_record(scan_store):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -19,6 +20,7 @@ import numpy as np
 import pytest
 
 from analysis.scan_views import open_scan
+from analysis.skin_map import read_skin_shares
 from cli import main
 from tests.test_web import folder_of
 from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
@@ -83,6 +85,34 @@ def test_click_on_the_body_shows_the_image_and_pixel_tbp_navigate_gives(web_stor
         driver.find_element("css selector", ".tabs button[data-pane='gallery']").click()
         wait_for(driver, "document.querySelectorAll('#gallery img').length === 48")
         driver.save_screenshot(str(SHOTS / "viewer-gallery.png"))
+
+
+def test_a_partial_scan_is_flagged_over_its_body_and_in_the_list_and_its_sharp_skin_is_the_report_s(
+        web_store, tmp_path):
+    from tests.test_web import _partial, _variant
+
+    store = tmp_path / "store"
+    shutil.copytree(web_store, store)
+    name = folder_of(store)
+    partial = _variant(store, name, "partial", _partial)
+    with serve_in_thread(store) as url, chromium() as driver:
+        driver.get(f"{url}/scans/{partial}")
+        assert wait_for(driver, "window.tbpViewer && (window.tbpViewer.ready || window.tbpViewer.error)") is True
+        wait_for(driver, "!document.getElementById('ended').hidden && window.tbpViewer.shares")
+        banner = driver.find_element("id", "ended")
+        assert banner.is_displayed() and "Partial scan" in banner.text
+        assert "11 of 336 images missing: cam2 10 (10 phone dropped); cam4 1 (1 pull failed)" in banner.text
+        sharp = read_skin_shares(store / name)["sharp"]
+        assert driver.find_element("id", "sh-sharp").text == f"{100 * sharp:.1f} %"
+        driver.save_screenshot(str(SHOTS / "viewer-partial.png"))
+        driver.get(f"{url}/scans/{name}")
+        wait_for(driver, "window.tbpViewer && window.tbpViewer.ready && window.tbpViewer.shares")
+        assert not driver.find_element("id", "ended").is_displayed()  # a complete scan: no banner
+        driver.get(f"{url}/scans")
+        wait_for(driver, "document.querySelectorAll('#scans tbody tr').length === 2")
+        rows = {r.get_attribute("data-folder"): r.text for r in driver.find_elements("css selector", "#scans tbody tr")}
+        assert "partial: images missing" in rows[partial] and "cam2 10 (10 phone dropped)" in rows[partial]
+        assert "complete" in rows[name] and f"{100 * sharp:.1f} %" in rows[name]
 
 
 def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
@@ -175,6 +205,8 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
                                     " && e.previous === 'STORING')", 600)
             assert done["cause"] == "scan completed"
             wait_for(driver, "document.getElementById('report-link') !== null", 30)
+            outcome = driver.find_element("id", "last-outcome")  # in colour: green for complete
+            assert outcome.text == "COMPLETED" and outcome.value_of_css_property("background-color") == "rgba(220, 243, 227, 1)"
             verified = int(driver.find_element("id", "verified").text)
             assert verified == 336 and int(driver.find_element("id", "captured").text) == 336
             states = [e["state"] for e in driver.execute_script("return window.tbpConsole.events") if e["kind"] == "transition"]

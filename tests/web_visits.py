@@ -44,8 +44,10 @@ def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, 
 
 
 def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2) -> Visits:
-    """Scan the same simulated adult twice (seeds 1 and 2) into ``store``; QA reports included."""
+    """Scan the same simulated adult (one synthetic patient) twice (seeds 1 and 2) into ``store``;
+    QA reports included."""
     from analysis.qa_report import generate_report
+    from daemon.clinic.patient import ScanSubject
     from sim.body import make_body
     from sim.run import run_sim_scan
 
@@ -55,7 +57,9 @@ def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, de
     folders = []
     for seed, subject in ((1, still), (2, swayed)):
         report = run_sim_scan(store=store, seed=seed, plan_points=plan_points, depth_decimation=depth_decimation,
-                              subject=subject, panel=False, qa_report=generate_report)
+                              subject=subject, panel=False, qa_report=generate_report,
+                              patient=ScanSubject.from_args({"patient_id": f"SYN-{person_seed:04d}",
+                                                             "patient_name": f"Testperson^Seed{person_seed}"}))
         folders.append(Path(report.folder))
     return Visits(folders[0], folders[1], still, swayed)
 

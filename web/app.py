@@ -10,7 +10,7 @@ import structlog
 from aiohttp import web
 
 from daemon.store import ScanStore
-from web import keys, login, marks, rig, scans
+from web import keys, login, marks, patients, rig, scans
 from web.access import Access
 
 STATIC = Path(__file__).with_name("static")
@@ -84,12 +84,15 @@ async def _config(request: web.Request) -> web.Response:
     return web.json_response({"rig": service is not None, "writes": access.writes_enabled,
                               "token_required": access.token is not None,
                               "login_required": access.login_required,
-                              "poses": service.controller.rig.n_poses if service is not None else None})
+                              "poses": service.controller.rig.n_poses if service is not None else None,
+                              "worklist": bool(service is not None and service.site is not None
+                                               and service.site.worklist is not None)})
 
 
 def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = None,
-             rig_path: Path | None = None) -> web.Application:
-    """The application for a scan store; service: the daemon's RigService (None: viewer only)."""
+             rig_path: Path | None = None, archive_url: str | None = None) -> web.Application:
+    """The application for a scan store; service: the daemon's RigService (None: viewer only);
+    archive_url: a DICOMweb archive whose studies the viewer lists and retrieves into the store."""
     if not (THREE / "build" / "three.module.js").is_file():
         raise AssetsMissing(f"{THREE}: three.js is not installed; run ./dev (npm ci in web/)")
     app = web.Application(middlewares=[guard], client_max_size=MAX_REQUEST_BYTES)
@@ -109,7 +112,13 @@ def make_app(store: Path | ScanStore, access: Access, *, service: Any | None = N
     login.routes(app)
     scans.routes(app)
     marks.routes(app)
+    patients.routes(app)
     rig.routes(app)
+    if archive_url is not None:
+        from planner.rig import DEFAULT_RIG_PATH, load_rig
+        from web import archive
+
+        archive.routes(app, archive_url, load_rig(rig_path or DEFAULT_RIG_PATH))
     app.router.add_static("/static/", STATIC, follow_symlinks=False)
     app.router.add_static("/vendor/three/", THREE, follow_symlinks=False)
     return app

@@ -16,6 +16,7 @@ from analysis.mark_match import PictureMatcher
 from analysis.marks import MarkBook, MarkError, check_mark_id, new_mark, read_marks, write_marks
 from analysis.registration import MarkCarrier, RegistrationError
 from web import keys
+from web.patients import check_same_patient
 from web.scans import ScanLibrary, _off_loop, json_error
 
 MAX_BODY = 16 * 1024
@@ -102,6 +103,11 @@ async def list_marks(request: web.Request) -> web.Response:
                            "carried": [], "registration": None}
     if book.previous_scan:
         earlier = _book(library.folder(book.previous_scan))
+        try:
+            await check_same_patient(library, name, book.previous_scan)
+        except web.HTTPBadRequest as exc:  # a marks file naming another patient's scan: nothing carried
+            out["registration"] = {"error": json.loads(exc.text or "{}")["error"]["message"]}
+            return web.json_response(out)
         if earlier.marks:
             try:
                 pair = await request.app[keys.CARRIERS].get(library, book.previous_scan, name)
@@ -151,7 +157,8 @@ async def delete_mark(request: web.Request) -> web.Response:
 
 
 async def set_previous(request: web.Request) -> web.Response:
-    """{"previous_scan": FOLDER | null}: the earlier scan of the same person."""
+    """{"previous_scan": FOLDER | null}: an earlier scan of the same patient (another patient's, or
+    any for a scan without a patient, is refused)."""
     body = await read_json(request)
     library = _library(request)
     name = request.match_info["folder"]
@@ -163,6 +170,7 @@ async def set_previous(request: web.Request) -> web.Response:
         library.folder(previous)
         if previous >= name:
             raise json_error(web.HTTPBadRequest, f"previous_scan {previous!r} is not earlier than {name!r}")
+        await check_same_patient(library, name, previous)
     book = _book(folder)
     book.previous_scan = previous
     await _off_loop(write_marks, folder, book)

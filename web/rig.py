@@ -17,6 +17,7 @@ from typing import Any
 import structlog
 from aiohttp import web
 
+from daemon.clinic.patient import PatientError
 from daemon.control import to_jsonable
 from daemon.errors import ScanBusy
 from web import keys
@@ -85,14 +86,16 @@ async def _act(request: web.Request, action: str) -> web.Response:
         if action == "scan":
             scan_id = body.get("scan_id")
             if scan_id is not None and not isinstance(scan_id, str):
-                raise json_error(web.HTTPBadRequest, f"scan_id {scan_id!r}: a string or absent")
-            result = await service.scan(**({"scan_id": scan_id} if scan_id else {}))
+                raise json_error(web.HTTPBadRequest, f"scan_id {str(scan_id)[:40]!r}: a string or absent")
+            result = await service.scan(**{k: v for k, v in body.items() if v not in (None, "")})
         elif action == "abort":
             result = service.abort()
         else:
             result = await service.reset()
     except ScanBusy as exc:
         raise json_error(web.HTTPConflict, exc) from exc
+    except PatientError as exc:  # names the field, never the value
+        raise json_error(web.HTTPBadRequest, exc) from exc
     except web.HTTPException:
         raise
     except Exception as exc:  # the handler's typed refusal (a bad scan id, an illegal transition)
@@ -100,6 +103,22 @@ async def _act(request: web.Request, action: str) -> web.Response:
         raise json_error(web.HTTPConflict, exc) from exc
     log.info("web_command", action=action, peer=request.remote)
     return web.json_response(to_jsonable(result))
+
+
+async def worklist(request: web.Request) -> web.Response:
+    """Today's worklist (the console picks a patient from it); 404 without a provider, 502 when it
+    cannot be asked (the message names the provider and the reason)."""
+    from daemon.clinic.dimse import DicomPeerError
+    from daemon.service import WorklistUnavailable
+
+    service = _service(request)
+    try:
+        return web.json_response(await service.worklist())
+    except WorklistUnavailable as exc:
+        raise json_error(web.HTTPNotFound, exc) from exc
+    except DicomPeerError as exc:
+        log.warning("worklist_failed", error=str(exc))
+        raise json_error(web.HTTPBadGateway, exc) from exc
 
 
 async def start_scan(request: web.Request) -> web.Response:
@@ -117,6 +136,7 @@ async def reset(request: web.Request) -> web.Response:
 def routes(app: web.Application) -> None:
     app.router.add_get("/api/rig/status", status)
     app.router.add_get("/api/rig/events", events)
+    app.router.add_get("/api/rig/worklist", worklist)
     app.router.add_post("/api/rig/scan", start_scan)
     app.router.add_post("/api/rig/abort", abort)
     app.router.add_post("/api/rig/reset", reset)

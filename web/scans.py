@@ -1,5 +1,10 @@
 """The viewer's read side: the scan list, one scan's mesh and skin colours, navigation, images.
 
+Every scan says how it ended (``state``, ``in_progress``, ``reason``) and which images it
+lacks per phone and why (``missing_by_phone``, ``missing``: the same words as the QA report);
+the sharp skin is analysis/skin_map.py's one measure, from the report's ``skin.json`` in the
+list and from the coloured mesh itself in the viewer (``/skin``).
+
 A scan is named in URLs by its folder name and found by listing the store, never by joining
 a request's text onto a path; image files are the ones the manifest lists as verified.
 Reading a scan (its manifest, plan, rig and calibration files) and the heavy work (loading a
@@ -22,9 +27,10 @@ from aiohttp import web
 
 from analysis.navigate import NavigationError, Navigator
 from analysis.scan_views import ScanRecord, open_scan
-from analysis.skin_map import mesh_digest, read_skin_mesh, skin_mesh, vertex_skin
+from analysis.skin_map import mesh_digest, payload_shares, read_skin_mesh, read_skin_shares, skin_mesh, vertex_skin
 from daemon.atomic import StoreError
-from daemon.manifest import ImageStatus, ManifestError
+from daemon.clinic.patient import Patient
+from daemon.manifest import ImageStatus, Manifest, ManifestError
 from daemon.store import ScanStore
 from web import images, keys
 
@@ -47,6 +53,7 @@ class OpenScan:
         self.navigator: Navigator | None = None
         self.mesh: Any = None
         self.mesh_bytes: bytes | None = None
+        self.shares: dict[str, float] | None = None
         self.previews: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
         self.lock = asyncio.Lock()
         self.warming: asyncio.Task[Any] | None = None
@@ -78,6 +85,12 @@ class OpenScan:
                 payload = skin_mesh(mesh, vertex_skin(self.record, mesh)["status"], mesh_digest(self.record))
             self.mesh_bytes = payload
         return self.mesh_bytes
+
+    def skin_shares(self) -> dict[str, float]:
+        """The sharp, blurred and unseen shares of the coloured mesh's area (analysis.skin_map)."""
+        if self.shares is None:
+            self.shares = payload_shares(self.mesh_payload())
+        return self.shares
 
 
 class ScanLibrary:
@@ -115,12 +128,22 @@ class ScanLibrary:
                 marks = None
             rows.append({
                 "folder": path.name, "scan_id": m.scan_id, "created_utc": m.created_utc,
-                "ended_utc": m.ended_utc, "state": m.state.value, "in_progress": m.in_progress,
-                "reason": m.reason, "counts": m.counts(), "plan": m.plan_summary,
+                "ended_utc": m.ended_utc, **ending(m), "counts": m.counts(), "plan": m.plan_summary,
+                "sharp_skin": (read_skin_shares(path) or {}).get("sharp"),
                 "has_mesh": "mesh" in m.files,
                 "report": (path / "report" / "index.html").is_file(), "marks": marks,
+                "patient": None if m.patient is None else m.patient.as_dict(),
+                "accession_number": None if m.study is None else m.study.accession_number,
             })
         return rows
+
+    def patient_of(self, name: str) -> Patient | None:
+        """The patient of the scan called ``name`` (404 unless it is in the store, 409 when its
+        manifest cannot be read)."""
+        try:
+            return self.store.open(self.folder(name)).manifest.patient
+        except StoreError as exc:
+            raise json_error(web.HTTPConflict, exc) from exc
 
     def _stamp(self, path: Path) -> tuple[Any, ...]:
         """The identity of the scan's manifest and mesh: a rewrite (atomic rename) is another file."""
@@ -160,6 +183,13 @@ class ScanLibrary:
         return scan
 
 
+def ending(m: Manifest) -> dict[str, Any]:
+    """How a scan ended, for the list and the viewer: its state, whether it still runs (or was
+    left by a daemon that stopped), the reason, and its missing images per phone and why."""
+    return {"state": m.state.value, "in_progress": m.in_progress, "reason": m.reason,
+            "missing_by_phone": m.missing_by_phone(), "missing": m.missing_summary()}
+
+
 async def _off_loop(fn: Any, *args: Any) -> Any:
     return await asyncio.get_running_loop().run_in_executor(None, fn, *args)
 
@@ -176,17 +206,21 @@ async def scan_detail(request: web.Request) -> web.Response:
     scan = await _library(request).opened(request.match_info["folder"])
     rec = scan.record
     rig = rec.rig
+    m = rec.manifest
+    ended = not m.in_progress
     images_out = [{"file": i.file, "camera_id": i.camera_id, "camera_index": i.camera_index,
                    "angle_index": i.angle_index, "planned_angle_deg": i.planned_angle_deg,
                    "actual_angle_deg": i.actual_angle_deg, "focus_mm": i.focus_mm, "status": i.status.value,
-                   "error": i.error} for i in rec.images]
-    m = rec.manifest
+                   "error": i.error, "missing_reason": _value(i.why_missing() if ended else i.missing_reason)}
+                  for i in rec.images]
     return web.json_response({
-        "folder": rec.path.name, "scan_id": m.scan_id, "state": m.state.value, "in_progress": m.in_progress,
-        "created_utc": m.created_utc, "reason": m.reason, "counts": m.counts(), "plan": m.plan_summary,
+        "folder": rec.path.name, "scan_id": m.scan_id, **ending(m),
+        "created_utc": m.created_utc, "counts": m.counts(), "plan": m.plan_summary,
         "cameras": [p.id for p in rig.phones], "angles_deg": [float(a) for a in rig.capture.angles_deg],
         "image_width_px": rig.optics.image_width_px, "image_height_px": rig.optics.image_height_px,
         "has_mesh": "mesh" in m.files, "report": (rec.path / "report" / "index.html").is_file(),
+        "patient": None if m.patient is None else m.patient.as_dict(),
+        "study": None if m.study is None else m.study.as_dict(),
         "images": images_out,
     })
 
@@ -203,6 +237,22 @@ async def scan_mesh(request: web.Request) -> web.Response:
         scan.warming.add_done_callback(lambda task: task.cancelled() or task.exception())  # a click reports it
     return web.Response(body=payload, content_type="application/octet-stream",
                         headers={"Cache-Control": "private, max-age=60"})
+
+
+async def scan_skin(request: web.Request) -> web.Response:
+    """The sharp skin of the coloured mesh the viewer shows: {"sharp", "blurred", "unseen"}
+    shares of its area."""
+    scan = await _library(request).opened(request.match_info["folder"])
+    async with scan.lock:
+        try:
+            shares = await _off_loop(scan.skin_shares)
+        except StoreError as exc:  # the scan ended before the depth sweep: no mesh
+            raise json_error(web.HTTPConflict, exc) from exc
+    return web.json_response(shares)
+
+
+def _value(reason: Any) -> str | None:
+    return None if reason is None else reason.value
 
 
 def _number(request: web.Request, key: str, kind: type = float) -> Any:
@@ -293,6 +343,7 @@ def routes(app: web.Application) -> None:
     app.router.add_get("/api/scans", list_scans)
     app.router.add_get("/api/scans/{folder}", scan_detail)
     app.router.add_get("/api/scans/{folder}/mesh", scan_mesh)
+    app.router.add_get("/api/scans/{folder}/skin", scan_skin)
     app.router.add_get("/api/scans/{folder}/navigate", navigate)
     app.router.add_get("/api/scans/{folder}/images/{name}", image)
     app.router.add_get("/scans/{folder}/report/", report_file)

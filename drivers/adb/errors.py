@@ -7,6 +7,8 @@ Connection-level failures (:class:`ConnectionLost`, :class:`AuthRefused`) end th
 
 from __future__ import annotations
 
+from drivers.errors import DeviceGone
+
 
 class AdbError(Exception):
     """Base of the ADB area's errors.
@@ -27,7 +29,7 @@ class AdbProtocolError(AdbError):
     the stream's flow-control window, or an AUTH token of the wrong length."""
 
 
-class ConnectionLost(AdbError):
+class ConnectionLost(AdbError, DeviceGone):
     """The transport closed or failed (cable pulled, adbd restarted, Wi-Fi dropped)."""
 
 

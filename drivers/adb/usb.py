@@ -16,6 +16,8 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import structlog
+import usb.core
+import usb.util
 
 from drivers.adb.errors import AdbError, ConnectionLost, UsbDeviceNotFound
 from drivers.adb.message import HEADER_SIZE, MAX_PAYLOAD, AdbMessage, decode_header, finish_message
@@ -44,8 +46,6 @@ def adb_interface(device: Any) -> tuple[Any, Any, Any] | None:
 
 def adb_devices() -> Iterator[tuple[str, Any]]:
     """(serial, pyusb device) for every attached device with an ADB interface."""
-    import usb.core
-    import usb.util
 
     for device in usb.core.find(find_all=True):
         if adb_interface(device) is None:
@@ -93,7 +93,6 @@ class UsbTransport:
 
     @staticmethod
     def _find_and_claim(serial: str | None) -> tuple[str, Any, tuple[Any, Any, Any]]:
-        import usb.util
 
         found = [(s, d) for s, d in adb_devices() if serial is None or s == serial]
         if not found:
@@ -112,7 +111,6 @@ class UsbTransport:
     def _read_exact(self, size: int) -> bytes:
         """size bytes from bulk IN, across several transfers if the phone splits them; the
         zero-length packet that ends a payload of whole packets is skipped."""
-        import usb.core
 
         parts: list[bytes] = []
         have = 0
@@ -128,7 +126,6 @@ class UsbTransport:
         return b"".join(parts)
 
     def _read_loop(self) -> None:
-        import usb.core
 
         while not self._stop.is_set():
             if not self._slots.acquire(timeout=self.READ_POLL_MS / 1000):
@@ -156,7 +153,6 @@ class UsbTransport:
                 self.ep_out.write(b"", timeout=self.WRITE_TIMEOUT_MS)
 
     async def send(self, message: AdbMessage, *, with_checksum: bool = True) -> None:
-        import usb.core
 
         if self.closed:
             raise ConnectionLost(self.name, "closed", f"cannot send {message.name}: transport closed")
@@ -185,8 +181,6 @@ class UsbTransport:
         await self._loop.run_in_executor(None, self._release)
 
     def _release(self) -> None:
-        import usb.core
-        import usb.util
 
         self._reader.join()
         self._writer.shutdown(wait=True)

@@ -22,9 +22,12 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from drivers.depth.base import DepthSource
 from drivers.depth.beam_angles import BeamAngles, beam_angles_path, read_beam_angles
 from drivers.depth.errors import InfraredUnavailable, RecordingUnreadable
-from drivers.depth.realsense import END_OF_STREAM, Opened, RawFrame, RealSenseStream
+from drivers.depth.realsense import END_OF_STREAM, Opened, RawFrame, RealSenseStream, import_pyrealsense2
+from planner.rig import DepthCamera as DepthCameraConfig
+from planner.rig import DepthCameraModel
 
 
 class BagPlayback(RealSenseStream):
@@ -50,6 +53,14 @@ class BagPlayback(RealSenseStream):
         self._offset_s: float | None = None
         self._ended: list[asyncio.Task[None]] = []
         self._playing = 0  # which start() the SDK's status callbacks belong to
+
+    @classmethod
+    def for_source(cls, camera: DepthCameraConfig, source: DepthSource, model: DepthCameraModel) -> BagPlayback:
+        """The rig camera ``camera`` played from the hardware file's recording (the ``recording``
+        kind; its pace follows the recording's beam-angle file)."""
+        if source.path is None:
+            raise RecordingUnreadable(camera.id, "-", "the hardware file names no recording")
+        return cls(source.path, camera_id=camera.id)
 
     async def start(self) -> None:
         """Replay the recording from its start; InfraredUnavailable with ``infrared`` on (a depth
@@ -154,3 +165,18 @@ class BagPlayback(RealSenseStream):
     def _end_of_file(self, playing: int) -> None:
         if self._queue is not None and not self._stopping and playing == self._playing:
             self._ended.append(asyncio.get_running_loop().create_task(self._queue.put(END_OF_STREAM)))
+
+
+class RecordingFinder:
+    """The ``recording`` kind's finder: the recording is a file, and pyrealsense2, which plays it,
+    can be imported."""
+
+    async def find(self, camera_id: str, source: DepthSource) -> str:
+        """The recording's size in words; DepthBackendMissing or RecordingUnreadable naming the camera."""
+        import_pyrealsense2(camera_id)  # named before READY; a dictionary look-up once loaded
+        if source.path is None or not source.path.is_file():
+            raise RecordingUnreadable(camera_id, source.path or "-", "no recording at this path")
+        return f"recording, {source.path.stat().st_size} bytes"
+
+    async def close(self) -> None:
+        """Nothing to release."""

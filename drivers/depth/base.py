@@ -1,13 +1,18 @@
-"""Depth frame type and the protocol every depth camera backend implements.
+"""Depth frame type, the protocol every depth camera backend implements, and how one is found.
 
 Real (RealSense, bag playback) and simulated cameras all yield ``DepthFrame`` objects stamped on the
 host event-loop clock, so the sweep can tag each frame with the beam angle from the motor trace.
+A :class:`DepthSource` says where the hardware file finds a camera, and a kind's
+:class:`DepthFinder` tells whether it is there without streaming from it
+(drivers/depth/kinds.py lists the kinds).
 """
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from typing import AsyncIterator, Protocol, runtime_checkable
+from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -68,4 +73,32 @@ class DepthCamera(Protocol):
 
     async def stop(self) -> None:
         """Stop streaming and release the device (idempotent)."""
+        ...
+
+
+@dataclass(frozen=True)
+class DepthSource:
+    """Where the hardware file finds one rig depth camera: its kind (drivers/depth/kinds.py), its
+    serial (the rig file's) and, for a kind that plays a file, the file."""
+
+    kind: str
+    serial: str
+    path: Path | None = None
+
+    @property
+    def address(self) -> str:
+        return f"{self.kind}:{self.serial if self.path is None else self.path}"
+
+
+class DepthFinder(Protocol):
+    """Tells whether a depth camera is there, without streaming from it (the bring-up's re-probes,
+    ``tbp check``); one per kind for the daemon's life."""
+
+    async def find(self, camera_id: str, source: DepthSource) -> str:
+        """The camera's identity in words; a :class:`~drivers.depth.errors.DepthCameraError` naming
+        ``camera_id`` when it cannot be found."""
+        ...
+
+    async def close(self) -> None:
+        """Release what the finder holds (a probe process); idempotent."""
         ...

@@ -12,6 +12,7 @@ mapped onto the host event-loop clock.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib
 from abc import ABC, abstractmethod
 from collections import deque
@@ -23,10 +24,11 @@ from typing import Any, NamedTuple
 import numpy as np
 import structlog
 
-from drivers.depth.base import DepthFrame
+from drivers.depth.base import DepthFrame, DepthSource
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from drivers.noise import NoiseLog
 from planner.rig import DepthCamera as DepthCameraConfig
+from planner.rig import DepthCameraModel
 
 log = structlog.get_logger(__name__)
 
@@ -68,6 +70,14 @@ def import_pyrealsense2(camera_id: str) -> ModuleType:
         return importlib.import_module("pyrealsense2")
     except ImportError as exc:
         raise DepthBackendMissing(camera_id, "pyrealsense2", exc) from exc
+
+
+def load_pyrealsense2() -> None:
+    """Import pyrealsense2 now, if it is installed: a daemon does it before any device's heartbeat
+    runs on its loop (the import holds the interpreter lock 25-35 ms). Without it nothing happens
+    here: each camera's finder names the missing backend."""
+    with contextlib.suppress(DepthBackendMissing):
+        import_pyrealsense2("-")
 
 
 def copy_image(frame: Any, dtype: type, kind: str) -> np.ndarray:
@@ -382,6 +392,11 @@ class RealSenseCamera(RealSenseStream):
         self.serial = camera.serial
         self.fps = fps
         self._clock = HostClockMap()
+
+    @classmethod
+    def for_source(cls, camera: DepthCameraConfig, source: DepthSource, model: DepthCameraModel) -> RealSenseCamera:
+        """The rig's camera by its serial at the rig's frame rate (the ``realsense`` kind)."""
+        return cls(camera, fps=model.fps)
 
     def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
         context = self._sdk_context(rs)

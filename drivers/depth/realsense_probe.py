@@ -22,8 +22,9 @@ import os
 import sys
 from typing import Any
 
+from drivers.depth.base import DepthSource
 from drivers.depth.errors import DepthCameraError
-from drivers.depth.realsense import DepthBackendMissing
+from drivers.depth.realsense import DepthBackendMissing, DepthCameraNotFound
 
 REQUEST = b"serials\n"
 MAX_ANSWER = 1 << 20
@@ -34,7 +35,8 @@ class ProbeFailed(DepthCameraError):
 
 
 class RealSenseProbe:
-    """The daemon's side: ``await serials(camera_id)``; cameras asking at once share one answer."""
+    """The daemon's side: ``await serials(camera_id)``; cameras asking at once share one answer.
+    The ``realsense`` kind's finder (:meth:`find`)."""
 
     ANSWER_TIMEOUT_S = 5.0
     CLOSE_TIMEOUT_S = 2.0
@@ -57,6 +59,14 @@ class RealSenseProbe:
             raise DepthBackendMissing(camera_id, "pyrealsense2", ImportError(str(exc))) from None
         except ProbeFailed as exc:
             raise ProbeFailed(camera_id, exc.problem) from None
+
+    async def find(self, camera_id: str, source: DepthSource) -> str:
+        """The camera's identity ("RealSense serial ..."); DepthCameraNotFound listing the serials
+        that are plugged in when ``source``'s is not among them (or as :meth:`serials` fails)."""
+        found = await self.serials(camera_id)
+        if source.serial not in found:
+            raise DepthCameraNotFound(camera_id, source.serial, found)
+        return f"RealSense serial {source.serial}"
 
     async def _ask(self) -> list[str]:
         process = await self._running()
@@ -128,7 +138,7 @@ enumeration, comes with the daemon's own bring-up)."""
 def serve(requests: Any, answers: Any) -> None:
     """The probe process: one context for its life, one answer line per request line."""
     try:
-        import pyrealsense2 as rs
+        import pyrealsense2 as rs  # the SDK: in the probe process, never the daemon's
     except ImportError as exc:
         rs, missing = None, f"{exc}"
     context = rs.context() if rs is not None else None

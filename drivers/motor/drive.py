@@ -25,7 +25,7 @@ from typing import Any
 import can
 import structlog
 
-from drivers.motor import cia402, emcy, nmt, pdo, sdo
+from drivers.motor import cia402, emcy, nmt, pdo, sdo_aborts
 from drivers.motor.bringup import POSITION_TPDO, STATUS_TPDO, configure
 from drivers.motor.cia402 import Cia402State, Control, Mode, Status
 from drivers.motor.errors import (
@@ -227,7 +227,7 @@ class BeamDrive:
         try:
             await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION)
         except SdoAbort as exc:
-            if exc.code != sdo.ABORT_VALUE_RANGE:
+            if exc.code != sdo_aborts.ABORT_VALUE_RANGE:
                 raise
             await self.sdo.write(cia402.HOMING_METHOD, 0, "<b", cia402.HOMING_ON_CURRENT_POSITION_OLD)
         await self._set_mode(Mode.HOMING)
@@ -400,6 +400,8 @@ class BeamDrive:
                     if t.done() and t.get_name().endswith(("-receive", "-guard-feed"))]
         if self.guard is not None and not self.guard.alive:
             problems.append(f"{self.name}: drive guard not running")
+        if isinstance(self.port, RealtimePort):
+            problems += [f"{self.name}: CAN thread {name} ended" for name in self.port.stopped_threads()]
         if self.fault is None:
             limit = self.guard_timing.drive_timeout_s + self.guard_timing.pause_allowance_s
             if self.heartbeat_age_s() > limit:

@@ -7,6 +7,10 @@ waits on the drive, so a fault can never be missed by a caller that was busy els
 
 from __future__ import annotations
 
+from drivers.errors import DeviceGone
+from drivers.motor.emcy import emcy_meaning
+from drivers.motor.sdo_aborts import abort_meaning
+
 
 class DriveError(Exception):
     """Base of the motor area's errors.
@@ -22,7 +26,7 @@ class DriveError(Exception):
         super().__init__(f"{device} [{state}]: {message}")
 
 
-class CanBusError(DriveError):
+class CanBusError(DriveError, DeviceGone):
     """The CAN port is closed or the bus interface failed (device = port name)."""
 
 
@@ -34,8 +38,6 @@ class SdoAbort(SdoError):
     """The server answered an SDO request with an abort code (CiA 301 section 7.2.4.3.17)."""
 
     def __init__(self, device: str, state: str, index: int, subindex: int, code: int) -> None:
-        from drivers.motor.sdo import abort_meaning
-
         self.index = index
         self.subindex = subindex
         self.code = code
@@ -72,8 +74,6 @@ class DriveFault(DriveError):
     """
 
     def __init__(self, device: str, state: str, code: int | None, register: int = 0) -> None:
-        from drivers.motor.emcy import emcy_meaning
-
         self.code = code
         self.register = register
         self.meaning = emcy_meaning(code) if code is not None else "statusword FAULT without EMCY"
@@ -87,7 +87,7 @@ class FollowingError(DriveFault):
     """The drive stopped because its position lagged the demand beyond the window (EMCY 0x8611)."""
 
 
-class HeartbeatLost(DriveError):
+class HeartbeatLost(DriveError, DeviceGone):
     """The drive's heartbeat did not arrive within the consumer time."""
 
     def __init__(self, device: str, state: str, silent_s: float, timeout_s: float) -> None:
@@ -170,8 +170,6 @@ class SettingRefused(DriveSettingError):
 
     def __init__(self, device: str, state: str, index: int, subindex: int, setting: str, required: int,
                  code: int) -> None:
-        from drivers.motor.sdo import abort_meaning
-
         self.code = code
         super().__init__(device, state, index, subindex, setting, required,
                          f"refused with SDO abort 0x{code:08X} ({abort_meaning(code)})")

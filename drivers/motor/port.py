@@ -78,6 +78,9 @@ class RealtimePort(Protocol):
         """Call ``callback(msg, monotonic_s)`` in the receive thread for every received frame;
         returns the function that removes it."""
 
+    def stopped_threads(self) -> list[str]:
+        """The names of the port's threads that ended while it is open (empty: all run)."""
+
 
 _CLOSED = object()
 
@@ -284,6 +287,11 @@ class PythonCanPort:
 
         return untap
 
+    def stopped_threads(self) -> list[str]:
+        if self.closed:
+            return []
+        return [t.name for t in (self._receiver, self._transmitter) if not t.is_alive()]
+
     async def recv(self) -> can.Message:
         if self.closed:
             raise CanBusError(self.name, "closed", "port is closed")
@@ -434,6 +442,7 @@ def _bound_writes(bus: can.BusABC, timeout_s: float, name: str) -> None:
     Raises:
         CanBusError: the installed python-can keeps them where this port cannot reach.
     """
+    # python-can's serial and bridge backends (0.2 s to import), only for a port that uses one
     from can.interfaces.slcan import slcanBus
     from can.interfaces.socketcand import SocketCanDaemonBus
 
@@ -488,6 +497,10 @@ class LazyCanPort:
 
     def tap(self, callback: Tap) -> Callable[[], None]:
         return self._realtime().tap(callback)
+
+    def stopped_threads(self) -> list[str]:
+        port = self._port
+        return port.stopped_threads() if isinstance(port, RealtimePort) else []
 
     def _realtime(self) -> RealtimePort:
         port = self._port

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from drivers.errors import DeviceGone
+
 
 class PanelError(Exception):
     """Base of every operator panel failure."""
@@ -47,7 +49,7 @@ class PanelCommandRefused(PanelError):
         super().__init__(device, f"refused {command!r}: {reason}")
 
 
-class PanelHeartbeatLost(PanelError):
+class PanelHeartbeatLost(PanelError, DeviceGone):
     """No valid heartbeat from the panel within the timeout (e-stop state unknown)."""
 
     def __init__(

@@ -115,6 +115,7 @@ class PhoneCamera:
                  key: AdbKey, agent_jar: Path | None = None) -> None:
         self.transport_factory = transport_factory
         self.phone = phone
+        self.name = phone.id
         self.serial = phone.serial
         self.focus_table = focus_table
         self.key = key
@@ -122,6 +123,7 @@ class PhoneCamera:
         self.agent_jar = Path(jar) if jar else None
         self.state = "disconnected"
         self.info: PhoneInfo | None = None
+        self.agent_pushed_bytes = 0  # the jar pushed by the last connect(), 0 when the phone's copy was used
         self.adb: AdbConnection | None = None
         self._agent_shell: AdbStream | None = None
         self._agent: AdbStream | None = None
@@ -135,19 +137,21 @@ class PhoneCamera:
         return f"PhoneCamera({self.phone.id}, {self.serial}, {self.state})"
 
     # ---------------------------------------------------------------- connect
-    async def connect(self) -> PhoneInfo:
-        """Link, authenticate, start the agent and say hello; reconnects if already connected."""
+    async def connect(self, timeout_s: float | None = None) -> PhoneInfo:
+        """Link, authenticate, start the agent and say hello, within ``timeout_s`` (None:
+        CONNECT_TIMEOUT_S; a first connection waits for someone to accept the USB debugging
+        prompt); reconnects if already connected."""
+        limit = self.CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
         await self._teardown()
         self.state = "connecting"
         self._lost = None
         try:
-            async with asyncio.timeout(self.CONNECT_TIMEOUT_S):
+            async with asyncio.timeout(limit):
                 info = await self._bring_up()
         except TimeoutError:
             await self._teardown()
             self.state = "disconnected"
-            raise PhoneDisconnected(self.serial, "connecting",
-                                    f"not ready within {self.CONNECT_TIMEOUT_S:g} s") from None
+            raise PhoneDisconnected(self.serial, "connecting", f"not ready within {limit:g} s") from None
         except AdbError as exc:
             await self._teardown()
             self.state = "disconnected"
@@ -189,6 +193,7 @@ class PhoneCamera:
                          float(answer.number("min_focus_diopters", device=self.serial)), quality, source)
 
     async def _install_agent(self, adb: AdbConnection) -> None:
+        self.agent_pushed_bytes = 0
         async with await adb.sync() as sync:
             remote = await sync.stat(protocol.AGENT_PATH)
             if self.agent_jar is None:
@@ -202,6 +207,7 @@ class PhoneCamera:
                 raise AgentMissing(self.serial, "connecting", f"cannot read {self.agent_jar}: {exc.strerror}") from exc
             if (remote.size, remote.mtime) != (len(jar), mtime):  # the phone's copy is another build
                 await sync.push(jar, protocol.AGENT_PATH, mode=0o644, mtime=mtime)
+                self.agent_pushed_bytes = len(jar)
                 self._log.info("phone_agent_pushed", serial=self.serial, bytes=len(jar))
 
     async def _start_agent(self, adb: AdbConnection) -> None:

@@ -6,6 +6,8 @@ ADB-level failures are translated at the PhoneCamera boundary: a lost link becom
 
 from __future__ import annotations
 
+from drivers.errors import DeviceGone
+
 
 class PhoneError(Exception):
     """Base of the phone area's errors.
@@ -21,7 +23,7 @@ class PhoneError(Exception):
         super().__init__(f"{device} [{state}]: {message}")
 
 
-class PhoneDisconnected(PhoneError):
+class PhoneDisconnected(PhoneError, DeviceGone):
     """The ADB link or the agent's stream dropped, or the phone cannot be reached."""
 
 

@@ -22,12 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from drivers.phone.errors import FocusCalibrationError, FocusOutOfRange
-from planner.yaml_files import read_yaml
+from planner.schema.tables import FOCUS_FILE, MAX_DIOPTERS, MAX_DISTANCE_MM, MIN_DISTANCE_MM
 
-MIN_DISTANCE_MM = 20.0
-MAX_FILE_BYTES = 1024 * 1024  # a focus table is a few hundred bytes
-MAX_DISTANCE_MM = 100_000.0
-MAX_DIOPTERS = 50.0
+MAX_FILE_BYTES = FOCUS_FILE.max_bytes
 
 
 @dataclass(frozen=True)
@@ -89,19 +86,8 @@ class FocusCalibration:
 
 
 def load_focus_calibration(path: Path | str) -> FocusCalibration:
-    """Read and validate a focus table file (see the module docstring for the format)."""
-    path = Path(path)
-    doc, _ = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="focus table",
-                       error=lambda problem: FocusCalibrationError(str(path), "file", problem))
-    if not isinstance(doc, dict):
-        raise FocusCalibrationError(str(path), "file", "expected a mapping with 'points'")
-    unknown = sorted(set(doc) - {"points", "phone_model", "measured"})
-    if unknown:
-        raise FocusCalibrationError(str(path), unknown[0], "unknown key (allowed: points, phone_model, measured)")
-    points = doc.get("points")
-    if not isinstance(points, list) or not all(
-            isinstance(p, list) and len(p) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                        for v in p) for p in points):
-        raise FocusCalibrationError(str(path), "points", "expected a list of [diopters, distance_mm] number pairs")
-    table = np.array(points, dtype=float).reshape(-1, 2)
+    """Read and validate a focus table file (see the module docstring; its table:
+    planner/schema/tables.py)."""
+    values, _ = FOCUS_FILE.load(path, FocusCalibrationError)
+    table = np.array(values["points"], dtype=float)
     return FocusCalibration(table[:, 0], table[:, 1], source=str(path))

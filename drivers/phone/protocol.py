@@ -1,6 +1,7 @@
 """The capture agent's JSON-lines protocol (docs/capture-agent-protocol.md), both directions.
 
-Each line is one UTF-8 JSON object ending in "\\n". Requests carry an integer ``id`` and an
+Each line is one UTF-8 JSON object ending in "\\n" (strict JSON: no NaN or Infinity, at most
+MAX_NESTING deep). Requests carry an integer ``id`` and an
 ``op``; the answer carries the same ``id`` and ``ok``: true with the op's fields, or false with
 ``error: {code, message}``. The host (drivers/phone/camera.py) and the simulated agent
 (drivers/sim/phone.py) both use these parsers, so a malformed line is a typed
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,6 +24,7 @@ AGENT_CLASS = "com.tbp.CaptureAgent"
 AGENT_PATH = "/data/local/tmp/tbp-capture-agent.jar"
 READY_PREFIX = "TBP-CAPTURE-AGENT READY"
 MAX_LINE = 64 * 1024
+MAX_NESTING = 256  # arrays and objects inside each other, as the agent's parser allows
 OPS = ("hello", "focus", "capture", "clock", "delete")
 
 ERROR_CODES = (
@@ -73,9 +76,11 @@ def _load(line: bytes | str, device: str, side: str) -> dict[str, Any]:
             raise AgentProtocolError(device, side, f"line is not UTF-8: {exc}") from None
     if not line.endswith("\n"):
         raise AgentProtocolError(device, side, f"line not terminated by a newline: {line[:80]!r}")
+    if _nesting(line) > MAX_NESTING:
+        raise AgentProtocolError(device, side, f"JSON nested deeper than {MAX_NESTING}")
     try:
-        obj = json.loads(line)
-    except (json.JSONDecodeError, RecursionError) as exc:
+        obj = json.loads(line, parse_constant=_no_constant)
+    except (ValueError, RecursionError) as exc:
         raise AgentProtocolError(device, side, f"not JSON ({exc}): {line[:80]!r}") from None
     if not isinstance(obj, dict):
         raise AgentProtocolError(device, side, f"line is a JSON {type(obj).__name__}, not an object")
@@ -83,6 +88,25 @@ def _load(line: bytes | str, device: str, side: str) -> dict[str, Any]:
     if isinstance(ident, bool) or not isinstance(ident, int) or not 0 <= ident < 2**53:
         raise AgentProtocolError(device, side, f"'id' must be a non-negative integer, got {ident!r}")
     return obj
+
+
+_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+
+
+def _nesting(text: str) -> int:
+    """How deep arrays and objects nest in a JSON text (brackets inside strings do not count)."""
+    deepest = depth = 0
+    for char in _STRING.sub("", text):
+        if char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth -= 1
+    return deepest
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not JSON")
 
 
 def encode_request(request_id: int, op: str, **params: Any) -> bytes:

@@ -13,6 +13,7 @@ reappear()), disconnect_after_bytes (the link drops in the middle of a RECV).
 from __future__ import annotations
 
 import asyncio
+import os
 import posixpath
 import random
 import shlex
@@ -20,6 +21,7 @@ import stat as statmod
 import struct
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import structlog
 
@@ -57,21 +59,50 @@ class SimFile:
 
 
 class MemoryFileSystem:
-    """Files by absolute path; directories exist implicitly as prefixes (plus a few fixed ones)."""
+    """Files by absolute path; directories exist implicitly as prefixes (plus a few fixed ones).
+
+    A folder may be mounted from the host (:meth:`mount`): its files are then real files, as when
+    the capture agent runs under the JVM and writes the images itself.
+    """
 
     ROOTS = ("/", "/data", "/data/local", "/data/local/tmp", "/sdcard", "/sdcard/DCIM")
 
     def __init__(self) -> None:
         self.files: dict[str, SimFile] = {}
+        self.mounts: dict[str, Path] = {}
         self._framed: dict[str, bytes] = {}
 
+    def mount(self, path: str, folder: Path) -> None:
+        """Serve ``path`` and everything under it from the host folder ``folder``."""
+        self.mounts[posixpath.normpath(path)] = Path(folder)
+
+    def _host(self, path: str) -> Path | None:
+        """The host file behind a phone path inside a mount, else None."""
+        for prefix, folder in self.mounts.items():
+            if path == prefix:
+                return folder
+            if path.startswith(prefix + "/"):
+                return folder / path[len(prefix) + 1:]
+        return None
+
     def write(self, path: str, data: bytes, *, mode: int = 0o644, mtime: int = 0) -> None:
-        self.files[posixpath.normpath(path)] = SimFile(bytes(data), statmod.S_IFREG | (mode & 0o7777), mtime)
-        self._framed.pop(posixpath.normpath(path), None)
+        path = posixpath.normpath(path)
+        host = self._host(path)
+        if host is not None:
+            host.parent.mkdir(parents=True, exist_ok=True)
+            host.write_bytes(data)
+            host.chmod(mode & 0o777)
+            os.utime(host, (mtime, mtime))
+            return
+        self.files[path] = SimFile(bytes(data), statmod.S_IFREG | (mode & 0o7777), mtime)
+        self._framed.pop(path, None)
 
     def framed(self, path: str) -> bytes | None:
         """The file as a sync RECV answer (DATA chunks then DONE), built once per file version."""
         path = posixpath.normpath(path)
+        if self._host(path) is not None:
+            data = self.read(path)
+            return None if data is None else data_chunks(data) + _ID_LEN.pack(b"DONE", 0)
         f = self.files.get(path)
         if f is None:
             return None
@@ -80,21 +111,43 @@ class MemoryFileSystem:
         return self._framed[path]
 
     def read(self, path: str) -> bytes | None:
-        f = self.files.get(posixpath.normpath(path))
+        path = posixpath.normpath(path)
+        host = self._host(path)
+        if host is not None:
+            return host.read_bytes() if host.is_file() else None
+        f = self.files.get(path)
         return None if f is None else f.data
 
     def remove(self, path: str) -> bool:
-        self._framed.pop(posixpath.normpath(path), None)
-        return self.files.pop(posixpath.normpath(path), None) is not None
+        path = posixpath.normpath(path)
+        host = self._host(path)
+        if host is not None:
+            if not host.is_file():
+                return False
+            host.unlink()
+            return True
+        self._framed.pop(path, None)
+        return self.files.pop(path, None) is not None
 
     def is_dir(self, path: str) -> bool:
         path = posixpath.normpath(path)
+        host = self._host(path)
+        if host is not None:
+            return host.is_dir()
         prefix = path.rstrip("/") + "/"
-        return path in self.ROOTS or any(p.startswith(prefix) for p in self.files)
+        return path in self.ROOTS or any(p.startswith(prefix) for p in [*self.files, *self.mounts])
 
     def stat(self, path: str) -> tuple[int, int, int]:
         """(mode, size, mtime); all 0 when the path does not exist."""
-        f = self.files.get(posixpath.normpath(path))
+        path = posixpath.normpath(path)
+        host = self._host(path)
+        if host is not None:
+            try:
+                st = host.stat()
+            except OSError:
+                return 0, 0, 0
+            return st.st_mode, st.st_size if statmod.S_ISREG(st.st_mode) else 4096, int(st.st_mtime)
+        f = self.files.get(path)
         if f is not None:
             return f.mode, len(f.data), f.mtime
         if self.is_dir(path):
@@ -102,8 +155,12 @@ class MemoryFileSystem:
         return 0, 0, 0
 
     def list(self, path: str) -> list[str]:
-        prefix = posixpath.normpath(path).rstrip("/") + "/"
-        names = {p[len(prefix):].split("/", 1)[0] for p in self.files if p.startswith(prefix)}
+        path = posixpath.normpath(path)
+        host = self._host(path)
+        if host is not None:
+            return sorted(p.name for p in host.iterdir()) if host.is_dir() else []
+        prefix = path.rstrip("/") + "/"
+        names = {p[len(prefix):].split("/", 1)[0] for p in [*self.files, *self.mounts] if p.startswith(prefix)}
         names |= {r[len(prefix):].split("/", 1)[0] for r in self.ROOTS if r.startswith(prefix) and r != prefix}
         return sorted(n for n in names if n)
 
@@ -133,6 +190,7 @@ class SimulatedAdbd:
         self.listeners: dict[str, ServiceHandler] = {}
         self.links: set[StreamMux] = set()
         self.connections = 0
+        self._sessions: set[asyncio.Task[None]] = set()
         self._rng = random.Random(seed)
 
     @staticmethod
@@ -153,9 +211,19 @@ class SimulatedAdbd:
     def reappear(self) -> None:
         self.vanished = False
 
+    async def shut_down(self) -> None:
+        """Drop every link and wait until their sessions (and what they run, the agent) have ended."""
+        for mux in list(self.links):
+            mux.transport.writer.transport.abort()
+        await asyncio.gather(*self._sessions, return_exceptions=True)
+
     # ---------------------------------------------------------------- link
     async def accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Serve one host link (socketpair or TCP) until it closes."""
+        session = asyncio.current_task()
+        if session is not None:
+            self._sessions.add(session)
+            session.add_done_callback(self._sessions.discard)
         transport = StreamTransport(reader, writer, name=self.serial)
         if self.vanished:
             writer.transport.abort()

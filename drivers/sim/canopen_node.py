@@ -24,7 +24,7 @@ from typing import Any
 import can
 import structlog
 
-from drivers.motor import emcy, nmt, pdo, sdo
+from drivers.motor import emcy, nmt, pdo, sdo, sdo_aborts
 from drivers.motor.errors import CanBusError
 from drivers.motor.port import CanPort
 
@@ -180,7 +180,7 @@ class SimulatedNode:
         elif self._mapping_of(index) is not None:  # a communication parameter
             self._check_communication_write(index, subindex, value)
         elif index == 0x1029 and value not in tuple(nmt.CommunicationErrorBehaviour):
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         self.od[(index, subindex)].value = value
 
     def receive_write(self, index: int, subindex: int, value: int, transport: str) -> None:
@@ -207,28 +207,28 @@ class SimulatedNode:
     def _check_communication_write(self, index: int, subindex: int, value: int) -> None:
         current = self.od[(index, subindex)].value
         if subindex == 1 and not (current | value) & pdo.COB_ID_INVALID and (current ^ value) & 0x1FFF_FFFF:
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)  # a valid PDO's COB-ID changes only via invalid
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)  # a valid PDO's COB-ID changes only via invalid
         receive = index < pdo.TPDO_COMMUNICATION
         if receive and subindex == 2 and value not in _RPDO_TRANSMISSION_TYPES:
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
 
     def _check_mapping_write(self, comm_index: int, index: int, subindex: int, value: int) -> None:
         if not self.od[(comm_index, 1)].value & pdo.COB_ID_INVALID:
-            raise SdoAbortRequest(sdo.ABORT_DEVICE_STATE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_DEVICE_STATE)
         if subindex == 0:
             if value > 8:
-                raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+                raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
             bits = sum(pdo.parse_map_entry(self.od[(index, s)].value)[2] for s in range(1, value + 1))
             if bits > 64:
-                raise SdoAbortRequest(sdo.ABORT_PDO_LENGTH)
+                raise SdoAbortRequest(sdo_aborts.ABORT_PDO_LENGTH)
             return
         if self.od[(index, 0)].value != 0:
-            raise SdoAbortRequest(sdo.ABORT_UNSUPPORTED_ACCESS)
+            raise SdoAbortRequest(sdo_aborts.ABORT_UNSUPPORTED_ACCESS)
         obj_index, obj_sub, bits = pdo.parse_map_entry(value)
         entry = self.od.get((obj_index, obj_sub))
         receive = comm_index < pdo.TPDO_COMMUNICATION  # an RPDO writes what it maps
         if entry is None or not entry.mappable or entry.size * 8 != bits or (receive and not entry.writable):
-            raise SdoAbortRequest(sdo.ABORT_NOT_MAPPABLE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_NOT_MAPPABLE)
 
     def tpdo_mapping(self, k: int) -> tuple[pdo.MappedObject, ...]:
         """The current mapping of TPDO k+1."""
@@ -437,27 +437,27 @@ class SimulatedNode:
             request = sdo.parse_sdo(data, from_client=True)
         except ValueError:
             index, subindex = struct.unpack_from("<HB", data, 1) if len(data) >= 4 else (0, 0)
-            return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_COMMAND)
         index, subindex = request.index, request.subindex
         if request.kind is sdo.SdoKind.ABORT:
-            return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_COMMAND)
         if not any(key[0] == index for key in self.od):
-            return sdo.abort_frame(index, subindex, sdo.ABORT_NO_OBJECT)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_NO_OBJECT)
         entry = self.od.get((index, subindex))
         if entry is None:
-            return sdo.abort_frame(index, subindex, sdo.ABORT_NO_SUBINDEX)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_NO_SUBINDEX)
         if request.kind is sdo.SdoKind.UPLOAD:
             if not entry.readable:
-                return sdo.abort_frame(index, subindex, sdo.ABORT_WRITE_ONLY)
+                return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_WRITE_ONLY)
             raw = struct.pack(entry.fmt, self.read_object(index, subindex))
             return sdo.upload_reply(index, subindex, raw)
         if not request.expedited:
-            return sdo.abort_frame(index, subindex, sdo.ABORT_COMMAND)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_COMMAND)
         if not entry.writable:
-            return sdo.abort_frame(index, subindex, sdo.ABORT_READ_ONLY)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_READ_ONLY)
         payload = request.data if request.size_indicated else request.raw[: entry.size]
         if len(payload) != entry.size:
-            return sdo.abort_frame(index, subindex, sdo.ABORT_LENGTH)
+            return sdo.abort_frame(index, subindex, sdo_aborts.ABORT_LENGTH)
         try:
             self.receive_write(index, subindex, struct.unpack(entry.fmt, payload)[0], "sdo")
         except SdoAbortRequest as exc:

@@ -10,6 +10,7 @@ confusion, as in phone_render.py), sensor noise.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
@@ -51,8 +52,6 @@ class CuboidScene:
     def radiance(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For rays from origin (3,) along (N, 3) float32 directions: grey value (N,), hit parameter t (N,)
         and |cos incidence| (N,), float32."""
-        import cv2
-
         n = len(directions)
         best_t = np.full(n, np.inf, dtype=np.float32)
         grey = np.full(n, BACKGROUND_GREY, dtype=np.float32)
@@ -99,8 +98,6 @@ class CuboidScene:
 
 def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     """(H * W, 3) float camera-frame ray directions (z = 1) through every pixel centre of a distorted lens."""
-    import cv2
-
     u, v = np.meshgrid(np.arange(intrinsics.width_px, dtype=np.float64), np.arange(intrinsics.height_px, dtype=np.float64))
     pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
     und = cv2.undistortPointsIter(pts, intrinsics.matrix, intrinsics.dist, None, None,

@@ -20,14 +20,16 @@ import math
 from collections.abc import AsyncIterator, Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import structlog
 import trimesh
 
-from drivers.depth.base import DepthFrame
+from drivers.depth.base import DepthCamera, DepthFrame
+from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
 from drivers.depth.errors import InfraredUnavailable
+from drivers.depth.recorder import DepthRecorder
 from drivers.sim.trapezoid import Trajectory, position_move
 from planner.poses import depth_camera_pose
 from planner.rig import DepthCamera as DepthCameraConfig
@@ -55,7 +57,7 @@ class DepthScene:
     """
 
     def __init__(self, mesh: trimesh.Trimesh, *, floor: bool = True) -> None:
-        import open3d as o3d
+        import open3d as o3d  # seconds to import: only where a scene is ray cast
 
         self._o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
@@ -311,6 +313,21 @@ class SimulatedDepthCamera:
         return image
 
 
+class DepthTwin(Protocol):
+    """How the simulated rig makes a depth camera kind's twin: the rig camera, its model, the scene
+    it sees, the beam's angle over time, a seed and (for calibration) its infrared pictures."""
+
+    def __call__(self, camera: DepthCameraConfig, model: DepthCameraModel, subject: DepthScene,
+                 beam_angle_deg: Callable[[float], float], *, seed: int,
+                 infrared_source: Callable[[int, float], np.ndarray] | None) -> DepthCamera: ...
+
+
+DEPTH_TWINS: dict[str, DepthTwin] = {"realsense": SimulatedDepthCamera}
+"""Depth camera kind (drivers/depth/kinds.py) -> its twin, which the simulated rig streams from
+(``SimOptions.depth_kind``). The ``recording`` kind plays a file: its twin is the recording
+:func:`record_sweep` writes of a simulated sweep (the loopback rig plays those)."""
+
+
 def sweep_frame_times(rig: Rig) -> np.ndarray:
     """(F,) float seconds from the sweep start: 30 fps-style frame times of a constant-speed sweep."""
     s, m = rig.depth_sweep, rig.depth_camera_model
@@ -417,9 +434,6 @@ def record_sweep(
     ``CAMERA.db3`` (RealSense recording, pyrealsense2's recorder) and ``CAMERA.beam.json`` (the
     beam angle of each frame). Camera i's noise seed is ``seed * 100 + i``; source: provenance
     stored in each beam-angle file. Returns the recordings' paths in rig order."""
-    from drivers.depth.beam_angles import beam_angles_path, write_beam_angles
-    from drivers.depth.recorder import DepthRecorder
-
     paths = []
     for i, camera in enumerate(rig.depth_cameras):
         if camera_ids is not None and camera.id not in camera_ids:

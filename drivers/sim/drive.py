@@ -35,7 +35,7 @@ import asyncio
 
 import structlog
 
-from drivers.motor import cia402, emcy, sdo
+from drivers.motor import cia402, emcy, sdo_aborts
 from drivers.motor.cia402 import AbortConnection, Cia402State, FaultReaction, Mode, QuickStopOption, Status
 from drivers.motor.port import CanPort
 from drivers.sim.canopen_node import ObjectEntry, SdoAbortRequest, SimulatedNode, monotonic_s
@@ -204,24 +204,24 @@ class SimulatedDrive(SimulatedNode):
 
     def write_object(self, index: int, subindex: int, value: int) -> None:
         if index == cia402.QUICK_STOP_OPTION and value not in _QUICK_STOP_OPTIONS:
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         if index == cia402.FAULT_REACTION_OPTION and value not in _FAULT_REACTIONS:
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         if index == cia402.ABORT_CONNECTION_OPTION and value not in tuple(AbortConnection):
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         if index == cia402.HOMING_METHOD and value not in self.homing_methods:
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         if index == cia402.MODES_OF_OPERATION and value not in (
             0,
             *(m for m in Mode if self.SUPPORTED_MODES >> (m - 1) & 1),
         ):
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         if (
             index
             in (cia402.PROFILE_ACCELERATION, cia402.PROFILE_DECELERATION, cia402.QUICK_STOP_DECELERATION)
             and value == 0
         ):
-            raise SdoAbortRequest(sdo.ABORT_VALUE_RANGE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
         super().write_object(index, subindex, value)
         if index == cia402.CONTROLWORD:
             self._on_controlword(value)
@@ -476,7 +476,7 @@ class SimulatedDrive(SimulatedNode):
         now = self._now()
         p, v = self._position_velocity(now)
         if v != 0:
-            raise SdoAbortRequest(sdo.ABORT_DEVICE_STATE)
+            raise SdoAbortRequest(sdo_aborts.ABORT_DEVICE_STATE)
         self._offset = self.od[(cia402.HOME_OFFSET, 0)].value - p
         self._homing_attained = True
 

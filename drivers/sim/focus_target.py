@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
@@ -24,8 +25,6 @@ SURROUND_GREY = 128.0
 def board_patch(texture: np.ndarray, texture_px_per_mm: float, distance_mm: float, sharp_mm: float,
                 optics: Optics, rng: np.random.Generator, psf_px: float = 0.6, noise: float = 2.0) -> np.ndarray:
     """(PATCH_PX, PATCH_PX) float32 grey: the centre of a board picture at distance_mm, lens sharp at sharp_mm."""
-    import cv2
-
     focal_px = optics.focal_length_px * RENDER_SCALE
     px_per_mm = focal_px / distance_mm
     scale = px_per_mm / texture_px_per_mm

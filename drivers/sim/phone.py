@@ -3,12 +3,15 @@
 The agent starts only the way the real one does: the host runs ``CLASSPATH=<jar> app_process /
 com.tbp.CaptureAgent ...`` on a shell stream; the jar must be on the phone (pushed, or
 installed beforehand with ``agent_installed=True``). It then prints its READY line, listens on
-``localabstract:tbp-capture`` and lives until that shell stream closes.
+``localabstract:tbp-capture`` and lives until that shell stream closes. Two agents can answer:
+the Python twin (``agent_runtime="python"``, drivers/sim/phone_agent.py) or the real agent's JVM
+build run with ``java`` (``"jvm"``, drivers/sim/jvm_agent.py, agent/); both drive this phone's
+camera below, so the same faults act on either.
 
-Timing, all on the event loop's clock: the lens travels for LENS_BASE_S + LENS_S_PER_DIOPTER *
+The camera, all on the event loop's clock: the lens travels for LENS_BASE_S + LENS_S_PER_DIOPTER *
 |change| (times ``lens_slowdown``) and settles for LENS_SETTLE_S; a capture starts exposing
-CAPTURE_LATENCY_S (+ seeded jitter) after the request and the file is written ENCODE_S after the
-exposure. The sensor clock has its own offset and drift (seeded); a clock ping reads it after a
+CAPTURE_LATENCY_S (+ seeded jitter) after the request and the JPEG is ready ENCODE_S after the
+exposure. The sensor clock has its own offset and drift (seeded); a clock read happens after a
 seeded one-way delay, so round trips are not zero. Each image is the subject ray
 cast from ``pose(t)`` (time -> (4, 4) camera-to-world, provided by the sim wiring so the phone
 knows nothing of the motor) and blurred by its distance from the focal plane; with a
@@ -18,9 +21,9 @@ wiring's calibration cuboid, seen from ``pose(t)``) it is what the source render
 
 Faults: those of the adbd (refuse_auth, vanish(), disconnect_after_bytes) plus crash_agent()
 (the agent process dies; adbd stays up, so a reconnect starts it again), lens_slowdown,
-fail_captures (the next n captures answer CAPTURE_FAILED), answer_delay_s (every agent answer
-is held back that long, as on a congested USB hub) and mute_agent (requests go unanswered, as
-when the camera HAL hangs).
+fail_captures (the next n captures fail as onCaptureFailed), answer_delay_s (every agent answer
+is held back that long, as on a congested USB hub) and mute_agent (the camera HAL hangs: focus,
+capture and clock requests go unanswered).
 """
 
 from __future__ import annotations
@@ -29,26 +32,24 @@ import asyncio
 import random
 import weakref
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-import structlog
 
-from drivers.adb.streams import AdbStream
 from drivers.phone import protocol
-from drivers.phone.errors import AgentProtocolError
 from drivers.sim.adbd import SimulatedAdbd
 from drivers.sim.focus_target import BoardStand
 from drivers.sim.phone_render import PhoneRenderer, SubjectScene, empty_rig_picture, encode_jpeg
 from planner.rig import Optics, load_rig
-
-log = structlog.get_logger("drivers.sim.phone")
 
 PoseSource = Callable[[float], np.ndarray]
 PictureSource = Callable[[np.ndarray | None, float, np.random.Generator], np.ndarray]
 """(camera-to-world pose at the exposure, sharpest distance of the lens in mm, noise) -> (H, W[, 3])
 uint8: what the phone photographs when it is not the subject (the calibration cuboid)."""
 _SCENES: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
+AGENT_RUNTIMES = ("python", "jvm")
 
 
 def _scene_for(subject: Any) -> SubjectScene:
@@ -57,6 +58,21 @@ def _scene_for(subject: Any) -> SubjectScene:
     if scene is None:
         scene = _SCENES[subject] = SubjectScene(subject)
     return scene
+
+
+class CaptureFailure(Exception):
+    """The camera's onCaptureFailed (the fail_captures fault)."""
+
+
+@dataclass(frozen=True)
+class Still:
+    """One exposure: its start (loop s and sensor ns), exposure (s), focus used (diopters), the JPEG."""
+
+    start_s: float
+    sensor_timestamp_ns: int
+    exposure_s: float
+    focus_diopters: float
+    jpeg: bytes
 
 
 class SimulatedPhone(SimulatedAdbd):
@@ -69,6 +85,8 @@ class SimulatedPhone(SimulatedAdbd):
     CAPTURE_JITTER_S = 0.003
     ENCODE_S = 0.12
     LINK_DELAY_S = 0.0003  # one way, USB/ADB and agent thread hand-off, before jitter
+    EXPOSURE_RANGE_S = (1e-5, 0.5)  # SENSOR_INFO_EXPOSURE_TIME_RANGE
+    ISO_RANGE = (50, 3200)  # SENSOR_INFO_SENSITIVITY_RANGE
     IMAGE_DIR = "/sdcard/DCIM/tbp"
 
     def __init__(self, serial: str, *, subject: Any | None = None, pose: PoseSource | None = None,
@@ -76,7 +94,8 @@ class SimulatedPhone(SimulatedAdbd):
                  accept_new_keys: bool = True, agent_installed: bool = True,
                  render_size: tuple[int, int] | None = (192, 256), min_focus_diopters: float = 10.0,
                  focus_calibration_quality: int = 1, timestamp_source: str = "realtime",
-                 model: str = "TBP Simulated Phone") -> None:
+                 model: str = "TBP Simulated Phone", agent_runtime: str = "python",
+                 agent_jar: Path | None = None) -> None:
         super().__init__(serial, properties={"ro.product.model": model}, known_keys=known_keys,
                          accept_new_keys=accept_new_keys, seed=seed)
         self.subject = subject
@@ -102,16 +121,22 @@ class SimulatedPhone(SimulatedAdbd):
         self.fail_captures = 0
         self.mute_agent = False
         self.answer_delay_s = 0.0
-        self.agent_version = protocol.PROTOCOL_VERSION
-        self._agent_sessions: set[AdbStream] = set()
-        self._agent_crashed = asyncio.Event()
-        self.agent_running = False
+        self.agent_version = protocol.PROTOCOL_VERSION  # what the Python twin's hello says
         self.captures: list[dict[str, Any]] = []
         self._renderer: PhoneRenderer | None = None
-        self._camera_lock = asyncio.Lock()
+        self.agent = _agent_runtime(self, agent_runtime, agent_jar)
         if agent_installed:
-            self.fs.write(protocol.AGENT_PATH, b"PK\x03\x04 tbp capture agent (simulated)")
-        self.commands["app_process"] = self._app_process
+            self.fs.write(protocol.AGENT_PATH, self.agent.installed_jar())
+        self.commands["app_process"] = self.agent.app_process
+
+    @property
+    def agent_running(self) -> bool:
+        """Whether an agent process runs (between app_process and its exit)."""
+        return self.agent.running
+
+    def crash_agent(self) -> None:
+        """Fault: the agent process dies (its socket and shell stream close; adbd stays up)."""
+        self.agent.crash()
 
     # ---------------------------------------------------------------- clock
     def sensor_ns(self, loop_time_s: float) -> int:
@@ -125,136 +150,58 @@ class SimulatedPhone(SimulatedAdbd):
     def _now_ns(self) -> int:
         return self.sensor_ns(asyncio.get_running_loop().time())
 
-    # ---------------------------------------------------------------- agent process
-    async def _app_process(self, argv: list[str], env: dict[str, str], stream: AdbStream) -> None:
-        jar = env.get("CLASSPATH", "")
-        if protocol.AGENT_CLASS not in argv or self.fs.read(jar) is None:
-            await stream.write(f"Error: Could not find or load main class {' '.join(argv[2:3])} "
-                               f"(CLASSPATH={jar!r})\n".encode())
-            return
-        socket_name = next((a.split("=", 1)[1] for a in argv if a.startswith("socket=")), protocol.SOCKET_NAME)
-        self.listeners[socket_name] = self._agent_session
-        self.agent_running = True
-        self._agent_crashed = asyncio.Event()
-        log.info("sim_phone_agent_started", serial=self.serial, socket=socket_name)
-        try:
-            await stream.write(f"{protocol.READY_PREFIX} {socket_name} {protocol.PROTOCOL_VERSION}\n".encode())
-            stdin = asyncio.create_task(_discard(stream))  # the agent ignores stdin
-            crashed = asyncio.create_task(self._agent_crashed.wait())
-            try:
-                await asyncio.wait({stdin, crashed}, return_when=asyncio.FIRST_COMPLETED)
-            finally:  # also when adbd closes the stream's task: the waits must not outlive it
-                for task in (stdin, crashed):
-                    task.cancel()
-                await asyncio.gather(stdin, crashed, return_exceptions=True)
-        finally:
-            self.listeners.pop(socket_name, None)
-            self.agent_running = False
-            for session in list(self._agent_sessions):  # its sockets close with the process
-                await session.close()
-            log.info("sim_phone_agent_stopped", serial=self.serial)
+    # ---------------------------------------------------------------- camera (what either agent drives)
+    def camera_info(self) -> dict[str, Any]:
+        """The camera's characteristics and the manual exposure, as the agent's hello reports them."""
+        width, height = self._image_size()
+        return {"model": self.properties["ro.product.model"], "serial": self.serial,
+                "min_focus_diopters": self.min_focus_diopters,
+                "focus_distance_calibration": self.focus_calibration_quality,
+                "timestamp_source": self.timestamp_source, "exposure_s": self.optics.exposure_s,
+                "iso": self.optics.iso, "image_width": width, "image_height": height,
+                "min_exposure_s": self.EXPOSURE_RANGE_S[0], "max_exposure_s": self.EXPOSURE_RANGE_S[1],
+                "min_iso": self.ISO_RANGE[0], "max_iso": self.ISO_RANGE[1]}
 
-    def crash_agent(self) -> None:
-        """Fault: the agent process dies (its socket and shell stream close; adbd stays up)."""
-        if self.agent_running:
-            self._agent_crashed.set()
+    async def _hal(self) -> None:
+        """The camera HAL's call: hangs for ever while the mute_agent fault is on."""
+        if self.mute_agent:
+            await asyncio.Event().wait()
 
-    async def _agent_session(self, stream: AdbStream) -> None:
-        self._agent_sessions.add(stream)
-        try:
-            await self._serve_agent(stream)
-        finally:
-            self._agent_sessions.discard(stream)
+    async def move_lens(self, diopters: float) -> tuple[float, int]:
+        """Drive the lens to ``diopters``; (LENS_FOCUS_DISTANCE, SENSOR_TIMESTAMP) once it is still."""
+        await self._hal()
+        travel = self.LENS_BASE_S + self.LENS_S_PER_DIOPTER * abs(diopters - self.lens_diopters)
+        await asyncio.sleep(travel * self.lens_slowdown + self.LENS_SETTLE_S)
+        self.lens_diopters = float(diopters)
+        return self.lens_diopters, self._now_ns()
 
-    async def _serve_agent(self, stream: AdbStream) -> None:
-        while self.agent_running:
-            line = await stream.readline(protocol.MAX_LINE)
-            if not line:
-                return
-            try:
-                request = protocol.parse_request(line, device=self.serial)
-            except AgentProtocolError as exc:
-                await stream.write(protocol.encode_error(0, "BAD_REQUEST", str(exc)))
-                continue
-            if self.mute_agent:
-                continue
-            try:
-                answer = await self._handle(request)
-            except (ValueError, TypeError, RuntimeError, OSError) as exc:  # the real agent answers so too
-                log.error("sim_phone_agent_error", serial=self.serial, op=request.op, error=repr(exc))
-                answer = protocol.encode_error(request.id, "CAMERA_ERROR", f"{request.op}: {exc!r}")
-            if self.answer_delay_s > 0:
-                await asyncio.sleep(self.answer_delay_s)
-            await stream.write(answer)
+    async def expose(self, exposure_s: float) -> Still:
+        """One still at the current focus; CaptureFailure while the fail_captures fault lasts."""
+        await self._hal()
+        loop = asyncio.get_running_loop()
+        latency = max(self.CAPTURE_LATENCY_S + self._jitter.gauss(0.0, self.CAPTURE_JITTER_S), 0.005)
+        await asyncio.sleep(latency)
+        start = loop.time()
+        if self.fail_captures > 0:
+            self.fail_captures -= 1
+            raise CaptureFailure("CameraCaptureSession.CaptureCallback.onCaptureFailed reason 0")
+        pose = self.pose(start + exposure_s / 2) if self.pose is not None else None
+        focus_diopters = self.lens_diopters
+        await asyncio.sleep(exposure_s)
+        jpeg = await loop.run_in_executor(None, self._picture, pose, focus_diopters, len(self.captures))
+        await asyncio.sleep(self.ENCODE_S)
+        still = Still(start, self.sensor_ns(start), exposure_s, focus_diopters, jpeg)
+        self.captures.append({"start_s": start, "sensor_timestamp_ns": still.sensor_timestamp_ns,
+                              "exposure_s": exposure_s, "focus_diopters": focus_diopters, "size": len(jpeg)})
+        return still
 
-    async def _handle(self, request: protocol.AgentRequest) -> bytes:
-        handlers = {"hello": self._hello, "focus": self._focus, "capture": self._capture,
-                    "clock": self._clock, "delete": self._delete}
-        handler = handlers.get(request.op)
-        if handler is None:
-            return protocol.encode_error(request.id, "UNKNOWN_OP", f"unknown op {request.op!r}")
-        return await handler(request)
-
-    async def _hello(self, request: protocol.AgentRequest) -> bytes:
-        return protocol.encode_result(
-            request.id, agent_version=self.agent_version, model=self.properties["ro.product.model"],
-            serial=self.serial, min_focus_diopters=self.min_focus_diopters,
-            focus_distance_calibration=self.focus_calibration_quality, timestamp_source=self.timestamp_source,
-            exposure_s=self.optics.exposure_s, iso=self.optics.iso,
-            image_width=self._image_size()[0], image_height=self._image_size()[1])
-
-    async def _clock(self, request: protocol.AgentRequest) -> bytes:
+    async def read_clock(self) -> int:
+        """The sensor clock, read one (jittered) link delay after the request, answered one later."""
+        await self._hal()
         await asyncio.sleep(self.LINK_DELAY_S * (1.0 + self._jitter.random()))
         device_ns = self._now_ns()
         await asyncio.sleep(self.LINK_DELAY_S * (1.0 + self._jitter.random()))
-        return protocol.encode_result(request.id, device_ns=device_ns)
-
-    async def _delete(self, request: protocol.AgentRequest) -> bytes:
-        path = request.params.get("path")
-        if not isinstance(path, str) or not path.startswith(self.IMAGE_DIR + "/"):
-            return protocol.encode_error(request.id, "BAD_REQUEST", f"delete path {path!r} outside {self.IMAGE_DIR}")
-        if not self.fs.remove(path):
-            return protocol.encode_error(request.id, "NOT_FOUND", f"{path} does not exist")
-        return protocol.encode_result(request.id)
-
-    async def _focus(self, request: protocol.AgentRequest) -> bytes:
-        target = request.params.get("diopters")
-        if isinstance(target, bool) or not isinstance(target, (int, float)) or not np.isfinite(target):
-            return protocol.encode_error(request.id, "BAD_REQUEST", f"diopters must be a number, got {target!r}")
-        if not 0.0 <= target <= self.min_focus_diopters:
-            return protocol.encode_error(request.id, "FOCUS_OUT_OF_RANGE",
-                                         f"{target} D outside [0, {self.min_focus_diopters}] D")
-        async with self._camera_lock:
-            travel = (self.LENS_BASE_S + self.LENS_S_PER_DIOPTER * abs(target - self.lens_diopters))
-            await asyncio.sleep(travel * self.lens_slowdown + self.LENS_SETTLE_S)
-            self.lens_diopters = float(target)
-            return protocol.encode_result(request.id, diopters=self.lens_diopters, lens_state=0,
-                                          stationary_at_ns=self._now_ns())
-
-    async def _capture(self, request: protocol.AgentRequest) -> bytes:
-        loop = asyncio.get_running_loop()
-        exposure = float(request.params.get("exposure_s", self.optics.exposure_s))
-        async with self._camera_lock:
-            latency = max(self.CAPTURE_LATENCY_S + self._jitter.gauss(0.0, self.CAPTURE_JITTER_S), 0.005)
-            await asyncio.sleep(latency)
-            start = loop.time()
-            if self.fail_captures > 0:
-                self.fail_captures -= 1
-                return protocol.encode_error(request.id, "CAPTURE_FAILED",
-                                             "CameraCaptureSession.CaptureCallback.onCaptureFailed reason 0")
-            pose = self.pose(start + exposure / 2) if self.pose is not None else None
-            focus_diopters = self.lens_diopters
-            await asyncio.sleep(exposure)
-            jpeg = await loop.run_in_executor(None, self._picture, pose, focus_diopters, len(self.captures))
-            await asyncio.sleep(self.ENCODE_S)
-            path = f"{self.IMAGE_DIR}/IMG_{len(self.captures):05d}.jpg"
-            self.fs.write(path, jpeg, mtime=int(self.sensor_ns(start) // 1_000_000_000))
-            record = {"path": path, "start_s": start, "sensor_timestamp_ns": self.sensor_ns(start),
-                      "exposure_s": exposure, "focus_diopters": focus_diopters, "size": len(jpeg)}
-            self.captures.append(record)
-        return protocol.encode_result(request.id, sensor_timestamp_ns=record["sensor_timestamp_ns"],
-                                      exposure_s=exposure, focus_diopters=focus_diopters, path=path,
-                                      size=len(jpeg))
+        return device_ns
 
     # ---------------------------------------------------------------- pictures
     def sharp_distance_mm(self, diopters: float) -> float:
@@ -281,7 +228,13 @@ class SimulatedPhone(SimulatedAdbd):
         return encode_jpeg(self._renderer.render(pose, self.sharp_distance_mm(focus_diopters)))
 
 
-async def _discard(stream: AdbStream) -> None:
-    """Read and drop everything until the peer closes the stream."""
-    while await stream.read():
-        pass
+def _agent_runtime(phone: SimulatedPhone, runtime: str, jar: Path | None) -> Any:
+    if runtime == "python":
+        from drivers.sim.phone_agent import TwinRuntime
+
+        return TwinRuntime(phone)
+    if runtime == "jvm":
+        from drivers.sim.jvm_agent import JvmRuntime
+
+        return JvmRuntime(phone, jar)
+    raise ValueError(f"agent_runtime {runtime!r}: one of {', '.join(AGENT_RUNTIMES)}")

@@ -46,7 +46,7 @@ class SubjectScene:
     """
 
     def __init__(self, mesh) -> None:
-        import open3d as o3d
+        import open3d as o3d  # seconds to import: only where a scene is ray cast
 
         self._o3d = o3d
         skin = getattr(mesh, "vertex_attributes", {}).get("skin_mm")

@@ -10,7 +10,6 @@ interpolated around the turn in between. Camera axes are OpenCV's (x right, y do
 
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,21 +19,14 @@ import numpy as np
 import yaml
 
 from planner.calibration.geometry import from_rotvec, rot_z, to_rotvec
-from planner.picklable import PicklableError
-from planner.yaml_files import read_yaml
+from planner.schema import ConfigError
+from planner.schema.tables import CALIBRATION_FILE, CALIBRATION_FORMAT
 
-MAX_FILE_BYTES = 16 * 1024 * 1024
-"""A calibration file of the default rig (10 cameras, 96 captures) is ~60 KB."""
-
-FORMAT = "tbp-rig calibration 1"
+MAX_FILE_BYTES = CALIBRATION_FILE.max_bytes
 
 
-class CalibrationFileError(PicklableError, ValueError):
+class CalibrationFileError(ConfigError):
     """A calibration file is unreadable or a key is missing, unknown or out of range."""
-
-    def __init__(self, path: Path | str, key: str, problem: str) -> None:
-        self.path, self.key, self.problem = str(path), key, problem
-        super().__init__(f"{self.path}: {key}: {problem}")
 
 
 @dataclass(frozen=True)
@@ -166,7 +158,7 @@ class Calibration:
     # ------------------------------------------------------------------ file
     def to_mapping(self) -> dict[str, Any]:
         return {
-            "format": FORMAT,
+            "format": CALIBRATION_FORMAT,
             "created_utc": self.created_utc,
             "rig_digest": self.rig_digest,
             "target": self.target_name,
@@ -218,103 +210,31 @@ def _residuals_out(r: Residuals) -> dict[str, Any]:
 # ---------------------------------------------------------------------------- loading
 
 
-class _Reader:
-    def __init__(self, path: Path | str) -> None:
-        self.path = path
-
-    def error(self, key: str, problem: str) -> CalibrationFileError:
-        return CalibrationFileError(self.path, key, problem)
-
-    def mapping(self, raw: Any, key: str, keys: set[str], optional: set[str] = frozenset()) -> dict[str, Any]:  # type: ignore[assignment]
-        if not isinstance(raw, dict):
-            raise self.error(key, f"expected a mapping, got {type(raw).__name__}")
-        unknown = sorted(set(raw) - keys - optional)
-        if unknown:
-            raise self.error(f"{key}.{unknown[0]}", f"unknown key; allowed: {', '.join(sorted(keys | optional))}")
-        missing = sorted(keys - set(raw))
-        if missing:
-            raise self.error(f"{key}.{missing[0]}", "missing")
-        return raw
-
-    def number(self, raw: Any, key: str, low: float = -math.inf, high: float = math.inf) -> float:
-        if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not math.isfinite(raw) or not low <= raw <= high:
-            raise self.error(key, f"got {raw!r}; expected a number in [{low:g}, {high:g}]")
-        return float(raw)
-
-    def vector(self, raw: Any, key: str, n: int, low: float = -math.inf, high: float = math.inf) -> list[float]:
-        if not isinstance(raw, list) or len(raw) != n:
-            raise self.error(key, f"got {raw!r}; expected a list of {n} numbers")
-        return [self.number(v, f"{key}[{i}]", low, high) for i, v in enumerate(raw)]
-
-    def text(self, raw: Any, key: str) -> str:
-        if not isinstance(raw, str) or not raw:
-            raise self.error(key, f"got {raw!r}; expected a non-empty string")
-        return raw
-
-    def pose(self, raw: Any, key: str) -> np.ndarray:
-        raw = self.mapping(raw, key, {"rotation_deg", "translation_mm"})
-        rotvec = np.radians(self.vector(raw["rotation_deg"], f"{key}.rotation_deg", 3, -360.0, 360.0))
-        return from_rotvec(rotvec, np.array(self.vector(raw["translation_mm"], f"{key}.translation_mm", 3, -1e5, 1e5)))
+def _pose(v: dict[str, Any]) -> np.ndarray:
+    return from_rotvec(np.radians(v["rotation_deg"]), np.array(v["translation_mm"]))
 
 
 def load_calibration(path: Path | str) -> Calibration:
-    """Load and validate a calibration file; CalibrationFileError names the file and the key."""
-    path = Path(path)
-    raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="calibration file",
-                          error=lambda problem: CalibrationFileError(path, "<file>", problem))
-    r = _Reader(path)
-    raw = r.mapping(raw, "<top>", {"format", "created_utc", "rig_digest", "target", "source", "cameras", "beam",
-                                   "world_from_cuboid", "cuboid_from_boards", "residuals"})
-    if raw["format"] != FORMAT:
-        raise r.error("format", f"got {raw['format']!r}; this version reads {FORMAT!r}")
-    if not isinstance(raw["cameras"], list) or not raw["cameras"]:
-        raise r.error("cameras", "expected a non-empty list")
+    """Load and validate a calibration file (its table: planner/schema/tables.py); CalibrationFileError
+    names the file and the key."""
+    v, digest = CALIBRATION_FILE.load(path, CalibrationFileError)
     cameras = []
-    for i, c in enumerate(raw["cameras"]):
-        key = f"cameras[{i}]"
-        c = r.mapping(c, key, {"id", "kind", "intrinsics", "beam_from_camera"})
-        if c["kind"] not in ("phone", "depth"):
-            raise r.error(f"{key}.kind", f"got {c['kind']!r}; expected phone or depth")
-        k = r.mapping(c["intrinsics"], f"{key}.intrinsics", {"image_size_px", "fx", "fy", "cx", "cy", "distortion"})
-        size = r.vector(k["image_size_px"], f"{key}.intrinsics.image_size_px", 2, 1, 100_000)
-        intr = Intrinsics(int(size[0]), int(size[1]), r.number(k["fx"], f"{key}.intrinsics.fx", 1.0, 1e6),
-                          r.number(k["fy"], f"{key}.intrinsics.fy", 1.0, 1e6),
-                          r.number(k["cx"], f"{key}.intrinsics.cx", -1e5, 1e5),
-                          r.number(k["cy"], f"{key}.intrinsics.cy", -1e5, 1e5),
-                          tuple(r.vector(k["distortion"], f"{key}.intrinsics.distortion", 5, -100.0, 100.0)))  # type: ignore[arg-type]
-        cameras.append(CameraCalibration(r.text(c["id"], f"{key}.id"), c["kind"], intr,
-                                         r.pose(c["beam_from_camera"], f"{key}.beam_from_camera")))
+    for c in v["cameras"]:
+        k = c["intrinsics"]
+        intr = Intrinsics(*k["image_size_px"], k["fx"], k["fy"], k["cx"], k["cy"], tuple(k["distortion"]))
+        cameras.append(CameraCalibration(c["id"], c["kind"], intr, _pose(c["beam_from_camera"])))
     ids = [c.id for c in cameras]
     if len(set(ids)) != len(ids):
-        raise r.error("cameras", f"duplicate camera ids in {ids}")
-    if not isinstance(raw["beam"], list):
-        raise r.error("beam", "expected a list of beam poses")
-    beam = []
-    for i, b in enumerate(raw["beam"]):
-        key = f"beam[{i}]"
-        b = r.mapping(b, key, {"angle_index", "encoder_deg", "angle_deg", "tilt_deg", "shift_mm"})
-        tilt = r.vector(b["tilt_deg"], f"{key}.tilt_deg", 2, -10.0, 10.0)
-        beam.append(BeamPose(int(r.number(b["angle_index"], f"{key}.angle_index", 0, 10_000)),
-                             r.number(b["encoder_deg"], f"{key}.encoder_deg", -720.0, 720.0),
-                             r.number(b["angle_deg"], f"{key}.angle_deg", -720.0, 720.0),
-                             (math.radians(tilt[0]), math.radians(tilt[1])),
-                             tuple(r.vector(b["shift_mm"], f"{key}.shift_mm", 3, -100.0, 100.0))))  # type: ignore[arg-type]
-    if not isinstance(raw["cuboid_from_boards"], list):
-        raise r.error("cuboid_from_boards", "expected a list of poses")
-    residuals = None
-    if raw["residuals"] is not None:
-        res = r.mapping(raw["residuals"], "residuals", {"count", "discarded", "mean_px", "median_px", "rms_px",
-                                                        "p95_px", "max_px", "per_camera_mean_px", "per_camera_count"})
-        residuals = Residuals(int(r.number(res["count"], "residuals.count", 0)),
-                              int(r.number(res["discarded"], "residuals.discarded", 0)),
-                              *(r.number(res[k], f"residuals.{k}", 0.0) for k in
-                                ("mean_px", "median_px", "rms_px", "p95_px", "max_px")),
-                              per_camera_mean_px={str(k): float(v) for k, v in (res["per_camera_mean_px"] or {}).items()},
-                              per_camera_count={str(k): int(v) for k, v in (res["per_camera_count"] or {}).items()})
+        raise CalibrationFileError(str(path), "cameras", f"duplicate camera ids in {ids}")
+    beam = tuple(BeamPose(b["angle_index"], b["encoder_deg"], b["angle_deg"],
+                          (math.radians(b["tilt_deg"][0]), math.radians(b["tilt_deg"][1])), tuple(b["shift_mm"]))
+                 for b in v["beam"])
+    res = v["residuals"]
+    residuals = None if res is None else Residuals(
+        res["count"], res["discarded"], res["mean_px"], res["median_px"], res["rms_px"], res["p95_px"], res["max_px"],
+        per_camera_mean_px=res["per_camera_mean_px"] or {}, per_camera_count=res["per_camera_count"] or {})
     return Calibration(
-        created_utc=r.text(raw["created_utc"], "created_utc"), rig_digest=str(raw["rig_digest"] or ""),
-        target_name=r.text(raw["target"], "target"), source=r.text(raw["source"], "source"),
-        cameras=tuple(cameras), beam=tuple(beam),
-        world_from_cuboid=r.pose(raw["world_from_cuboid"], "world_from_cuboid"),
-        cuboid_from_boards=tuple(r.pose(m, f"cuboid_from_boards[{i}]") for i, m in enumerate(raw["cuboid_from_boards"])),
-        residuals=residuals, path=str(path), digest=hashlib.sha256(text).hexdigest())
+        created_utc=v["created_utc"], rig_digest=v["rig_digest"] or "", target_name=v["target"], source=v["source"],
+        cameras=tuple(cameras), beam=beam, world_from_cuboid=_pose(v["world_from_cuboid"]),
+        cuboid_from_boards=tuple(_pose(m) for m in v["cuboid_from_boards"]),
+        residuals=residuals, path=str(path), digest=digest)

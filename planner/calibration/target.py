@@ -8,8 +8,6 @@ corners get one id across the whole target: ``face_index * corners_per_face + lo
 
 from __future__ import annotations
 
-import hashlib
-import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -17,19 +15,17 @@ from typing import Any
 
 import numpy as np
 
-from planner.calibration.model import CalibrationFileError
 from planner.rig import CALIBRATION_DIR
-from planner.yaml_files import read_yaml
+from planner.schema import ConfigError, show
+from planner.schema.tables import TARGET_FILE
 
-MAX_FILE_BYTES = 1024 * 1024  # the cuboid's file is 2 KB
+MAX_FILE_BYTES = TARGET_FILE.max_bytes  # the cuboid's file is 2 KB
 
 DEFAULT_TARGET_PATH = CALIBRATION_DIR / "target" / "cuboid.yaml"
 _NORMALS = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}
-_KEYS = {"name", "size_mm", "dictionary", "legacy_pattern", "squares", "square_mm", "marker_mm",
-         "print_dpi", "faces"}
 
 
-class TargetError(CalibrationFileError):
+class TargetError(ConfigError):
     """A target file is unreadable or a key is missing, unknown or out of range."""
 
 
@@ -140,77 +136,43 @@ def _face(index: int, name: str, first_id: int, size: tuple[float, float, float]
 
 
 def load_target(path: Path | str = DEFAULT_TARGET_PATH) -> CuboidTarget:
-    """Load and validate a target file; TargetError names the file, the key and the allowed values."""
+    """Load and validate a target file (its table: planner/schema/tables.py); TargetError names the
+    file, the key and the allowed values."""
     import cv2
 
-    path = Path(path)
-    raw, text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="target file",
-                          error=lambda problem: TargetError(path, "<file>", problem))
-    if not isinstance(raw, dict):
-        raise TargetError(path, "<top>", f"expected a mapping, got {type(raw).__name__}")
-    unknown = sorted(set(raw) - _KEYS)
-    if unknown:
-        raise TargetError(path, unknown[0], f"unknown key; allowed: {', '.join(sorted(_KEYS))}")
-    missing = sorted(_KEYS - set(raw))
-    if missing:
-        raise TargetError(path, missing[0], "missing")
-
-    def number(key: str, value: Any, low: float, high: float) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-                math.isfinite(value) and low <= value <= high):
-            raise TargetError(path, key, f"got {value!r}; expected a number in [{low:g}, {high:g}]")
-        return float(value)
-
-    def pair(key: str, value: Any, n: int) -> list[Any]:
-        if not isinstance(value, list) or len(value) != n:
-            raise TargetError(path, key, f"got {value!r}; expected a list of {n} numbers")
-        return value
-
-    size = tuple(number(f"size_mm[{i}]", v, 10.0, 5000.0) for i, v in enumerate(pair("size_mm", raw["size_mm"], 3)))
-    squares = tuple(int(number(f"squares[{i}]", v, 3, 200)) for i, v in enumerate(pair("squares", raw["squares"], 2)))
-    if any(not float(v).is_integer() for v in raw["squares"]):
-        raise TargetError(path, "squares", f"got {raw['squares']!r}; expected whole numbers")
-    square = number("square_mm", raw["square_mm"], 1.0, 1000.0)
-    marker = number("marker_mm", raw["marker_mm"], 0.5, 1000.0)
+    v, digest = TARGET_FILE.load(path, TargetError)
+    path = str(path)
+    size, squares, square, marker = tuple(v["size_mm"]), tuple(v["squares"]), v["square_mm"], v["marker_mm"]
     if marker >= square:
         raise TargetError(path, "marker_mm", f"got {marker:g}; must be smaller than square_mm {square:g}")
-    dpi = int(number("print_dpi", raw["print_dpi"], 50, 1200))
-    dictionary = raw["dictionary"]
-    if not (isinstance(dictionary, str) and dictionary.startswith("DICT_") and hasattr(cv2.aruco, dictionary)):
-        raise TargetError(path, "dictionary", f"got {dictionary!r}; expected an OpenCV predefined "
-                          "ArUco dictionary such as DICT_5X5_1000")
-    if not isinstance(raw["legacy_pattern"], bool):
-        raise TargetError(path, "legacy_pattern", f"got {raw['legacy_pattern']!r}; expected true or false")
-    if not isinstance(raw["name"], str) or not raw["name"]:
-        raise TargetError(path, "name", f"got {raw['name']!r}; expected a non-empty string")
+    dictionary = v["dictionary"]
+    if not hasattr(cv2.aruco, dictionary):
+        raise TargetError(path, "dictionary", f"got {show(dictionary)}; expected "
+                          f"{TARGET_FILE.table.fields['dictionary'].form()}")
     board_w, board_h = squares[0] * square, squares[1] * square
-    faces_raw = raw["faces"]
-    if not isinstance(faces_raw, list) or not 1 <= len(faces_raw) <= 4:
-        raise TargetError(path, "faces", f"got {faces_raw!r}; expected a list of 1 to 4 faces")
     n_markers = squares[0] * squares[1] // 2
     dictionary_size = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)).bytesList.shape[0]
     faces: list[Face] = []
     used: list[tuple[int, int, str]] = []
-    for i, f in enumerate(faces_raw):
+    for i, f in enumerate(v["faces"]):
         key = f"faces[{i}]"
-        if not isinstance(f, dict) or set(f) != {"name", "first_marker_id"}:
-            raise TargetError(path, key, f"got {f!r}; expected {{name, first_marker_id}}")
-        if f["name"] not in _NORMALS:
-            raise TargetError(path, f"{key}.name", f"got {f['name']!r}; expected one of {sorted(_NORMALS)}")
-        first = int(number(f"{key}.first_marker_id", f["first_marker_id"], 0, dictionary_size - n_markers))
+        first, name = f["first_marker_id"], f["name"]
+        if first > dictionary_size - n_markers:
+            raise TargetError(path, f"{key}.first_marker_id", f"got {first}; expected an integer in "
+                              f"[0, {dictionary_size - n_markers}] ({n_markers} markers of {dictionary})")
         for lo, hi, other in used:
             if first < hi and lo < first + n_markers:
                 raise TargetError(path, f"{key}.first_marker_id", f"ids {first}..{first + n_markers - 1} "
                                   f"overlap face {other}'s {lo}..{hi - 1}; ids must be unique across faces")
-            if other == f["name"]:
+            if other == name:
                 raise TargetError(path, f"{key}.name", f"face {other} appears twice")
-        used.append((first, first + n_markers, f["name"]))
-        width = abs(np.cross([0.0, 0.0, 1.0], _NORMALS[f["name"]]) @ np.array([size[0], size[1], 0.0]))
+        used.append((first, first + n_markers, name))
+        width = abs(np.cross([0.0, 0.0, 1.0], _NORMALS[name]) @ np.array([size[0], size[1], 0.0]))
         if board_w > width + 1e-6 or board_h > size[2] + 1e-6:
             raise TargetError(path, "squares", f"board {board_w:g} x {board_h:g} mm does not fit face "
-                              f"{f['name']} ({width:g} x {size[2]:g} mm)")
-        faces.append(_face(i, f["name"], first, size, board_w, board_h))  # type: ignore[arg-type]
+                              f"{name} ({width:g} x {size[2]:g} mm)")
+        faces.append(_face(i, name, first, size, board_w, board_h))
     return CuboidTarget(
-        path=str(path), digest=hashlib.sha256(text).hexdigest(), name=raw["name"], size_mm=size,  # type: ignore[arg-type]
-        dictionary=dictionary, legacy_pattern=raw["legacy_pattern"], squares=squares,  # type: ignore[arg-type]
-        square_mm=square, marker_mm=marker, print_dpi=dpi, faces=tuple(faces))
+        path=path, digest=digest, name=v["name"], size_mm=size, dictionary=dictionary,
+        legacy_pattern=v["legacy_pattern"], squares=squares, square_mm=square, marker_mm=marker,
+        print_dpi=v["print_dpi"], faces=tuple(faces))

@@ -1,5 +1,9 @@
 """``tbp sim phone``: one simulated phone's adbd with the capture agent on 127.0.0.1:PORT.
 
+The agent is the Python twin, or with ``--agent-runtime jvm`` the real agent's JVM build
+(agent/, ``./dev agent``) that the host pushes and the phone runs with ``java``; ``--agent-jar``
+installs that jar beforehand (without it the host must push one: ``tbp phone check --agent-jar``).
+
 With ``--body-seed N`` the phone photographs simulated adult N from one rig camera's pose: at a
 fixed beam angle (``--angle``), or, with ``--follow-beam HOST:PORT``, at the angle the drive of
 ``tbp sim motor`` reports on its socketcand bridge at the moment of each exposure
@@ -15,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.sim.phone import SimulatedPhone
+from drivers.sim.phone import AGENT_RUNTIMES, SimulatedPhone
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 
 
@@ -37,6 +41,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--follow-beam", type=_bridge_address, default=None, metavar="HOST:PORT",
                         help="pose the camera at the beam angle the drive reports on this socketcand bridge "
                         "(tbp sim motor's; needs --body-seed)")
+    parser.add_argument("--agent-runtime", choices=AGENT_RUNTIMES, default="python",
+                        help="the capture agent: the Python twin, or the agent's JVM build run with java")
+    parser.add_argument("--agent-jar", type=Path, default=None, metavar="JAR",
+                        help="with --agent-runtime jvm: install this JVM jar (agent/build/tbp-capture-agent-jvm.jar) "
+                        "on the phone beforehand")
     parser.add_argument("--rig", type=Path, default=None,
                         help="rig file: camera poses, drive node id and gearing (default: calibration_data/rig.yaml)")
 
@@ -63,6 +72,8 @@ async def serve(args: argparse.Namespace) -> int:
 
     if args.follow_beam is not None and args.body_seed is None:
         raise SystemExit("--follow-beam needs --body-seed: an empty rig looks the same at every angle")
+    if args.agent_jar is not None and args.agent_runtime != "jvm":
+        raise SystemExit("--agent-jar is the JVM build's jar: it needs --agent-runtime jvm")
     rig = load_rig(args.rig or DEFAULT_RIG_PATH)
     subject, pose, follower = None, None, None
     if args.body_seed is not None:
@@ -76,7 +87,8 @@ async def serve(args: argparse.Namespace) -> int:
         else:
             pose = phone_pose_source(rig, index, lambda _time_s: args.angle)
     phone = SimulatedPhone(args.serial, seed=args.seed, accept_new_keys=not args.refuse_keys, subject=subject,
-                           pose=pose, optics=rig.optics)
+                           pose=pose, optics=rig.optics, agent_runtime=args.agent_runtime, agent_jar=args.agent_jar,
+                           agent_installed=args.agent_runtime == "python" or args.agent_jar is not None)
     if pose is not None:  # build the ray-casting scene now: in real time a first capture must not wait for it
         phone._picture(pose(0.0), 0.0, 0)
     rng = np.random.default_rng(args.seed)
@@ -96,6 +108,7 @@ async def serve(args: argparse.Namespace) -> int:
         loop.add_signal_handler(sig, stop.set)
     async with server:
         await stop.wait()
+    await phone.shut_down()  # the host links and the agent end before the process does
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
     if follower is not None:

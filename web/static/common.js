@@ -40,3 +40,27 @@ export function el(tag, attrs = {}, ...children) {
 }
 
 export const fmt = (x, digits = 1) => (x === null || x === undefined || Number.isNaN(x) ? "–" : Number(x).toFixed(digits));
+
+// How a scan ended, from its manifest's state (the list and the viewer say it alike): a pill's
+// class and label, and the lines saying why (the reason, the missing images per phone).
+const ENDED = {
+  complete: "complete",
+  partial: "partial: images missing",
+  aborted: "aborted",
+  fault: "stopped by a fault",
+  incomplete: "incomplete (interrupted)",
+};
+export function ending(scan) {
+  if (scan.in_progress) return { kind: "busy", label: "in progress", why: [], done: false };
+  const why = [];
+  if (scan.reason && scan.state !== "partial") why.push(scan.reason);
+  if (scan.missing) why.push(scan.missing);
+  return { kind: scan.state, label: ENDED[scan.state] || scan.state, why, done: scan.state === "complete" };
+}
+
+// A DICOM person name "Family^Given^Middle^Prefix^Suffix" as a person reads it: "Family, Given Middle".
+export function personName(pn) {
+  const [family = "", given = "", middle = "", prefix = "", suffix = ""] = (pn || "").split("^");
+  const first = [prefix, given, middle].filter(Boolean).join(" ");
+  return [family, first].filter(Boolean).join(", ") + (suffix ? ` ${suffix}` : "");
+}

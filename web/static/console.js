@@ -1,6 +1,6 @@
 // The operator console: the daemon's status and event stream; START / ABORT / RESET go to the
 // same control handler as the panel's buttons and `tbp scan` / `tbp abort` / `tbp reset`.
-import { getJSON, send, el, fmt } from "/static/common.js";
+import { getJSON, send, el, fmt, personName } from "/static/common.js";
 
 const $ = (id) => document.getElementById(id);
 const hooks = { events: [], status: null };
@@ -44,18 +44,43 @@ function showStatus(s) {
     ...missing.map((d) => el("div", {}, `${d.device} (${d.address}): ${d.error || "not answering"}; ${d.check}`)),
     ...(s.recovered_scans || []).map((r) => el("div", { class: "muted" }, `Recovered interrupted scan ${r.scan_id}: ${r.reason}`)));
   showLast(s.last_scan);
+  showArchive(s.archive);
 }
 
+// The export queue (when the site file names an archive): waiting, sending, sent, failed.
+function showArchive(a) {
+  const box = $("archive");
+  if (!a) { box.replaceChildren(); return; }
+  const c = a.counts;
+  const sending = a.sending ? `, sending ${a.sending.folder} (${a.sending.sent} / ${a.sending.total ?? "?"})` : "";
+  const retry = a.retry_in_s !== null ? `, next try in ${fmt(a.retry_in_s, 0)} s` : "";
+  box.replaceChildren(el("div", {}, "Archive ", pill(c.failed ? "failed" : c.pending || c.sending ? "waiting" : "up to date",
+    c.failed ? "bad" : "ok"), ` ${a.destination}: ${c.sent} sent, ${c.pending} waiting${sending}${retry}`),
+    ...a.problems.map((p) => el("div", { class: p.state === "failed" ? "error" : "muted" }, `${p.folder}: ${p.error}`)));
+}
+
+// The last scan's outcome in colour (COMPLETED green, PARTIAL yellow, ABORTED orange, FAULTED
+// red), its images, and for each phone the images missing and why; phones dropped are named.
 function showLast(last) {
   if (!last) { $("last").replaceChildren(); return; }
   const name = last.folder.split("/").pop();
-  $("last").replaceChildren(el("b", {}, "Last scan "), `${last.scan_id}: ${last.outcome.toLowerCase()}, ${last.captured} captured, ${last.missing} missing `,
+  const phones = Object.entries(last.missing_by_phone || {}).map(([camera, reasons]) => el("li", {},
+    `${camera}: ${Object.values(reasons).reduce((a, b) => a + b, 0)} missing (`,
+    Object.entries(reasons).map(([why, n]) => `${n} ${why.replace("_", " ")}`).join(", "), ")"));
+  const dropped = (last.dropped_phones || []).filter((d) => !d.rejoined)
+    .map((d) => el("li", {}, `${d.camera} dropped after ${d.failures} failed captures in a row (${d.pass_name} pass): ${d.first_error}`));
+  $("last").replaceChildren(el("b", {}, "Last scan "), `${last.scan_id} `,
+    el("span", { class: `pill ${last.outcome}`, id: "last-outcome" }, last.outcome),
+    ` ${last.verified} of ${last.verified + last.missing} images in the folder, ${last.missing} missing `,
     el("a", { id: "report-link", href: `/scans/${encodeURIComponent(name)}/report/` }, "QA report"), " · ",
-    el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"));
+    el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"),
+    last.reason ? el("div", { class: "why" }, last.reason) : null,
+    phones.length || dropped.length ? el("ul", { id: "last-missing", class: "why" }, ...phones, ...dropped) : null);
 }
 
 function logLine(e) {
-  const line = `${fmt(e.time_s, 2).padStart(9)} s  ${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}`;
+  const about = e.data && e.data.camera ? ` ${e.data.camera}${e.data.error ? `: ${e.data.error}` : ""}` : "";
+  const line = `${fmt(e.time_s, 2).padStart(9)} s  ${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}${about}`;
   const log = $("log");
   log.prepend(el("div", {}, line));
   while (log.childElementCount > 200) log.lastChild.remove();
@@ -87,9 +112,52 @@ function connect() {
   source.addEventListener("error", () => { $("link").textContent = "reconnecting…"; });
 }
 
+// The patient the next START is for: a worklist row (one click) or typed fields.
+let picked = null;
+function patientArgs() {
+  if (picked) return picked;
+  const typed = { patient_id: $("patient-id").value.trim(), patient_name: $("patient-name").value.trim(), birth_date: $("birth-date").value.trim() };
+  return typed.patient_id || typed.patient_name ? typed : {};
+}
+function showChosen() {
+  const p = patientArgs();
+  $("chosen").textContent = p.patient_id || p.patient_name
+    ? `START scans for ${personName(p.patient_name)} (${p.patient_id || "no id"})${p.accession_number ? `, order ${p.accession_number}` : ""}`
+    : "No patient chosen: START scans for nobody.";
+}
+["patient-id", "patient-name", "birth-date"].forEach((id) => $(id).addEventListener("input", () => {
+  picked = null;
+  document.querySelectorAll("#worklist tr").forEach((r) => r.classList.remove("picked"));
+  showChosen();
+}));
+
+async function loadWorklist() {
+  $("worklist-note").textContent = "Asking the worklist…";
+  const rows = document.querySelector("#worklist tbody");
+  try {
+    const { items, problems } = await getJSON("/api/rig/worklist");
+    rows.replaceChildren(...items.map((item) => {
+      const row = el("tr", { class: "pick" }, el("td", {}, el("b", {}, personName(item.patient_name))), el("td", {}, item.patient_id),
+        el("td", {}, item.birth_date || "–"), el("td", {}, item.procedure || ""), el("td", {}, item.scheduled || ""));
+      row.addEventListener("click", () => {
+        picked = item;
+        rows.querySelectorAll("tr").forEach((r) => r.classList.toggle("picked", r === row));
+        showChosen();
+      });
+      return row;
+    }));
+    $("worklist-note").replaceChildren(items.length ? "Today's worklist: click the patient, then START." : "Nothing scheduled today.",
+      ...problems.map((p) => el("div", { class: "error" }, p)));
+  } catch (error) { $("worklist-note").textContent = String(error.message || error); }
+  hooks.worklistLoaded = true;
+}
+$("worklist-refresh").addEventListener("click", loadWorklist);
+
 async function act(action) {
   $("action-error").textContent = "";
-  try { await send("POST", `/api/rig/${action}`, {}); } catch (error) { $("action-error").textContent = String(error.message || error); }
+  const body = action === "scan" ? { ...patientArgs() } : {};
+  for (const key of ["procedure", "scheduled"]) delete body[key];
+  try { await send("POST", `/api/rig/${action}`, body); } catch (error) { $("action-error").textContent = String(error.message || error); }
 }
 $("start").addEventListener("click", () => act("scan"));
 $("abort").addEventListener("click", () => act("abort"));
@@ -99,4 +167,5 @@ getJSON("/api/config").then((config) => {
   if (config.poses) { poses = config.poses; document.querySelectorAll(".n-poses").forEach((n) => { n.textContent = poses; }); }
   if (!config.rig) $("link").textContent = "no rig daemon (viewer only)";
   else connect();
+  if (config.worklist) { $("worklist-refresh").hidden = false; loadWorklist(); }
 });

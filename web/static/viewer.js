@@ -2,7 +2,7 @@
 // best image of the spot (the server's navigator, the same as `tbp navigate`); marks; gallery.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
-import { getJSON, send, el, fmt } from "/static/common.js";
+import { getJSON, send, el, fmt, ending, personName } from "/static/common.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
 const api = `/api/scans/${encodeURIComponent(folder)}`;
@@ -74,11 +74,9 @@ async function loadMesh() {
   const faces = new Uint32Array(buffer, HEADER + nv * 12, nf * 3);
   const skin = new Uint8Array(buffer, HEADER + nv * 12 + nf * 12, nv);
   const colours = new Float32Array(nv * 3);
-  const counts = [0, 0, 0];
   for (let i = 0; i < nv; i++) {
     const c = COLOURS[skin[i]];
     colours[3 * i] = c[0]; colours[3 * i + 1] = c[1]; colours[3 * i + 2] = c[2];
-    counts[skin[i]] += 1;
   }
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute("position", new THREE.BufferAttribute(positions, 3));
@@ -91,11 +89,27 @@ async function loadMesh() {
   state.mesh = new THREE.Mesh(geometry, material);
   hooks.timing.meshBuiltMs = performance.now();
   scene.add(state.mesh);
-  const share = (k) => `${fmt((100 * counts[k]) / nv)} %`;
-  document.getElementById("sh-sharp").textContent = share(2);
-  document.getElementById("sh-blurred").textContent = share(1);
-  document.getElementById("sh-unseen").textContent = share(0);
   lookFrom("front");
+}
+
+// The shares of the body surface the server measures on this mesh: the QA report's sharp skin.
+async function loadShares() {
+  const shares = await getJSON(`${api}/skin`);
+  hooks.shares = shares;
+  for (const name of ["sharp", "blurred", "unseen"]) document.getElementById(`sh-${name}`).textContent = `${fmt(100 * shares[name])} %`;
+}
+
+// A scan that is not complete says so over the body: partial, aborted, faulted, interrupted, running.
+const ENDED_TITLE = { partial: "Partial scan: the rotation finished with images missing", aborted: "Aborted scan",
+  fault: "Scan stopped by a fault", incomplete: "Incomplete scan: interrupted (the daemon stopped)" };
+function showEnding(scan) {
+  const ended = ending(scan);
+  const box = document.getElementById("ended");
+  box.hidden = ended.done;
+  if (ended.done) return;
+  const title = scan.in_progress ? "Scan in progress, or left by a daemon that stopped: images may still be missing" : ENDED_TITLE[scan.state] || scan.state;
+  box.className = `ended ${ended.kind}`;
+  box.replaceChildren(el("b", {}, title), ...ended.why.map((line) => el("div", {}, line)));
 }
 
 function project(point) {
@@ -252,7 +266,8 @@ function renderGallery(cameraIndex) {
       cell.append(el("img", { loading: "lazy", src: `${api}/images/${encodeURIComponent(rec.file.split("/").pop())}?size=thumb`,
         title: `${rec.camera_id} at ${fmt(rec.actual_angle_deg, 2)}°, focus ${fmt(rec.focus_mm, 0)} mm`,
         onclick: () => { showPane("spot"); showImage(a, cameraIndex); } }));
-    } else cell.append(el("div", { class: "lab error" }, rec ? rec.status : "–"));
+    } else cell.append(el("div", { class: "lab error", title: rec && rec.error ? rec.error : "" },
+      rec ? (rec.missing_reason ? rec.missing_reason.replace("_", " ") : rec.status) : "–"));
     cell.append(el("div", { class: "lab" }, `${fmt(rec ? rec.planned_angle_deg : deg, 1)}°`));  // the plan may move angles
     grid.append(cell);
   });
@@ -278,11 +293,12 @@ async function compare(mark) {
 async function renderMarks() {
   const root = document.getElementById("marks");
   const m = state.marks;
-  const { scans } = await getJSON("/api/scans");
-  const earlier = scans.filter((s) => s.folder < folder && s.has_mesh);
+  // Only the same patient's earlier visits: the server offers no other (and refuses any other).
+  const { visits, note } = await getJSON(`${api}/earlier`);
   const select = el("select", { id: "previous" }, el("option", { value: "" }, "— none —"));
-  for (const s of earlier) {
-    const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}`);
+  for (const s of visits) {
+    const ended = ending(s);
+    const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}${ended.done ? "" : ` · ${ended.label}`}`);
     if (s.folder === m.previous_scan) opt.selected = true;
     select.append(opt);
   }
@@ -304,7 +320,7 @@ async function renderMarks() {
   }
   if (!m.marks.length) root.append(el("p", { class: "muted" }, "None yet."));
   root.append(el("div", { style: "margin:10px 0" }, name), add);
-  root.append(el("h2", {}, "Compare with an earlier scan of this person"), select);
+  root.append(el("h2", {}, "Compare with an earlier scan of this patient"), note ? el("p", { class: "muted", id: "no-patient" }, note) : select);
   if (m.registration && m.registration.error) root.append(el("p", { class: "error" }, m.registration.error));
   else if (m.registration) root.append(el("p", { class: "muted" }, `Bodies registered: ${fmt(100 * m.registration.fitness, 0)} % overlap, ${fmt(m.registration.rmse_mm, 1)} mm rms.`));
   for (const mark of m.carried) {
@@ -322,9 +338,12 @@ async function renderMarks() {
 try {
   resize();
   const scanPromise = getJSON(api);
+  scanPromise.then(showEnding, () => {});  // said even when the body cannot be shown
   await loadMesh();
   state.scan = await scanPromise;
-  document.getElementById("title").textContent = `Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.state}`;
+  const who = state.scan.patient ? `${personName(state.scan.patient.name)} (${state.scan.patient.patient_id}) · ` : "";
+  document.getElementById("title").textContent = `${who}Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.in_progress ? "in progress" : state.scan.state}`;
+  loadShares().catch((error) => { document.getElementById("stage-msg").textContent = String(error); });
   renderer.render(scene, camera);
   requestAnimationFrame(() => {
     hooks.firstPaintMs = performance.now();

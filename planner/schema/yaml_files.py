@@ -117,28 +117,28 @@ def load_bounded(text: bytes, max_nodes: int) -> Any:
         loader.dispose()
 
 
-def read_yaml(path: Path, *, max_bytes: int, what: str, error: Callable[[str], Exception],
-              key_error: Callable[[str, str], Exception] | None = None) -> tuple[Any, bytes]:
-    """(parsed document, raw bytes) of a YAML file; ``error(problem)`` builds the exception raised.
+def read_yaml(path: Path, *, max_bytes: int, what: str,
+              error: Callable[[str, str], Exception]) -> tuple[Any, bytes]:
+    """(parsed document, raw bytes) of a YAML file; ``error(key, problem)`` builds the exception
+    raised, the key ``<file>`` for the file as a whole, the alias's path when aliases expand too far.
 
-    what: the kind of file, for messages ("rig file", "focus table"). key_error(key, problem): the
-    exception for a problem at one key (aliases expanding too far); default: ``error`` naming it.
+    what: the kind of file, for messages ("rig file", "focus table").
     """
     try:
         with open(path, "rb") as f:
             text = f.read(max_bytes + 1)
     except OSError as exc:
-        raise error(f"cannot read: {exc.strerror or exc}") from exc
+        raise error("<file>", f"cannot read: {exc.strerror or exc}") from exc
     if len(text) > max_bytes:
-        raise error(f"larger than {max_bytes} bytes: not a {what}")
+        raise error("<file>", f"larger than {max_bytes} bytes: not a {what}")
     if flow_nesting(text) > MAX_FLOW_NESTING:
-        raise error(f"lists or mappings nested more than {MAX_FLOW_NESTING} deep: not a {what}")
+        raise error("<file>", f"lists or mappings nested more than {MAX_FLOW_NESTING} deep: not a {what}")
     try:
         return load_bounded(text, max_bytes), text
     except ExpansionTooLarge as exc:
-        problem = f"aliases make it {exc.nodes} values, more than the {exc.limit} a {what} holds without aliases"
-        raise (key_error(exc.key, problem) if key_error else error(f"{exc.key}: {problem}")) from None
+        raise error(exc.key, f"aliases make it {exc.nodes} values, more than the {exc.limit} a {what} "
+                             "holds without aliases") from None
     except yaml.YAMLError as exc:
-        raise error(f"not valid YAML: {str(exc)[:300]}") from exc
+        raise error("<file>", f"not valid YAML: {str(exc)[:300]}") from exc
     except (ValueError, RecursionError) as exc:
-        raise error(f"not a {what}: {type(exc).__name__}: {str(exc)[:200]}") from exc
+        raise error("<file>", f"not a {what}: {type(exc).__name__}: {str(exc)[:200]}") from exc

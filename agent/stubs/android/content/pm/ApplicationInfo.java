@@ -1,0 +1,7 @@
+package android.content.pm;
+
+public class ApplicationInfo extends PackageItemInfo {
+    public ApplicationInfo() {
+        throw new RuntimeException("Stub!");
+    }
+}

@@ -1,0 +1,7 @@
+package android.view;
+
+public class Surface {
+    private Surface() {
+        throw new RuntimeException("Stub!");
+    }
+}

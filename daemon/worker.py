@@ -1,0 +1,82 @@
+"""The compute worker: one process for the scan's compute steps (TSDF fusion, planning, QA report).
+
+On the real rig these steps never run in the daemon's process, so they never hold its
+interpreter lock: the drive's heartbeat (100 ms, lost after 300 ms) and the panel's keep running
+while a body is fused and planned. The worker starts from a fresh interpreter (``forkserver``:
+nothing of the daemon's threads or sockets is inherited), as a batch job (SCHED_BATCH: it never
+preempts the daemon when it wakes, yet keeps its fair share of a core), imports the heavy
+libraries once and logs as the daemon does (JSON lines on the daemon's stdout, each with
+``process: compute``). Its jobs get their depth images through shared memory
+(daemon/compute.py).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import structlog
+
+from daemon.logs import configure_logging, log_settings
+
+WORKER_POLICY = os.SCHED_BATCH
+"""The worker's scheduling policy: a batch job keeps its fair share of a core but never preempts
+the daemon (at a nice level the scheduler leaves the worker sharing the busy core, and planning
+takes about twice as long; bench numbers in the commit history)."""
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""How OpenMP (Open3D's ray casting) and the BLAS libraries learn their thread count at start."""
+
+
+def compute_threads() -> int:
+    """Threads for the worker's parallel loops: every core this process may use but one, which
+    stays the daemon's and the simulators'. On two cores with one busy, an OpenMP loop split over
+    both waits at every barrier for the half that shares the busy core."""
+    return max(1, len(os.sched_getaffinity(0)) - 1)
+
+
+def compute_pool() -> ProcessPoolExecutor:
+    """One worker process for the scan's compute steps (the steps of a scan run one at a time),
+    started now: the first scan does not wait for its interpreter and imports (about 3 s).
+
+    The worker (and the forkserver it comes from) is started with :data:`THREAD_VARIABLES` set
+    to :func:`compute_threads`; this process's own environment is left as it was."""
+    saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+    os.environ.update({name: str(compute_threads()) for name in THREAD_VARIABLES})
+    try:
+        pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"),
+                                   initializer=_warm_up, initargs=(log_settings(),))
+        pool.submit(_started)  # starts the worker now, with the environment above
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+    return pool
+
+
+def _started() -> None:
+    """The first job: makes the pool start its worker (and run :func:`_warm_up`) at once."""
+
+
+def _warm_up(log_setup: dict[str, Any]) -> None:
+    """In the worker: log as the daemon does (``log_setup``: :func:`daemon.logs.log_settings`), run
+    as a batch job and import what every scan's jobs need, so the first scan's do not (their
+    modules, not the daemon's), and compile the planner's descent loop (seconds the first time,
+    from numba's cache after)."""
+    configure_logging(json=log_setup["json"], level=log_setup["level"])
+    structlog.contextvars.bind_contextvars(process="compute")
+    os.sched_setscheduler(0, WORKER_POLICY, os.sched_param(0))
+    # Imported here, in the worker only: Open3D, the fusion and the planner (numba) cost the
+    # daemon's process seconds and memory it never uses.
+    import open3d  # noqa: F401
+
+    import daemon.fusion
+    import daemon.planning  # noqa: F401
+    from planner.refine import warm_up
+    from planner.rig import load_rig
+
+    warm_up(load_rig())
