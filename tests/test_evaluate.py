@@ -37,6 +37,7 @@ def test_the_same_seed_gives_the_same_numbers_whatever_the_job_count(corpus):
     assert _numbers(other)[0]["seed"] != _numbers(corpus)[0]["seed"]
 
 
+@pytest.mark.slow  # the shared corpus of two simulated bodies
 def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside(corpus, tmp_path):
     methods = corpus["summary"]["methods"]
     aware = methods["shape-aware"]["in_focus_fraction"]["mean"]
