@@ -265,11 +265,6 @@ def _quiet_worker() -> None:
     configure_logging(level="warning", stream=sys.stderr)
 
 
-def _spread(values: list[float]) -> dict[str, float]:
-    array = np.asarray(values, dtype=float)
-    return {"mean": float(array.mean()), "std": float(array.std()), "max": float(array.max()), "n": len(array)}
-
-
 def motion_blur(rig: Rig) -> dict[str, Any]:
     """Motion blur (px) of every capture of the rig's dual-speed profile, by angle index."""
     from planner.schedule import rig_profile

@@ -114,13 +114,6 @@ class Capture:
     def end_deg(self) -> float:
         return self.sectors[-1].end_deg
 
-    def sector_at(self, angle_deg: float) -> Sector:
-        for sector in self.sectors:
-            if sector.start_deg <= angle_deg <= sector.end_deg:
-                return sector
-        raise ValueError(f"beam angle {angle_deg:g} deg is outside the capture rotation")
-
-
 @dataclass(frozen=True)
 class Cost:
     w_area: float

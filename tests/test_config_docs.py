@@ -7,10 +7,10 @@ from pathlib import Path
 
 from daemon.hardware_config import HARDWARE
 from planner.schema.docs import reference
-from planner.schema.tables import CALIBRATION_FILE, FOCUS_FILE, RIG_FILE, TARGET_FILE
+from planner.schema.tables import CALIBRATION_FILE, FOCUS_FILE, RIG_FILE, SITE_FILE, TARGET_FILE
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
-FILES = (RIG_FILE, HARDWARE, CALIBRATION_FILE, TARGET_FILE, FOCUS_FILE)
+FILES = (RIG_FILE, HARDWARE, SITE_FILE, CALIBRATION_FILE, TARGET_FILE, FOCUS_FILE)
 
 
 def test_the_page_is_the_tables() -> None:

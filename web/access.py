@@ -25,7 +25,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 import ipaddress
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlencode
@@ -71,10 +70,6 @@ def read_token(path: Path) -> str:
     if len(token) < 16:
         raise AccessError(f"--http-token-file {path}: the token has {len(token)} characters, needs 16 or more")
     return token
-
-
-def new_token() -> str:
-    return secrets.token_urlsafe(24)
 
 
 SESSION_COOKIE = "tbp_session"

@@ -21,25 +21,22 @@ file says where the clinic's worklist and archive are::
       key_file: /etc/tbp-rig/rig.key
 
 Relative paths are relative to the site file. Unknown keys and out-of-range values are refused
-with :class:`SiteConfigError` naming the file and the key.
+with :class:`SiteConfigError` naming the file and the key; the keys, forms and defaults are the
+site file's table (planner/schema/tables.py), this module checks the relations between them.
 """
 
 from __future__ import annotations
 
-import re
 import ssl
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from daemon.errors import DaemonError
-from planner.rig import RigConfigError, _Field, _int, _key_name, _num, _Reader, _str, show
-from planner.yaml_files import read_yaml
+from planner.rig import RigConfigError
+from planner.schema.tables import SITE_FILE
 
-SITE_FILE = "site.yaml"
-MAX_FILE_BYTES = 64 * 1024
-AE_TITLE = re.compile(r"[ -\[\]-~]{1,16}")
-"""An AE title: 1-16 characters of the default repertoire without backslash or control characters."""
+SITE_FILE_NAME = "site.yaml"
 
 
 class SiteConfigError(DaemonError, RigConfigError):
@@ -103,90 +100,42 @@ class Site:
     tls: Tls | None = None
 
 
-_TOP = {"ae_title", "worklist", "archive", "tls"}
-_PEER = {"host": _str(), "port": _int(1, 65535), "called_aet": _str()}
-_WORKLIST = {**_PEER, "modality": _str(required=False, default="XC"),
-             "station_aet": _str(required=False, default=None)}
-_ARCHIVE = {"deidentify": _Field(bool, required=False, default=False)}
-_RETRY = {"first_s": _num(0.1, 3600.0, required=False, default=10.0),
-          "max_s": _num(1.0, 86400.0, required=False, default=600.0)}
-_TLS = {"ca_file": _str(), "cert_file": _str(required=False, default=None),
-        "key_file": _str(required=False, default=None)}
-
-
 def default_site_path(rig_path: Path | str) -> Path:
     """site.yaml beside the rig file."""
-    return Path(rig_path).resolve().parent / SITE_FILE
+    return Path(rig_path).resolve().parent / SITE_FILE_NAME
 
 
 def load_site(path: Path | str) -> Site:
     """Read and validate a site file."""
-    path = Path(path)
-    raw, _text = read_yaml(path, max_bytes=MAX_FILE_BYTES, what="site file",
-                           error=lambda problem: SiteConfigError(path, "<file>", problem),
-                           key_error=lambda key, problem: SiteConfigError(path, key, problem))
-    return site_from_mapping(raw, path)
-
-
-class _SiteReader(_Reader):
-    def error(self, key: str, problem: str) -> SiteConfigError:
-        return SiteConfigError(self.path, key, problem)
-
-    def ae(self, value: Any, key: str) -> str:
-        if not isinstance(value, str) or not AE_TITLE.fullmatch(value) or not value.strip():
-            raise self.error(key, f"got {show(value)}; expected an AE title: 1-16 printable ASCII characters, "
-                                  "no backslash")
-        return value.strip()
-
-    def peer(self, raw: Any, key: str, table: dict[str, Any]) -> dict[str, Any]:
-        values = self.section(raw, key, table)
-        values["called_aet"] = self.ae(values["called_aet"], f"{key}.called_aet")
-        return values
+    values, _sha = SITE_FILE.load(path, SiteConfigError)
+    return _site(values, path)
 
 
 def site_from_mapping(raw: Any, path: Path | str = "<memory>") -> Site:
-    reader = _SiteReader(path)
-    raw = reader.mapping(raw, "<top>")
-    unknown = sorted(_key_name(k) for k in raw if k not in _TOP)
-    if unknown:
-        raise reader.error(unknown[0], f"unknown section; allowed: {', '.join(sorted(_TOP))}")
-    if "ae_title" not in raw:
-        raise reader.error("ae_title", "missing; this rig's AE title, e.g. TBPRIG1")
+    """A site from an already-parsed document (validated like a file)."""
+    return _site(SITE_FILE.check(raw, path, SiteConfigError), path)
+
+
+def _site(values: dict[str, Any], path: Path | str) -> Site:
     base = Path(path).parent
-    worklist = None
-    if raw.get("worklist") is not None:
-        values = reader.peer(raw["worklist"], "worklist", _WORKLIST)
-        station = values["station_aet"]
-        worklist = WorklistSource(Peer(values["host"], values["port"], values["called_aet"]),
-                                  values["modality"],
-                                  None if station is None else reader.ae(station, "worklist.station_aet"))
-    tls = None
-    if raw.get("tls") is not None:
-        values = reader.section(raw["tls"], "tls", _TLS)
-        tls = Tls(*(None if values[k] is None else base / values[k] for k in ("ca_file", "cert_file", "key_file")))
-    return Site(str(path), reader.ae(raw["ae_title"], "ae_title"), worklist,
-                None if raw.get("archive") is None else _archive(reader, raw["archive"]), tls)
+    worklist = tls = archive = None
+    if (w := values["worklist"]) is not None:
+        station = w["station_aet"]
+        worklist = WorklistSource(_peer(w), w["modality"], None if station is None else station.strip())
+    if (t := values["tls"]) is not None:
+        tls = Tls(*(None if t[k] is None else base / t[k] for k in ("ca_file", "cert_file", "key_file")))
+    if (a := values["archive"]) is not None:
+        if (a["pacs"] is None) == (a["dicomweb"] is None):
+            raise SiteConfigError(str(path), "archive", "give exactly one of pacs (C-STORE) and dicomweb (STOW-RS)")
+        retry = a["retry"]
+        if retry["max_s"] < retry["first_s"]:
+            raise SiteConfigError(str(path), "archive.retry.max_s",
+                                  f"{retry['max_s']:g} is below first_s {retry['first_s']:g}")
+        archive = Archive(None if a["pacs"] is None else _peer(a["pacs"]),
+                          None if a["dicomweb"] is None else a["dicomweb"].rstrip("/"),
+                          a["deidentify"], retry["first_s"], retry["max_s"])
+    return Site(str(path), values["ae_title"].strip(), worklist, archive, tls)
 
 
-def _archive(reader: _SiteReader, raw: Any) -> Archive:
-    raw = reader.mapping(raw, "archive")
-    allowed = {"pacs", "dicomweb", "deidentify", "retry"}
-    unknown = sorted(_key_name(k) for k in raw if k not in allowed)
-    if unknown:
-        raise reader.error(f"archive.{unknown[0]}", f"unknown key; allowed keys: {', '.join(sorted(allowed))}")
-    if ("pacs" in raw) == ("dicomweb" in raw):
-        raise reader.error("archive", "give exactly one of pacs (C-STORE) and dicomweb (STOW-RS)")
-    pacs = None
-    if "pacs" in raw:
-        values = reader.peer(raw["pacs"], "archive.pacs", _PEER)
-        pacs = Peer(values["host"], values["port"], values["called_aet"])
-    url = None
-    if "dicomweb" in raw:
-        url = reader.value(raw["dicomweb"], "archive.dicomweb", _str())
-        if not re.fullmatch(r"https?://[^\s]+", url):
-            raise reader.error("archive.dicomweb", f"got {show(url)}; expected an http:// or https:// URL")
-    deidentify = reader.section({k: raw[k] for k in ("deidentify",) if k in raw}, "archive", _ARCHIVE)["deidentify"]
-    retry = reader.section(raw.get("retry") or {}, "archive.retry", _RETRY)
-    if retry["max_s"] < retry["first_s"]:
-        raise reader.error("archive.retry.max_s", f"{retry['max_s']:g} is below first_s {retry['first_s']:g}")
-    return Archive(pacs, url.rstrip("/") if url else None, deidentify, retry["first_s"], retry["max_s"])
+def _peer(values: dict[str, Any]) -> Peer:
+    return Peer(values["host"], values["port"], values["called_aet"].strip())

@@ -43,6 +43,7 @@ import structlog
 from drivers.adb.errors import AdbError
 from drivers.adb.streams import AdbStream
 from drivers.phone import protocol
+from drivers.sim.phone_agent import CaptureFailure
 
 if TYPE_CHECKING:
     from drivers.sim.phone import SimulatedPhone
@@ -412,8 +413,6 @@ class _JvmProcess:
 
 async def camera_call(phone: SimulatedPhone, request: dict[str, Any]) -> tuple[dict[str, Any], bytes]:
     """One camera call of the agent's simulator platform: (its JSON answer, the JPEG after it)."""
-    from drivers.sim.phone import CaptureFailure
-
     op = request.get("op")
     try:
         if op == "info":

@@ -41,6 +41,8 @@ import numpy as np
 from drivers.phone import protocol
 from drivers.sim.adbd import SimulatedAdbd
 from drivers.sim.focus_target import BoardStand
+from drivers.sim.jvm_agent import JvmRuntime
+from drivers.sim.phone_agent import CaptureFailure, TwinRuntime
 from drivers.sim.phone_render import PhoneRenderer, SubjectScene, empty_rig_picture, encode_jpeg
 from planner.rig import Optics, load_rig
 
@@ -58,10 +60,6 @@ def _scene_for(subject: Any) -> SubjectScene:
     if scene is None:
         scene = _SCENES[subject] = SubjectScene(subject)
     return scene
-
-
-class CaptureFailure(Exception):
-    """The camera's onCaptureFailed (the fail_captures fault)."""
 
 
 @dataclass(frozen=True)
@@ -230,11 +228,7 @@ class SimulatedPhone(SimulatedAdbd):
 
 def _agent_runtime(phone: SimulatedPhone, runtime: str, jar: Path | None) -> Any:
     if runtime == "python":
-        from drivers.sim.phone_agent import TwinRuntime
-
         return TwinRuntime(phone)
     if runtime == "jvm":
-        from drivers.sim.jvm_agent import JvmRuntime
-
         return JvmRuntime(phone, jar)
     raise ValueError(f"agent_runtime {runtime!r}: one of {', '.join(AGENT_RUNTIMES)}")

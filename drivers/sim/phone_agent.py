@@ -28,6 +28,11 @@ if TYPE_CHECKING:
 
 log = structlog.get_logger("drivers.sim.phone_agent")
 
+
+class CaptureFailure(Exception):
+    """The camera's onCaptureFailed (the simulated phone's fail_captures fault), answered CAPTURE_FAILED
+    by either agent."""
+
 CAMERA_QUEUE_LIMIT = 8  # agent/src/core/com/tbp/agent/Agent.java
 SIMULATED_JAR = b"PK\x03\x04 tbp capture agent (simulated)"
 HELLO_FIELDS = ("model", "serial", "min_focus_diopters", "focus_distance_calibration", "timestamp_source",
@@ -210,8 +215,6 @@ class _TwinProcess:
 
     async def _finish(self, request: protocol.AgentRequest, answer: Awaitable[bytes],
                       answers: asyncio.Queue[bytes]) -> None:
-        from drivers.sim.phone import CaptureFailure
-
         try:
             line = await answer
         except Refused as exc:

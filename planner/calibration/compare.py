@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planner.calibration.geometry import pose_error, rot_z
+from planner.calibration.geometry import pose_error
 from planner.calibration.model import Calibration
 
 
@@ -40,20 +40,3 @@ def compare(a: Calibration, b: Calibration, angles_deg: np.ndarray, cameras: lis
         for j, angle in enumerate(angles):
             t[i, j], r[i, j] = pose_error(a.world_from_camera(cam, angle), b.world_from_camera(cam, angle))
     return PoseDifferences(ids, angles, t, r)
-
-
-def compare_captures(a: Calibration, b: Calibration, cameras: list[str] | None = None) -> PoseDifferences:
-    """Differences at each calibration capture, each calibration with its own measured beam pose there."""
-    ids = cameras or [c.id for c in a.cameras if c.id in {x.id for x in b.cameras}]
-    n = min(len(a.beam), len(b.beam))
-    t = np.zeros((len(ids), n))
-    r = np.zeros_like(t)
-    for i, cam in enumerate(ids):
-        for k in range(n):
-            t[i, k], r[i, k] = pose_error(a.capture_pose(cam, k), b.capture_pose(cam, k))
-    return PoseDifferences(ids, np.array([x.encoder_deg for x in a.beam[:n]]), t, r)
-
-
-def nominal_pose(beam_from_camera: np.ndarray, angle_deg: float) -> np.ndarray:
-    """(4, 4) a camera's pose at a beam angle on an ideal beam (no wobble)."""
-    return rot_z(np.radians(angle_deg)) @ beam_from_camera

@@ -1,5 +1,5 @@
 """The table of every configuration file: the rig file, the calibration file, the calibration
-target, the focus tables and (given the depth camera kinds) the hardware file.
+target, the focus tables, the site file and (given the depth camera kinds) the hardware file.
 
 Every key's form, range and default is here; the modules that turn the values into dataclasses
 (planner/rig.py, planner/calibration/model.py and target.py, drivers/phone/focus.py,
@@ -22,6 +22,7 @@ from planner.schema.nodes import (
     Kinds,
     ListOf,
     MapOf,
+    Node,
     Note,
     Nullable,
     Number,
@@ -332,3 +333,50 @@ def hardware_file(depth_kinds: Mapping[str, Kind]) -> ConfigFile:
                "socketcand has a host and port, the other interfaces none; only slcan has a bitrate",
                "relative paths are relative to the hardware file"),
     )
+
+
+# ---------------------------------------------------------------------------- site file
+
+AE_TITLE = re.compile(r"(?=.*[^ ])[ -\[\]-~]{1,16}")
+"""An AE title: 1-16 characters of DICOM's default repertoire, no backslash, not only spaces."""
+_AE = Text(pattern=AE_TITLE, max_len=16, shape="an AE title: 1-16 printable ASCII characters, no backslash")
+URL = re.compile(r"https?://[^\s]+")
+
+
+def _peer(**more: Node) -> Section:
+    return Section({"host": Text(max_len=253), "port": Integer(1, 65535),
+                    "called_aet": Text(pattern=AE_TITLE, max_len=16, shape=_AE.shape, doc="the peer's AE title"),
+                    **more})
+
+
+SITE_FILE = ConfigFile(
+    what="site file",
+    where="site.yaml beside the rig file; on a rig PC /etc/tbp-rig/site.yaml",
+    max_bytes=64 * 1024,
+    table=Section({
+        "ae_title": Text(pattern=AE_TITLE, max_len=16, shape=_AE.shape,
+                         doc="this rig's AE title: the calling AE of every association"),
+        "worklist": Nullable(_peer(
+            modality=Text(max_len=16, default="XC", doc="the scheduled steps asked for (XC: external-camera photography)"),
+            station_aet=Nullable(_AE, default=None, doc="only steps scheduled on this station"),
+        ), default=None, doc="the Modality Worklist provider (C-FIND); null: none"),
+        "archive": Nullable(Section({
+            "pacs": Nullable(_peer(), default=None, doc="a PACS over C-STORE"),
+            "dicomweb": Nullable(Text(pattern=URL, max_len=2048, shape="an http:// or https:// URL"), default=None,
+                                 doc="a DICOMweb service (STOW-RS)"),
+            "deidentify": Flag(default=False, doc="PS3.15's basic profile (research archives)"),
+            "retry": Section({
+                "first_s": Number(0.1, 3600.0, default=10.0, doc="the first wait after an outage"),
+                "max_s": Number(1.0, 86400.0, default=600.0, doc="the wait doubles up to this"),
+            }, optional=True),
+        }), default=None, doc="where the daemon exports every completed scan; null: nowhere"),
+        "tls": Nullable(Section({
+            "ca_file": Text(doc="the clinic's CA"),
+            "cert_file": Nullable(Text(), default=None, doc="this rig's certificate (mutual TLS)"),
+            "key_file": Nullable(Text(), default=None, doc="its key"),
+        }), default=None, doc="DICOM over TLS for the archive and the worklist; null: plain TCP"),
+    }, doc="how this rig reaches the clinic's DICOM services"),
+    rules=("archive names exactly one of pacs and dicomweb",
+           "archive.retry.max_s is at least first_s",
+           "relative paths are relative to the site file"),
+)
