@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import structlog
@@ -16,12 +17,31 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tiers and xdist groups that follow from a test's fixtures and markers (before ``-m``
+    selects): a test of the shared simulated scan (``web_store``) is slow, and all of them run on
+    one xdist worker, which makes that scan once; every realtime test runs on one worker, one
+    after the other, so no two of them compete for the cores."""
+    for item in items:
+        if item.get_closest_marker("realtime"):
+            item.add_marker(pytest.mark.xdist_group("realtime"))
+        elif "web_store" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+            item.add_marker(pytest.mark.xdist_group("web_store"))
+
+
 @pytest.fixture(autouse=True)
 def _structlog_defaults() -> Iterator[None]:
     """A CLI run in-process binds structlog to pytest's captured stdout, which closes after the
     test; put the defaults back so later tests never log into a closed stream."""
     yield
     structlog.reset_defaults()
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``root``: relative path -> (size, mtime ns)."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*") if p.is_file()}
 
 
 @pytest.fixture(scope="session")
@@ -34,9 +54,10 @@ def agent_jvm_jar(request: pytest.FixtureRequest):
 
 
 @pytest.fixture(scope="session")
-def web_store(tmp_path_factory: pytest.TempPathFactory):
-    """A store with one small simulated scan (capsule subject, QA report) for a synthetic patient,
-    shared by the web tests."""
+def web_store(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A store with one small simulated scan of the complete simulated rig (capsule subject, QA
+    report) for a synthetic patient, shared read-only by the web, browser and scan report tests (a
+    test that writes works on a copy); the session fails if any test changed it."""
     from analysis.qa_report import generate_report
     from daemon.clinic.patient import ScanSubject
     from sim.run import run_sim_scan
@@ -46,4 +67,6 @@ def web_store(tmp_path_factory: pytest.TempPathFactory):
     patient = ScanSubject.from_args({"patient_id": "SYN-0001", "patient_name": "Testperson^Capsule"})
     run_sim_scan(store=root, seed=1, plan_points=PLAN_POINTS, depth_decimation=4, subject=capsule_subject(),
                  panel=False, qa_report=generate_report, patient=patient)
-    return root
+    made = _tree(root)
+    yield root
+    assert _tree(root) == made, "a test changed the shared web_store: copy it first (see test_web.scan_store)"

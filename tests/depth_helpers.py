@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -34,6 +36,21 @@ def cylinder(radius: float = 150.0, height: float = 1700.0, bottom: float = 0.0)
     """A standing cylinder (vertical axis on the rotation axis)."""
     mesh = trimesh.creation.cylinder(radius=radius, height=height, sections=128)
     return mesh.apply_translation([0.0, 0.0, bottom + height / 2])
+
+
+@functools.cache
+def cylinder_sweep(scale: int = 2) -> tuple[Any, ...]:
+    """The posed frames of the standing cylinder (radius 150 mm, 1.7 m) swept by
+    ``small_rig(scale)`` about every 9 deg (seed 0, with noise), in rig order: ray cast once per
+    process for the fusion tests. Their arrays are read-only, so no test changes another's."""
+    from drivers.sim.depth import simulate_sweep
+
+    frames = simulate_sweep(cylinder(150.0, 1700.0), small_rig(scale=scale), seed=0, noise=True,
+                            frame_spacing_deg=9.0).frames
+    for frame in frames:
+        for array in (frame.depth, frame.intrinsics, frame.camera_to_world):
+            array.setflags(write=False)
+    return tuple(frames)
 
 
 def wall(distance: float, size: float = 4000.0) -> trimesh.Trimesh:

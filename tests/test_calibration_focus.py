@@ -84,6 +84,7 @@ def _bench_sweep(tmp_path: Path, distances: tuple[float, ...], fault=None):
     return run_virtual(sweep())
 
 
+@pytest.mark.slow  # a focus sweep of the simulated phone at five board distances
 def test_a_phone_is_swept_through_its_driver_and_left_clean(tmp_path: Path) -> None:
     from drivers.phone.focus import FocusCalibration, load_focus_calibration
 

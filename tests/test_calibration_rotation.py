@@ -59,6 +59,12 @@ def rotate(store: Path, *, during: Any = None, prepare: Any = None, infrared: bo
     return run_job(store, calibration, during=during, prepare=set_up)
 
 
+@pytest.fixture(scope="module")
+def nominal(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, RigController, Any]:
+    """One rotation where nothing goes wrong, shared by the tests that only read its outcome."""
+    return rotate(tmp_path_factory.mktemp("nominal"))
+
+
 def captures_of(report: Any) -> dict[str, Any]:
     import hashlib
 
@@ -69,8 +75,10 @@ def captures_of(report: Any) -> dict[str, Any]:
     return doc
 
 
-def test_every_camera_photographs_at_every_stop(tmp_path: Path) -> None:
-    report, controller, world = rotate(tmp_path)
+@pytest.mark.slow
+@pytest.mark.xdist_group("calibration-nominal")  # one worker makes the shared rotation
+def test_every_camera_photographs_at_every_stop(nominal: tuple[Any, RigController, Any]) -> None:
+    report, controller, world = nominal
     assert report.outcome is ScanOutcome.COMPLETED, report.problems
     doc = captures_of(report)
     assert doc["state"] == "complete" and doc["rig_digest"] == RIG.digest and doc["target"] == TARGET.name
@@ -98,16 +106,19 @@ def test_every_camera_photographs_at_every_stop(tmp_path: Path) -> None:
     assert controller.store.folders() == []  # a rotation is not a scan
 
 
-def test_the_pipeline_reads_the_rotation(tmp_path: Path) -> None:
+@pytest.mark.slow
+@pytest.mark.xdist_group("calibration-nominal")  # one worker makes the shared rotation
+def test_the_pipeline_reads_the_rotation(nominal: tuple[Any, RigController, Any]) -> None:
     from planner.calibration.calibrate import read_captures
 
-    report, _, _ = rotate(tmp_path)
+    report, _, _ = nominal
     pictures = read_captures(report.folder / "captures.json")
     assert len(pictures) == (RIG.n_cameras + len(RIG.depth_cameras)) * N_ANGLES
     assert all(p.path.is_file() for p in pictures)
     assert {p.intrinsics is not None for p in pictures if p.kind == "depth"} == {True}
 
 
+@pytest.mark.slow
 def test_a_phone_that_vanishes_is_named_and_the_rest_goes_on(tmp_path: Path) -> None:
     def prepare(world: Any) -> None:
         world.phones[2].fail_after = 5  # gone after 5 pictures (of the warm-up free rotation)
@@ -122,6 +133,7 @@ def test_a_phone_that_vanishes_is_named_and_the_rest_goes_on(tmp_path: Path) -> 
     assert report.missing == N_ANGLES - 5
 
 
+@pytest.mark.slow
 def test_a_depth_camera_without_infrared_is_named_and_the_phones_go_on(tmp_path: Path) -> None:
     report, _, _ = rotate(tmp_path, infrared=False)
     assert report.outcome is ScanOutcome.COMPLETED
@@ -132,6 +144,7 @@ def test_a_depth_camera_without_infrared_is_named_and_the_phones_go_on(tmp_path:
         assert any(camera.id in p and "InfraredUnavailable" in p for p in doc["problems"])
 
 
+@pytest.mark.slow
 def test_a_depth_camera_that_stalls_is_named_and_the_others_keep_their_own_frames(tmp_path: Path) -> None:
     async def during(controller: RigController, world: Any) -> None:
         while controller.current is None or len(controller.current.captures) < 60:
@@ -155,6 +168,7 @@ def test_a_depth_camera_that_stalls_is_named_and_the_others_keep_their_own_frame
     assert len(others) == 2 * N_ANGLES
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", ["estop", "drive_fault", "heartbeat_lost"])
 def test_a_safety_fault_mid_rotation_latches_and_keeps_the_pictures(tmp_path: Path, fault: str) -> None:
     async def during(controller: RigController, world: Any) -> None:
@@ -176,6 +190,7 @@ def test_a_safety_fault_mid_rotation_latches_and_keeps_the_pictures(tmp_path: Pa
     assert doc["reason"]  # the latched causes, named
 
 
+@pytest.mark.slow
 def test_abort_stops_the_beam_and_keeps_the_pictures(tmp_path: Path) -> None:
     async def during(controller: RigController, world: Any) -> None:
         while controller.current is None or len(controller.current.captures) < 20:
@@ -190,6 +205,7 @@ def test_abort_stops_the_beam_and_keeps_the_pictures(tmp_path: Path) -> None:
     assert doc["state"] == "aborted" and len(doc["captures"]) >= 20
 
 
+@pytest.mark.slow
 def test_refused_while_a_rotation_runs(tmp_path: Path) -> None:
     async def during(controller: RigController, world: Any) -> None:
         while controller.current is None:  # the rotation has started
@@ -206,6 +222,7 @@ def test_refused_while_a_rotation_runs(tmp_path: Path) -> None:
     assert len(list((tmp_path / "calibration").iterdir())) == 1
 
 
+@pytest.mark.slow
 def test_tbp_calibrate_follows_the_daemons_rotation_over_the_socket(tmp_path: Path,
                                                                    capsys: pytest.CaptureFixture[str]) -> None:
     from cli.calibrate import _follow_rotation

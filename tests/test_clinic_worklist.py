@@ -110,7 +110,7 @@ async def test_the_console_picks_a_worklist_patient_and_starts_the_scan_for_them
     with worklist_provider(tmp_path / "wl") as (port, folder):
         write_worklist_item(folder, PatientName="Testperson^Wanda", PatientID="SYN-0100",
                             StudyInstanceUID="1.2.3.100", AccessionNumber="ACC100",
-                            ScheduledProcedureStepStartDate=f"{datetime.now():%Y%m%d}")
+                            ScheduledProcedureStepStartDate=f"{datetime.now().astimezone():%Y%m%d}")
         service = _ServiceStub(site_for(port))
         client = await client_for(web_store, service=service)
         try:

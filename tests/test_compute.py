@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -55,6 +56,7 @@ def _omp_threads() -> str | None:
     return os.environ.get("OMP_NUM_THREADS")
 
 
+@pytest.mark.slow  # a worker process
 def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     import os
 
@@ -106,19 +108,29 @@ def _open_sessions() -> int:
     return len(_OPEN)
 
 
-def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh() -> None:
+@pytest.mark.slow  # a worker process
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
+def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """daemon/fusion.py: the TSDF lives in the worker between jobs; images go through shared memory."""
     import asyncio
 
+    import daemon.fusion
     from daemon.fusion import _OPEN, FusionSession
-    from drivers.sim.depth import simulate_sweep
     from planner.mesh_metrics import shape_metrics
     from planner.tsdf import fuse
-    from tests.depth_helpers import cylinder, small_rig
+    from tests.depth_helpers import cylinder_sweep, small_rig
 
     rig = small_rig(scale=2)
-    frames = sorted(simulate_sweep(cylinder(150.0, 1700.0), rig, seed=0, frame_spacing_deg=9.0).frames,
-                    key=lambda f: f.timestamp_s)
+    frames = sorted(cylinder_sweep(), key=lambda f: f.timestamp_s)
+    blocks: list[str] = []  # this session's shared-memory blocks (other processes may have their own)
+
+    def sharing(batch: list[object]) -> object:
+        block, shared = share_frames(batch)
+        blocks.append(block.name)
+        return block, shared
+
+    monkeypatch.setattr(daemon.fusion, "share_frames", sharing)
 
     async def fused(pool: object) -> object:
         async with FusionSession(pool, rig, "scan-1") as fusion:
@@ -139,7 +151,7 @@ def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh
     assert "scan-1" not in _OPEN  # it lived in the worker, never here
     metrics = shape_metrics(whole.mesh, live.mesh, samples=20_000)
     assert metrics.true_to_estimate_mean_mm < 0.05 and metrics.estimate_to_true_mean_mm < 0.05
-    assert not [p for p in SHM_DIR.glob("psm_*")]  # every batch's block released
+    assert blocks and not [b for b in blocks if (SHM_DIR / b.lstrip("/")).exists()]  # every batch's block released
 
 
 def test_the_daemon_process_does_not_load_numba() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import trimesh
 
 from daemon.scan import ScanOutcome
@@ -11,6 +12,7 @@ from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
 
+@pytest.mark.slow  # a simulated scan to the end of its depth sweep
 def test_an_outstretched_arm_ends_the_scan_before_any_capture(tmp_path):
     arm = trimesh.creation.capsule(height=280.0, radius=45.0, count=[16, 16])
     arm.apply_transform(trimesh.transformations.rotation_matrix(1.5708, [1, 0, 0]))

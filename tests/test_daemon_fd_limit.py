@@ -20,7 +20,7 @@ from daemon.control import CommandFailed, ControlClient, DaemonUnavailable
 from tests.daemon_rigs import capsule_subject
 from tests.test_daemon_restart import TBP, _ready
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 LIMIT = 256
 HELD = 300

@@ -16,7 +16,7 @@ import pytest
 from daemon.control import ControlClient, DaemonUnavailable
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 TBP = str(Path(sys.executable).with_name("tbp"))
 

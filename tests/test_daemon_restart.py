@@ -18,7 +18,7 @@ import pytest
 from daemon.control import ControlClient, DaemonUnavailable
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 TBP = str(Path(sys.executable).with_name("tbp"))
 
@@ -26,7 +26,7 @@ TBP = str(Path(sys.executable).with_name("tbp"))
 def _start(sock: Path, store: Path, subject: Path, log: Path) -> subprocess.Popen:
     cmd = [TBP, "daemon", "--sim", "--no-panel", "--subject", str(subject), "--socket", str(sock),
            "--store", str(store), "--time-scale", "10", "--plan-points", str(PLAN_POINTS),
-           "--depth-decimation", "4", "--log-level", "warning"]
+           "--depth-decimation", "4", "--log-level", "warning", "--http", "off"]
     return subprocess.Popen(cmd, stdout=log.open("ab"), stderr=subprocess.STDOUT,
                             env={**os.environ, "NOTIFY_SOCKET": ""})
 

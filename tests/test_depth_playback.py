@@ -124,6 +124,7 @@ async def test_stopping_mid_file_again_and_again_never_crashes_the_sdk(sweep_rec
         assert len(await play(bag, limit=3)) == 3
 
 
+@pytest.mark.realtime
 async def test_realtime_playback_ends_at_the_end_of_the_file(tmp_path: Path) -> None:
     path = tmp_path / "plain.db3"
     record(path, 10, angles=False, pace_s=0.05)
@@ -220,6 +221,7 @@ def test_tbp_depth_record_sim_writes_the_sweep_each_camera_saw(tmp_path: Path,
     assert played[1] == "depth2: recorded beam angles -227.0 .. -47.0 deg"
 
 
+@pytest.mark.realtime
 async def test_the_daemons_sweep_poses_a_played_back_recording_at_its_recorded_angles(tmp_path: Path) -> None:
     """BagPlayback as the daemon's DepthCamera: real pyrealsense2 threads, a mock beam on the real loop."""
     import dataclasses

@@ -30,6 +30,7 @@ def _fake_probe(*serials: str) -> list[str]:
     return [sys.executable, "-c", script]
 
 
+@pytest.mark.realtime
 def test_the_probe_process_keeps_one_context_and_answers_each_request(monkeypatch: pytest.MonkeyPatch) -> None:
     """Destroying an rs.context holds the interpreter lock ~100 ms: one is made, kept, asked."""
     world = FakeRealSense()
@@ -73,6 +74,7 @@ async def test_a_missing_backend_is_named_for_each_camera() -> None:
     assert "depth0" in str(errors[0]) and "depth1" in str(errors[1]) and "pip install" in str(errors[0])
 
 
+@pytest.mark.realtime
 async def test_a_probe_process_that_hangs_or_dies_is_replaced_at_the_next_probe() -> None:
     hung = RealSenseProbe([sys.executable, "-c", "import time; time.sleep(60)"])
     hung.ANSWER_TIMEOUT_S = 0.5

@@ -29,6 +29,7 @@ def corpus() -> dict:
     return run_corpus(2, seed=3, jobs=1, options=SMALL)
 
 
+@pytest.mark.slow  # worker processes
 def test_the_same_seed_gives_the_same_numbers_whatever_the_job_count(corpus):
     again = run_corpus(2, seed=3, jobs=2, options=SMALL)
     assert _numbers(again) == _numbers(corpus)
@@ -36,6 +37,7 @@ def test_the_same_seed_gives_the_same_numbers_whatever_the_job_count(corpus):
     assert _numbers(other)[0]["seed"] != _numbers(corpus)[0]["seed"]
 
 
+@pytest.mark.slow  # the shared corpus of two simulated bodies
 def test_shape_aware_leads_every_baseline_and_the_report_prints_the_paper_beside(corpus, tmp_path):
     methods = corpus["summary"]["methods"]
     aware = methods["shape-aware"]["in_focus_fraction"]["mean"]

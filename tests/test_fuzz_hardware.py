@@ -11,6 +11,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 from hypothesis import given
 from hypothesis import strategies as st
@@ -152,6 +153,7 @@ def check_any_value_at_any_key(path: tuple[str, ...], value: str) -> None:
     _load(_document(path, value))
 
 
+@pytest.mark.slow  # a worker process
 def test_the_hardware_file_properties_run_in_bounded_memory() -> None:
     child = run_bounded("from tests.test_fuzz_hardware import check_aliases_anywhere, check_any_value_at_any_key",
                         "check_aliases_anywhere()\ncheck_any_value_at_any_key()", timeout_s=600.0)

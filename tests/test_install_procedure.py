@@ -51,6 +51,7 @@ def _run(command: list[str], **kw) -> subprocess.CompletedProcess[str]:
     return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=ROOT, **kw)
 
 
+@pytest.mark.slow  # systemd-sysusers, systemd-tmpfiles, install and tbp check as processes
 @pytest.mark.skipif(os.geteuid() != 0, reason="the procedure runs as root (chown to the service user)")
 def test_the_procedure_runs_against_a_temporary_root(tmp_path: Path):
     for tool in ("systemd-sysusers", "systemd-tmpfiles"):

@@ -22,7 +22,7 @@ from daemon.manifest import ImageStatus
 from daemon.store import ScanStore
 from sim.loopback import LoopbackRig, scan_from_panel
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 UNIT_STOP_TIMEOUT_S = 30.0  # systemd/tbp-rig.service TimeoutStopSec
 LOOP_LAG_MAX_MS = 50.0  # issue 28: the event loop carries the heartbeats, the e-stop and the triggers

@@ -265,6 +265,7 @@ def _served_drive(*options: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
                     proc.wait()
 
 
+@pytest.mark.realtime
 def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
     """``tbp sim motor``'s entry point in its own process: serves, answers SDO, exits on SIGTERM."""
     with _served_drive() as (proc, tcp_port):
@@ -285,6 +286,7 @@ def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
         assert proc.wait(timeout=10) == 0
 
 
+@pytest.mark.realtime
 def test_tbp_motor_commissions_a_drive_served_by_another_process(capsys: pytest.CaptureFixture[str]) -> None:
     """``tbp motor`` against the simulated drive in its own process, through socketcand."""
     from cli import main
@@ -300,6 +302,7 @@ def test_tbp_motor_commissions_a_drive_served_by_another_process(capsys: pytest.
         assert "MotionLimitError" in capsys.readouterr().err
 
 
+@pytest.mark.realtime
 def test_served_drive_injects_the_e_stop_it_was_told_to(capsys: pytest.CaptureFixture[str]) -> None:
     from cli import main
 

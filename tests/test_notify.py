@@ -109,6 +109,7 @@ def test_watchdog_pings_only_while_healthy(listener):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_sim_daemon_speaks_the_type_notify_protocol(tmp_path):
     """`tbp daemon --sim` as systemd runs it: READY=1 once up, watchdog pings, STOPPING=1."""
     import subprocess
@@ -124,7 +125,7 @@ def test_sim_daemon_speaks_the_type_notify_protocol(tmp_path):
     env = dict(os.environ, NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="1000000")
     proc = subprocess.Popen(
         [str(tbp), "daemon", "--sim", "--socket", str(tmp_path / "control.sock"),
-         "--store", str(tmp_path / "store")],
+         "--store", str(tmp_path / "store"), "--http", "off"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )
     try:

@@ -16,6 +16,7 @@ from drivers.panel import OperatorPanel, PanelEvent, StatusLed, open_serial
 TBP = Path(sys.executable).with_name("tbp")
 
 
+@pytest.mark.realtime
 async def test_tbp_sim_panel_serves_a_pty_that_the_driver_can_use() -> None:
     proc = await asyncio.create_subprocess_exec(
         str(TBP), "sim", "panel", "--estop",
@@ -87,6 +88,7 @@ async def _tbp(*argv: str) -> asyncio.subprocess.Process:
     )
 
 
+@pytest.mark.realtime
 async def test_tbp_panel_commissions_a_panel_on_a_serial_port() -> None:
     from drivers.sim.panel import SimulatedPanel
 
@@ -130,6 +132,7 @@ async def test_tbp_panel_reports_a_missing_port() -> None:
     ("device", "banner"),
     [("motor", "simulated drive node "), ("phone", "simulated phone TBPSIM00 (adbd) on 127.0.0.1:")],
 )
+@pytest.mark.realtime
 async def test_tbp_sim_serves_the_other_simulators_until_sigterm(device: str, banner: str) -> None:
     proc = await asyncio.create_subprocess_exec(
         str(TBP), "sim", device, "--port", "0",

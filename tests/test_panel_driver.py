@@ -268,7 +268,7 @@ def test_duplicate_event_sequence_number_is_acknowledged_but_not_repeated() -> N
         assert await next_event(events) is PanelEvent.STOP_PRESSED
         sim.press_start()
         assert await next_event(events) is PanelEvent.START_PRESSED
-        acks = [l for l in sim.received if l.verb == "ACK" and l.args == ("42",)]
+        acks = [line for line in sim.received if line.verb == "ACK" and line.args == ("42",)]
         assert len(acks) == 2
 
     run(scenario)

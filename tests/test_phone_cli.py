@@ -10,6 +10,8 @@ import pytest
 
 from cli import main
 
+pytestmark = pytest.mark.realtime  # a simulated phone in its own process
+
 
 @pytest.fixture
 def sim_phone_port() -> int:

@@ -67,6 +67,7 @@ def test_sensor_clock_inverse() -> None:
     assert other.clock_offset_s != phone.clock_offset_s and other.clock_drift_ppm != phone.clock_drift_ppm
 
 
+@pytest.mark.realtime
 def test_standalone_server_serves_until_sigterm() -> None:
     code = ("import asyncio, argparse, sys; from sim.processes.phone import add_arguments, serve; "
             "p = argparse.ArgumentParser(); add_arguments(p); "

@@ -55,8 +55,8 @@ def test_grouped_sweep_matches_single_sweeps(cases) -> None:
     hi = np.concatenate([c[1] for c in cases])
     group = np.concatenate([np.full(len(c[0]), 2 * i) for i, c in enumerate(cases)])
     s, score = best_focus_per_group(lo, hi, group, 2 * len(cases) + 1)
-    for i, (l, h, _) in enumerate(cases):
-        one_s, one_score = best_focus(l, h)
+    for i, (lo_i, hi_i, _) in enumerate(cases):
+        one_s, one_score = best_focus(lo_i, hi_i)
         assert score[2 * i] == one_score
         assert s[2 * i] == pytest.approx(one_s)
         assert np.isnan(s[2 * i + 1]) and score[2 * i + 1] == 0
@@ -75,12 +75,12 @@ def test_presorted_ends_are_each_poses_stable_sort_of_its_starts_then_ends(cases
     ptr = np.r_[0, np.cumsum([len(c[0]) for c in cases])]
     ends = PresortedIntervals(lo, hi, ptr)
     assert np.array_equal(ends.ptr, 2 * ptr)
-    for pose, (l, h) in enumerate(cases):
-        order = np.argsort(np.concatenate([l, h]), kind="stable")
+    for pose, (lo_i, hi_i) in enumerate(cases):
+        order = np.argsort(np.concatenate([lo_i, hi_i]), kind="stable")
         coords, sign, local = ends.pose_ends(pose)
-        assert np.array_equal(coords, np.concatenate([l, h])[order])
-        assert np.array_equal(sign, np.where(order < len(l), 1.0, -1.0))
-        assert np.array_equal(local, order % max(len(l), 1))
+        assert np.array_equal(coords, np.concatenate([lo_i, hi_i])[order])
+        assert np.array_equal(sign, np.where(order < len(lo_i), 1.0, -1.0))
+        assert np.array_equal(local, order % max(len(lo_i), 1))
 
 
 def test_presorted_upper_ends_tied_out_of_pair_order_are_sorted_again() -> None:

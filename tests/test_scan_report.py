@@ -19,16 +19,12 @@ from cli import main
 from daemon.manifest import ManifestError, ScanEnd
 from daemon.store import read_folder
 from planner.visibility import RayScene
-from sim.run import run_sim_scan
-from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
 
-@pytest.fixture(scope="module")
-def scan_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    store = tmp_path_factory.mktemp("store")
-    report = run_sim_scan(store=store, seed=1, plan_points=PLAN_POINTS, depth_decimation=4,
-                          subject=capsule_subject(), panel=False, qa_report=generate_report)
-    return Path(report.folder)
+@pytest.fixture
+def scan_dir(web_store: Path) -> Path:
+    """The session's simulated scan (tests/conftest.py), read only: tests that write use a copy."""
+    return next(p for p in web_store.iterdir() if p.is_dir())
 
 
 def test_the_daemon_writes_the_report_at_the_end_of_a_scan(scan_dir):

@@ -246,6 +246,7 @@ PLACES = {name: [(name, *leaf) for leaf in doc_leaves(table, raw, (), "")]
           for name, (raw, table, _, _) in SHIPPED.items()}
 
 
+@pytest.mark.slow  # a bad value at every key of every shipped file
 @FUZZ
 @given(st.sampled_from(sorted(PLACES)).flatmap(lambda name: st.sampled_from(PLACES[name])).flatmap(
     lambda place: st.tuples(st.just(place), invalid(place[3]))))

@@ -82,6 +82,7 @@ async def _move_beam(bridge_port: int, angle_deg: float) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_a_phone_following_the_beam_photographs_at_the_angle_the_drive_reports(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with _process("sim", "motor", "--port", "0", ready=r"socketcand 127\.0\.0\.1:(\d+) channel can0") as (_, m):

@@ -20,7 +20,7 @@ from planner.shape_errors import (
     TooFewFrames,
 )
 from planner.tsdf import MIN_FRAMES, TsdfFusion, close_openings, fuse
-from tests.depth_helpers import cylinder, small_rig, sphere
+from tests.depth_helpers import cylinder, cylinder_sweep, small_rig, sphere
 
 RIG = small_rig(scale=2)
 #: Refusals do not need the resolution accuracy does.
@@ -32,6 +32,7 @@ def _fuse(mesh: trimesh.Trimesh, *, rig=COARSE, validate: bool = True, spacing: 
     return fuse(sweep.frames, rig, validate=validate)
 
 
+@pytest.mark.slow
 def test_sphere_is_recovered_within_a_millimetre():
     result = _fuse(sphere(200.0), rig=RIG, spacing=9.0, validate=False)
     radius = np.linalg.norm(result.mesh.vertices - [0, 0, 1000.0], axis=1)
@@ -41,10 +42,11 @@ def test_sphere_is_recovered_within_a_millimetre():
     assert set(result.per_camera) == {c.id for c in RIG.depth_cameras}
 
 
+@pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
     """The daemon fuses batches during the sweep, the cameras interleaved in time order."""
-    truth = cylinder(150.0, 1700.0)
-    frames = simulate_sweep(truth, RIG, seed=0, noise=True, frame_spacing_deg=9.0).frames
+    frames = cylinder_sweep()
     whole = fuse(frames, RIG)
     fusion = TsdfFusion(RIG)
     arriving = sorted(frames, key=lambda f: f.timestamp_s)
@@ -56,10 +58,11 @@ def test_frames_fused_as_they_arrive_give_the_surface_of_the_whole_sweep():
     assert metrics.true_to_estimate_mean_mm < 0.05 and metrics.estimate_to_true_mean_mm < 0.05
 
 
+@pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
     """The plan asks the worker's fusion for the mesh the daemon was given: no second extraction."""
-    frames = sorted(simulate_sweep(cylinder(150.0, 1700.0), RIG, seed=0, frame_spacing_deg=9.0).frames,
-                    key=lambda f: f.timestamp_s)
+    frames = sorted(cylinder_sweep(), key=lambda f: f.timestamp_s)
     fusion = TsdfFusion(RIG)
     fusion.add(frames[:-3])
     first = fusion.result()
@@ -69,9 +72,11 @@ def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
     assert fusion.result() is not first and fusion.result().frames_used >= first.frames_used
 
 
+@pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_standing_cylinder_is_recovered_and_passes_validation():
     truth = cylinder(150.0, 1700.0)
-    result = _fuse(truth, rig=RIG, spacing=9.0)
+    result = fuse(cylinder_sweep(), RIG)
     v = result.mesh.vertices
     side = v[(v[:, 2] > 100) & (v[:, 2] < 1600)]
     assert abs(np.hypot(side[:, 0], side[:, 1]).mean() - 150.0) < 1.0
@@ -113,8 +118,7 @@ def test_too_few_frames_are_refused():
 
 
 def test_empty_frames_do_not_count_as_usable():
-    sweep = simulate_sweep(cylinder(), COARSE, seed=0, frame_spacing_deg=9.0)
-    empty = [dataclasses.replace(f, depth=np.zeros_like(f.depth)) for f in sweep.frames]
+    empty = [dataclasses.replace(f, depth=np.zeros_like(f.depth)) for f in cylinder_sweep(scale=4)]
     with pytest.raises(TooFewFrames, match=r"0 usable depth frames"):
         fuse(empty, COARSE)
 
@@ -166,8 +170,8 @@ def test_a_subject_too_short_for_a_person_is_refused():
 
 
 def test_fusing_the_same_sweep_twice_gives_the_identical_mesh():
-    sweep = simulate_sweep(cylinder(), COARSE, seed=0, frame_spacing_deg=9.0)
-    a, b = fuse(sweep.frames, COARSE), fuse(sweep.frames, COARSE)
+    frames = cylinder_sweep(scale=4)
+    a, b = fuse(frames, COARSE), fuse(frames, COARSE)
     assert np.array_equal(a.mesh.vertices, b.mesh.vertices)
     assert np.array_equal(a.mesh.faces, b.mesh.faces)
 

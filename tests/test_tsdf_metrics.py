@@ -100,6 +100,7 @@ def test_a_folder_that_is_not_a_sweep_is_refused(tmp_path):
         load_sweep(tmp_path)
 
 
+@pytest.mark.slow
 def test_cli_reconstructs_a_simulated_body_and_a_recorded_sweep(tmp_path, capsys, small_rig_file):
     from tests.planner_standin import standin_body
 

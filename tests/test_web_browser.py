@@ -25,7 +25,8 @@ from cli import main
 from tests.test_web import folder_of
 from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
 
-pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
+pytestmark = [pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing())),
+              pytest.mark.slow]  # browser sessions
 SHOTS = Path(os.environ.get("TBP_SCREENSHOTS", "/tmp/tbp-web-screenshots"))
 
 
@@ -165,7 +166,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.slow
+@pytest.mark.realtime
 def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
     from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 

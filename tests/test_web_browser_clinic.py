@@ -21,10 +21,11 @@ SHOTS = Path(os.environ.get("TBP_SCREENSHOTS", "/tmp/tbp-web-screenshots"))
 
 def test_a_worklist_patient_is_picked_and_scanned_in_two_clicks(tmp_path: Path):
     with worklist_provider(tmp_path / "wl") as (port, folder):
+        today = f"{datetime.now().astimezone():%Y%m%d}"  # the worklist's local date
         write_worklist_item(folder, PatientName="Testperson^Clicka", PatientID="SYN-CLICK-1",
-                            AccessionNumber="ACC-CLICK", ScheduledProcedureStepStartDate=f"{datetime.now():%Y%m%d}")
+                            AccessionNumber="ACC-CLICK", ScheduledProcedureStepStartDate=today)
         write_worklist_item(folder, PatientName="Otherperson^Waits", PatientID="SYN-CLICK-2",
-                            ScheduledProcedureStepStartDate=f"{datetime.now():%Y%m%d}")
+                            ScheduledProcedureStepStartDate=today)
         http = free_port()
         site = {"ae_title": "TBPRIG1", "worklist": {"host": "127.0.0.1", "port": port, "called_aet": "RISWL"}}
         daemon = SimDaemon(tmp_path / "rig", site=site, http=http)
