@@ -20,7 +20,10 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 def _structlog_defaults() -> Iterator[None]:
     """A CLI run in-process binds structlog to pytest's captured stdout, which closes after the
     test; put the defaults back so later tests never log into a closed stream."""
+    from daemon.logs import close_logging
+
     yield
+    close_logging()
     structlog.reset_defaults()
 
 

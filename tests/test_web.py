@@ -463,3 +463,59 @@ async def test_a_scan_is_read_off_the_loop_once_per_manifest_and_again_when_it_i
         assert threading.current_thread().name not in reads
     finally:
         await client.close()
+
+
+class MachineService:
+    """The rig handler's status, history and events, from a real state machine."""
+
+    def __init__(self) -> None:
+        from daemon.states import ScanStateMachine
+
+        self.machine = ScanStateMachine()
+
+    def status(self):
+        return {"state": self.machine.state.value}
+
+    def recent_events(self):
+        return [e.as_dict() for e in self.machine.recent]
+
+    async def subscribe(self):
+        async for event in self.machine.subscribe():
+            yield event.as_dict()
+
+
+async def _sse_until(response, kind: str) -> list[tuple[str, Any]]:
+    """(event, data) pairs read from a Server-Sent Events stream up to the first ``kind``."""
+    got: list[tuple[str, Any]] = []
+    event = None
+    while True:
+        line = (await response.content.readline()).decode().rstrip("\n")
+        if line.startswith("event: "):
+            event = line[7:]
+        elif line.startswith("data: "):
+            got.append((event, json.loads(line[6:])))
+            if event == kind:
+                return got
+
+
+async def test_the_event_stream_starts_with_the_history_then_only_new_events(scan_store):
+    from daemon.states import ScanState
+
+    service = MachineService()
+    service.machine.transition(ScanState.PREPARING, "scan requested")
+    service.machine.progress("captured", captured=1)
+    service.machine.progress("phone_dropped", camera="cam2")
+    client = await client_for(scan_store, service=service)
+    try:
+        response = await client.get("/api/rig/events")
+        first = await _sse_until(response, "status")
+        assert [kind for kind, _ in first] == ["history", "status"]
+        history = first[0][1]
+        assert [e["cause"] for e in history] == ["scan requested", "phone_dropped"]
+        assert all(e["utc"] and e["seq"] for e in history)
+        service.machine.transition(ScanState.ABORTING, "abort")
+        live = [data for kind, data in await _sse_until(response, "rig") if kind == "rig"]
+        assert live[-1]["cause"] == "abort" and live[-1]["seq"] > history[-1]["seq"]
+        response.close()
+    finally:
+        await client.close()
