@@ -112,6 +112,11 @@ def test_a_partial_scan_is_flagged_over_its_body_and_in_the_list_and_its_sharp_s
         rows = {r.get_attribute("data-folder"): r.text for r in driver.find_elements("css selector", "#scans tbody tr")}
         assert "partial: images missing" in rows[partial] and "cam2 10 (10 phone dropped)" in rows[partial]
         assert "complete" in rows[name] and f"{100 * sharp:.1f} %" in rows[name]
+        visits = {v.get_attribute("data-folder"): v.text for v in driver.find_elements("css selector", "#patients .visit")}
+        assert "partial: images missing" in visits[partial] and "partial" not in visits[name]
+        assert f"sharp skin {100 * sharp:.1f} %" in visits[name]
+        driver.get(f"{url}/scans/{name}/report/")  # the QA report names and shows the same figure
+        assert f"Sharp skin: {100 * sharp:.1f} %" in driver.find_element("tag name", "body").text
 
 
 def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
