@@ -12,9 +12,11 @@ import json
 import math
 import re
 import secrets
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from daemon.atomic import AtomicWriter
 from daemon.utc import utc_stamp
@@ -23,11 +25,34 @@ MARKS = "marks.json"
 FORMAT_VERSION = 1
 MAX_MARKS = 500
 MAX_NAME = 80
+ON_BODY_MM = 5.0
+"""A mark lies on the body: at most this far from the scan's mesh surface."""
+SAME_SPOT_MM = 3.0
+"""A new mark this near an existing mark of the same scan is the same spot (refused)."""
 _MARK_ID = re.compile(r"^[0-9a-f]{10}$")
 
 
 class MarkError(ValueError):
     """A mark or a marks file is not valid; names the field and the value."""
+
+
+class MarkOffBody(MarkError):
+    """A new mark farther than ON_BODY_MM from the scan's body surface."""
+
+    def __init__(self, point_mm: tuple[float, float, float], distance_mm: float) -> None:
+        self.point_mm, self.distance_mm = point_mm, distance_mm
+        where = ", ".join(f"{v:.1f}" for v in point_mm)
+        super().__init__(f"mark point ({where}) mm is {distance_mm:.1f} mm from this scan's body surface; "
+                         f"a mark lies on the body (within {ON_BODY_MM:g} mm of it)")
+
+
+class MarkDuplicate(MarkError):
+    """A new mark within SAME_SPOT_MM of an existing mark of the same scan."""
+
+    def __init__(self, existing: Mark, distance_mm: float) -> None:
+        self.existing, self.distance_mm = existing, distance_mm
+        super().__init__(f"mark {existing.number} {existing.name!r} is {distance_mm:.1f} mm from this point: "
+                         f"the same spot (marks are at least {SAME_SPOT_MM:g} mm apart); rename or delete it instead")
 
 
 @dataclass(frozen=True)
@@ -39,6 +64,8 @@ class Mark:
     point_mm: tuple[float, float, float]
     created_utc: str
     carried_from: dict[str, Any] | None = None
+    number: int = 0
+    """The mark's number on this scan (1, 2, ...; the label on the body), never reused while it lasts."""
 
     def as_dict(self) -> dict[str, Any]:
         return {**asdict(self), "point_mm": list(self.point_mm)}
@@ -73,8 +100,37 @@ def check_point(point: Any) -> tuple[float, float, float]:
     return (float(point[0]), float(point[1]), float(point[2]))
 
 
-def new_mark(name: Any, point: Any, carried_from: dict[str, Any] | None = None) -> Mark:
-    return Mark(secrets.token_hex(5), check_name(name), check_point(point), utc_stamp(), carried_from)
+def new_mark(name: Any, point: Any, carried_from: dict[str, Any] | None = None, number: int = 0) -> Mark:
+    return Mark(secrets.token_hex(5), check_name(name), check_point(point), utc_stamp(), carried_from, number)
+
+
+def place_mark(book: MarkBook, mark: Mark, surface_distance_mm: float) -> Mark:
+    """``mark`` numbered after the book's last and added to it, when it lies on the body
+    (``surface_distance_mm`` from the scan's mesh) and is no existing mark's spot; raises
+    MarkOffBody or MarkDuplicate (naming the existing mark) and leaves the book as it was."""
+    if not surface_distance_mm <= ON_BODY_MM:
+        raise MarkOffBody(mark.point_mm, surface_distance_mm)
+    if book.marks:
+        others = np.array([m.point_mm for m in book.marks])
+        gaps = np.linalg.norm(others - np.array(mark.point_mm), axis=1)
+        nearest = int(np.argmin(gaps))
+        if gaps[nearest] < SAME_SPOT_MM:
+            raise MarkDuplicate(book.marks[nearest], float(gaps[nearest]))
+    placed = replace(mark, number=max((m.number for m in book.marks), default=0) + 1)
+    book.marks.append(placed)
+    return placed
+
+
+def numbered(marks: list[Mark]) -> list[Mark]:
+    """Marks from a file written without numbers numbered after the highest, in the file's order."""
+    top = max((m.number for m in marks), default=0)
+    out = []
+    for mark in marks:
+        if mark.number <= 0:
+            top += 1
+            mark = replace(mark, number=top)
+        out.append(mark)
+    return out
 
 
 def read_marks(folder: Path) -> MarkBook:
@@ -87,9 +143,9 @@ def read_marks(folder: Path) -> MarkBook:
         if data.get("format_version") != FORMAT_VERSION:
             raise MarkError(f"{path}: format_version {data.get('format_version')!r}, expected {FORMAT_VERSION}")
         marks = [Mark(str(m["id"]), check_name(m["name"]), check_point(m["point_mm"]), str(m["created_utc"]),
-                      m.get("carried_from")) for m in data["marks"]]
+                      m.get("carried_from"), int(m.get("number", 0))) for m in data["marks"]]
         previous = data.get("previous_scan")
-        return MarkBook(marks, str(previous) if previous else None)
+        return MarkBook(numbered(marks), str(previous) if previous else None)
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise MarkError(f"{path}: unreadable marks file: {exc}") from exc
 
@@ -97,6 +153,7 @@ def read_marks(folder: Path) -> MarkBook:
 def write_marks(folder: Path, book: MarkBook) -> None:
     if len(book.marks) > MAX_MARKS:
         raise MarkError(f"{len(book.marks)} marks on one scan; at most {MAX_MARKS}")
+    book.marks = numbered(book.marks)
     text = json.dumps(book.as_dict(), indent=1, allow_nan=False) + "\n"
     AtomicWriter().write(folder / MARKS, text.encode())
 

@@ -21,48 +21,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ):
         parser = subparsers.add_parser(name, help=help_text, description=help_text)
         options.socket(parser)
-        parser.add_argument("--json", action="store_true", help="print raw JSON lines")
+        parser.add_argument("--json", action="store_true",
+                            help="print the daemon's JSON, one object a line (for scripts; default: a table)")
         if name == "status":
             parser.add_argument("--follow", "-f", action="store_true",
                                 help="keep printing status events until interrupted")
         parser.set_defaults(func=run, control_cmd=name)
 
 
-def _format(message: dict[str, Any]) -> str:
-    """A status event as one readable line; a status reply as one "key: value" line per key."""
-    if "kind" in message:
-        head = f"{message.get('state')}"
-        if message.get("kind") == "transition":
-            head = f"{message.get('previous')} -> {head}"
-        data = " ".join(f"{k}={v}" for k, v in (message.get("data") or {}).items())
-        scan = f" scan={message['scan_id']}" if message.get("scan_id") else ""
-        return f"[{message.get('time_s', 0.0):10.3f}] {head}{scan}: {message.get('cause', '')} {data}".rstrip()
-    lines = []
-    for key, value in message.items():
-        if key == "fault_causes":
-            text = "; ".join(cause["text"] for cause in value) or "none"
-        elif key == "last_scan" and isinstance(value, dict):
-            text = _last_scan(value)
-        else:
-            text = json.dumps(value) if isinstance(value, (dict, list)) else str(value)
-        lines.append(f"{key}: {text}")
-    return "\n".join(lines)
-
-
-def _last_scan(report: dict[str, Any]) -> str:
-    """The last scan's outcome on one line: "sim-seed1 PARTIAL, 260 of 336 images in the folder:
-    76 of 336 images missing: cam2 28 (...); cam4 48 (48 pull failed) (/scans/...)"."""
-    planned = (report.get("verified") or 0) + (report.get("missing") or 0)
-    text = (f"{report.get('scan_id')} {report.get('outcome')}, {report.get('verified')} of {planned} "
-            "images in the folder")
-    if report.get("reason"):
-        text += f": {report['reason']}"
-    return f"{text} ({report.get('folder')})"
-
-
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
+    from cli.status_table import event_line, status_table
     from daemon.control import CommandFailed, ControlClient, ControlError, DaemonUnavailable
 
     client = ControlClient(args.socket)
@@ -71,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json or not isinstance(message, dict):
             print(json.dumps(message), flush=True)
         else:
-            print(_format(message), flush=True)
+            print(event_line(message) if "kind" in message else status_table(message), flush=True)
 
     async def go() -> None:
         if args.control_cmd == "status" and args.follow:

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from planner.design import Constraints, DesignError
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
-    configure_logging(level="warning")
+    configure_logging(level="warning", stream=sys.stderr)
     if min(args.bodies, args.verify_bodies) < 0 or min(args.plan_points, args.verify_points) < 100:
         print("tbp design: --bodies and --verify-bodies must be >= 0, --plan-points and --verify-points >= 100",
               file=sys.stderr)

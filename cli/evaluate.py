@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.evaluation_report import write
     from daemon.logs import configure_logging
 
-    configure_logging(level="warning")
+    configure_logging(level="warning", stream=sys.stderr)
     if args.bodies < 1 or args.jobs < 1 or args.plan_points < 100:
         print(f"tbp evaluate: --bodies and --jobs must be >= 1 and --points >= 100 "
               f"(got {args.bodies}, {args.jobs}, {args.plan_points})", file=sys.stderr)

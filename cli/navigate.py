@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from daemon.atomic import StoreError
     from daemon.logs import configure_logging
 
-    configure_logging(level="warning")
+    configure_logging(level="warning", stream=sys.stderr)
     try:
         answer = navigate(args.scan_dir, point=args.point, vertex=args.vertex, count=args.count,
                           rig_path=args.rig)

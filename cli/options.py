@@ -14,6 +14,9 @@ from typing import Any
 
 INSTALLED_STORE = Path("/srv/tbp-rig/scans")
 """The rig PC's scan store (systemd/tbp-rig.tmpfiles)."""
+DEV_STORE = Path("scans")
+"""The development store, relative to the working folder: simulated scans, and every command on a
+machine without the installed store."""
 STORE_ENV = "TBP_STORE"
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
@@ -58,16 +61,26 @@ def state_dir(explicit: Path | None = None) -> Path:
     return Path(state) if state else Path.home() / ".local" / "state" / "tbp-rig"
 
 
-def store(parser: argparse.ArgumentParser, default: Path | None = None) -> None:
-    """``--store DIR``; without a default, $TBP_STORE or the installed store (see :func:`store_root`)."""
-    where = default if default is not None else f"${STORE_ENV} or {INSTALLED_STORE}"
-    parser.add_argument("--store", type=Path, default=default, metavar="DIR",
-                        help=f"scan store folder (default {where})")
+def store(parser: argparse.ArgumentParser) -> None:
+    """``--store DIR`` (see :func:`store_root` for the default)."""
+    parser.add_argument("--store", type=Path, default=None, metavar="DIR",
+                        help=f"scan store folder (default ${STORE_ENV}; else with --sim ./{DEV_STORE}; else "
+                             f"{INSTALLED_STORE} where it exists, ./{DEV_STORE} where not)")
 
 
 def store_root(args: argparse.Namespace) -> Path:
-    """The scan store an invocation means: --store, else $TBP_STORE, else the installed store."""
-    return args.store or Path(os.environ.get(STORE_ENV, str(INSTALLED_STORE)))
+    """The scan store an invocation means, one rule for every command: --store; else $TBP_STORE;
+    else for a simulated rig (--sim: ``tbp scan``, ``tbp daemon``) the development store, so no
+    simulated scan lands among patients' scans; else the installed store on a rig PC (where it
+    exists) and the development store elsewhere. So on a development machine ``tbp daemon --sim``,
+    ``tbp scan --sim``, ``tbp scans`` and the daemon's viewer all use ./scans."""
+    if args.store is not None:
+        return args.store
+    if os.environ.get(STORE_ENV):
+        return Path(os.environ[STORE_ENV])
+    if getattr(args, "sim", False) or not INSTALLED_STORE.is_dir():
+        return DEV_STORE
+    return INSTALLED_STORE
 
 
 def seed(parser: argparse.ArgumentParser, help: str) -> None:

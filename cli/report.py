@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from daemon.atomic import StoreError
     from daemon.logs import configure_logging
 
-    configure_logging(level="warning")
+    configure_logging(level="warning", stream=sys.stderr)
     try:
         print(generate_report(args.scan_dir, rig_path=args.rig))
     except StoreError as exc:  # not a scan folder, a file missing or unreadable, another rig

@@ -22,15 +22,13 @@ from typing import Any
 
 from cli import options
 
-DEFAULT_STORE = Path("scans")
-
 
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser("scan", help="run one complete scan (simulated with --sim)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     options.simulated_rig(parser)
     options.time_scale(parser, None)
-    options.store(parser, DEFAULT_STORE)
+    options.store(parser)
     options.rig(parser)
     options.plan_points(parser)
     options.socket(parser)
@@ -81,18 +79,19 @@ def _simulated(args: argparse.Namespace, patient: Any) -> int:
     from analysis.qa_report import generate_report
     from daemon.errors import DaemonError
     from planner.focus_errors import FocusPlanError
-    from planner.plan import load_subject_mesh
     from planner.rig import RigConfigError
+    from sim.body import load_subject
+    from sim.body_errors import BodyError
     from sim.run import run_sim_scan
 
     try:
         report = run_sim_scan(
-            config=args.rig, store=args.store, seed=args.seed, time_scale=args.time_scale,
+            config=args.rig, store=options.store_root(args), seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
-            subject=load_subject_mesh(args.subject) if args.subject else None,
+            subject=load_subject(args.subject) if args.subject else None,
             panel=not args.no_panel, qa_report=generate_report, patient=patient,
         )
-    except (RigConfigError, FocusPlanError, DaemonError) as exc:  # DaemonError: ScanRefused (the store)
+    except (RigConfigError, FocusPlanError, DaemonError, BodyError) as exc:  # DaemonError: ScanRefused (the store)
         print(f"tbp scan: {exc}", file=sys.stderr)
         return 2
     _summary(report)

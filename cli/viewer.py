@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from web.app import make_app
     from web.server import WebServer
 
-    configure_logging(level=args.log_level, stream=sys.stdout)
+    configure_logging(level=args.log_level, stream=sys.stderr)
     try:
         host, port = parse_listen(args.http)
         access = Access(host, port, read_token(args.http_token_file) if args.http_token_file else None)

@@ -24,6 +24,7 @@ from daemon.hardware import RigHardware
 from daemon.job import RigJob
 from daemon.safety import SafetyMonitor
 from daemon.scan import Scan, ScanReport, ScanSettings
+from daemon.scan_time import job_time
 from daemon.states import ScanState, ScanStateMachine, state_groups
 from daemon.store import ScanStore, StoreError
 from daemon.utc import utc_now
@@ -33,6 +34,7 @@ from planner.calibration.installed import CalibrationMismatch, age_days, calibra
 from planner.calibration.model import Calibration, CalibrationFileError
 from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_target
 from planner.rig import Rig
+from planner.schedule import RigTime, scan_rig_time
 
 log = structlog.get_logger("daemon.controller")
 
@@ -325,6 +327,19 @@ class RigController:
 
     # ------------------------------------------------------------------ status
 
+    @functools.cached_property
+    def rig_time(self) -> RigTime:
+        """The rig time of a scan on this rig (the sweep, the reposition, the capture rotation)."""
+        return scan_rig_time(self.rig)
+
+    def job_time(self) -> dict[str, Any] | None:
+        """The running job's elapsed and remaining time (daemon/scan_time.py); None without one."""
+        if not self.busy or self.current is None:
+            return None
+        machine = self.machine
+        return job_time(machine.state, machine.started_s, machine.entered_s, asyncio.get_running_loop().time(),
+                        self.rig_time if self.current.kind == "scan" else None)
+
     def status(self) -> dict[str, Any]:
         """The rig's state for the control API."""
         latest = self.tracker.latest
@@ -332,6 +347,7 @@ class RigController:
             "state": self.machine.state.value,
             "states": state_groups(),
             "scan_id": self.machine.scan_id,
+            "job_time": self.job_time(),
             "fault_causes": [cause.as_dict() for cause in self.safety.causes],
             "beam_angle_deg": None if latest is None else latest.angle_deg,
             "beam_speed_deg_s": None if latest is None else latest.speed_deg_s,

@@ -186,7 +186,7 @@ class RigJob:
         await self.store()
         if self.machine.state is not ScanState.FAULT:  # a trip while storing keeps FAULT latched
             self.machine.transition(ScanState.IDLE, f"{self.kind} {report.outcome.value.lower()}",
-                                    **self.end_data())
+                                    outcome=report.outcome.value, **self.end_data())
         self.machine.scan_id = None
 
     def error_cause(self, error: BaseException) -> AbortCause:

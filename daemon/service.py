@@ -289,6 +289,11 @@ class RigService:
         await self.controller.reset("control API reset")
         return {"state": self.controller.machine.state.value}
 
+    def recent_events(self) -> list[dict[str, Any]]:
+        """The latest transitions and progress events, oldest first, without the per-image counts
+        (``ScanStateMachine.recent``): what a console opened now shows as its history."""
+        return [event.as_dict() for event in self.controller.machine.recent]
+
     async def subscribe(self) -> AsyncIterator[dict[str, Any]]:
         async for event in self.controller.machine.subscribe():
             yield event.as_dict()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import enum
+from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ import structlog
 
 from daemon.errors import IllegalTransition
 from daemon.faults import Cause, FaultCause
+from daemon.utc import utc_stamp
 
 log = structlog.get_logger("daemon.states")
 
@@ -100,9 +102,12 @@ class StatusEvent:
         state: the state after the event.
         previous: the state before a transition (same as ``state`` for progress).
         cause: why: in words, or a typed :class:`Cause` (every FAULT, every abort).
-        time_s: event-loop clock, s.
+        time_s: event-loop clock, s (durations between events; virtual in simulated scans).
         scan_id: the scan the event belongs to, or None outside a scan.
         data: extra key-value facts (counts, angles); JSON-serialisable.
+        utc: calendar time of the event, ISO 8601 UTC (what a person reads as a clock time).
+        seq: the machine's running event number (a client joining the stream's history to
+            the live events drops the ones it already has).
     """
 
     kind: str
@@ -112,6 +117,8 @@ class StatusEvent:
     time_s: float
     scan_id: str | None = None
     data: dict[str, Any] = field(default_factory=dict)
+    utc: str = ""
+    seq: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able; ``cause`` is the text, ``source`` and ``device`` are set for typed causes."""
@@ -126,6 +133,8 @@ class StatusEvent:
             "time_s": self.time_s,
             "scan_id": self.scan_id,
             "data": dict(self.data),
+            "utc": self.utc,
+            "seq": self.seq,
         }
 
 
@@ -137,6 +146,10 @@ class ScanStateMachine:
     """
 
     QUEUE_SIZE = 256
+    RECENT_SIZE = 200
+    """Events kept in :attr:`recent` (a console opened later shows them)."""
+    COUNTER_CAUSES = frozenset({"captured", "verified"})
+    """Per-image progress counts: the console's bars carry them, :attr:`recent` keeps none."""
 
     def __init__(self, *, name: str = "rig") -> None:
         self.name = name
@@ -146,6 +159,13 @@ class ScanStateMachine:
         self.faults_latched = 0
         """Fault causes latched since the machine was made (a reset does not lower it)."""
         self.history: list[StatusEvent] = []
+        self.recent: deque[StatusEvent] = deque(maxlen=self.RECENT_SIZE)
+        """The latest transitions and progress events other than the per-image counts."""
+        self.entered_s = 0.0
+        """Event-loop time of the last transition (when the current state began)."""
+        self.started_s = 0.0
+        """Event-loop time the machine last left IDLE (when the current job began)."""
+        self._seq = 0
         self._subscribers: set[asyncio.Queue[StatusEvent]] = set()
         self._changed = asyncio.Event()
 
@@ -217,14 +237,21 @@ class ScanStateMachine:
             now = asyncio.get_running_loop().time()
         except RuntimeError:
             now = 0.0
-        event = StatusEvent(kind, to, self.state, cause, now, self.scan_id, data)
+        self._seq += 1
+        event = StatusEvent(kind, to, self.state, cause, now, self.scan_id, data, utc=utc_stamp(), seq=self._seq)
         if kind == "transition":
             log.info("scan_transition", rig=self.name, previous=self.state.value,
                      state=to.value, cause=str(cause), scan_id=self.scan_id, **data)
         else:
             log.debug("scan_progress", rig=self.name, state=to.value, cause=str(cause), **data)
         self.state = to
+        if kind == "transition":
+            self.entered_s = now
+            if event.previous is ScanState.IDLE:
+                self.started_s = now
         self.history.append(event)
+        if kind == "transition" or str(cause) not in self.COUNTER_CAUSES:
+            self.recent.append(event)
         if len(self.history) > 4 * self.QUEUE_SIZE:
             del self.history[: self.QUEUE_SIZE]
         for queue in self._subscribers:

@@ -35,6 +35,7 @@ __all__ = [
     "Phenotype",
     "generate_body",
     "load_body",
+    "load_subject",
     "make_body",
     "adult_of_stature",
     "random_adult_phenotype",
@@ -302,17 +303,50 @@ def _write_cached(path: Path, body: Body) -> None:
         log.warning("body_cache_not_written", path=str(path), error=str(exc))
 
 
+SKIN_PROPERTIES = ("skin_x", "skin_y", "skin_z")
+"""The PLY vertex properties (float, mm) holding a body's skin coordinates (``vertex_attributes
+["skin_mm"]``: each vertex's place on the unswayed body, where the simulated freckles are fixed)."""
+
+
 def save_body(mesh: trimesh.Trimesh, path: str | Path) -> None:
-    """Write a body mesh (mm) as binary PLY (or any format trimesh knows from the suffix)."""
+    """Write a body mesh (mm) as binary PLY (or any format trimesh knows from the suffix).
+
+    Its skin coordinates, when it has them, are written as the vertex properties
+    :data:`SKIN_PROPERTIES`, so a body read back (:func:`load_body`, :func:`load_subject`) shows the
+    same skin; a format that cannot hold them is refused rather than losing the subject's skin."""
     path = Path(path)
+    out = mesh.copy()
+    skin = out.vertex_attributes.pop("skin_mm", None)
+    if skin is not None:
+        if path.suffix.lower() != ".ply":
+            raise BodyFileError(path, f"a {path.suffix or 'suffix-less'} file cannot hold the body's skin "
+                                      "coordinates; write .ply")
+        for k, name in enumerate(SKIN_PROPERTIES):
+            out.vertex_attributes[name] = np.asarray(skin, dtype=np.float32)[:, k]
     try:
-        mesh.export(path)
+        out.export(path)
     except (OSError, ValueError) as exc:
         raise BodyFileError(path, f"cannot write: {exc}") from exc
 
 
+def with_skin(mesh: trimesh.Trimesh, path: Path) -> trimesh.Trimesh:
+    """``mesh`` as read from ``path`` with the skin coordinates its PLY vertices carry, if any, as
+    ``vertex_attributes["skin_mm"]``; BodyFileError when they no longer match the vertices (the
+    reader merged or reordered them)."""
+    raw = mesh.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+    if raw is None or raw.dtype.names is None or not set(SKIN_PROPERTIES) <= set(raw.dtype.names):
+        return mesh
+    xyz = np.stack([raw[c] for c in "xyz"], axis=1).astype(float)
+    if xyz.shape != mesh.vertices.shape or not np.array_equal(xyz, np.asarray(mesh.vertices)):
+        raise BodyFileError(path, "its vertices changed when read (merged or reordered): its skin coordinates "
+                                  "no longer match them")
+    mesh.vertex_attributes["skin_mm"] = np.stack([raw[name] for name in SKIN_PROPERTIES], axis=1).astype(float)
+    return mesh
+
+
 def load_body(path: str | Path) -> trimesh.Trimesh:
-    """Read a body mesh (mm) written by save_body or another tool; it must be one closed surface."""
+    """Read a body mesh (mm) written by save_body or another tool; it must be one closed surface.
+    Skin coordinates written by save_body come back as ``vertex_attributes["skin_mm"]``."""
     path = Path(path)
     try:
         mesh = trimesh.load(path, force="mesh")
@@ -322,4 +356,13 @@ def load_body(path: str | Path) -> trimesh.Trimesh:
         raise BodyFileError(path, "holds no triangles")
     if not mesh.is_watertight:
         raise BodyFileError(path, "is not watertight")
-    return mesh
+    return with_skin(mesh, path)
+
+
+def load_subject(path: str | Path) -> trimesh.Trimesh:
+    """The simulated world's subject from a mesh file (``--subject``): the planner's mesh reader
+    (size and type checked) and the skin coordinates ``tbp body`` wrote, so each visit of one
+    person shows the same freckles on the same skin."""
+    from planner.plan import load_subject_mesh
+
+    return with_skin(load_subject_mesh(path), Path(path))

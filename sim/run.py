@@ -112,10 +112,10 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
     from daemon.notify import SystemdNotifier
     from daemon.service import RigService
     from daemon.worker import compute_pool
-    from planner.plan import load_subject_mesh
+    from sim.body import load_subject
 
     rig = load_rig(config or DEFAULT_RIG_PATH)
-    subject = load_subject_mesh(subject_path) if subject_path is not None else None
+    subject = load_subject(subject_path) if subject_path is not None else None
     hardware, _world = await build_sim_rig(
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     stop = asyncio.Event()

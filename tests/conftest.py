@@ -35,7 +35,10 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 def _structlog_defaults() -> Iterator[None]:
     """A CLI run in-process binds structlog to pytest's captured stdout, which closes after the
     test; put the defaults back so later tests never log into a closed stream."""
+    from daemon.logs import close_logging
+
     yield
+    close_logging()
     structlog.reset_defaults()
 
 

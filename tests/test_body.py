@@ -313,6 +313,29 @@ def test_save_and_load_round_trip(tmp_path, average) -> None:
     assert np.allclose(loaded.bounds, average.mesh.bounds, atol=1e-3)
 
 
+def test_two_visits_of_one_person_written_and_read_back_keep_the_same_skin(tmp_path) -> None:
+    """tbp body writes each vertex's skin coordinates; reading the file (as a --subject) keeps them,
+    so the simulated phones draw the same freckles on the same skin in a swayed later visit."""
+    from drivers.sim.skin_texture import pigment
+    from sim.body import load_subject
+
+    visits = []
+    for k, sway in enumerate((0.0, 2.0)):
+        path = tmp_path / f"visit{k}.ply"
+        save_body(generate_body(seed=3, sway_deg=sway, sway_seed=307).mesh, path)
+        visits.append(load_subject(path))
+    first, later = visits
+    assert not np.allclose(first.vertices, later.vertices)  # the person stands otherwise...
+    skin = [np.asarray(v.vertex_attributes["skin_mm"]) for v in visits]
+    assert np.allclose(skin[0], skin[1]) and np.allclose(skin[0], first.vertices, atol=1e-3)
+    spots = pigment(skin[0])
+    assert np.array_equal(spots, pigment(skin[1]))  # ...with the same freckles on the same skin
+    assert not np.array_equal(spots, pigment(later.vertices))
+    assert np.allclose(load_body(tmp_path / "visit1.ply").vertex_attributes["skin_mm"], skin[1])
+    with pytest.raises(BodyFileError, match="cannot hold the body's skin coordinates"):
+        save_body(generate_body(seed=3).mesh, tmp_path / "visit.stl")
+
+
 def test_load_refuses_bad_files(tmp_path) -> None:
     with pytest.raises(BodyFileError, match="cannot read"):
         load_body(tmp_path / "missing.ply")

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from cli import build_parser
-from cli.options import INSTALLED_STORE, STORE_ENV, store_root
+from cli.options import DEV_STORE, STORE_ENV, store_root
 
 
 def _commands(parser: argparse.ArgumentParser, prefix: str = "") -> dict[str, argparse.ArgumentParser]:
@@ -62,17 +62,37 @@ def test_old_and_new_spellings_parse_to_one_destination(argv: list[str], dest: s
     assert getattr(build_parser().parse_args(argv), dest) == value
 
 
-def test_the_daemon_and_the_scan_list_default_to_the_same_store(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_dev_commands_the_daemon_and_the_scan_list_default_to_one_store(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from cli import options
+
     parser = build_parser()
     monkeypatch.delenv(STORE_ENV, raising=False)
-    assert store_root(parser.parse_args(["daemon"])) == store_root(parser.parse_args(["scans"])) == INSTALLED_STORE
+    monkeypatch.setattr(options, "INSTALLED_STORE", tmp_path / "srv" / "scans")  # a development machine
+    dev = [["daemon", "--sim"], ["scan", "--sim"], ["scans"], ["daemon"]]
+    assert {store_root(parser.parse_args(argv)) for argv in dev} == {DEV_STORE}
+    options.INSTALLED_STORE.mkdir(parents=True)  # a rig PC: the real daemon and the list read the installed store
+    assert store_root(parser.parse_args(["daemon"])) == store_root(parser.parse_args(["scans"])) == options.INSTALLED_STORE
+    assert store_root(parser.parse_args(["daemon", "--sim"])) == DEV_STORE  # a simulated scan never lands there
     monkeypatch.setenv(STORE_ENV, "/data/scans")
-    assert store_root(parser.parse_args(["daemon"])) == Path("/data/scans")
+    assert {store_root(parser.parse_args(argv)) for argv in dev} == {Path("/data/scans")}
     assert store_root(parser.parse_args(["scans", "--store", "here"])) == Path("here")
-    assert parser.parse_args(["scan"]).store == Path("scans")  # a simulated scan stays local
 
 
 def test_a_log_level_outside_the_four_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         build_parser().parse_args(["daemon", "--log-level", "loud"])
     assert "invalid choice: 'loud'" in capsys.readouterr().err
+
+
+def test_a_command_logs_on_stderr_and_leaves_stdout_to_its_results(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    import structlog
+
+    from cli import main
+
+    (tmp_path / "store").mkdir()
+    assert main(["scans", "--store", str(tmp_path / "store")]) == 0
+    structlog.get_logger("tbp.plan").info("plan_progress", step=1)
+    captured = capsys.readouterr()
+    assert "plan_progress" in captured.err and "plan_progress" not in captured.out

@@ -219,7 +219,7 @@ def test_cli_status_abort_reset(sock, capsys):
         assert ready.wait(10)
         assert tbp_main(["status", "--socket", str(sock)]) == 0
         out = capsys.readouterr().out.splitlines()
-        assert out[-2:] == ["state: IDLE", "faults: []"]
+        assert out[-2:] == ["State        IDLE", "faults       []"]
         assert tbp_main(["status", "--json", "--socket", str(sock)]) == 0
         # the server's log lines share this process's stdout; the reply is the last line
         assert json.loads(capsys.readouterr().out.splitlines()[-1])["state"] == "IDLE"
@@ -233,25 +233,52 @@ def test_cli_status_abort_reset(sock, capsys):
     assert "not reachable" in capsys.readouterr().err
 
 
-def test_cli_formats_status_events_on_one_line():
-    from cli.control import _format
+def test_cli_formats_status_events_on_one_line_at_their_clock_time():
+    from datetime import datetime
 
-    line = _format({"kind": "transition", "state": "FAULT", "previous": "CAPTURING",
-                    "cause": "e-stop pressed", "time_s": 41.25, "scan_id": "abc123",
-                    "data": {"angle_index": 17}})
-    assert line == "[    41.250] CAPTURING -> FAULT scan=abc123: e-stop pressed angle_index=17"
-    progress = _format({"kind": "progress", "state": "CAPTURING", "previous": "CAPTURING",
-                        "cause": "captured", "time_s": 3.0, "scan_id": None, "data": {}})
-    assert progress == "[     3.000] CAPTURING: captured"
-    status = _format({"state": "FAULT", "fault_causes": [
-        FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed").as_dict(),
-        FaultCause(FaultSource.DRIVE_FAULT, "beam", "EMCY 0x5441").as_dict()]})
-    assert status == "state: FAULT\nfault_causes: panel: e-stop pressed; beam: EMCY 0x5441"
-    last = _format({"last_scan": {"scan_id": "abc123", "outcome": "PARTIAL", "verified": 290, "missing": 46,
-                                  "reason": "46 of 336 images missing: cam2 46 (43 phone dropped, 3 capture missed)",
-                                  "folder": "/scans/x"}})
-    assert last == ("last_scan: abc123 PARTIAL, 290 of 336 images in the folder: 46 of 336 images missing: "
-                    "cam2 46 (43 phone dropped, 3 capture missed) (/scans/x)")
+    from cli.status_table import event_line
+
+    utc = "2025-03-04T13:02:07.250000+00:00"
+    local = datetime.fromisoformat(utc).astimezone().strftime("%H:%M:%S")
+    line = event_line({"kind": "transition", "state": "FAULT", "previous": "CAPTURING",
+                       "cause": "e-stop pressed", "time_s": 41.25, "scan_id": "abc123", "utc": utc,
+                       "data": {"angle_index": 17}})
+    assert line == f"[{local}] CAPTURING -> FAULT scan=abc123: e-stop pressed angle_index=17"
+    progress = event_line({"kind": "progress", "state": "CAPTURING", "previous": "CAPTURING",
+                           "cause": "captured", "time_s": 3.0, "scan_id": None, "data": {}, "utc": utc})
+    assert progress == f"[{local}] CAPTURING: captured"
+
+
+def test_cli_status_is_a_table_a_person_reads():
+    from cli.status_table import status_table
+
+    status = {"state": "CAPTURING", "scan_id": "abc123",
+              "job_time": {"elapsed_s": 65.2, "state_s": 10.0, "remaining_s": 130.4},
+              "states": {"active": [], "job": []}, "healthy": True, "health_problems": [], "ready": True,
+              "beam_angle_deg": 123.44, "beam_speed_deg_s": 12.0,
+              "fault_causes": [FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed").as_dict(),
+                               FaultCause(FaultSource.DRIVE_FAULT, "beam", "EMCY 0x5441").as_dict()],
+              "devices": [{"device": "drive", "ok": True, "address": "can0"},
+                          {"device": "cam0", "ok": False, "address": "usb:1", "error": "no reply",
+                           "check": "check the cable"}],
+              "last_scan": {"scan_id": "abc123", "outcome": "PARTIAL", "verified": 290, "missing": 46,
+                            "reason": "46 of 336 images missing: cam2 46 (43 phone dropped, 3 capture missed)",
+                            "folder": "/scans/x"},
+              "recovered_scans": [], "loop_lag": {"IDLE": {"samples": 9, "p50_ms": 0.1, "p99_ms": 1.5, "max_ms": 2.0}},
+              "something_new": {"a": 1}}
+    assert status_table(status).splitlines() == [
+        "State        CAPTURING (scan abc123; elapsed 1 min 05 s, about 2 min 10 s of the beam's schedule left)",
+        "Daemon       healthy",
+        "Rig          ready",
+        "Beam         123.4 deg at 12.0 deg/s",
+        "Faults       panel: e-stop pressed; beam: EMCY 0x5441",
+        "Devices      drive  answers  can0",
+        "             cam0   MISSING  usb:1: no reply; check the cable",
+        "Last scan    abc123 PARTIAL, 290 of 336 images in the folder: 46 of 336 images missing: "
+        "cam2 46 (43 phone dropped, 3 capture missed) (/scans/x)",
+        "Loop lag     IDLE: p50 0.1 / p99 1.5 / max 2.0 ms",
+        'something_new {"a": 1}',
+    ]
 
 
 def test_cli_status_follow_streams_until_the_daemon_goes(sock, capsys):

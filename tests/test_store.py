@@ -336,7 +336,13 @@ def test_check_and_tbp_scans_find_a_damaged_image(tmp_path, rig, capsys):
     folder.finish(ScanEnd.COMPLETE)
     assert folder.check() == []
     assert tbp_main(["scans", "--store", str(tmp_path), "--check"]) == 0
-    assert "partial" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "partial" in out
+    listed = len(folder.manifest.files)
+    assert (f"    checked: 1 verified images re-read (size and SHA-256), {listed} listed files present: "
+            "all as the manifest records") in out
+    assert out.splitlines()[-1] == (f"--check: 1 scans, 1 verified images re-read (size and SHA-256), "
+                                    f"{listed} listed files present; 0 problems")
 
     image.write_bytes(b"pixelz")  # bit rot
     asyncio.run(folder.write_plan({}, {}))

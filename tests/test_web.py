@@ -162,11 +162,12 @@ async def test_marks_are_saved_beside_the_scan_and_never_touch_its_record(scan_s
     before = {p: p.read_bytes() for p in [folder / "manifest.json", *sorted((folder / "images").iterdir())]}
     client = await client_for(scan_store)
     try:
-        reply = await client.post(f"/api/scans/{name}/marks", json={"name": "naevus, left flank", "point_mm": [1, 2, 3]})
+        on_skin = (await (await client.get(f"/api/scans/{name}/navigate", params={"vertex": 4242})).json())["point_mm"]
+        reply = await client.post(f"/api/scans/{name}/marks", json={"name": "naevus, left flank", "point_mm": on_skin})
         assert reply.status == 201
         mark = await reply.json()
         listed = await (await client.get(f"/api/scans/{name}/marks")).json()
-        assert [m["name"] for m in listed["marks"]] == ["naevus, left flank"]
+        assert [(m["name"], m["number"]) for m in listed["marks"]] == [("naevus, left flank", 1)]
         assert json.loads((folder / MARKS).read_text())["marks"][0]["id"] == mark["id"]
         assert (await client.delete(f"/api/scans/{name}/marks/{mark['id']}", json={})).status == 200
         assert (await (await client.get(f"/api/scans/{name}/marks")).json())["marks"] == []
@@ -461,5 +462,95 @@ async def test_a_scan_is_read_off_the_loop_once_per_manifest_and_again_when_it_i
         detail = await (await client.get(f"/api/scans/{name}")).json()
         assert detail["images"][0]["error"] == "re-checked" and len(reads) == 2
         assert threading.current_thread().name not in reads
+    finally:
+        await client.close()
+
+
+class MachineService:
+    """The rig handler's status, history and events, from a real state machine."""
+
+    def __init__(self) -> None:
+        from daemon.states import ScanStateMachine
+
+        self.machine = ScanStateMachine()
+
+    def status(self):
+        return {"state": self.machine.state.value}
+
+    def recent_events(self):
+        return [e.as_dict() for e in self.machine.recent]
+
+    async def subscribe(self):
+        async for event in self.machine.subscribe():
+            yield event.as_dict()
+
+
+async def _sse_until(response, kind: str) -> list[tuple[str, Any]]:
+    """(event, data) pairs read from a Server-Sent Events stream up to the first ``kind``."""
+    got: list[tuple[str, Any]] = []
+    event = None
+    while True:
+        line = (await response.content.readline()).decode().rstrip("\n")
+        if line.startswith("event: "):
+            event = line[7:]
+        elif line.startswith("data: "):
+            got.append((event, json.loads(line[6:])))
+            if event == kind:
+                return got
+
+
+async def test_the_event_stream_starts_with_the_history_then_only_new_events(scan_store):
+    from daemon.states import ScanState
+
+    service = MachineService()
+    service.machine.transition(ScanState.PREPARING, "scan requested")
+    service.machine.progress("captured", captured=1)
+    service.machine.progress("phone_dropped", camera="cam2")
+    client = await client_for(scan_store, service=service)
+    try:
+        response = await client.get("/api/rig/events")
+        first = await _sse_until(response, "status")
+        assert [kind for kind, _ in first] == ["history", "status"]
+        history = first[0][1]
+        assert [e["cause"] for e in history] == ["scan requested", "phone_dropped"]
+        assert all(e["utc"] and e["seq"] for e in history)
+        service.machine.transition(ScanState.ABORTING, "abort")
+        live = [data for kind, data in await _sse_until(response, "rig") if kind == "rig"]
+        assert live[-1]["cause"] == "abort" and live[-1]["seq"] > history[-1]["seq"]
+        response.close()
+    finally:
+        await client.close()
+
+
+async def test_a_mark_off_the_body_or_on_an_existing_mark_is_refused_naming_why(scan_store):
+    """Marks lie on the body (within 5 mm of the mesh) and one spot has one mark; each refusal says
+    why (the distance; the existing mark's number and name) and stores nothing."""
+    import numpy as np
+
+    name = folder_of(scan_store)
+    client = await client_for(scan_store)
+    marks = f"/api/scans/{name}/marks"
+    try:
+        spot = (await (await client.get(f"/api/scans/{name}/navigate", params={"vertex": 4242})).json())
+        point = np.array(spot["point_mm"])
+        first = await client.post(marks, json={"name": "naevus", "point_mm": point.tolist()})
+        assert first.status == 201 and (await first.json())["number"] == 1
+        far = (point + np.array([5000.0, 0.0, 0.0])).tolist()
+        off = await client.post(marks, json={"name": "nowhere", "point_mm": far})
+        error = (await off.json())["error"]
+        assert off.status == 400 and error["type"] == "MarkOffBody", error
+        assert "mm from this scan's body surface" in error["message"] and "within 5 mm" in error["message"]
+        again = await client.post(marks, json={"name": "naevus again", "point_mm": (point + [0.0, 0.0, 1.0]).tolist()})
+        error = (await again.json())["error"]
+        assert again.status == 409 and error["type"] == "MarkDuplicate"
+        assert "mark 1 'naevus' is 1.0 mm from this point" in error["message"], error
+        empty = await client.post(marks, json={"name": "  ", "point_mm": point.tolist()})
+        assert empty.status == 400 and "give a name" in (await empty.json())["error"]["message"]
+        other = (await (await client.get(f"/api/scans/{name}/navigate", params={"vertex": 777})).json())["point_mm"]
+        second = await client.post(marks, json={"name": "lentigo", "point_mm": other})
+        assert second.status == 201 and (await second.json())["number"] == 2
+        listed = await (await client.get(marks)).json()
+        assert [(m["number"], m["name"]) for m in listed["marks"]] == [(1, "naevus"), (2, "lentigo")]
+        assert all(m["region"] for m in listed["marks"]) and listed["body"]["z_max_mm"] > 1000.0
     finally:
         await client.close()

@@ -113,6 +113,11 @@ def test_a_partial_scan_is_flagged_over_its_body_and_in_the_list_and_its_sharp_s
         rows = {r.get_attribute("data-folder"): r.text for r in driver.find_elements("css selector", "#scans tbody tr")}
         assert "partial: images missing" in rows[partial] and "cam2 10 (10 phone dropped)" in rows[partial]
         assert "complete" in rows[name] and f"{100 * sharp:.1f} %" in rows[name]
+        visits = {v.get_attribute("data-folder"): v.text for v in driver.find_elements("css selector", "#patients .visit")}
+        assert "partial: images missing" in visits[partial] and "partial" not in visits[name]
+        assert f"sharp skin {100 * sharp:.1f} %" in visits[name]
+        driver.get(f"{url}/scans/{name}/report/")  # the QA report names and shows the same figure
+        assert f"Sharp skin: {100 * sharp:.1f} %" in driver.find_element("tag name", "body").text
 
 
 def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
@@ -158,6 +163,38 @@ def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_
     assert then.path.split("/images/")[1] == now.path.split("/images/")[1]  # the same picture...
     pixel = [np.array([float(urllib.parse.parse_qs(u.query)[k][0]) for k in "uv"]) for u in (then, now)]
     assert np.linalg.norm(pixel[0] - pixel[1]) < 3.0  # ...and the same place in it
+
+
+def test_marks_are_numbered_on_the_body_listed_by_region_and_every_refusal_is_shown(web_store, tmp_path):
+    """A mark is placed from the page: an empty name is refused on the page, the mark gets its
+    number as a label on the body and in the list under its body region, and the same spot marked
+    again is refused naming the mark already there."""
+    name = folder_of(web_store)
+    store = tmp_path / "store"
+    shutil.copytree(web_store / name, store / name)
+    point = open_scan(store / name).mesh().vertices[front_vertex(store / name)].tolist()
+    with serve_in_thread(store) as url, chromium() as driver:
+        driver.get(f"{url}/scans/{name}#x={point[0]}&y={point[1]}&z={point[2]}")
+        wait_for(driver, "window.tbpViewer.lastAnswer && document.querySelector('#add-mark')", 120)
+        driver.find_element("css selector", ".tabs button[data-pane='marks']").click()
+        driver.find_element("id", "add-mark").click()
+        error = wait_for(driver, "document.querySelector('#marks-error').textContent")
+        assert "give a name" in error
+        driver.find_element("id", "mark-name").send_keys("naevus")
+        driver.find_element("id", "add-mark").click()
+        wait_for(driver, "window.tbpViewer.marks.labels.length === 1 && document.querySelector('#marks .mark')")
+        assert driver.execute_script("return window.tbpViewer.marks.labels.map(l => [l.text, l.name])") == [["1", "naevus"]]
+        rows = driver.execute_script("return Array.from(document.querySelectorAll('#marks .mark')).map(r => "
+                                     "[r.previousElementSibling.textContent, r.dataset.number, r.querySelector('b').textContent])")
+        assert rows == [["trunk, front", "1", "naevus"]]
+        assert driver.execute_script("return document.querySelector('#marks-error').textContent") == ""
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(SHOTS / "viewer-numbered-mark.png"))
+        driver.find_element("id", "mark-name").send_keys("the same naevus")
+        driver.find_element("id", "add-mark").click()
+        error = wait_for(driver, "document.querySelector('#marks-error').textContent")
+        assert "MarkDuplicate" in error and "mark 1 'naevus'" in error
+        assert driver.execute_script("return window.tbpViewer.marks.labels.length") == 1
 
 
 def _free_port() -> int:

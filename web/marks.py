@@ -1,5 +1,11 @@
 """Lesion marks over the web: list (with the marks carried from the earlier scan), add, delete,
-and name the earlier scan to compare with. Writes pass the access policy first."""
+and name the earlier scan to compare with. Writes pass the access policy first.
+
+Each listed mark has its number (the label on the body) and its body region
+(analysis/body_regions.py, from this scan's mesh; the list groups by it). A new mark is refused
+with the reason, never stored: an empty name (400), a point farther than ``ON_BODY_MM`` from this
+scan's body surface (400, ``MarkOffBody``, naming the distance), a point within ``SAME_SPOT_MM`` of
+an existing mark (409, ``MarkDuplicate``, naming that mark)."""
 
 from __future__ import annotations
 
@@ -12,8 +18,18 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
+from analysis.body_regions import REGIONS, BodyFrame
 from analysis.mark_match import PictureMatcher
-from analysis.marks import MarkBook, MarkError, check_mark_id, new_mark, read_marks, write_marks
+from analysis.marks import (
+    MarkBook,
+    MarkDuplicate,
+    MarkError,
+    check_mark_id,
+    new_mark,
+    place_mark,
+    read_marks,
+    write_marks,
+)
 from analysis.registration import MarkCarrier, RegistrationError
 from web import keys
 from web.patients import check_same_patient
@@ -94,13 +110,31 @@ def _book(folder: Any) -> MarkBook:
         raise json_error(web.HTTPConflict, exc) from exc
 
 
+async def _frame(library: ScanLibrary, name: str) -> BodyFrame | None:
+    """The body frame of a scan's mesh (None for a scan without one)."""
+    scan = await library.opened(name)
+    if "mesh" not in scan.record.manifest.files:
+        return None
+    return await _off_loop(lambda: BodyFrame.of_vertices(np.asarray(scan.mesh_now().vertices)))
+
+
+def _with_regions(frame: BodyFrame | None, marks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    regions = frame.regions([m["point_mm"] for m in marks]) if frame is not None and marks else [None] * len(marks)
+    return [{**m, "region": r} for m, r in zip(marks, regions)]
+
+
 async def list_marks(request: web.Request) -> web.Response:
-    """This scan's marks, and the earlier scan's marks carried onto this body."""
+    """This scan's marks, and the earlier scan's marks carried onto this body, each with its body
+    region; ``body``: the body frame the regions are of (the viewer sets the labels off the skin
+    away from its axis)."""
     library = _library(request)
     name = request.match_info["folder"]
     book = _book(library.folder(name))
-    out: dict[str, Any] = {"previous_scan": book.previous_scan, "marks": [m.as_dict() for m in book.marks],
-                           "carried": [], "registration": None}
+    frame = await _frame(library, name)
+    out: dict[str, Any] = {"previous_scan": book.previous_scan,
+                           "marks": _with_regions(frame, [m.as_dict() for m in book.marks]),
+                           "carried": [], "registration": None, "body": None if frame is None else frame.as_dict(),
+                           "regions": list(REGIONS)}
     if book.previous_scan:
         earlier = _book(library.folder(book.previous_scan))
         try:
@@ -116,25 +150,40 @@ async def list_marks(request: web.Request) -> web.Response:
                 out["registration"] = {"error": str(exc)}
             else:
                 out["registration"] = {"fitness": pair.carrier.whole.fitness, "rmse_mm": pair.carrier.whole.rmse_mm}
-                out["carried"] = [
+                out["carried"] = _with_regions(frame, [
                     {**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm), "fit_rmse_mm": float(r),
                      "placed_by": "shape" if np.isnan(score) else "pictures",
                      "picture_score": None if np.isnan(score) else float(score),
                      "surface_gap_mm": float(gap), "in_doubt": bool(doubt)}
-                    for m, (p, r, score, gap, doubt) in zip(earlier.marks, places)]
+                    for m, (p, r, score, gap, doubt) in zip(earlier.marks, places)])
     return web.json_response(out)
+
+
+async def _surface_distance_mm(library: ScanLibrary, name: str, point: tuple[float, float, float]) -> float:
+    """How far ``point`` is from the scan's mesh surface (mm); 409 for a scan without a mesh."""
+    scan = await library.opened(name)
+    if "mesh" not in scan.record.manifest.files:
+        raise json_error(web.HTTPConflict, f"scan {name} has no body mesh: marks lie on the body")
+    navigator = await scan.navigator_ready()
+    closest, _ = await _off_loop(navigator.scene.closest_faces, np.array([point]))
+    return float(np.linalg.norm(closest[0] - np.array(point)))
 
 
 async def add_mark(request: web.Request) -> web.Response:
     body = await read_json(request)
-    folder = _library(request).folder(request.match_info["folder"])
+    library = _library(request)
+    name = request.match_info["folder"]
+    folder = library.folder(name)
     try:
         mark = new_mark(body.get("name"), body.get("point_mm"), body.get("carried_from"))
         if mark.carried_from is not None and not isinstance(mark.carried_from, dict):
             raise MarkError(f"carried_from {mark.carried_from!r}: expected an object")
+        distance = await _surface_distance_mm(library, name, mark.point_mm)
         book = _book(folder)
-        book.marks.append(mark)
+        mark = place_mark(book, mark, distance)
         await _off_loop(write_marks, folder, book)
+    except MarkDuplicate as exc:
+        raise json_error(web.HTTPConflict, exc) from exc
     except MarkError as exc:
         raise json_error(web.HTTPBadRequest, exc) from exc
     return web.json_response(mark.as_dict(), status=201)

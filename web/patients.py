@@ -33,8 +33,8 @@ def group_by_patient(rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], 
             continue
         entry = patients.setdefault(patient["patient_id"], {**patient, "visits": []})
         entry["visits"].append({k: row.get(k) for k in (
-            "folder", "scan_id", "created_utc", "state", "in_progress", "counts", "has_mesh", "report", "marks",
-            "accession_number")})
+            "folder", "scan_id", "created_utc", "state", "in_progress", "reason", "missing", "counts", "has_mesh",
+            "report", "marks", "sharp_skin", "accession_number")})
     ordered = sorted(patients.values(), key=lambda p: (p["name"].casefold(), p["patient_id"]))
     return ordered, nobody
 

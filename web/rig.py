@@ -2,9 +2,11 @@
 
 Every action calls the daemon's control handler (daemon.service.RigService), the same object
 that serves the control socket and the panel's buttons; refusals come back as 409 with the
-handler's error type and message. Events are Server-Sent Events: the status first, then each
-state change and progress event as the state machine publishes it, and the status again every
-STATUS_PERIOD_S (beam angle) while the stream is open.
+handler's error type and message. Events are Server-Sent Events: the recent events first
+(``history``: the daemon's bounded buffer, so a console opened mid-scan shows what happened), the
+status, then each state change and progress event as the state machine publishes it (each with its
+``seq``: the client drops those the history already held), and the status again every
+STATUS_PERIOD_S (beam angle, elapsed and remaining time) while the stream is open.
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ async def events(request: web.Request) -> web.StreamResponse:
     closing: asyncio.Event = request.app[keys.CLOSING]
     stop = asyncio.ensure_future(closing.wait())
     try:
-        await stream.write(b"retry: 2000\n\n" + _sse("status", service.status()))
+        await stream.write(b"retry: 2000\n\n" + _sse("history", service.recent_events())
+                           + _sse("status", service.status()))
         while True:
             done, _ = await asyncio.wait({nxt, stop}, timeout=STATUS_PERIOD_S, return_when=asyncio.FIRST_COMPLETED)
             if stop in done:

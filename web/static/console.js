@@ -32,6 +32,7 @@ function showStatus(s) {
   $("angle").textContent = s.beam_angle_deg === null ? "–" : `${fmt(s.beam_angle_deg, 1)}°`;
   $("speed").textContent = s.beam_speed_deg_s === null ? "–" : `${fmt(s.beam_speed_deg_s, 1)}°/s`;
   $("scan-id").textContent = s.scan_id || "";
+  showJobTime(s.job_time);
   const devices = $("devices");
   devices.replaceChildren(
     el("div", {}, "Daemon ", pill(s.healthy ? "healthy" : "unhealthy", s.healthy ? "ok" : "bad")),
@@ -78,15 +79,47 @@ function showLast(last) {
     phones.length || dropped.length ? el("ul", { id: "last-missing", class: "why" }, ...phones, ...dropped) : null);
 }
 
+// An event's clock time: local wall time from its UTC stamp (not the daemon's loop seconds).
+const clock = (utc) => (utc ? new Date(utc).toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit" }) : "--:--:--");
+
+// A duration as a person reads it: "45 s", "3 min 05 s".
+function span(s) {
+  if (s === null || s === undefined) return "–";
+  const whole = Math.max(0, Math.round(s));
+  return whole < 60 ? `${whole} s` : `${Math.floor(whole / 60)} min ${String(whole % 60).padStart(2, "0")} s`;
+}
+
+// The log's lines, newest first; the job's end in its outcome's colour.
 function logLine(e) {
   const about = e.data && e.data.camera ? ` ${e.data.camera}${e.data.error ? `: ${e.data.error}` : ""}` : "";
-  const line = `${fmt(e.time_s, 2).padStart(9)} s  ${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}${about}`;
+  const what = `${e.kind === "transition" ? `${e.previous} → ${e.state}` : e.state}  ${e.cause}${about}`;
+  const outcome = e.data && e.data.outcome;
   const log = $("log");
-  log.prepend(el("div", {}, line));
+  log.prepend(el("div", { class: "event" }, el("span", { class: "clock" }, clock(e.utc)), "  ",
+    outcome ? el("span", { class: `pill ${outcome}` }, what) : what));
   while (log.childElementCount > 200) log.lastChild.remove();
 }
 
+// The history the daemon kept (sent first on every connection): the log starts from it, and live
+// events it already held (by their running number) are not shown twice.
+let lastSeq = 0;
+function showHistory(events) {
+  hooks.history = events;
+  $("log").replaceChildren();
+  events.forEach(logLine);
+  lastSeq = events.length ? events[events.length - 1].seq : 0;
+}
+
+// The running job's elapsed time and the beam's schedule left (daemon/scan_time.py).
+function showJobTime(t) {
+  $("job-time").textContent = !t ? ""
+    : `Elapsed ${span(t.elapsed_s)}, ${t.remaining_s === null ? "time left not known in this state"
+      : `about ${span(t.remaining_s)} of the beam's schedule left`}`;
+}
+
 function onEvent(e) {
+  if (e.seq <= lastSeq) return;
+  lastSeq = e.seq;
   hooks.events.push({ ...e, received_ms: performance.timeOrigin + performance.now() });
   if (e.kind === "transition") {
     showState(e.state, e.cause);
@@ -107,6 +140,7 @@ function onEvent(e) {
 function connect() {
   const source = new EventSource("/api/rig/events");
   source.addEventListener("open", () => { $("link").textContent = "live"; });
+  source.addEventListener("history", (m) => showHistory(JSON.parse(m.data)));
   source.addEventListener("status", (m) => showStatus(JSON.parse(m.data)));
   source.addEventListener("rig", (m) => onEvent(JSON.parse(m.data)));
   source.addEventListener("error", () => { $("link").textContent = "reconnecting…"; });

@@ -2,13 +2,14 @@
 // best image of the spot (the server's navigator, the same as `tbp navigate`); marks; gallery.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
-import { getJSON, send, el, fmt, ending, personName } from "/static/common.js";
+import { getJSON, el, fmt, ending, personName } from "/static/common.js";
+import { MarksPane } from "/static/marks.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
 const api = `/api/scans/${encodeURIComponent(folder)}`;
 // unseen, blurred, sharp: the QA report's grey, red and green
 const COLOURS = [[0.60, 0.60, 0.60], [0.83, 0.24, 0.18], [0.18, 0.62, 0.29]];
-const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, marks: null, mesh: null };
+const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, mesh: null };
 const hooks = { ready: false, folder, firstPaintMs: null, lastAnswer: null, clickMs: null, timing: { scriptMs: performance.now() } };
 window.tbpViewer = hooks;
 
@@ -28,7 +29,8 @@ lamp.position.set(0.3, 0.4, 1);
 camera.add(lamp);
 scene.add(camera);
 const markers = new THREE.Group();
-scene.add(markers);
+const markGroup = new THREE.Group();
+scene.add(markers, markGroup);
 let dirty = true;
 controls.addEventListener("change", () => { dirty = true; });
 
@@ -128,8 +130,6 @@ function sphere(point, colour, radius = 7) {
 function drawMarkers() {
   markers.clear();
   if (state.point) markers.add(sphere(state.point, 0x00dcff, 8));
-  for (const m of state.marks?.marks || []) markers.add(sphere(m.point_mm, 0xe040fb, 6));
-  for (const m of state.marks?.carried || []) markers.add(sphere(m.point_mm, 0xffd600, 6));
   dirty = true;
 }
 
@@ -274,65 +274,7 @@ function renderGallery(cameraIndex) {
   root.replaceChildren(pick, grid);
 }
 
-async function loadMarks() {
-  state.marks = await getJSON(`${api}/marks`);
-  drawMarkers();
-  renderMarks();
-}
-
-async function compare(mark) {
-  const here = await getJSON(`${api}/navigate?${new URLSearchParams({ x: mark.point_mm[0], y: mark.point_mm[1], z: mark.point_mm[2], count: 1 })}`);
-  const prevApi = `/api/scans/${encodeURIComponent(state.marks.previous_scan)}`;
-  const then = await getJSON(`${prevApi}/navigate?${new URLSearchParams({ x: mark.from_point_mm[0], y: mark.from_point_mm[1], z: mark.from_point_mm[2], count: 1 })}`);
-  const box = document.getElementById(`pair-${mark.id}`);
-  const cropOf = (base, v) => v ? el("div", { class: "crop" }, el("img", { src: `${base}/images/${encodeURIComponent(v.file.split("/").pop())}?u=${v.u_px.toFixed(1)}&v=${v.v_px.toFixed(1)}&half=160` }),
-    el("div", { class: "hint" }, `${v.camera_id} ${fmt(v.angle_deg, 1)}° · ${fmt(v.resolution_mm_px, 3)} mm/px`)) : el("p", { class: "muted" }, "no image");
-  box.replaceChildren(el("div", {}, el("b", {}, "Earlier"), cropOf(prevApi, then.views[0])), el("div", {}, el("b", {}, "This scan"), cropOf(api, here.views[0])));
-}
-
-async function renderMarks() {
-  const root = document.getElementById("marks");
-  const m = state.marks;
-  // Only the same patient's earlier visits: the server offers no other (and refuses any other).
-  const { visits, note } = await getJSON(`${api}/earlier`);
-  const select = el("select", { id: "previous" }, el("option", { value: "" }, "— none —"));
-  for (const s of visits) {
-    const ended = ending(s);
-    const opt = el("option", { value: s.folder }, `${s.scan_id} · ${(s.created_utc || "").slice(0, 10)}${ended.done ? "" : ` · ${ended.label}`}`);
-    if (s.folder === m.previous_scan) opt.selected = true;
-    select.append(opt);
-  }
-  select.addEventListener("change", async () => {
-    await send("PUT", `${api}/previous`, { previous_scan: select.value || null });
-    await loadMarks();
-  });
-  const name = el("input", { id: "mark-name", placeholder: "name, e.g. naevus left scapula", maxlength: 80, style: "width:100%;padding:7px" });
-  const add = el("button", { class: "primary", id: "add-mark", onclick: async () => {
-    if (!state.point) return alert("Click the spot on the body first.");
-    await send("POST", `${api}/marks`, { name: name.value, point_mm: state.point });
-    await loadMarks();
-  } }, "Mark the selected spot");
-  root.replaceChildren(el("h2", {}, "Marks on this scan"));
-  for (const mark of m.marks) {
-    root.append(el("div", { class: "mark" }, el("span", {}, el("b", {}, mark.name), el("span", { class: "muted" }, mark.carried_from ? "  (carried)" : "")),
-      el("span", {}, el("button", { onclick: () => selectSpot(mark.point_mm) }, "Show"), " ",
-        el("button", { onclick: async () => { await send("DELETE", `${api}/marks/${mark.id}`); await loadMarks(); } }, "Delete"))));
-  }
-  if (!m.marks.length) root.append(el("p", { class: "muted" }, "None yet."));
-  root.append(el("div", { style: "margin:10px 0" }, name), add);
-  root.append(el("h2", {}, "Compare with an earlier scan of this patient"), note ? el("p", { class: "muted", id: "no-patient" }, note) : select);
-  if (m.registration && m.registration.error) root.append(el("p", { class: "error" }, m.registration.error));
-  else if (m.registration) root.append(el("p", { class: "muted" }, `Bodies registered: ${fmt(100 * m.registration.fitness, 0)} % overlap, ${fmt(m.registration.rmse_mm, 1)} mm rms.`));
-  for (const mark of m.carried) {
-    const doubt = mark.in_doubt ? [el("p", { class: "doubt" }, `This scan's surface is ${fmt(mark.surface_gap_mm, 1)} mm from where the body's fit puts this skin: it may not hold this spot. Check the images before keeping it.`)] : [];
-    root.append(el("div", { class: "mark" }, el("span", {}, el("b", {}, mark.name), el("span", { class: "muted" }, mark.placed_by === "pictures"
-      ? `  from the earlier scan, placed on the pictures (match ${fmt(mark.picture_score, 2)})` : "  from the earlier scan, placed by the body's shape")),
-      el("span", {}, el("button", { onclick: () => compare(mark) }, "Compare"), " ",
-        el("button", { onclick: () => selectSpot(mark.point_mm) }, "Show"), " ",
-        el("button", { onclick: async () => { await send("POST", `${api}/marks`, { name: mark.name, point_mm: mark.point_mm, carried_from: { scan: m.previous_scan, mark: mark.id } }); await loadMarks(); } }, "Keep here"))),
-      ...doubt, el("div", { class: "pair", id: `pair-${mark.id}` }));
-  }
-}
+const marks = new MarksPane(api, markGroup, { selectSpot, point: () => state.point, redraw: () => { dirty = true; } }, hooks);
 
 // ------------------------------------------------------------------ start
 try {
@@ -350,7 +292,7 @@ try {
     hooks.ready = true;
     frame();
   });
-  loadMarks().catch((error) => { document.getElementById("marks").textContent = String(error); });
+  marks.load().catch((error) => marks.error(String(error.message || error)));
   const wanted = new URLSearchParams(location.hash.slice(1));
   if (wanted.has("x")) selectSpot(["x", "y", "z"].map((k) => Number(wanted.get(k))));
 } catch (error) {
