@@ -225,7 +225,7 @@ def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
         with np.errstate(divide="ignore", invalid="ignore"):
             w1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
             w2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
-        w0 = 1.0 - w1 - w2
+            w0 = 1.0 - w1 - w2
         inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9) & (den != 0)
         f, w0, w1, w2 = f[inside], w0[inside], w1[inside], w2[inside]
         rcs.append(np.stack([row[inside], col[inside]], axis=1))

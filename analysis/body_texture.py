@@ -6,8 +6,8 @@ plan's cost, in which an image that holds the point outside its depth of field p
 term, so a sharp image always wins over a blurred one). Images within ``BLEND_MARGIN`` of the
 best cost are blended, with weights falling to zero at that margin and towards each image's
 border, so the texture has no seams where the best image changes. Each image's gain (per colour
-channel) is fitted by least squares to agree with the other images on the skin they share, and
-divided out before blending.
+channel) and the light's falloff with the incidence are fitted by least squares where images
+share skin (analysis/exposure.py) and divided out before blending.
 
 The file is a glTF binary (metres, as glTF wants; the scan's mm divided by 1000) with one mesh,
 its texture coordinates and a JPEG atlas, written into the scan folder through the store.
@@ -26,6 +26,7 @@ import numpy as np
 from PIL import Image
 
 from analysis.atlas import Atlas, fill_gutters, unwrap
+from analysis.exposure import Exposure, fit_exposure
 from analysis.navigate import Navigator
 from analysis.scan_views import ScanRecord, open_scan
 
@@ -40,15 +41,13 @@ CANDIDATE_SLACK = 0.05
 #: Texel side as a share of the best image's pixel on the skin (finer than the pixel: the chart's
 #: tilt and the resampling each lose a little).
 TEXEL_PER_PIXEL = 0.7
+#: Rings of neighbouring vertices the normals the light's falloff is measured against are averaged over.
+SMOOTH_RINGS = 4
 #: Texels per pass of the visibility test (bounds its temporary arrays).
 TEXEL_BLOCK = 150_000
 #: Largest atlas side, texels.
 MAX_SIDE = 8192
 JPEG_QUALITY = 92
-#: Pixel values outside this range (background, clipped highlights) do not fit the gains.
-GAIN_RANGE = (12.0, 245.0)
-#: Pull of every log gain towards zero, relative to a pose's mean overlap weight.
-GAIN_PRIOR = 0.01
 
 
 class TextureError(ValueError):
@@ -58,7 +57,8 @@ class TextureError(ValueError):
 @dataclass(frozen=True)
 class Samples:
     """The images that texture each texel: per blended pair the texel index (K,), pose (K,),
-    pixel (K,) u and v (in the stored image's pixels), blend weight (K,); per texel the best
+    pixel (K,) u and v (in the stored image's pixels), blend weight (K,), incidence (K,) (cos of
+    the angle between the camera's ray and the skin's normal); per texel the best
     pose (T,) (-1: no image sees it), whether that image holds it sharp (T,) and its mm/px (T,)."""
 
     texel: np.ndarray
@@ -66,6 +66,7 @@ class Samples:
     u: np.ndarray
     v: np.ndarray
     weight: np.ndarray
+    incidence: np.ndarray
     best_pose: np.ndarray
     best_sharp: np.ndarray
     best_mm_px: np.ndarray
@@ -73,13 +74,13 @@ class Samples:
 
 @dataclass(frozen=True)
 class BodyTexture:
-    """The textured body: atlas, texture (H, W, 3) uint8, per-texel samples, per-pose gains
-    (P, 3) and where the time went (seconds per step)."""
+    """The textured body: atlas, texture (H, W, 3) uint8, per-texel samples, the images'
+    exposure and where the time went (seconds per step)."""
 
     atlas: Atlas
     texture: np.ndarray
     samples: Samples
-    gains: np.ndarray
+    exposure: Exposure
     seconds: dict[str, float]
 
 
@@ -93,11 +94,14 @@ def stored_image_size(scan: ScanRecord) -> tuple[int, int]:
 
 
 def choose_views(nav: Navigator, points: np.ndarray, normals: np.ndarray, image_size: tuple[int, int], *,
-                 candidates: Any | None = None, margin: float = BLEND_MARGIN) -> Samples:
+                 candidates: Any | None = None, margin: float = BLEND_MARGIN,
+                 smooth_normals: np.ndarray | None = None) -> Samples:
     """The blended images of texels at points (T, 3) mm with inward normals (T, 3): see
     :class:`Samples`. Ranked by the navigator's cost under the focus actually captured; images
     within ``margin`` of a texel's best are kept. candidates: a (T, P) sparse matrix whose
-    non-zeros are the only poses to consider for each texel (None: every pose)."""
+    non-zeros are the only poses to consider for each texel (None: every pose). smooth_normals:
+    (T, 3) inward normals the incidence is measured against (default ``normals``)."""
+    smooth_normals = normals if smooth_normals is None else smooth_normals
     from planner.navigation import pixel_of, view_costs
     from planner.optics import resolution_mm_per_px
 
@@ -136,12 +140,37 @@ def choose_views(nav: Navigator, points: np.ndarray, normals: np.ndarray, image_
         best_pose[start + point[first]] = pose[first]
         best_sharp[start + point[first]] = sharp[first]
         best_mm_px[start + point[first]] = resolution_mm_per_px(depth[first], optics) / scale
-        parts.append((start + point, pose, u * scale, v * scale, weight))
+        ray = points[chunk][point] - nav.poses.centres[pose]
+        towards = smooth_normals[chunk][point]
+        incidence = np.einsum("ij,ij->i", ray, towards) / np.maximum(
+            np.linalg.norm(ray, axis=1) * np.linalg.norm(towards, axis=1), 1e-12)
+        parts.append((start + point, pose, u * scale, v * scale, weight, incidence))
     if not parts:
         empty = np.zeros(0)
-        return Samples(empty.astype(np.int64), empty.astype(np.int64), empty, empty, empty, best_pose, best_sharp, best_mm_px)
-    texel, pose, u, v, weight = (np.concatenate(c) for c in zip(*parts))
-    return Samples(texel.astype(np.int64), pose.astype(np.int64), u, v, weight, best_pose, best_sharp, best_mm_px)
+        return Samples(empty.astype(np.int64), empty.astype(np.int64), empty, empty, empty, empty,
+                       best_pose, best_sharp, best_mm_px)
+    texel, pose, u, v, weight, incidence = (np.concatenate(c) for c in zip(*parts))
+    return Samples(texel.astype(np.int64), pose.astype(np.int64), u, v, weight, incidence, best_pose, best_sharp, best_mm_px)
+
+
+def smooth_face_normals(vertices: np.ndarray, faces: np.ndarray, rings: int = SMOOTH_RINGS) -> np.ndarray:
+    """(F, 3) inward unit normals averaged over ``rings`` rings of neighbouring vertices: the
+    skin's direction under a TSDF surface's facets (the light's falloff follows the skin)."""
+    from scipy import sparse
+
+    corners = vertices[faces]
+    area_normals = -np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    at_vertex = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(at_vertex, faces[:, k], area_normals)
+    edges = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    n = len(vertices)
+    ring = sparse.csr_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                             shape=(n, n)) + sparse.identity(n, format="csr")
+    for _ in range(rings):
+        at_vertex = ring @ at_vertex
+    per_face = at_vertex[faces].sum(axis=1)
+    return per_face / np.maximum(np.linalg.norm(per_face, axis=1, keepdims=True), 1e-12)
 
 
 def candidate_poses(nav: Navigator, vertices: np.ndarray, faces: np.ndarray, image_size: tuple[int, int]) -> Any:
@@ -199,44 +228,10 @@ def bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bottom * fy
 
 
-def fit_gains(texel: np.ndarray, pose: np.ndarray, colour: np.ndarray, weight: np.ndarray, n_poses: int) -> np.ndarray:
-    """(P, C) gain of every pose: weighted least squares on log values, each sample (K,) of a
-    texel seen by several poses against that texel's highest-weight sample (C channels of
-    colour (K, C)), with the log gains' mean held at zero and a weak pull of each towards zero
-    (a pose with no overlap keeps gain 1). Samples outside GAIN_RANGE are left out."""
-    channels = colour.shape[1]
-    usable = np.all((colour > GAIN_RANGE[0]) & (colour < GAIN_RANGE[1]), axis=1) & (weight > 0)
-    idx = np.flatnonzero(usable)
-    order = idx[np.lexsort((-weight[idx], texel[idx]))]
-    t = texel[order]
-    head = np.r_[True, t[1:] != t[:-1]]
-    anchor = order[np.maximum.accumulate(np.where(head, np.arange(len(order)), 0))]
-    a, b = order[~head], anchor[~head]
-    differ = pose[a] != pose[b]
-    a, b = a[differ], b[differ]
-    if not len(a):
-        return np.ones((n_poses, channels))
-    w2 = np.minimum(weight[a], weight[b])
-    pa, pb = pose[a], pose[b]
-    # normal equations of  w (g[pa] - g[pb]) = w (log colour[a] - log colour[b])
-    normal = np.zeros((n_poses, n_poses))
-    np.add.at(normal, (pa, pa), w2)
-    np.add.at(normal, (pb, pb), w2)
-    np.add.at(normal, (pa, pb), -w2)
-    np.add.at(normal, (pb, pa), -w2)
-    scale = float(np.trace(normal)) / n_poses
-    normal += GAIN_PRIOR * scale * np.eye(n_poses) + scale * np.ones((n_poses, n_poses)) / n_poses  # pull, mean zero
-    diff = np.log(colour[a]) - np.log(colour[b])  # (E, C)
-    rhs = np.zeros((n_poses, channels))
-    np.add.at(rhs, pa, w2[:, None] * diff)
-    np.add.at(rhs, pb, -w2[:, None] * diff)
-    return np.exp(np.linalg.solve(normal, rhs))
-
-
-def blend(samples: Samples, colours: np.ndarray, gains: np.ndarray, n_texels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per texel (T, 3) the weighted mean of its samples' colours with their pose's gain taken
-    out, and (T,) whether any image gave it a colour."""
-    corrected = colours / gains[samples.pose]
+def blend(samples: Samples, colours: np.ndarray, exposure: Exposure, n_texels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per texel (T, 3) the weighted mean of its samples' colours with their exposure (gain and
+    light falloff) taken out, and (T,) whether any image gave it a colour."""
+    corrected = colours / exposure.factor(samples.pose, samples.incidence)
     total = np.bincount(samples.texel, samples.weight, minlength=n_texels)
     out = np.zeros((n_texels, 3))
     for c in range(3):
@@ -287,16 +282,17 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     texel_normals = normals[atlas.texel_face]
     facing = np.linalg.norm(texel_normals, axis=1) > 0  # texels of zero-area triangles stay unseen
     on = np.flatnonzero(facing)
+    smooth = smooth_face_normals(vertices, faces)
     found = choose_views(nav, atlas.texel_point[on], texel_normals[on], size,
-                         candidates=per_face[atlas.texel_face[on]])
+                         candidates=per_face[atlas.texel_face[on]], smooth_normals=smooth[atlas.texel_face[on]])
     samples = _widen(found, on, len(atlas.texel_rc))
     lap("views")
     say(f"{len(samples.pose)} image samples from {len(np.unique(samples.pose))} images")
     colours = sample_images(scan, samples)
     lap("sample")
-    gains = fit_gains(samples.texel, samples.pose, colours, samples.weight, scan.rig.n_poses)
-    lap("gains")
-    colour, seen = blend(samples, colours, gains, len(atlas.texel_rc))
+    exposure = fit_exposure(samples.texel, samples.pose, samples.incidence, colours, samples.weight, scan.rig.n_poses)
+    lap("exposure")
+    colour, seen = blend(samples, colours, exposure, len(atlas.texel_rc))
     texture = np.zeros((*atlas.shape, 3))
     filled = np.zeros(atlas.shape, dtype=bool)
     rows, cols = atlas.texel_rc[seen, 0], atlas.texel_rc[seen, 1]
@@ -304,7 +300,7 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     filled[rows, cols] = True
     texture = np.clip(np.rint(fill_gutters(texture, filled)), 0, 255).astype(np.uint8)
     lap("blend")
-    return BodyTexture(atlas, texture, samples, gains, seconds)
+    return BodyTexture(atlas, texture, samples, exposure, seconds)
 
 
 def _widen(found: Samples, texels: np.ndarray, n: int) -> Samples:
@@ -313,7 +309,8 @@ def _widen(found: Samples, texels: np.ndarray, n: int) -> Samples:
     best_sharp = np.zeros(n, dtype=bool)
     best_mm_px = np.full(n, np.nan)
     best_pose[texels], best_sharp[texels], best_mm_px[texels] = found.best_pose, found.best_sharp, found.best_mm_px
-    return Samples(texels[found.texel], found.pose, found.u, found.v, found.weight, best_pose, best_sharp, best_mm_px)
+    return Samples(texels[found.texel], found.pose, found.u, found.v, found.weight, found.incidence,
+                   best_pose, best_sharp, best_mm_px)
 
 
 def glb_bytes(body: BodyTexture, *, quality: int = JPEG_QUALITY) -> bytes:
