@@ -38,6 +38,10 @@ EDGE_SHARE = 0.08
 #: Poses this much above a corner's blend margin are tested at the triangle's texels too (the
 #: cost changes across a triangle; a depth-of-field limit may cross it).
 CANDIDATE_SLACK = 0.05
+#: Images blended into a texel at most (the heaviest).
+MAX_BLEND = 4
+#: Images more than MAX_BLEND a triangle's corners offer its texels.
+CANDIDATE_EXTRA = 2
 #: Texel side as a share of the best image's pixel on the skin (finer than the pixel: the chart's
 #: tilt and the resampling each lose a little).
 TEXEL_PER_PIXEL = 0.7
@@ -94,11 +98,11 @@ def stored_image_size(scan: ScanRecord) -> tuple[int, int]:
 
 
 def choose_views(nav: Navigator, points: np.ndarray, normals: np.ndarray, image_size: tuple[int, int], *,
-                 candidates: Any | None = None, margin: float = BLEND_MARGIN,
+                 candidates: Any | None = None, margin: float = BLEND_MARGIN, most: int = MAX_BLEND,
                  smooth_normals: np.ndarray | None = None) -> Samples:
     """The blended images of texels at points (T, 3) mm with inward normals (T, 3): see
     :class:`Samples`. Ranked by the navigator's cost under the focus actually captured; images
-    within ``margin`` of a texel's best are kept. candidates: a (T, P) sparse matrix whose
+    within ``margin`` of a texel's best are kept, at most ``most`` of them. candidates: a (T, P) sparse matrix whose
     non-zeros are the only poses to consider for each texel (None: every pose). smooth_normals:
     (T, 3) inward normals the incidence is measured against (default ``normals``)."""
     smooth_normals = normals if smooth_normals is None else smooth_normals
@@ -134,12 +138,17 @@ def choose_views(nav: Navigator, points: np.ndarray, normals: np.ndarray, image_
         border = np.minimum.reduce([u, optics.image_width_px - u, v, optics.image_height_px - v])
         edge = np.clip(border / (EDGE_SHARE * optics.image_width_px), 1e-3, 1.0)
         weight = np.clip(1.0 - (cost - lowest[point]) / BLEND_MARGIN, 0.0, 1.0) * edge
+        # at most ``most`` images a texel, the heaviest (smooth skin seen alike by many images)
+        order = np.lexsort((cost, -weight, point))
+        rank = np.arange(len(order)) - np.searchsorted(point[order], point[order])
+        top = np.sort(order[rank < most])
         # each texel's best image (lowest cost, first on ties, as navigation orders them)
         order = np.lexsort((pose, cost, point))
         first = order[np.r_[True, point[order][1:] != point[order][:-1]]]
         best_pose[start + point[first]] = pose[first]
         best_sharp[start + point[first]] = sharp[first]
         best_mm_px[start + point[first]] = resolution_mm_per_px(depth[first], optics) / scale
+        point, pose, u, v, weight = point[top], pose[top], u[top], v[top], weight[top]
         ray = points[chunk][point] - nav.poses.centres[pose]
         towards = smooth_normals[chunk][point]
         incidence = np.einsum("ij,ij->i", ray, towards) / np.maximum(
@@ -174,9 +183,9 @@ def smooth_face_normals(vertices: np.ndarray, faces: np.ndarray, rings: int = SM
 
 
 def candidate_poses(nav: Navigator, vertices: np.ndarray, faces: np.ndarray, image_size: tuple[int, int]) -> Any:
-    """(F, P) sparse: the poses worth testing for the texels of each triangle, those within
-    BLEND_MARGIN + CANDIDATE_SLACK of the best image at any of its corners (testing every pose
-    at every texel costs ten times more and finds the same images)."""
+    """(F, P) sparse: the poses worth testing for the texels of each triangle, the best
+    MAX_BLEND + CANDIDATE_EXTRA within BLEND_MARGIN + CANDIDATE_SLACK of the best image at any of
+    its corners (testing every pose at every texel costs ten times more and finds the same images)."""
     from scipy import sparse
 
     normals = np.zeros_like(vertices)
@@ -185,7 +194,8 @@ def candidate_poses(nav: Navigator, vertices: np.ndarray, faces: np.ndarray, ima
     for k in range(3):
         np.add.at(normals, faces[:, k], -area_normals)  # inward, weighted by area
     ok = np.flatnonzero(np.linalg.norm(normals, axis=1) > 0)
-    found = choose_views(nav, vertices[ok], normals[ok], image_size, margin=BLEND_MARGIN + CANDIDATE_SLACK)
+    found = choose_views(nav, vertices[ok], normals[ok], image_size, margin=BLEND_MARGIN + CANDIDATE_SLACK,
+                         most=MAX_BLEND + CANDIDATE_EXTRA)
     n_poses = nav.scan.rig.n_poses
     at_vertex = sparse.csr_matrix((np.ones(len(found.texel)), (ok[found.texel], found.pose)),
                                   shape=(len(vertices), n_poses))
@@ -330,11 +340,12 @@ def glb_bytes(body: BodyTexture, *, quality: int = JPEG_QUALITY) -> bytes:
     return trimesh.Scene(mesh).export(file_type="glb")
 
 
-def write_body(scan_dir: Path | str, *, rig_path: Path | str | None = None,
+def write_body(scan_dir: Path | str, *, rig_path: Path | str | None = None, texel_mm: float | None = None,
                progress: Callable[[str], None] | None = None) -> Path:
-    """Texture the scan and store ``body.glb`` in its folder (listed in the manifest); its path."""
+    """Texture the scan and store ``body.glb`` in its folder (listed in the manifest); its path.
+    texel_mm: the atlas' texel (None: from the images' resolution on the skin)."""
     scan = open_scan(scan_dir, rig_path)
-    body = texture_scan(scan, progress=progress)
+    body = texture_scan(scan, texel_mm=texel_mm, progress=progress)
     if progress is not None:
         progress("writing body.glb")
     return scan.folder.write_body(glb_bytes(body))

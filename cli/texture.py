@@ -20,6 +20,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the scan's manifest. Progress on stderr, the file's path on stdout.",
     )
     parser.add_argument("scan_dir", type=Path, help="a scan folder")
+    parser.add_argument("--texel-mm", type=float, default=None, metavar="MM",
+                        help="texel side on the skin (default: 0.7 of the best images' mm per pixel there)")
     options.rig(parser, "the rig file the scan was taken with (default: calibration_data/rig.yaml)")
     parser.set_defaults(func=run)
 
@@ -36,8 +38,11 @@ def run(args: argparse.Namespace) -> int:
     def progress(text: str) -> None:
         print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
 
+    if args.texel_mm is not None and not 0.05 <= args.texel_mm <= 50.0:
+        print(f"tbp texture: --texel-mm {args.texel_mm}: expected 0.05 to 50 mm", file=sys.stderr)
+        return 2
     try:
-        path = write_body(args.scan_dir, rig_path=args.rig, progress=progress)
+        path = write_body(args.scan_dir, rig_path=args.rig, texel_mm=args.texel_mm, progress=progress)
     except (StoreError, TextureError, AtlasError) as exc:  # not a scan folder, no mesh or images, another rig
         print(f"tbp texture: {exc}", file=sys.stderr)
         return 2
