@@ -27,6 +27,9 @@ VALUE_RANGE = (12.0, 245.0)
 #: relative to the mean weight of an unknown's equations.
 PRIOR = 0.1
 ROBUST_MADS = 4.0
+#: Skin seen more obliquely is corrected as if seen at this incidence (cos): a grazing view's
+#: few photons are not multiplied into a glare.
+LOWEST_INCIDENCE = 0.25
 #: Equations fitted at most (a random subset of the overlaps, fixed seed).
 MAX_EQUATIONS = 300_000
 
@@ -39,8 +42,9 @@ class Exposure:
     falloff: np.ndarray
 
     def factor(self, pose: np.ndarray, incidence: np.ndarray) -> np.ndarray:
-        """(K, C) what each sample's value is its skin's colour times."""
-        curve = np.exp(np.interp(np.clip(incidence, 0.0, 1.0), FALLOFF_KNOTS, self.falloff))
+        """(K, C) what each sample's value is its skin's colour times (incidences below
+        LOWEST_INCIDENCE taken as that)."""
+        curve = np.exp(np.interp(np.clip(incidence, LOWEST_INCIDENCE, 1.0), FALLOFF_KNOTS, self.falloff))
         return self.gains[pose] * curve[:, None]
 
 
