@@ -158,7 +158,7 @@ def detect_spots(texture: np.ndarray, filled: np.ndarray, texel_mm: float) -> np
     c = np.clip(cols[:, None] + offsets[:, 1], 0, dark.shape[1] - 1)
     w = np.maximum(dark[r, c], 0.0) * filled[r, c]
     total = np.maximum(w.sum(axis=1), 1e-9)
-    return np.stack([(w * r).sum(axis=1) / total, (w * c).sum(axis=1) / total], axis=1)
+    return np.stack([(w * r).sum(axis=1) / total, (w * c).sum(axis=1) / total], axis=1) + 0.5  # centres at +0.5
 
 
 def _one(seed: int, root: Path) -> None:
