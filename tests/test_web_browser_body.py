@@ -42,8 +42,9 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
     with serve_in_thread(store) as url, chromium() as driver:
         driver.get(f"{url}/scans/{name}")
         assert wait_for(driver, "window.tbpViewer && (window.tbpViewer.ready || window.tbpViewer.error)") is True
+        wait_for(driver, "window.tbpViewer.shown === 'texture' || window.tbpViewer.error")
         assert driver.execute_script("return window.tbpViewer.error") is None
-        assert driver.execute_script("return window.tbpViewer.shown") == "texture"
+        driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
         canvas = driver.find_element("css selector", "canvas")
         skin = canvas.screenshot_as_png
         driver.save_screenshot(str(SHOTS / "viewer-textured.png"))

@@ -98,6 +98,7 @@ async function loadMesh() {
 async function loadTexturedBody() {
   const body = await loadBody(await (window.tbpBody || fetch(`${api}/body`)));
   hooks.timing.bodyBuiltMs = performance.now();
+  hooks.hasBody = Boolean(body);
   if (!body) return;
   state.body = body;
   scene.add(body);
@@ -369,11 +370,13 @@ try {
   scanPromise.then(showEnding, () => {});  // said even when the body cannot be shown
   await loadMesh();
   hooks.shown = "sharpness";
-  try {
-    await loadTexturedBody();
-  } catch (error) {  // the QA map stays; the page says why the skin is not shown
+  // First paint with the mesh the QA map colours; the textured body (megabytes more) replaces
+  // it once it has arrived. Without one, or if it fails, the QA map stays and the page says why.
+  hooks.bodyLoaded = loadTexturedBody().then(() => true, (error) => {
     document.getElementById("stage-msg").textContent = String(error);
-  }
+    hooks.error = String(error);
+    return false;
+  });
   state.scan = await scanPromise;
   const who = state.scan.patient ? `${personName(state.scan.patient.name)} (${state.scan.patient.patient_id}) · ` : "";
   document.getElementById("title").textContent = `${who}Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.in_progress ? "in progress" : state.scan.state}`;
