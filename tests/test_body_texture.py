@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.atlas import GUTTER, unwrap
-from analysis.body_texture import bilinear, choose_views, stored_image_size, texture_scan, write_body
+from analysis.body_texture import bilinear, choose_views, report_and_body, stored_image_size, texture_scan, write_body
 from analysis.exposure import FALLOFF_KNOTS, fit_exposure
 from analysis.navigate import Navigator
 from analysis.scan_views import open_scan
@@ -168,3 +168,18 @@ def test_tbp_texture_writes_the_body_and_names_what_is_wrong(textured, tmp_path,
     assert "nothing" in capsys.readouterr().err
     assert main(["texture", str(copy), "--texel-mm", "0"]) == 2
     assert "--texel-mm 0" in capsys.readouterr().err
+
+
+def test_after_a_scan_the_report_is_written_and_the_body_only_where_there_is_a_mesh(textured, tmp_path):
+    copy = tmp_path / textured.name
+    shutil.copytree(textured, copy)
+    (copy / "body.glb").unlink()
+    scan = open_scan(copy)
+    scan.folder.manifest.files.pop("body")
+    scan.folder.manifest.files.pop("mesh")  # as a scan stopped before its depth sweep
+    scan.folder.save()
+    (copy / "mesh.ply").unlink()
+    page = report_and_body(copy)
+    assert page.is_file() and not (copy / "body.glb").exists()
+    assert "body" not in json.loads((copy / "manifest.json").read_text())["files"]
+    assert open_scan(copy).folder.check() == []
