@@ -183,3 +183,43 @@ def test_after_a_scan_the_report_is_written_and_the_body_only_where_there_is_a_m
     assert page.is_file() and not (copy / "body.glb").exists()
     assert "body" not in json.loads((copy / "manifest.json").read_text())["files"]
     assert open_scan(copy).folder.check() == []
+
+
+def _glb_accessor(data: bytes, index: int) -> np.ndarray:
+    """An accessor of a glTF binary (float32 VEC2/VEC3 or uint32 scalars), read by hand."""
+    import struct
+
+    length = struct.unpack_from("<I", data, 12)[0]
+    gltf = json.loads(data[20:20 + length])
+    binary = data[20 + length + 8:]
+    accessor = gltf["accessors"][index]
+    view = gltf["bufferViews"][accessor["bufferView"]]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[accessor["type"]]
+    kind = {5126: "<f4", 5125: "<u4"}[accessor["componentType"]]
+    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    return np.frombuffer(binary, kind, accessor["count"] * width, start).reshape(accessor["count"], width)
+
+
+def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textured):
+    """glTF's UV origin is the image's top-left corner: a texel's colour in the file's image at
+    its triangle's UV is the colour the atlas gave it."""
+    from PIL import Image
+
+    data = (textured / "body.glb").read_bytes()
+    length = int.from_bytes(data[12:16], "little")
+    gltf = json.loads(data[20:20 + length])
+    primitive = gltf["meshes"][0]["primitives"][0]
+    uv = _glb_accessor(data, primitive["attributes"]["TEXCOORD_0"]).astype(float)
+    faces = _glb_accessor(data, primitive["indices"]).reshape(-1, 3)
+    image_view = gltf["bufferViews"][gltf["images"][0]["bufferView"]]
+    binary = data[20 + length + 8:]
+    start = image_view.get("byteOffset", 0)
+    picture = np.asarray(Image.open(io.BytesIO(binary[start:start + image_view["byteLength"]])).convert("RGB"), dtype=float)
+    body = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
+    assert np.array_equal(faces, body.atlas.faces)
+    assert uv == pytest.approx(body.atlas.uv, abs=1e-6)
+    centres = uv[faces].mean(axis=1)  # inside the triangle: its own chart's colour
+    rows = np.minimum((centres[:, 1] * picture.shape[0]).astype(int), picture.shape[0] - 1)
+    cols = np.minimum((centres[:, 0] * picture.shape[1]).astype(int), picture.shape[1] - 1)
+    expected = body.texture[rows, cols].astype(float)
+    assert np.median(np.abs(picture[rows, cols] - expected)) < 4.0  # JPEG
