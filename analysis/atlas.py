@@ -2,13 +2,14 @@
 packed into one image, and every texel's point on the surface.
 
 Each triangle joins the chart direction (one of 26: the cube's faces, edges and corners) closest
-to its normal, smoothed so that single triangles do not make charts of their own; the
-edge-connected triangles of one direction form a chart, projected orthographically along it.
-A triangle is at most about 30 deg from its chart's direction, so a texel spans at most
-1 / cos(30 deg) = 1.15 texel sizes on the skin. Charts are packed on shelves with a gutter that
-the texture's colours are spread into (:func:`fill_gutters`), so filtering at a chart's edge
-never reads another chart. Open3D's UVAtlas would cut fewer seams but needs a manifold mesh
-and takes about 30 s for a 177k-triangle TSDF body on two cores; this takes about a second.
+to its normal averaged over a few rings of neighbours (a TSDF surface's normals are noisy); the
+edge-connected triangles of one direction form a chart, projected orthographically along it, and
+charts too small to be worth their gutter join a neighbour their triangles face within 70 deg.
+A texel spans 1 / cos(angle to the chart's direction) texel sizes on the skin. Charts are
+packed on shelves with a gutter that the texture's colours are spread into
+(:func:`fill_gutters`), so filtering at a chart's edge never reads another chart. Open3D's
+UVAtlas would cut fewer seams but needs a manifold mesh and is an order of magnitude slower on
+a TSDF body.
 
 Atlas coordinates: texel (row, column) of an (H, W) image; UV (glTF) u = (column + 0.5) / W,
 v = (row + 0.5) / H, origin at the image's top-left.

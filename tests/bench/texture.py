@@ -237,7 +237,8 @@ def measure(folder: Path, seed: int) -> None:
     tri = atlas.vertices[atlas.faces]
     skin_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     uv = atlas.uv[atlas.faces] * np.array([atlas.shape[1], atlas.shape[0]])
-    uv_area = 0.5 * np.abs(np.cross(uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]))
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     with np.errstate(divide="ignore", invalid="ignore"):
         texel_on_skin = np.sqrt(skin_area / uv_area)[atlas.texel_face]
     off = np.isfinite(texel_on_skin) & (at["distance"] > 10.0)
