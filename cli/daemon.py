@@ -90,6 +90,7 @@ def _serve(args: argparse.Namespace) -> int:
         return _real(args, socket_path, group, generate_report, attach)
     import asyncio
 
+    from analysis.body_texture import report_and_body
     from sim.clock import VirtualTimeLoop
     from sim.run import sim_service
 
@@ -97,7 +98,7 @@ def _serve(args: argparse.Namespace) -> int:
         return runner.run(sim_service(
             config=args.rig, store=options.store_root(args), socket_path=socket_path, seed=args.seed,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
-            subject_path=args.subject, panel=not args.no_panel, qa_report=generate_report, attach=attach,
+            subject_path=args.subject, panel=not args.no_panel, qa_report=report_and_body, attach=attach,
         ))
 
 

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _simulated(args: argparse.Namespace, patient: Any) -> int:
-    from analysis.qa_report import generate_report
+    from analysis.body_texture import report_and_body
     from daemon.errors import DaemonError
     from planner.focus_errors import FocusPlanError
     from planner.rig import RigConfigError
@@ -89,7 +89,7 @@ def _simulated(args: argparse.Namespace, patient: Any) -> int:
             config=args.rig, store=options.store_root(args), seed=args.seed, time_scale=args.time_scale,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
             subject=load_subject(args.subject) if args.subject else None,
-            panel=not args.no_panel, qa_report=generate_report, patient=patient,
+            panel=not args.no_panel, qa_report=report_and_body, patient=patient,
         )
     except (RigConfigError, FocusPlanError, DaemonError, BodyError) as exc:  # DaemonError: ScanRefused (the store)
         print(f"tbp scan: {exc}", file=sys.stderr)

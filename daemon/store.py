@@ -63,6 +63,8 @@ from daemon.utc import utc_now, utc_stamp
 from planner.rig import Rig
 
 RESERVE = ".reserve"
+#: The textured body (glTF binary) in a scan folder.
+BODY = "body.glb"
 MAX_MANIFEST_BYTES = 64 * 1024 * 1024  # a 336-image manifest is ~150 KB
 SCAN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 """A scan (or calibration rotation) id: opaque, never patient data."""
@@ -208,6 +210,11 @@ class ScanFolder:
 
         ordered.file(lambda: self.writer.write(path, data)).add_done_callback(listed)
         return path
+
+    def write_body(self, data: bytes) -> Path:
+        """body.glb: the mesh textured from the scan's images (analysis/body_texture.py), listed
+        in the manifest as ``body``; written atomically, so a reader sees the old file or the new."""
+        return self._write_file("body", BODY, data)
 
     def write_calibration(self, data: bytes) -> Path:
         """calibration.yaml: the system calibration the scan planned and reconstructed with."""

@@ -45,6 +45,19 @@ def pixel_of(poses: Poses, pose: np.ndarray, points: np.ndarray, rig: Rig) -> tu
     return u, v
 
 
+def view_costs(
+    scene: RayScene, rig: Rig, poses: Poses, focus_mm: np.ndarray, points: np.ndarray, normals: np.ndarray,
+    *, among: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[CostTable, np.ndarray, np.ndarray]:
+    """Every pose that sees each point (Q, 3) mm with inward normals (Q, 3): the cost table of
+    the visible pairs, each pair's cost (M,) under the focus (P,) mm and whether the point is in
+    its depth of field (M,). The one ranking of images for a skin point: the lowest cost is the
+    best image (navigation, the textured body). among: (pose, point) the only pairs to consider."""
+    samples = SurfaceSamples.from_arrays(points, normals)
+    table = cost_table(visible_pairs(scene, poses, samples, rig.optics, among=among), rig.cost, rig.optics)
+    return table, table.pair_cost(focus_mm), table.pair_in_focus(focus_mm)
+
+
 def find_views(
     scene: RayScene,
     rig: Rig,
@@ -65,11 +78,8 @@ def find_views(
     if normals is None:
         _, faces = scene.closest_faces(points)
         normals = -scene.face_normals[faces]
-    samples = SurfaceSamples.from_arrays(points, normals)
-    table = cost_table(visible_pairs(scene, poses, samples, rig.optics), rig.cost, rig.optics)
+    table, cost, in_focus = view_costs(scene, rig, poses, focus_mm, points, normals)
     vis = table.vis
-    cost = table.pair_cost(focus_mm)
-    in_focus = table.pair_in_focus(focus_mm)
     u, v = pixel_of(poses, vis.pose, points[vis.point], rig)
     angles = rig.capture.angles_deg if angles_deg is None else np.asarray(angles_deg, dtype=float)
     order = np.lexsort((vis.pose, cost, vis.point))

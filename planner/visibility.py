@@ -264,6 +264,28 @@ def _candidates(
     return tuple(np.concatenate(column) for column in zip(*parts))
 
 
+def _candidates_among(
+    poses: Poses, samples: SurfaceSamples, optics: Optics, pose: np.ndarray, point: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """:func:`_candidates` of only the given (pose (K,), point (K,)) pairs: each pose's frustum
+    and facing test on its own points."""
+    pose, point = np.asarray(pose, dtype=np.int64), np.asarray(point, dtype=np.int64)
+    order = np.argsort(pose, kind="stable")
+    ptr = group_pointers(pose[order], len(poses))
+    parts: list[tuple[np.ndarray, ...]] = []
+    for p in np.flatnonzero(np.diff(ptr)):
+        mine = point[order[ptr[p]:ptr[p + 1]]]
+        one = Poses(*(np.asarray(a)[[p]] for a in (poses.centres, poses.forward, poses.right, poses.down,
+                                                   poses.angle_index, poses.camera_index)))
+        found = _candidates(one, SurfaceSamples(samples.points[mine], samples.normals[mine],
+                                                samples.face_index[mine], samples.area_mm2), optics)
+        if len(found[0]):
+            parts.append((np.full(len(found[0]), p, dtype=np.int32), mine[found[1]].astype(np.int32), *found[2:]))
+    if not parts:
+        return (np.zeros(0, np.int32), np.zeros(0, np.int32), *(np.zeros(0, np.float32),) * 3)
+    return tuple(np.concatenate(column) for column in zip(*parts))
+
+
 def visible_pairs(
     scene: RayScene,
     poses: Poses,
@@ -271,9 +293,14 @@ def visible_pairs(
     optics: Optics,
     *,
     epsilon_mm: float = SURFACE_EPSILON_MM,
+    among: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Visibility:
-    """All visible (pose, sample) pairs of ``samples`` on the mesh held by ``scene``."""
-    pose, point, depth, off_axis, facing = _candidates(poses, samples, optics)
+    """All visible (pose, sample) pairs of ``samples`` on the mesh held by ``scene``; among:
+    (pose (K,), sample (K,)) the only pairs to test (default: every pose with every sample)."""
+    if among is None:
+        pose, point, depth, off_axis, facing = _candidates(poses, samples, optics)
+    else:
+        pose, point, depth, off_axis, facing = _candidates_among(poses, samples, optics, *among)
     centres = poses.centres.astype(np.float32)
     points = samples.points.astype(np.float32)
     clear = np.empty(len(pose), dtype=bool)

@@ -218,7 +218,8 @@ async def scan_detail(request: web.Request) -> web.Response:
         "created_utc": m.created_utc, "counts": m.counts(), "plan": m.plan_summary,
         "cameras": [p.id for p in rig.phones], "angles_deg": [float(a) for a in rig.capture.angles_deg],
         "image_width_px": rig.optics.image_width_px, "image_height_px": rig.optics.image_height_px,
-        "has_mesh": "mesh" in m.files, "report": (rec.path / "report" / "index.html").is_file(),
+        "has_mesh": "mesh" in m.files, "has_body": "body" in m.files,
+        "report": (rec.path / "report" / "index.html").is_file(),
         "patient": None if m.patient is None else m.patient.as_dict(),
         "study": None if m.study is None else m.study.as_dict(),
         "images": images_out,
@@ -237,6 +238,18 @@ async def scan_mesh(request: web.Request) -> web.Response:
         scan.warming.add_done_callback(lambda task: task.cancelled() or task.exception())  # a click reports it
     return web.Response(body=payload, content_type="application/octet-stream",
                         headers={"Cache-Control": "private, max-age=60"})
+
+
+async def scan_body(request: web.Request) -> web.StreamResponse:
+    """The scan's textured body (body.glb, glTF binary in metres: analysis/body_texture.py)."""
+    scan = await _library(request).opened(request.match_info["folder"])
+    try:
+        path = scan.record.folder.listed("body")
+    except StoreError as exc:  # listed, but gone from the disk
+        raise json_error(web.HTTPNotFound, exc) from exc
+    if path is None:
+        raise json_error(web.HTTPNotFound, "this scan has no textured body (tbp texture SCAN_DIR makes one)")
+    return web.FileResponse(path, headers={"Content-Type": "model/gltf-binary", "Cache-Control": "private, max-age=60"})
 
 
 async def scan_skin(request: web.Request) -> web.Response:
@@ -344,6 +357,7 @@ def routes(app: web.Application) -> None:
     app.router.add_get("/api/scans/{folder}", scan_detail)
     app.router.add_get("/api/scans/{folder}/mesh", scan_mesh)
     app.router.add_get("/api/scans/{folder}/skin", scan_skin)
+    app.router.add_get("/api/scans/{folder}/body", scan_body)
     app.router.add_get("/api/scans/{folder}/navigate", navigate)
     app.router.add_get("/api/scans/{folder}/images/{name}", image)
     app.router.add_get("/scans/{folder}/report/", report_file)

@@ -60,21 +60,28 @@ def _uniforms(cells: np.ndarray, salt: int) -> np.ndarray:
     return words.view(np.uint16).reshape(len(cells), 8).astype(np.float32) / np.float32(65536.0)
 
 
+def layer_spots(cells: np.ndarray, layer: SpotLayer, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """The spots of lattice cells (N, 3) int of one layer: which cells hold one (K,) index into
+    cells, their centres (K, 3) mm and radii (K,) mm (a ball in skin coordinates) and darkness (K,)."""
+    u = _uniforms(cells, layer.salt ^ (int(seed) * 0x632BE59BD9B4E019 & 0xFFFFFFFFFFFFFFFF))
+    spotted = np.flatnonzero(u[:, 0] < layer.share)
+    u, cells = u[spotted], cells[spotted]
+    radius = layer.radius_mm[0] + u[:, 1] * (layer.radius_mm[1] - layer.radius_mm[0])
+    span = layer.cell_mm - 2 * radius  # the spot stays inside its cell
+    centre = cells.astype(np.float32) * layer.cell_mm + radius[:, None] + u[:, 2:5] * span[:, None]
+    depth = layer.darkness[0] + u[:, 5] * (layer.darkness[1] - layer.darkness[0])
+    return spotted, centre, radius, depth
+
+
 def pigment(skin_mm: np.ndarray, seed: int = 0) -> np.ndarray:
     """(N,) darkness in [0, 1) at skin points (N, 3) given in skin coordinates, mm."""
     points = np.asarray(skin_mm, dtype=np.float32).reshape(-1, 3)
     light = np.ones(len(points), dtype=np.float32)
     for layer in LAYERS:
         cells = np.floor(points / np.float32(layer.cell_mm)).astype(np.int64)
-        u = _uniforms(cells, layer.salt ^ (int(seed) * 0x632BE59BD9B4E019 & 0xFFFFFFFFFFFFFFFF))
-        spotted = np.flatnonzero(u[:, 0] < layer.share)
-        u, cells = u[spotted], cells[spotted]
-        radius = layer.radius_mm[0] + u[:, 1] * (layer.radius_mm[1] - layer.radius_mm[0])
-        span = layer.cell_mm - 2 * radius  # the spot stays inside its cell
-        centre = cells.astype(np.float32) * layer.cell_mm + radius[:, None] + u[:, 2:5] * span[:, None]
+        spotted, centre, radius, depth = layer_spots(cells, layer, seed)
         distance = np.linalg.norm(points[spotted] - centre, axis=1)
         edge = np.clip((radius - distance) / (2 * EDGE_MM) + 0.5, 0.0, 1.0)
-        depth = layer.darkness[0] + u[:, 5] * (layer.darkness[1] - layer.darkness[0])
         light[spotted] *= 1.0 - depth * edge
     return 1.0 - light
 

@@ -1,15 +1,17 @@
-// The scan viewer: the body mesh coloured by sharp / blurred / unseen skin; a click finds the
-// best image of the spot (the server's navigator, the same as `tbp navigate`); marks; gallery.
+// The scan viewer: the body textured from the scan's images (body.glb) when it has one, else
+// the mesh coloured by sharp / blurred / unseen skin (one click away from the texture); a click
+// finds the best image of the spot (the server's navigator, the same as `tbp navigate`); marks; gallery.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { getJSON, el, fmt, ending, personName } from "/static/common.js";
+import { loadBody } from "/static/body.js";
 import { MarksPane } from "/static/marks.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
 const api = `/api/scans/${encodeURIComponent(folder)}`;
 // unseen, blurred, sharp: the QA report's grey, red and green
 const COLOURS = [[0.60, 0.60, 0.60], [0.83, 0.24, 0.18], [0.18, 0.62, 0.29]];
-const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, mesh: null };
+const state = { scan: null, views: [], byPose: new Map(), current: null, point: null, mesh: null, body: null };
 const hooks = { ready: false, folder, firstPaintMs: null, lastAnswer: null, clickMs: null, timing: { scriptMs: performance.now() } };
 window.tbpViewer = hooks;
 
@@ -94,6 +96,33 @@ async function loadMesh() {
   lookFrom("front");
 }
 
+// The textured body, shown instead of the QA map when the scan has one; the toggle swaps them.
+async function loadTexturedBody() {
+  const body = await loadBody(await (window.tbpBody || fetch(`${api}/body`)));
+  hooks.timing.bodyBuiltMs = performance.now();
+  hooks.hasBody = Boolean(body);
+  if (!body) return;
+  state.body = body;
+  scene.add(body);
+  const toggle = document.getElementById("body-toggle");
+  toggle.hidden = false;
+  toggle.addEventListener("click", () => showTexture(!state.body.visible));
+  showTexture(true);
+}
+
+function showTexture(on) {
+  state.body.visible = on;
+  state.mesh.visible = !on;
+  hooks.shown = on ? "texture" : "sharpness";
+  document.getElementById("body-toggle").textContent = on ? "Sharpness map" : "Skin";
+  dirty = true;
+}
+
+// The surface a click lands on: the one shown (the same geometry either way).
+function shownSurface() {
+  return state.body && state.body.visible ? state.body : state.mesh;
+}
+
 // The shares of the body surface the server measures on this mesh: the QA report's sharp skin.
 async function loadShares() {
   const shares = await getJSON(`${api}/skin`);
@@ -142,7 +171,7 @@ renderer.domElement.addEventListener("pointerup", (e) => {
   const ndc = new THREE.Vector2(((e.clientX - rect.left) / rect.width) * 2 - 1, -((e.clientY - rect.top) / rect.height) * 2 + 1);
   const ray = new THREE.Raycaster();
   ray.setFromCamera(ndc, camera);
-  const hit = ray.intersectObject(state.mesh, false)[0];
+  const hit = ray.intersectObject(shownSurface(), false)[0];
   if (hit) selectSpot([hit.point.x, hit.point.y, hit.point.z]);
 });
 
@@ -282,6 +311,14 @@ try {
   const scanPromise = getJSON(api);
   scanPromise.then(showEnding, () => {});  // said even when the body cannot be shown
   await loadMesh();
+  hooks.shown = "sharpness";
+  // First paint with the mesh the QA map colours; the textured body (megabytes more) replaces
+  // it once it has arrived. Without one, or if it fails, the QA map stays and the page says why.
+  hooks.bodyLoaded = loadTexturedBody().then(() => true, (error) => {
+    document.getElementById("stage-msg").textContent = String(error);
+    hooks.error = String(error);
+    return false;
+  });
   state.scan = await scanPromise;
   const who = state.scan.patient ? `${personName(state.scan.patient.name)} (${state.scan.patient.patient_id}) · ` : "";
   document.getElementById("title").textContent = `${who}Scan ${state.scan.scan_id} · ${(state.scan.created_utc || "").replace("T", " ").slice(0, 16)} UTC · ${state.scan.in_progress ? "in progress" : state.scan.state}`;

@@ -1,0 +1,249 @@
+"""A texture atlas for a scan's mesh: charts of similarly facing triangles, projected flat and
+packed into one image, and every texel's point on the surface.
+
+Each triangle joins the chart direction (one of 26: the cube's faces, edges and corners) closest
+to its normal averaged over a few rings of neighbours (a TSDF surface's normals are noisy); the
+edge-connected triangles of one direction form a chart, projected orthographically along it, and
+charts too small to be worth their gutter join a neighbour their triangles face within 70 deg.
+A texel spans 1 / cos(angle to the chart's direction) texel sizes on the skin. Charts are
+packed on shelves with a gutter that the texture's colours are spread into
+(:func:`fill_gutters`), so filtering at a chart's edge never reads another chart. Open3D's
+UVAtlas would cut fewer seams but needs a manifold mesh and is an order of magnitude slower on
+a TSDF body.
+
+Atlas coordinates: texel (row, column) of an (H, W) image; UV (glTF) u = (column + 0.5) / W,
+v = (row + 0.5) / H, origin at the image's top-left.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
+
+#: Texels of empty border round every chart (colours are spread into it).
+GUTTER = 2
+#: The 26 chart directions: every non-zero (x, y, z) in {-1, 0, 1}^3, unit length.
+DIRECTIONS = np.array([d for d in itertools.product((-1, 0, 1), repeat=3) if any(d)], dtype=float)
+DIRECTIONS /= np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
+#: Rings of neighbouring triangles a triangle's normal is averaged over to choose its direction.
+SMOOTH_RINGS = 6
+#: Charts of fewer triangles join a neighbour ...
+MIN_CHART = 40
+#: ... if their triangles are within 70 deg of its direction (cos 70 deg).
+MERGE_COS = 0.342
+MERGE_PASSES = 6
+
+
+class AtlasError(ValueError):
+    """The mesh cannot be laid out in an atlas of the allowed size."""
+
+
+@dataclass(frozen=True)
+class Atlas:
+    """The unwrapped mesh and its texels.
+
+    vertices: (V', 3) float mm, a mesh vertex once per chart it belongs to; faces: (F, 3) into
+    them, in the source mesh's triangle order; source_vertex: (V',) index of each in the source
+    mesh; uv: (V', 2) glTF texture coordinates; texel_mm: texel side on the chart plane;
+    shape: (H, W); charts: number of charts; texel_rc: (T, 2) int row, column of every texel a
+    triangle covers; texel_face: (T,) its triangle; texel_point: (T, 3) float its point, mm.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    source_vertex: np.ndarray
+    uv: np.ndarray
+    texel_mm: float
+    shape: tuple[int, int]
+    charts: int
+    texel_rc: np.ndarray
+    texel_face: np.ndarray
+    texel_point: np.ndarray
+
+
+def chart_labels(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F,) chart of every triangle, 0..C-1, and (F,) the chart's direction (into DIRECTIONS).
+
+    Directions come from normals smoothed over a few rings of neighbours (a TSDF surface's
+    normals are noisy); charts are the edge-connected triangles of one direction, and charts of
+    fewer than MIN_CHART triangles join a neighbouring chart whose direction their own normals
+    are within 70 deg of."""
+    corners = vertices[faces]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    pairs = _face_adjacency(faces)
+    n = len(faces)
+    ring = sparse.coo_matrix((np.ones(2 * len(pairs)), (np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]])),
+                             shape=(n, n)).tocsr() + sparse.identity(n, format="csr")
+    smooth = normals
+    for _ in range(SMOOTH_RINGS):
+        smooth = ring @ smooth
+    direction = np.argmax(smooth @ DIRECTIONS.T, axis=1)
+    labels = _components(pairs, direction, n)
+    for _ in range(MERGE_PASSES):
+        size = np.bincount(labels)
+        small = size[labels] < MIN_CHART
+        if not small.any():
+            break
+        both = np.r_[pairs, pairs[:, ::-1]]
+        a, b = both[:, 0], both[:, 1]
+        fits = np.einsum("ij,ij->i", normals[a], DIRECTIONS[direction[b]]) > MERGE_COS
+        take = small[a] & ~small[b] & fits
+        if not take.any():
+            break
+        a, b = a[take], b[take]
+        # each small chart joins the chart its triangles share the most edges with
+        key = labels[a] * (labels.max() + 1) + labels[b]
+        keys, votes = np.unique(key, return_counts=True)
+        order = np.lexsort((-votes, keys // (labels.max() + 1)))
+        keys = keys[order]
+        first = np.r_[True, keys[1:] // (labels.max() + 1) != keys[:-1] // (labels.max() + 1)]
+        target = np.arange(labels.max() + 1)
+        target[keys[first] // (labels.max() + 1)] = keys[first] % (labels.max() + 1)
+        chart_direction = np.zeros(labels.max() + 1, dtype=np.int64)
+        chart_direction[labels] = direction
+        labels = target[labels]
+        direction = chart_direction[labels]
+        _, labels = np.unique(labels, return_inverse=True)
+    return labels.astype(np.int64), direction
+
+
+def _components(pairs: np.ndarray, direction: np.ndarray, n: int) -> np.ndarray:
+    """(n,) labels of the edge-connected triangles of one direction."""
+    kept = pairs[direction[pairs[:, 0]] == direction[pairs[:, 1]]]
+    graph = sparse.coo_matrix((np.ones(len(kept)), (kept[:, 0], kept[:, 1])), shape=(n, n))
+    return csgraph.connected_components(graph, directed=False)[1]
+
+
+def _face_adjacency(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) pairs of triangles sharing an edge (every pair, also at non-manifold edges)."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(len(faces)), 3)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    edges, owner = edges[order], owner[order]
+    same = np.all(edges[1:] == edges[:-1], axis=1)
+    return np.stack([owner[:-1][same], owner[1:][same]], axis=1)
+
+
+def _plane_axes(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes spanning the plane perpendicular to ``direction`` (3,)."""
+    helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, direction)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(direction, e1)
+
+
+def unwrap(vertices: np.ndarray, faces: np.ndarray, texel_mm: float, *, max_side: int = 8192) -> Atlas:
+    """Charts, flattening and packing of a triangle mesh (V, 3) mm, (F, 3), at ``texel_mm``;
+    the texel grows (by 15 % steps) until the atlas fits ``max_side`` on both sides."""
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    if not len(faces):
+        raise AtlasError("the mesh has no triangles")
+    labels, direction = chart_labels(vertices, faces)
+    n_charts = int(labels.max()) + 1
+    # a vertex once per chart it belongs to
+    keys = labels[:, None] * len(vertices) + faces  # (F, 3)
+    unique, inverse = np.unique(keys.ravel(), return_inverse=True)
+    source_vertex = unique % len(vertices)
+    chart_of_vertex = unique // len(vertices)
+    new_faces = inverse.reshape(-1, 3)
+    chart_direction = np.zeros(n_charts, dtype=np.int64)
+    chart_direction[labels] = direction
+    flat = np.zeros((len(unique), 2))
+    for d in np.unique(chart_direction):
+        e1, e2 = _plane_axes(DIRECTIONS[d])
+        mine = chart_direction[chart_of_vertex] == d
+        points = vertices[source_vertex[mine]]
+        flat[mine] = np.stack([points @ e1, -(points @ e2)], axis=1)  # column, row (mm)
+    low = np.full((n_charts, 2), np.inf)
+    high = np.full((n_charts, 2), -np.inf)
+    np.minimum.at(low, chart_of_vertex, flat)
+    np.maximum.at(high, chart_of_vertex, flat)
+    while True:
+        sizes = np.ceil((high - low) / texel_mm).astype(np.int64) + 1 + 2 * GUTTER  # (C, 2) columns, rows
+        placed = _pack(sizes, max_side)
+        if placed is not None:
+            break
+        texel_mm *= 1.15
+    offsets, shape = placed
+    texel = (flat - low[chart_of_vertex]) / texel_mm + GUTTER + offsets[chart_of_vertex]  # (column, row), texels
+    uv = np.stack([texel[:, 0] / shape[1], texel[:, 1] / shape[0]], axis=1)
+    rc, face, point = _rasterise(texel, new_faces, vertices[source_vertex])
+    return Atlas(vertices[source_vertex], new_faces, source_vertex, uv, float(texel_mm), shape, n_charts, rc, face, point)
+
+
+def _pack(sizes: np.ndarray, max_side: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """Shelf packing of rectangles (C, 2) (width, height) in texels: offsets (C, 2) and the
+    atlas (H, W), width a multiple of 64 near the square root of the area; None if it exceeds max_side."""
+    area = float(np.prod(sizes, axis=1).sum())
+    width = int(np.ceil(max(np.sqrt(area * 1.15), sizes[:, 0].max()) / 64.0) * 64)
+    if width > max_side:
+        return None
+    order = np.argsort(-sizes[:, 1], kind="stable")
+    offsets = np.zeros_like(sizes)
+    x = y = shelf = 0
+    for c in order:
+        w, h = sizes[c]
+        if x + w > width:
+            x, y, shelf = 0, y + shelf, 0
+        offsets[c] = (x, y)
+        x += w
+        shelf = max(shelf, h)
+    height = int(np.ceil((y + shelf) / 64.0) * 64)
+    if height > max_side:
+        return None
+    return offsets, (height, width)
+
+
+def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
+               block: int = 1 << 21) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Texel centres inside each triangle: (T, 2) row, column; (T,) triangle; (T, 3) point mm.
+    texel: (V', 2) column, row of every vertex in texels (a texel's centre is at +0.5)."""
+    corners = texel[faces]  # (F, 3, 2)
+    lo = np.floor(corners.min(axis=1) - 0.5).astype(np.int64)
+    hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64)
+    span = hi - lo + 1  # (F, 2)
+    counts = span[:, 0] * span[:, 1]
+    rcs, fs, ps = [], [], []
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    f0 = 0
+    while f0 < len(faces):
+        f1 = int(np.searchsorted(starts, starts[f0] + block, side="right")) - 1
+        f1 = max(f1, f0 + 1)
+        f = np.repeat(np.arange(f0, f1), counts[f0:f1])
+        k = np.arange(len(f)) - np.repeat(starts[f0:f1] - starts[f0], counts[f0:f1])
+        col = lo[f, 0] + k % span[f, 0]
+        row = lo[f, 1] + k // span[f, 0]
+        centre = np.stack([col + 0.5, row + 0.5], axis=1)
+        a, b, c = corners[f, 0], corners[f, 1], corners[f, 2]
+        v0, v1, v2 = b - a, c - a, centre - a
+        den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
+            w2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+            w0 = 1.0 - w1 - w2
+        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9) & (den != 0)
+        f, w0, w1, w2 = f[inside], w0[inside], w1[inside], w2[inside]
+        rcs.append(np.stack([row[inside], col[inside]], axis=1))
+        fs.append(f)
+        tri = points[faces[f]]
+        ps.append(w0[:, None] * tri[:, 0] + w1[:, None] * tri[:, 1] + w2[:, None] * tri[:, 2])
+        f0 = f1
+    rc, face, point = np.concatenate(rcs), np.concatenate(fs), np.concatenate(ps)
+    # a texel on an edge shared by two triangles of a chart: kept once
+    _, first = np.unique(rc[:, 0] * (1 << 32) + rc[:, 1], return_index=True)
+    return rc[first], face[first], point[first]
+
+
+def fill_gutters(image: np.ndarray, filled: np.ndarray) -> np.ndarray:
+    """(H, W, C) image with every unfilled texel (filled (H, W) bool False) given the colour of
+    its nearest filled texel, so filtering across a chart's edge reads the chart's own colours."""
+    if not filled.any():
+        return image
+    _, (rows, cols) = ndimage.distance_transform_edt(~filled, return_indices=True)
+    return image[rows, cols]

@@ -1,0 +1,283 @@
+"""The photographic body (issue 30 item 1) on simulated people, whose skin is known.
+
+For each body: a default simulated scan (no QA report), then ``tbp texture`` on it in a child
+process (wall time and peak RSS, goals <= 60 s and <= 4 GiB), then against the simulated truth
+(the body mesh, its skin coordinates and the freckles drivers/sim/skin_texture.py paints on it):
+
+- colour: mean CIEDE2000 of the texels whose best image holds them sharp, against the skin's
+  albedo (the simulated phones light it with a falloff over the incidence, which the texture
+  takes out), split by how far the scan's surface is from the true skin there; goal <= 3;
+- lesions: the freckles of the dark layer whose disc on the skin is >= 1.5 mm across and that
+  the images hold sharp; found when a simple spot detector on the atlas (darker than the skin
+  around it, a local maximum) has a spot within 1 mm of it on the true skin; goal >= 95 %;
+- the textured surface more than 10 mm off the true skin (the TSDF's webbing between limbs);
+- resolution: the texture's texel on the skin (mm, from each triangle's area on the skin and in
+  the atlas) against the best image's mm/px at that texel, median ratio; goal <= 1.5.
+
+    python -m tests.bench texture          (TBP_TEXTURE_SEEDS=0,3 for other bodies)
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+SEEDS = tuple(int(s) for s in os.environ.get("TBP_TEXTURE_SEEDS", "0").split(","))
+GOAL_S = 60.0
+GOAL_GIB = 4.0
+GOAL_DELTA_E = 3.0
+GOAL_LESIONS = 0.95
+GOAL_RESOLUTION = 1.5
+LESION_MM = 1.5
+MATCH_MM = 1.0
+#: Darkness (1 - luminance / the skin around) a detected spot must reach.
+SPOT_DARKNESS = 0.06
+#: The skin around a spot: Gaussian of this sigma (mm) over the atlas' filled texels.
+BACKGROUND_MM = 4.0
+
+
+def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) sRGB 0..255 -> CIELAB (D65)."""
+    c = np.asarray(rgb, dtype=float) / 255.0
+    linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    m = np.array([[0.4124564, 0.3575761, 0.1804375], [0.2126729, 0.7151522, 0.0721750],
+                  [0.0193339, 0.1191920, 0.9503041]])
+    xyz = linear @ m.T / np.array([0.95047, 1.0, 1.08883])
+    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
+
+
+def delta_e00(lab1: np.ndarray, lab2: np.ndarray) -> np.ndarray:
+    """(N,) CIEDE2000 colour difference of CIELAB colours (N, 3) (Sharma, Wu, Dalal 2005)."""
+    l1, a1, b1 = lab1.T
+    l2, a2, b2 = lab2.T
+    c_bar = (np.hypot(a1, b1) + np.hypot(a2, b2)) / 2
+    g = 0.5 * (1 - np.sqrt(c_bar**7 / (c_bar**7 + 25.0**7)))
+    a1p, a2p = (1 + g) * a1, (1 + g) * a2
+    c1p, c2p = np.hypot(a1p, b1), np.hypot(a2p, b2)
+    h1p = np.degrees(np.arctan2(b1, a1p)) % 360
+    h2p = np.degrees(np.arctan2(b2, a2p)) % 360
+    dl, dc = l2 - l1, c2p - c1p
+    dh = h2p - h1p
+    dh = np.where(dh > 180, dh - 360, np.where(dh < -180, dh + 360, dh))
+    dh = np.where(c1p * c2p == 0, 0.0, dh)
+    dhh = 2 * np.sqrt(c1p * c2p) * np.sin(np.radians(dh / 2))
+    l_bar, cp_bar = (l1 + l2) / 2, (c1p + c2p) / 2
+    hsum = h1p + h2p
+    h_bar = np.where(np.abs(h1p - h2p) > 180, np.where(hsum < 360, hsum + 360, hsum - 360), hsum) / 2
+    h_bar = np.where(c1p * c2p == 0, hsum, h_bar)
+    t = (1 - 0.17 * np.cos(np.radians(h_bar - 30)) + 0.24 * np.cos(np.radians(2 * h_bar))
+         + 0.32 * np.cos(np.radians(3 * h_bar + 6)) - 0.20 * np.cos(np.radians(4 * h_bar - 63)))
+    sl = 1 + 0.015 * (l_bar - 50) ** 2 / np.sqrt(20 + (l_bar - 50) ** 2)
+    sc, sh = 1 + 0.045 * cp_bar, 1 + 0.015 * cp_bar * t
+    rt = (-2 * np.sqrt(cp_bar**7 / (cp_bar**7 + 25.0**7))
+          * np.sin(np.radians(60 * np.exp(-(((h_bar - 275) / 25) ** 2)))))
+    return np.sqrt((dl / sl) ** 2 + (dc / sc) ** 2 + (dhh / sh) ** 2 + rt * (dc / sc) * (dhh / sh))
+
+
+class Truth:
+    """The simulated body: closest skin point, its skin coordinates, albedo and normal."""
+
+    def __init__(self, mesh) -> None:
+        from planner.visibility import RayScene
+
+        self.mesh = mesh
+        skin = mesh.vertex_attributes.get("skin_mm")
+        self.skin = np.asarray(mesh.vertices if skin is None else skin, dtype=float)
+        self.scene = RayScene(mesh)
+
+    def at(self, points: np.ndarray) -> dict[str, np.ndarray]:
+        """For points (N, 3) mm: the closest true skin point, its distance, skin coordinates,
+        smooth outward normal and albedo (N, 3) 0..255."""
+        from drivers.sim.phone_render import SKIN_RGB
+        from drivers.sim.skin_texture import pigment, pigmented
+
+        closest, face = self.scene.closest_faces(points)
+        corners = np.asarray(self.mesh.vertices, dtype=float)[self.mesh.faces[face]]
+        weights = _barycentric(closest, corners)
+        skin = np.einsum("nk,nkj->nj", weights, self.skin[self.mesh.faces[face]])
+        normal = np.einsum("nk,nkj->nj", weights, np.asarray(self.mesh.vertex_normals)[self.mesh.faces[face]])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+        albedo = pigmented(np.tile(SKIN_RGB.astype(np.float32), (len(points), 1)), pigment(skin))
+        return {"point": closest, "distance": np.linalg.norm(closest - points, axis=1), "skin": skin,
+                "normal": normal, "albedo": albedo}
+
+
+def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    v0, v1, v2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    den = np.where(d00 * d11 - d01 * d01 == 0, 1.0, d00 * d11 - d01 * d01)
+    w1, w2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    return np.stack([1 - w1 - w2, w1, w2], axis=1)
+
+
+def lesions(truth: Truth) -> tuple[np.ndarray, np.ndarray]:
+    """The dark layer's freckles on the skin at least LESION_MM across: their points on the
+    true skin (K, 3) mm and disc diameters (K,) mm."""
+    from drivers.sim.skin_texture import LAYERS, layer_spots
+    from planner.sampling import sample_surface
+
+    layer = LAYERS[0]
+    dense = sample_surface(truth.mesh, int(truth.mesh.area / 4.0), seed=5)  # a sample per 4 mm^2
+    skin = truth.at(dense.points)["skin"]
+    cells = np.unique(np.floor(skin / layer.cell_mm).astype(np.int64), axis=0)
+    _, centre, radius, _ = layer_spots(cells, layer)
+    # the ball's centre in skin coordinates -> the closest skin point (the unswayed body: skin = world)
+    on = truth.at(centre.astype(float))
+    disc = 2 * np.sqrt(np.maximum(radius**2 - on["distance"] ** 2, 0.0))
+    keep = disc >= LESION_MM
+    return on["point"][keep], disc[keep]
+
+
+def detect_spots(texture: np.ndarray, filled: np.ndarray, texel_mm: float) -> np.ndarray:
+    """(D, 2) float row, column of dark spots in an atlas (H, W, 3) uint8: local maxima of the
+    darkness against the skin around (a Gaussian over the filled texels), above SPOT_DARKNESS,
+    refined to the darkness-weighted centroid of their 3 x 3 texels."""
+    from scipy import ndimage
+
+    luminance = texture.astype(float) @ np.array([0.2126, 0.7152, 0.0722])
+    inside = ndimage.binary_erosion(filled, iterations=1)
+    sigma = BACKGROUND_MM / texel_mm
+    weight = ndimage.gaussian_filter(filled.astype(float), sigma)
+    background = ndimage.gaussian_filter(np.where(filled, luminance, 0.0), sigma) / np.maximum(weight, 1e-6)
+    dark = np.where(inside, 1.0 - luminance / np.maximum(background, 1.0), 0.0)
+    peaks = (dark >= SPOT_DARKNESS) & (dark == ndimage.maximum_filter(dark, size=3))
+    rows, cols = np.nonzero(peaks)
+    offsets = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+    r = np.clip(rows[:, None] + offsets[:, 0], 0, dark.shape[0] - 1)
+    c = np.clip(cols[:, None] + offsets[:, 1], 0, dark.shape[1] - 1)
+    w = np.maximum(dark[r, c], 0.0) * filled[r, c]
+    total = np.maximum(w.sum(axis=1), 1e-9)
+    return np.stack([(w * r).sum(axis=1) / total, (w * c).sum(axis=1) / total], axis=1) + 0.5  # centres at +0.5
+
+
+def _one(seed: int, root: Path) -> None:
+    from sim.run import run_sim_scan
+
+    started = time.perf_counter()
+    report = run_sim_scan(store=root / f"s{seed}", seed=seed, panel=False)
+    print(f"body {seed}: simulated scan {report.outcome.value} in {time.perf_counter() - started:.0f} s", flush=True)
+    measure(report.folder, seed)
+
+
+def measure(folder: Path, seed: int) -> None:
+    """Texture the scan in ``folder`` of the simulated body ``seed`` and print its figures."""
+    from scipy.spatial import cKDTree
+
+    from analysis.body_texture import texture_scan
+    from analysis.scan_views import open_scan
+    from sim.rig import default_subject
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[2]),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "cli", "texture", str(folder)], check=False, env=env,
+                          capture_output=True, text=True)
+    texture_s = time.perf_counter() - started
+    peak_gib = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before) / 2**20
+    if done.returncode != 0:
+        print(done.stderr[-2000:])
+        raise SystemExit(f"tbp texture failed on body {seed}")
+    size_mb = (folder / "body.glb").stat().st_size / 1e6
+    print(f"  tbp texture {texture_s:.1f} s (goal <= {GOAL_S:.0f}), peak RSS {peak_gib:.2f} GiB "
+          f"(goal <= {GOAL_GIB:.0f}), body.glb {size_mb:.1f} MB")
+    for line in done.stderr.strip().splitlines():
+        print(f"    {line}")
+
+    # The same texture again in-process, for its per-texel records (deterministic).
+    body = texture_scan(open_scan(folder))
+    atlas, samples = body.atlas, body.samples
+    print("  steps: " + ", ".join(f"{k} {v:.1f} s" for k, v in body.seconds.items()))
+    truth = Truth(default_subject(seed))
+    at = truth.at(atlas.texel_point)
+    rows, cols = atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]
+    sharp = samples.best_sharp & (at["distance"] < 5.0)
+    got = body.texture[rows, cols].astype(float)
+    de = delta_e00(srgb_to_lab(at["albedo"][sharp]), srgb_to_lab(got[sharp]))
+    close = at["distance"][sharp] < 2.0
+    print(f"  colour on sharp skin ({100 * sharp.mean():.1f} % of the texels): mean CIEDE2000 {de.mean():.2f} against "
+          f"the albedo (goal <= {GOAL_DELTA_E:.0f}), median {np.median(de):.2f}, 90th percentile "
+          f"{np.percentile(de, 90):.2f}; where the scan's surface is within 2 mm of the skin ({100 * close.mean():.0f} %) "
+          f"mean {de[close].mean():.2f}, elsewhere {de[~close].mean():.2f}")
+
+    # lesions
+    filled = np.zeros(atlas.shape, dtype=bool)
+    filled[rows, cols] = samples.best_pose >= 0
+    index = np.full(atlas.shape, -1, dtype=np.int64)
+    index[rows, cols] = np.arange(len(rows))
+    spots = detect_spots(body.texture, filled, atlas.texel_mm)
+    near = index[np.clip(np.rint(spots[:, 0] - 0.5).astype(int), 0, atlas.shape[0] - 1),
+                 np.clip(np.rint(spots[:, 1] - 0.5).astype(int), 0, atlas.shape[1] - 1)]
+    spots, near = spots[near >= 0], near[near >= 0]
+    # the spot's point on the scan's surface: its texel's point moved by the sub-texel offset
+    # along the chart (approximated by the neighbouring texels' points)
+    found_points = truth.at(_subtexel_points(spots, index, atlas.texel_point))["point"]
+    lesion_points, disc = lesions(truth)
+    texels = cKDTree(atlas.texel_point)
+    _, nearest = texels.query(lesion_points)
+    held = samples.best_sharp[nearest] & (np.linalg.norm(atlas.texel_point[nearest] - lesion_points, axis=1) < 5.0)
+    distance, _ = cKDTree(found_points).query(lesion_points[held]) if len(found_points) else (np.full(held.sum(), np.inf), None)
+    found = distance <= MATCH_MM
+    print(f"  lesions >= {LESION_MM} mm held sharp: {held.sum()} of {len(held)}; found within {MATCH_MM} mm: "
+          f"{found.sum()} ({100 * found.mean():.1f} %, goal >= {100 * GOAL_LESIONS:.0f} %); within 2 mm "
+          f"{100 * (distance <= 2.0).mean():.1f} %; spots detected {len(spots)}; median disc {np.median(disc):.1f} mm")
+
+    # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
+    tri = atlas.vertices[atlas.faces]
+    skin_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    uv = atlas.uv[atlas.faces] * np.array([atlas.shape[1], atlas.shape[0]])
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        texel_on_skin = np.sqrt(skin_area / uv_area)[atlas.texel_face]
+    off = np.isfinite(texel_on_skin) & (at["distance"] > 10.0)
+    print(f"  surface more than 10 mm off the true skin (the TSDF's webbing; its texture is not skin): "
+          f"{np.sum(texel_on_skin[off] ** 2) / 100:.0f} cm^2, {100 * off.mean():.2f} % of the texels")
+    ratio = texel_on_skin / samples.best_mm_px
+    ok = np.isfinite(ratio) & sharp
+    print(f"  resolution: texel {atlas.texel_mm:.2f} mm on the chart, median {np.median(texel_on_skin[ok]):.2f} mm on the "
+          f"skin; best image median {np.nanmedian(samples.best_mm_px[ok]):.2f} mm/px; texel / pixel median "
+          f"{np.median(ratio[ok]):.2f}, 95th percentile {np.percentile(ratio[ok], 95):.2f} (goal <= {GOAL_RESOLUTION})")
+
+
+def _subtexel_points(spots: np.ndarray, index: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(D, 3) surface points of sub-texel atlas positions (D, 2) (row, column; texel centres at
+    +0.5): bilinear over the filled texels around each."""
+    r = spots[:, 0] - 0.5
+    c = spots[:, 1] - 0.5
+    r0, c0 = np.floor(r).astype(int), np.floor(c).astype(int)
+    total = np.zeros((len(spots), 3))
+    weight = np.zeros(len(spots))
+    for dr in (0, 1):
+        for dc in (0, 1):
+            rr = np.clip(r0 + dr, 0, index.shape[0] - 1)
+            cc = np.clip(c0 + dc, 0, index.shape[1] - 1)
+            w = (1 - np.abs(r - (r0 + dr))) * (1 - np.abs(c - (c0 + dc)))
+            i = index[rr, cc]
+            w = np.where(i >= 0, w, 0.0)
+            total += w[:, None] * points[np.maximum(i, 0)]
+            weight += w
+    return total / np.maximum(weight, 1e-9)[:, None]
+
+
+def run() -> None:
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+    with tempfile.TemporaryDirectory(prefix="tbp-texture-bench-") as root:
+        for seed in SEEDS:
+            _one(seed, Path(root))
+    print(f"peak memory of this process (max RSS) {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+
+
+if __name__ == "__main__":
+    run()

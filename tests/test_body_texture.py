@@ -1,0 +1,226 @@
+"""The photographic body: the atlas, the choice of images per texel, exposure matching, body.glb."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from analysis.atlas import GUTTER, unwrap
+from analysis.body_texture import bilinear, choose_views, report_and_body, stored_image_size, texture_scan, write_body
+from analysis.exposure import FALLOFF_KNOTS, fit_exposure
+from analysis.navigate import Navigator
+from analysis.scan_views import open_scan
+from cli import main
+from tests.test_web import folder_of
+
+#: The capsule scan's texel here (its images would give 0.9 mm: 2 M texels, 40 s a texture).
+TEST_TEXEL_MM = 3.0
+
+
+def _body_like() -> trimesh.Trimesh:
+    """A capsule with a bent arm-like bump: charts of every direction, some concavity."""
+    body = trimesh.creation.capsule(height=600.0, radius=120.0, count=[32, 32])
+    arm = trimesh.creation.capsule(height=300.0, radius=40.0, count=[16, 16])
+    arm.apply_transform(trimesh.transformations.rotation_matrix(np.radians(60), [1, 0, 0]))
+    arm.apply_translation([0.0, 170.0, 100.0])
+    return trimesh.util.concatenate([body, arm])
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.floats(1.5, 6.0))
+def test_the_atlas_covers_every_triangle_once_with_texels_on_their_triangle(texel_mm):
+    mesh = _body_like()
+    atlas = unwrap(mesh.vertices, mesh.faces, texel_mm)
+    # the unwrapped mesh is the same surface: its vertices are source vertices, its triangles the same
+    assert np.allclose(atlas.vertices, mesh.vertices[atlas.source_vertex])
+    assert np.array_equal(atlas.source_vertex[atlas.faces], mesh.faces)
+    assert np.all((atlas.uv > 0) & (atlas.uv < 1))
+    # texels: each once, on its own triangle, covering the projected surface
+    keys = atlas.texel_rc[:, 0] * atlas.shape[1] + atlas.texel_rc[:, 1]
+    assert len(np.unique(keys)) == len(keys)
+    tri = mesh.triangles[atlas.texel_face]
+    normal = mesh.face_normals[atlas.texel_face]
+    assert np.max(np.abs(np.einsum("ij,ij->i", atlas.texel_point - tri[:, 0], normal))) < 1e-6
+    bary = trimesh.triangles.points_to_barycentric(tri, atlas.texel_point)
+    assert bary.min() > -1e-6
+    covered = len(atlas.texel_rc) * atlas.texel_mm**2
+    assert 0.8 * mesh.area < covered < 1.05 * mesh.area  # flattened along each chart's direction: a little smaller
+    # no two triangles overlap in the atlas: the texels each claims sum to the total
+    uv = atlas.uv[atlas.faces] * np.array(atlas.shape[::-1])
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    flat_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
+    assert len(atlas.texel_rc) == pytest.approx(flat_area, rel=0.03)
+    # every chart keeps its gutter free: texels stay GUTTER inside the atlas' edges
+    assert atlas.texel_rc.min() >= GUTTER - 1 and np.all(atlas.texel_rc.max(axis=0) < np.array(atlas.shape))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0, 100), st.lists(st.floats(0, 12), min_size=4, max_size=4),
+       st.lists(st.floats(0, 16), min_size=4, max_size=4))
+def test_bilinear_is_exact_on_a_linear_image(a, b, c, us, vs):
+    rows, cols = np.mgrid[0:17, 0:13]
+    image = (a * (cols + 0.5) + b * (rows + 0.5) + c)[:, :, None]
+    u = np.clip(np.array(us), 0.5, 12.5)
+    v = np.clip(np.array(vs), 0.5, 16.5)
+    assert bilinear(image, u, v)[:, 0] == pytest.approx(a * u + b * v + c, abs=1e-9)
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_exposure_recovers_the_gains_and_the_light_falloff_of_synthetic_images(seed):
+    rng = np.random.default_rng(seed)
+    poses, texels = 12, 4000
+    true_gain = np.exp(rng.uniform(-0.3, 0.3, (poses, 3)))
+    true_gain /= np.exp(np.log(true_gain).mean(axis=0))  # the fit holds the log gains' mean at zero
+    albedo = rng.uniform(60, 200, (texels, 3))
+    texel = np.repeat(np.arange(texels), 3)
+    pose = np.concatenate([rng.choice(poses, 3, replace=False) for _ in range(texels)])
+    incidence = rng.uniform(0.2, 1.0, len(texel))
+    colour = albedo[texel] * true_gain[pose] * (0.25 + 0.75 * incidence)[:, None]
+    weight = rng.uniform(0.2, 1.0, len(texel))
+    fitted = fit_exposure(texel, pose, incidence, colour, weight, poses)
+    assert fitted.gains == pytest.approx(true_gain, rel=0.05)  # the weak pull towards 1 shrinks them a little
+    knots = FALLOFF_KNOTS >= 0.25
+    assert np.exp(fitted.falloff[knots]) == pytest.approx(0.25 + 0.75 * FALLOFF_KNOTS[knots], abs=0.03)
+
+
+@pytest.fixture(scope="module")
+def textured(web_store, tmp_path_factory) -> Path:
+    """A copy of the web tests' simulated scan, with its textured body."""
+    root = tmp_path_factory.mktemp("textured")
+    name = folder_of(web_store)
+    shutil.copytree(web_store / name, root / name)
+    write_body(root / name, texel_mm=TEST_TEXEL_MM)
+    return root / name
+
+
+def test_body_glb_is_listed_in_the_manifest_and_loads_back_textured(textured):
+    manifest = json.loads((textured / "manifest.json").read_text())
+    assert manifest["files"]["body"] == "body.glb"
+    scan = open_scan(textured)
+    assert scan.folder.check() == []
+    scene = trimesh.load(textured / "body.glb", file_type="glb")
+    mesh = next(iter(scene.geometry.values()))
+    texture = mesh.visual.material.baseColorTexture
+    assert texture.size[0] >= 128 and texture.size[1] >= 128
+    assert mesh.visual.uv.shape == (len(mesh.vertices), 2)
+    # the scan's own surface, in metres
+    source = scan.mesh()
+    assert mesh.area * 1e6 == pytest.approx(source.area, rel=1e-3)
+    assert np.allclose(mesh.bounds * 1000.0, source.bounds, atol=0.01)
+    # skin-coloured where the texture has skin: the simulated skin is reddish
+    pixels = np.asarray(texture.convert("RGB"), dtype=float).reshape(-1, 3)
+    lit = pixels[pixels.sum(axis=1) > 150]
+    assert len(lit) > 0.5 * len(pixels) and np.median(lit[:, 0]) > np.median(lit[:, 2])
+
+
+def test_every_texel_takes_the_image_navigation_ranks_best(textured):
+    """The texture's choice of image is the navigator's: sharp first, at the lowest plan cost."""
+    scan = open_scan(textured)
+    nav = Navigator(scan)
+    mesh = nav.mesh
+    rng = np.random.default_rng(3)
+    faces = rng.choice(len(mesh.faces), 60, replace=False)
+    points = np.asarray(mesh.triangles_center)[faces]
+    normals = -np.asarray(mesh.face_normals)[faces]
+    found = choose_views(nav, points, normals, stored_image_size(scan))
+    for k, point in enumerate(points):
+        views = nav.query(point=point, count=None)["views"]
+        if not views:
+            assert found.best_pose[k] == -1
+            continue
+        assert found.best_pose[k] == views[0]["pose"]
+        assert found.best_sharp[k] == views[0]["in_focus"]
+        assert found.best_sharp[k] == any(v["in_focus"] for v in views)  # a sharp image wins when there is one
+
+
+def test_the_texture_is_blended_from_the_best_images_and_sharp_where_they_are(textured):
+    body = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
+    samples = body.samples
+    seen = samples.best_pose >= 0
+    assert seen.mean() > 0.9
+    # a texel's heaviest sample is its best image, except near that image's border, where its
+    # weight falls towards zero
+    order = np.lexsort((-samples.weight, samples.texel))
+    first = order[np.r_[True, samples.texel[order][1:] != samples.texel[order][:-1]]]
+    heaviest = np.full(len(seen), -1)
+    heaviest[samples.texel[first]] = samples.pose[first]
+    assert np.mean(heaviest[seen] == samples.best_pose[seen]) > 0.9
+    assert np.all(samples.weight > 0) and np.all(samples.weight <= 1)
+
+
+def test_tbp_texture_writes_the_body_and_names_what_is_wrong(textured, tmp_path, capsys):
+    copy = tmp_path / textured.name
+    shutil.copytree(textured, copy)
+    (copy / "body.glb").unlink()
+    assert main(["texture", str(copy), "--texel-mm", str(TEST_TEXEL_MM)]) == 0
+    out, err = capsys.readouterr()
+    assert out.strip() == str(copy / "body.glb") and "atlas" in err
+    assert trimesh.load(io.BytesIO((copy / "body.glb").read_bytes()), file_type="glb").geometry
+    assert main(["texture", str(tmp_path / "nothing")]) == 2
+    assert "nothing" in capsys.readouterr().err
+    assert main(["texture", str(copy), "--texel-mm", "0"]) == 2
+    assert "--texel-mm 0" in capsys.readouterr().err
+
+
+def test_after_a_scan_the_report_is_written_and_the_body_only_where_there_is_a_mesh(textured, tmp_path):
+    copy = tmp_path / textured.name
+    shutil.copytree(textured, copy)
+    (copy / "body.glb").unlink()
+    scan = open_scan(copy)
+    scan.folder.manifest.files.pop("body")
+    scan.folder.manifest.files.pop("mesh")  # as a scan stopped before its depth sweep
+    scan.folder.save()
+    (copy / "mesh.ply").unlink()
+    page = report_and_body(copy)
+    assert page.is_file() and not (copy / "body.glb").exists()
+    assert "body" not in json.loads((copy / "manifest.json").read_text())["files"]
+    assert open_scan(copy).folder.check() == []
+
+
+def _glb_accessor(data: bytes, index: int) -> np.ndarray:
+    """An accessor of a glTF binary (float32 VEC2/VEC3 or uint32 scalars), read by hand."""
+    import struct
+
+    length = struct.unpack_from("<I", data, 12)[0]
+    gltf = json.loads(data[20:20 + length])
+    binary = data[20 + length + 8:]
+    accessor = gltf["accessors"][index]
+    view = gltf["bufferViews"][accessor["bufferView"]]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[accessor["type"]]
+    kind = {5126: "<f4", 5125: "<u4"}[accessor["componentType"]]
+    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    return np.frombuffer(binary, kind, accessor["count"] * width, start).reshape(accessor["count"], width)
+
+
+def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textured):
+    """glTF's UV origin is the image's top-left corner: a texel's colour in the file's image at
+    its triangle's UV is the colour the atlas gave it."""
+    from PIL import Image
+
+    data = (textured / "body.glb").read_bytes()
+    length = int.from_bytes(data[12:16], "little")
+    gltf = json.loads(data[20:20 + length])
+    primitive = gltf["meshes"][0]["primitives"][0]
+    uv = _glb_accessor(data, primitive["attributes"]["TEXCOORD_0"]).astype(float)
+    faces = _glb_accessor(data, primitive["indices"]).reshape(-1, 3)
+    image_view = gltf["bufferViews"][gltf["images"][0]["bufferView"]]
+    binary = data[20 + length + 8:]
+    start = image_view.get("byteOffset", 0)
+    picture = np.asarray(Image.open(io.BytesIO(binary[start:start + image_view["byteLength"]])).convert("RGB"), dtype=float)
+    body = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
+    assert np.array_equal(faces, body.atlas.faces)
+    assert uv == pytest.approx(body.atlas.uv, abs=1e-6)
+    centres = uv[faces].mean(axis=1)  # inside the triangle: its own chart's colour
+    rows = np.minimum((centres[:, 1] * picture.shape[0]).astype(int), picture.shape[0] - 1)
+    cols = np.minimum((centres[:, 0] * picture.shape[1]).astype(int), picture.shape[1] - 1)
+    expected = body.texture[rows, cols].astype(float)
+    assert np.median(np.abs(picture[rows, cols] - expected)) < 4.0  # JPEG

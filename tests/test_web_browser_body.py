@@ -1,0 +1,75 @@
+"""The textured body in the viewer, in real headless Chromium (software WebGL)."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from analysis.body_texture import write_body
+from analysis.scan_views import open_scan
+from cli import main
+from tests.test_web import folder_of
+from tests.test_web_browser import front_vertex
+from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
+
+pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
+SHOTS = Path(os.environ.get("TBP_SCREENSHOTS", "/tmp/tbp-web-screenshots"))
+
+
+def _green_share(png: bytes) -> float:
+    """Share of the drawn pixels that are the QA map's green (sharp skin)."""
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float).reshape(-1, 3)
+    drawn = pixels[np.abs(pixels - [28, 36, 49]).max(axis=1) > 12]  # not the stage's background
+    green = (drawn[:, 1] > drawn[:, 0] + 20) & (drawn[:, 1] > drawn[:, 2] + 10)
+    return float(green.mean()) if len(drawn) else 0.0
+
+
+def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_store, tmp_path, capsys):
+    name = folder_of(web_store)
+    store = tmp_path / "store"
+    shutil.copytree(web_store / name, store / name)
+    scan_dir = store / name
+    write_body(scan_dir, texel_mm=3.0)
+    vertex = front_vertex(scan_dir)
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    with serve_in_thread(store) as url, chromium() as driver:
+        driver.get(f"{url}/scans/{name}")
+        assert wait_for(driver, "window.tbpViewer && (window.tbpViewer.ready || window.tbpViewer.error)") is True
+        wait_for(driver, "window.tbpViewer.shown === 'texture' || window.tbpViewer.error")
+        assert driver.execute_script("return window.tbpViewer.error") is None
+        driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        canvas = driver.find_element("css selector", "canvas")
+        skin = canvas.screenshot_as_png
+        driver.save_screenshot(str(SHOTS / "viewer-textured.png"))
+        assert not canvas_is_blank(skin)
+        assert _green_share(skin) < 0.05  # skin, not the QA map's green
+
+        toggle = driver.find_element("id", "body-toggle")
+        toggle.click()
+        wait_for(driver, "window.tbpViewer.shown === 'sharpness'")
+        driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        assert _green_share(canvas.screenshot_as_png) > 0.3
+        toggle.click()
+        wait_for(driver, "window.tbpViewer.shown === 'texture'")
+
+        # a click on the textured skin finds the image tbp navigate gives for that spot
+        where = open_scan(scan_dir).mesh().vertices[vertex].tolist()
+        spot = driver.execute_script("return window.tbpViewer.project(arguments[0])", where)
+        click_at(driver, spot["x"], spot["y"])
+        wait_for(driver, "document.querySelector('#best-image')")
+        best = driver.find_element("id", "best-image")
+        point = json.loads(driver.find_element("id", "spot-point").get_attribute("data-point"))
+        assert np.linalg.norm(np.array(point) - where) < 5.0
+        capsys.readouterr()
+        assert main(["navigate", str(scan_dir), "--point", ",".join(map(repr, point)), "--json"]) == 0
+        assert best.get_attribute("data-file") == json.loads(capsys.readouterr().out)["views"][0]["file"]
+        timing = driver.execute_script("return window.tbpViewer.timing")
+        print(f"first paint {driver.execute_script('return window.tbpViewer.firstPaintMs'):.0f} ms, "
+              f"textured body built {timing['bodyBuiltMs']:.0f} ms")
