@@ -49,6 +49,29 @@ def _wait_for_port(port: int, process: subprocess.Popen[bytes], log: Path) -> No
     raise RuntimeError(f"not listening on {port} after {START_TIMEOUT_S:g} s: {log.read_text()[-2000:]}")
 
 
+def _wait_for_echo(port: int, aet: str, process: subprocess.Popen[bytes], log: Path) -> None:
+    """Until the process itself answers a C-ECHO as ``aet`` on 127.0.0.1:port: a port that merely
+    accepts may be another process's that took the free port first (then this one has exited)."""
+    from pynetdicom import AE
+    from pynetdicom.sop_class import Verification
+
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"exited with {process.returncode}: {log.read_text()[-2000:]}")
+        ae = AE(ae_title="TBPTEST")
+        ae.add_requested_context(Verification)
+        ae.acse_timeout = ae.network_timeout = ae.connection_timeout = 2.0
+        assoc = ae.associate("127.0.0.1", port, ae_title=aet)
+        if assoc.is_established:
+            status = assoc.send_c_echo()
+            assoc.release()
+            if status and status.Status == 0:
+                return
+        time.sleep(0.1)
+    raise RuntimeError(f"no C-ECHO answer as {aet} on {port} after {START_TIMEOUT_S:g} s: {log.read_text()[-2000:]}")
+
+
 class Orthanc:
     """One Orthanc on loopback: ``dicom_port`` (AE ``ORTHANC``), ``http_port`` (REST and DICOMweb
     at ``/dicom-web``); its database survives :meth:`kill` and :meth:`start` (a restart)."""
@@ -181,7 +204,7 @@ def worklist_provider(root: Path, aet: str = "RISWL", *, keep_charset: bool = Tr
     process = subprocess.Popen([binary, *charset, "-dfp", str(root), str(port)], stdout=open(log, "ab"),
                                stderr=subprocess.STDOUT)
     try:
-        _wait_for_port(port, process, log)
+        _wait_for_echo(port, aet, process, log)
         yield port, folder
     finally:
         process.terminate()

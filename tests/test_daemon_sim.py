@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from analysis.body_texture import report_and_body
 from daemon.scan import ScanReport
 from daemon.states import ScanOutcome, ScanState
 from sim.run import run_sim_scan
@@ -75,7 +76,7 @@ def test_tbp_scan_sim_with_the_rig_defaults_is_complete_and_reproducible(tmp_pat
         loop.time_scale = None
 
     tasks: list[asyncio.Task] = []
-    paced = run_sim_scan(store=tmp_path / "b",
+    paced = run_sim_scan(store=tmp_path / "b", qa_report=report_and_body,  # the hook tbp scan --sim runs
                          on_ready=lambda c, w: tasks.append(asyncio.create_task(pace(c, w)))).folder
     again = json.loads((paced / "manifest.json").read_text())
     assert _without_wall_clock(manifest) == _without_wall_clock(again)
