@@ -111,6 +111,7 @@ class Notifications:
         self._closed = True
         self._thread.join(timeout=2)
         self._sock.close()
+        self.path.unlink(missing_ok=True)
 
 
 @dataclass
@@ -402,6 +403,8 @@ class LoopbackRig:
         argv, env = unit_command(UNIT, self.root)
         argv = [str(self.rig_path) if a == f"{self.root}/etc/rig.yaml" else a for a in argv]
         argv += ["--http", "127.0.0.1:0" if self.http else "off"]
+        if self.notify is not None:  # a restart: the earlier daemon's messages are not this one's
+            self.notify.close()
         self.notify = Notifications(self.root / "run" / "notify.sock")
         environ = {**os.environ, **env, "NOTIFY_SOCKET": str(self.notify.path),
                    "WATCHDOG_USEC": str(WATCHDOG_USEC), "STATE_DIRECTORY": str(self.root / "state")}
