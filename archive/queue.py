@@ -21,6 +21,7 @@ time; the event loop only waits for its answer.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import threading
 from collections.abc import Callable
@@ -165,10 +166,9 @@ class ExportQueue:
                 await self._attempt(due[0])
                 continue
             waits = [t - loop.time() for t in self._retry_at.values()] + [self.POLL_S]
-            try:
-                await asyncio.wait_for(self._wake.wait(), timeout=max(0.01, min(waits)))
-            except TimeoutError:
-                pass
+            with contextlib.suppress(TimeoutError):  # asyncio.timeout: a cancel is never swallowed
+                async with asyncio.timeout(max(0.01, min(waits))):
+                    await self._wake.wait()
             self._wake.clear()
 
     async def _attempt(self, record: ExportRecord) -> None:
