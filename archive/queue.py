@@ -12,7 +12,9 @@ network gone, the association aborted) is retried after ``retry.first_s``, doubl
 when the cut came can reach the archive twice, and the archive keeps it once (the same UID). A
 refusal that waiting will not cure (an AE title the archive does not know, a SOP class it does
 not take, a scan that cannot be exported) marks the scan ``failed`` with the peer and the reason,
-shown in the status and on the console; it is tried again when the daemon restarts.
+shown in the status and on the console; it is tried again when the daemon restarts. Any other
+failure (a library's or this code's) is logged with its trace, shown as a problem and retried like
+an outage: the queue never stops by itself.
 
 The export itself runs in a thread of its own (pynetdicom and HTTP are blocking), one scan at a
 time; the event loop only waits for its answer.
@@ -182,7 +184,7 @@ class ExportQueue:
         except DicomPeerError as exc:
             record.error = str(exc)
             if exc.retry:
-                wait = min(self.archive.retry_first_s * 2 ** (record.attempts - 1), self.archive.retry_max_s)
+                wait = self._retry_in(record)
                 record.state = PENDING
                 self._retry_at[record.folder] = loop.time() + wait
                 log.warning("export_retry", folder=record.folder, error=str(exc), retry_in_s=wait,
@@ -193,6 +195,13 @@ class ExportQueue:
         except (ExportError, StoreError) as exc:
             record.state, record.error = FAILED, str(exc)
             log.error("export_failed", folder=record.folder, error=str(exc))
+        except Exception as exc:  # a fault of a library or of this code: shown, retried, never the queue's end
+            record.error = f"{self.archive}: unexpected {type(exc).__name__}: {exc}"
+            wait = self._retry_in(record)
+            record.state = PENDING
+            self._retry_at[record.folder] = loop.time() + wait
+            log.exception("export_retry", folder=record.folder, error=record.error, retry_in_s=wait,
+                          confirmed=len(record.sent))
         else:
             record.state, record.error = SENT, None
             self._retry_at.pop(record.folder, None)
@@ -200,6 +209,9 @@ class ExportQueue:
         finally:
             self.current = None
         await asyncio.to_thread(self._save, record)
+
+    def _retry_in(self, record: ExportRecord) -> float:
+        return min(self.archive.retry_first_s * 2 ** (record.attempts - 1), self.archive.retry_max_s)
 
     def _confirmed(self, record: ExportRecord) -> Callable[[Instance], None]:
         def confirmed(instance: Instance) -> None:  # in the export's thread

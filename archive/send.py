@@ -54,9 +54,13 @@ def send_dimse(instances: Sequence[Instance], ae_title: str, peer: Peer, *, tls:
     assoc = associate(ae_title, peer, [(c, sorted(s)) for c, s in contexts.items()], tls=tls)
     try:
         for instance in todo:
-            if not assoc.is_established:
-                raise TransferAborted(peer, f"association ended before {instance.kind} {instance.name}")
-            status = assoc.send_c_store(study_file(instance))
+            dataset = study_file(instance)
+            try:
+                status = assoc.send_c_store(dataset)
+            except RuntimeError as exc:  # pynetdicom: the association ended (aborted, cut) before the request
+                if assoc.is_established:
+                    raise
+                raise TransferAborted(peer, f"association ended before {instance.kind} {instance.name}") from exc
             check_status(peer, status, f"C-STORE of {instance.kind} {instance.name}")
             result.sent.append(instance.sop_instance_uid)
             if on_sent is not None:

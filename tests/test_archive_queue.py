@@ -17,7 +17,7 @@ from tests.sim_daemons import SimDaemon
 pytestmark = pytest.mark.slow
 
 
-def wait_until(what: str, check, timeout_s: float = 600.0, every_s: float = 0.5):
+def wait_until(what: str, check, timeout_s: float = 300.0, every_s: float = 0.5):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         value = check()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -114,6 +115,30 @@ async def test_each_start_replays_the_recording_from_its_beginning(sweep_recordi
     assert [f.frame_number for f in again] == list(range(40))
     # one SDK context for the stream's life: destroying one at every stop held the loop 70-100 ms
     assert context is not None and bag._context is context
+
+
+class LateEndReport(BagPlayback):
+    """The SDK's "stopped" report of the previous start reaches the loop while the next start is
+    opening the file (a loaded machine: CI saw a restarted playback end with no frame)."""
+
+    previous: int | None = None
+
+    def _open(self, rs, on_frame):
+        if self.previous is not None:
+            delivered = threading.Event()
+            stale = self.previous
+            self._loop.call_soon_threadsafe(lambda: (self._end_of_file(stale), delivered.set()))
+            assert delivered.wait(5.0)
+        opened = super()._open(rs, on_frame)
+        self.previous = self._playing
+        return opened
+
+
+async def test_a_late_end_report_of_the_previous_start_does_not_end_the_next(sweep_recording) -> None:
+    path, _ = sweep_recording
+    bag = LateEndReport(path, camera_id="depth1")
+    assert len(await play(bag, limit=3)) == 3
+    assert [f.frame_number for f in await play(bag, limit=5)] == [0, 1, 2, 3, 4]
 
 
 async def test_stopping_mid_file_again_and_again_never_crashes_the_sdk(sweep_recording) -> None:

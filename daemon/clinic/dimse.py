@@ -62,7 +62,8 @@ def associate(ae_title: str, peer: Peer, contexts: Sequence[tuple[str, Sequence[
               tls: Tls | None = None, timeout_s: float = 30.0) -> Any:
     """An established pynetdicom association to ``peer`` for ``contexts`` ((SOP class UID,
     transfer syntaxes) each). Raises PeerUnreachable, AssociationRejected or ContextsRefused."""
-    from pynetdicom import AE
+    from pynetdicom import AE, evt
+    from pynetdicom.pdu import A_ASSOCIATE_RJ
 
     ae = AE(ae_title=ae_title)
     ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = timeout_s
@@ -70,7 +71,13 @@ def associate(ae_title: str, peer: Peer, contexts: Sequence[tuple[str, Sequence[
     for sop_class, syntaxes in contexts:
         ae.add_requested_context(sop_class, list(syntaxes))
     tls_args = None if tls is None else (tls.context(), peer.host)
-    assoc = ae.associate(peer.host, peer.port, ae_title=peer.called_aet, tls_args=tls_args)
+    # The peer's A-ASSOCIATE-RJ is kept as it arrives (pynetdicom's reactor thread): when the
+    # rejection and the close it brings come before the requesting thread looks at the connection,
+    # pynetdicom reports a failed connection and aborts, with no answer kept.
+    rejections: list[Any] = []
+    handlers = [(evt.EVT_PDU_RECV, lambda event: rejections.append(event.pdu)
+                 if isinstance(event.pdu, A_ASSOCIATE_RJ) else None)]
+    assoc = ae.associate(peer.host, peer.port, ae_title=peer.called_aet, tls_args=tls_args, evt_handlers=handlers)
     if assoc.is_established:
         refused = [cx.abstract_syntax for cx in assoc.rejected_contexts]
         if refused:
@@ -78,10 +85,11 @@ def associate(ae_title: str, peer: Peer, contexts: Sequence[tuple[str, Sequence[
             raise ContextsRefused(peer, f"the peer does not accept SOP class {refused[0]} (of {len(refused)} refused)")
         return assoc
     answer = getattr(assoc.acceptor, "primitive", None)
-    if assoc.is_rejected and answer is not None:
+    rejection = rejections[0] if rejections else answer if assoc.is_rejected else None
+    if rejection is not None:
         raise AssociationRejected(
-            peer, f"association rejected ({answer.result_str}, by the {answer.source_str}): {answer.reason_str}",
-            permanent=answer.result == 0x01)
+            peer, f"association rejected ({rejection.result_str}, by the {rejection.source_str}): "
+                  f"{rejection.reason_str}", permanent=rejection.result == 0x01)
     if answer is not None and not assoc.accepted_contexts:
         raise ContextsRefused(peer, "the peer accepted none of the SOP classes and transfer syntaxes asked for")
     raise PeerUnreachable(peer, "no association: connection refused, timed out, or no answer to the request")

@@ -67,6 +67,9 @@ class BagPlayback(RealSenseStream):
         sweep's recording has no infrared stream)."""
         if self.infrared:
             raise InfraredUnavailable(self.id, f"the recording {self.path} holds depth only")
+        # A new generation before anything else: an end-of-file report of the previous start that
+        # reaches the loop while this start opens the file is then recognised as stale.
+        self._playing += 1
         await super().start()
 
     def _open(self, rs: ModuleType, on_frame: Callable[[Any], None]) -> Opened:
@@ -82,7 +85,6 @@ class BagPlayback(RealSenseStream):
         except RuntimeError as exc:
             raise RecordingUnreadable(self.id, self.path, f"not a RealSense recording: {exc}") from exc
         playback.set_real_time(self.realtime)
-        self._playing += 1
         playing = self._playing
         playback.set_status_changed_callback(lambda status: self._on_status(status, playing))
         sensor = playback.first_depth_sensor()
@@ -146,7 +148,8 @@ class BagPlayback(RealSenseStream):
         """SDK thread: the file reached its end -> frames() ends after the frames already queued.
 
         The SDK also reports "stopped" when stop() stops the sensor; that report may reach the loop
-        after the next start(), so it carries the start it belongs to and a stale one is ignored.
+        after the next start() began, so it carries the start it belongs to (counted on the loop,
+        before the next file is opened) and a stale one is ignored.
         """
         loop = self._loop
         if loop is not None and getattr(status, "name", str(status)).endswith("stopped"):
