@@ -431,13 +431,16 @@ class ControlClient:
                 await writer.wait_closed()
 
     async def status(self) -> dict[str, Any]:
-        return await self.request("status")
+        reply: dict[str, Any] = await self.request("status")
+        return reply
 
     async def scan(self, **args: Any) -> dict[str, Any]:
-        return await self.request("scan", **args)
+        reply: dict[str, Any] = await self.request("scan", **args)
+        return reply
 
     async def calibrate(self, **args: Any) -> dict[str, Any]:
-        return await self.request("calibrate", **args)
+        reply: dict[str, Any] = await self.request("calibrate", **args)
+        return reply
 
     async def report_of(self, key: str, id_key: str, job_id: str, timeout_s: float = 60.0) -> dict[str, Any]:
         """The daemon's report of a job once it has closed its folder: ``status()[key]`` once its
@@ -454,10 +457,12 @@ class ControlClient:
             raise DaemonUnavailable(self.path, f"no report of {job_id} within {timeout_s:g} s") from None
 
     async def abort(self) -> dict[str, Any]:
-        return await self.request("abort")
+        reply: dict[str, Any] = await self.request("abort")
+        return reply
 
     async def reset(self) -> dict[str, Any]:
-        return await self.request("reset")
+        reply: dict[str, Any] = await self.request("reset")
+        return reply
 
     async def subscribe(self) -> AsyncIterator[dict[str, Any]]:
         """The current status first, then every status event as the daemon publishes it.

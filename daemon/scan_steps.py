@@ -293,7 +293,7 @@ class ScanSteps:
         n_c = self.scan.rig.n_cameras
         near = np.tile(np.asarray(self.prep.min_focus_mm), len(focus) // n_c)
         far = np.tile(np.asarray(self.prep.max_focus_mm), len(focus) // n_c)
-        clipped = np.clip(focus, near, far)
+        clipped: np.ndarray = np.clip(focus, near, far)
         self.scan.report.focus_clipped = int(np.count_nonzero(clipped != focus))
         return clipped
 

@@ -411,7 +411,8 @@ class ScanFolder:
         if path is None:
             return None
         try:
-            return json.loads(path.read_bytes())
+            result: dict[str, Any] = json.loads(path.read_bytes())
+            return result
         except (OSError, ValueError) as exc:
             raise ScanFileError(path, f"unreadable: {exc}") from exc
 

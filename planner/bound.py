@@ -213,7 +213,8 @@ def in_focus_bound(table: CostTable, max_poses: int = GROUP_POSES) -> InFocusBou
 
 def _ranks(count: np.ndarray) -> np.ndarray:
     """0..c-1 for every c in ``count``, concatenated."""
-    return np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    result: np.ndarray = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    return result
 
 
 def sharp_count(table: CostTable, focus_mm: np.ndarray) -> float:

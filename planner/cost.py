@@ -110,7 +110,8 @@ class CostTable:
     def pair_in_focus(self, focus_mm: np.ndarray) -> np.ndarray:
         """(M,) bool in pose order: the pair's depth is inside its pose's depth of field."""
         s = np.asarray(focus_mm, dtype=float)[self.vis.pose]
-        return (self.lo <= s) & (s <= self.hi)
+        result: np.ndarray = (self.lo <= s) & (s <= self.hi)
+        return result
 
     def pair_cost(self, focus_mm: np.ndarray) -> np.ndarray:
         """(M,) float in pose order: the full cost of every visible pair under focus (P,) mm."""

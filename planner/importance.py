@@ -50,7 +50,8 @@ def region_faces(triangles: Triangles, points: np.ndarray, radius_mm: float) -> 
         return np.zeros(len(triangles), dtype=bool)
     centres = triangles.a + (triangles.ab + triangles.ac) / 3.0
     distance, _ = cKDTree(np.asarray(points, dtype=float)).query(centres, k=1, distance_upper_bound=radius_mm)
-    return np.isfinite(distance)
+    result: np.ndarray = np.isfinite(distance)
+    return result
 
 
 def refine_samples(

@@ -83,7 +83,8 @@ class Triangles:
     def doubled_areas(self) -> np.ndarray:
         """(F,) twice each triangle's area, mm^2."""
         c = self.cross
-        return np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2])
+        result: np.ndarray = np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2])
+        return result
 
     @property
     def signed_volume_mm3(self) -> float:

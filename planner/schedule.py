@@ -142,7 +142,8 @@ class MotionProfile:
         t = np.asarray(t_s, dtype=float)
         i = self._segment_of_time(t)
         dt = np.clip(t - self.t0_s[i], 0.0, self.dur_s[i])
-        return self.theta0_deg[i] + self.v0_deg_s[i] * dt + 0.5 * self.acc_deg_s2[i] * dt**2
+        result: np.ndarray = self.theta0_deg[i] + self.v0_deg_s[i] * dt + 0.5 * self.acc_deg_s2[i] * dt**2
+        return result
 
     def speed_at(self, t_s: float | np.ndarray) -> np.ndarray:
         """Beam speed (deg/s) at time(s) t_s; 0 outside the rotation."""
@@ -165,7 +166,8 @@ class MotionProfile:
         # 2d / (v0 + sqrt(v0^2 + 2ad)): the stable root of d = v0 t + a t^2 / 2, also for a = 0.
         root = v0 + np.sqrt(np.maximum(v0**2 + 2.0 * a * d, 0.0))
         dt = np.divide(2.0 * d, root, out=np.zeros_like(d), where=root > 0)
-        return self.t0_s[i] + np.minimum(dt, self.dur_s[i])
+        result: np.ndarray = self.t0_s[i] + np.minimum(dt, self.dur_s[i])
+        return result
 
     def speed_at_angle(self, angle_deg: float | np.ndarray) -> np.ndarray:
         """Beam speed (deg/s) when it crosses angle(s)."""
@@ -372,7 +374,8 @@ class CaptureSchedule:
 
     @property
     def n_cameras(self) -> int:
-        return self.focus_mm.shape[1]
+        result: int = self.focus_mm.shape[1]
+        return result
 
     def event(self, angle_index: int) -> AngleEvent:
         k = angle_index

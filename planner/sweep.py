@@ -85,7 +85,8 @@ class BeamTrace:
             raise BadTrace(
                 f"time(s) {t.min():.4f}..{t.max():.4f} s outside the trace [{self.start_s:.4f}, {self.end_s:.4f}] s"
             )
-        return np.interp(t, self.time_s, self.angle_deg)
+        result: np.ndarray = np.interp(t, self.time_s, self.angle_deg)
+        return result
 
 
 @dataclass(frozen=True)

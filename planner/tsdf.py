@@ -250,7 +250,8 @@ def _face_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     if n_vertices ** 3 >= 2 ** 63:
         raise ValueError(f"{n_vertices} vertices: face keys would overflow 64 bits")
     n = np.int64(n_vertices)
-    return (faces[:, 0] * n + faces[:, 1]) * n + faces[:, 2]
+    result: np.ndarray = (faces[:, 0] * n + faces[:, 1]) * n + faces[:, 2]
+    return result
 
 
 def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:

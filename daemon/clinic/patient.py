@@ -54,7 +54,8 @@ def _text(value: Any, field: str, limit: int, *, required: bool) -> str | None:
         raise PatientError(field, "contains a backslash (DICOM's value separator)")
     if len(value) > limit:
         raise PatientError(field, f"{len(value)} characters; at most {limit}")
-    return value
+    result: str = value
+    return result
 
 
 def _name(value: Any) -> str:

@@ -87,7 +87,8 @@ def copy_image(frame: Any, dtype: type, kind: str) -> np.ndarray:
     data = np.asanyarray(frame.get_data())
     if data.dtype != dtype or data.size != height * width:
         raise ValueError(f"expected {width}x{height} {kind}, got {data.dtype} x {data.size}")
-    return data.reshape(height, width).copy()
+    result: np.ndarray = data.reshape(height, width).copy()
+    return result
 
 
 def intrinsics_matrix(intrinsics: Any) -> np.ndarray:

@@ -96,7 +96,7 @@ def _read_depth(path: Path, max_px: int) -> np.ndarray:
                 raise RecordingError(path, f"depth frame of {info.file_size} bytes, more than the "
                                            f"{max_px} pixels allowed")
         with np.load(path) as data:
-            depth = data["depth"]
+            depth: np.ndarray = data["depth"]
     except RecordingError:
         raise
     except KeyError:

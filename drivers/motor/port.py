@@ -141,7 +141,8 @@ class LoopbackPort:
         item = await self._queue.get()
         if item is _CLOSED:
             raise CanBusError(self.name, "closed", "port closed while receiving")
-        return item
+        message: can.Message = item
+        return message
 
     def recv_ready(self) -> list[can.Message]:
         """The frames already waiting, without waiting for more (a bridge sends them in one write)."""
@@ -303,7 +304,8 @@ class PythonCanPort:
             raise CanBusError(self.name, "closed", "port closed while receiving")
         if isinstance(item, _Failure):
             raise CanBusError(self.name, "failed", item.text) from item.cause
-        return item
+        message: can.Message = item
+        return message
 
     def close(self) -> None:
         """Stop the port without waiting for it: the receive thread stops within

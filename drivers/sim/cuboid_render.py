@@ -102,7 +102,8 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
     und = cv2.undistortPointsIter(pts, intrinsics.matrix, intrinsics.dist, None, None,
                                   (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)).reshape(-1, 2)
-    return np.c_[und, np.ones(len(und))]
+    result: np.ndarray = np.c_[und, np.ones(len(und))]
+    return result
 
 
 class CuboidCamera:
@@ -145,4 +146,5 @@ class CuboidCamera:
             coc = circle_of_confusion_mm(z, focus_mm, self.optics) / self.pixel_mm
             image = PhoneRenderer._defocus(np.repeat(image[..., None], 1, axis=2), coc)[..., 0].astype(np.float32)
         image = image + rng.standard_normal(image.shape, dtype=np.float32) * np.float32(self.noise_sigma)
-        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+        result: np.ndarray = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+        return result

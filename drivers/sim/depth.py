@@ -138,7 +138,8 @@ def _finish(steps: Generator[None, None, T]) -> T:
         try:
             next(steps)
         except StopIteration as done:
-            return done.value
+            result: T = done.value
+            return result
 
 
 def silhouette_edges(z: np.ndarray) -> np.ndarray:

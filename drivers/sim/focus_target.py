@@ -36,7 +36,8 @@ def board_patch(texture: np.ndarray, texture_px_per_mm: float, distance_mm: floa
     pixel_mm = optics.focal_length_mm / focal_px
     coc_px = float(circle_of_confusion_mm(np.array(distance_mm), sharp_mm, optics)) / pixel_mm
     blurred = gaussian_filter(patch, np.hypot(psf_px, coc_px / 2), truncate=3.0)
-    return blurred + rng.standard_normal(blurred.shape).astype(np.float32) * np.float32(noise)
+    result: np.ndarray = blurred + rng.standard_normal(blurred.shape).astype(np.float32) * np.float32(noise)
+    return result
 
 
 @dataclass

@@ -130,7 +130,8 @@ class SimulatedPhone(SimulatedAdbd):
     @property
     def agent_running(self) -> bool:
         """Whether an agent process runs (between app_process and its exit)."""
-        return self.agent.running
+        result: bool = self.agent.running
+        return result
 
     def crash_agent(self) -> None:
         """Fault: the agent process dies (its socket and shell stream close; adbd stays up)."""

@@ -10,6 +10,7 @@ pixel takes the level nearest its own CoC: cheap, and enough to see focus errors
 from __future__ import annotations
 
 import io
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -31,7 +32,8 @@ def circle_of_confusion_mm(z_mm: np.ndarray, focus_mm: float, optics: Optics) ->
     aperture = f / optics.f_number
     s = max(float(focus_mm), f * 1.001)
     z = np.maximum(np.asarray(z_mm, dtype=float), f * 1.001)
-    return aperture * np.abs(z - s) / z * f / (s - f)
+    result: np.ndarray = aperture * np.abs(z - s) / z * f / (s - f)
+    return result
 
 
 FLOOR_HALF_SIDE_MM = 2500.0
@@ -86,11 +88,12 @@ class SubjectScene:
             normals[on_skin] = smooth / np.maximum(np.linalg.norm(smooth, axis=1, keepdims=True), 1e-6)
         return answer["t_hit"].numpy(), normals, darkness
 
-    def _cast(self, origin: np.ndarray, directions: np.ndarray) -> dict:
+    def _cast(self, origin: np.ndarray, directions: np.ndarray) -> dict[str, Any]:
         rays = np.empty((len(directions), 6), dtype=np.float32)
         rays[:, :3] = origin
         rays[:, 3:] = directions
-        return self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        result: dict[str, Any] = self.scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        return result
 
 
 class PhoneRenderer:
@@ -144,7 +147,8 @@ class PhoneRenderer:
             box = np.s_[max(rows[0] - reach, 0):rows[-1] + reach + 1, max(cols[0] - reach, 0):cols[-1] + reach + 1]
             blurred = gaussian_filter(rgb[box], sigma=(levels[i] / 2, levels[i] / 2, 0), truncate=3.0)
             out[box][mask[box]] = blurred[mask[box]]
-        return np.clip(out, 0, 255).astype(np.uint8)
+        result: np.ndarray = np.clip(out, 0, 255).astype(np.uint8)
+        return result
 
 
 def encode_jpeg(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:

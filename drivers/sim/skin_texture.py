@@ -88,4 +88,5 @@ def pigment(skin_mm: np.ndarray, seed: int = 0) -> np.ndarray:
 
 def pigmented(albedo_rgb: np.ndarray, darkness: np.ndarray) -> np.ndarray:
     """(N, 3) albedo with the spots' pigment taken out."""
-    return albedo_rgb * (1.0 - darkness[:, None].astype(np.float32) * PIGMENT_TINT)
+    result: np.ndarray = albedo_rgb * (1.0 - darkness[:, None].astype(np.float32) * PIGMENT_TINT)
+    return result

@@ -49,8 +49,9 @@ class Detection:
 
 
 def _reduced_flag(cv2: Any, factor: int) -> int:
-    return {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+    result: int = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
             8: cv2.IMREAD_REDUCED_GRAYSCALE_8}[factor]
+    return result
 
 
 def picture_size(path: Path) -> tuple[int, int]:

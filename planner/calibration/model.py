@@ -82,7 +82,8 @@ class BeamPose:
         return from_rotvec(np.array([self.tilt_rad[0], self.tilt_rad[1], 0.0]), np.asarray(self.shift_mm))
 
     def world_from_beam(self) -> np.ndarray:
-        return rot_z(math.radians(self.angle_deg)) @ self.wobble()
+        result: np.ndarray = rot_z(math.radians(self.angle_deg)) @ self.wobble()
+        return result
 
 
 @dataclass(frozen=True)
@@ -129,15 +130,18 @@ class Calibration:
 
     def world_from_beam(self, angle_deg: float) -> np.ndarray:
         """(4, 4) the beam's pose at any angle: rotation about z, wobble interpolated around the turn."""
-        return rot_z(math.radians(angle_deg)) @ self._wobble_at(angle_deg)
+        result: np.ndarray = rot_z(math.radians(angle_deg)) @ self._wobble_at(angle_deg)
+        return result
 
     def world_from_camera(self, camera_id: str, angle_deg: float) -> np.ndarray:
         """(4, 4) camera-to-world pose of a camera at a beam angle (deg)."""
-        return self.world_from_beam(angle_deg) @ self.camera(camera_id).beam_from_camera
+        result: np.ndarray = self.world_from_beam(angle_deg) @ self.camera(camera_id).beam_from_camera
+        return result
 
     def capture_pose(self, camera_id: str, capture: int) -> np.ndarray:
         """(4, 4) camera-to-world pose of a camera at one calibration capture (its measured beam pose)."""
-        return self.beam[capture].world_from_beam() @ self.camera(camera_id).beam_from_camera
+        result: np.ndarray = self.beam[capture].world_from_beam() @ self.camera(camera_id).beam_from_camera
+        return result
 
     def _wobble_at(self, angle_deg: float) -> np.ndarray:
         if not self.beam:

@@ -119,7 +119,8 @@ class CuboidTarget:
         """(H, W) uint8 picture of one face's board, px_per_mm pixels per millimetre, no margin."""
         width = int(round(self.squares[0] * self.square_mm * px_per_mm))
         height = int(round(self.squares[1] * self.square_mm * px_per_mm))
-        return self.board(face).generateImage((width, height), marginSize=0, borderBits=border_bits)
+        result: np.ndarray = self.board(face).generateImage((width, height), marginSize=0, borderBits=border_bits)
+        return result
 
 
 def _face(index: int, name: str, first_id: int, size: tuple[float, float, float],
