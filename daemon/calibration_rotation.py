@@ -33,16 +33,16 @@ import cv2
 import numpy as np
 import structlog
 
-from daemon.atomic import AtomicWriter, fsync_dir, raise_for
+from daemon.atomic import AtomicWriter, StoreError, fsync_dir, raise_for
 from daemon.beam import BeamTracker, rebase_angle
 from daemon.errors import DaemonError
 from daemon.hardware import RigHardware
 from daemon.job import JOB_END, RigJob
 from daemon.phones import focus_range_mm
-from daemon.pulls import ImagePullFailed, Pull, PullQueue
+from daemon.pulls import ImageKey, ImagePullFailed, Pull, PullQueue
 from daemon.safety import SafetyMonitor
 from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import SCAN_ID, StoreError, new_scan_id
+from daemon.store import SCAN_ID, new_scan_id
 from daemon.utc import utc_now
 from drivers.depth.base import DepthFrame
 from drivers.phone.camera import CaptureDone
@@ -313,21 +313,21 @@ class CalibrationRotation(RigJob):
 
     # ------------------------------------------------------------------ the pulls' ledger
 
-    def attempt(self, job: Pull, attempt: int) -> None:
+    def attempt(self, job: Pull[ImageKey], attempt: int) -> None:
         """Attempts are not recorded: captures.json lists pictures safely on disk."""
 
-    def verified(self, job: Pull, size: int, sha256: str) -> None:
-        encoder, focus_mm = self._shots.pop(job.key)  # type: ignore[arg-type]
+    def verified(self, job: Pull[ImageKey], size: int, sha256: str) -> None:
+        encoder, focus_mm = self._shots.pop(job.key)
         self.captures.append(_Capture(job.camera_id, "phone", job.angle_index or 0, encoder,
                                       _picture(job.camera_id, job.angle_index or 0), focus_mm, size, sha256))
 
-    def failed(self, job: Pull, failure: ImagePullFailed) -> None:
+    def failed(self, job: Pull[ImageKey], failure: ImagePullFailed) -> None:
         self._problem(f"phone {job.camera_id}: {failure}")
 
-    def not_pulled(self, job: Pull, error: StoreError) -> None:
+    def not_pulled(self, job: Pull[ImageKey], error: StoreError) -> None:
         self._problem(f"phone {job.camera_id}: {job.dest.name} not pulled (it stays on the phone): {error}")
 
-    def not_deleted(self, job: Pull, error: Exception) -> None:
+    def not_deleted(self, job: Pull[ImageKey], error: Exception) -> None:
         self._problem(f"phone {job.camera_id}: {job.phone_path} not deleted on the phone: "
                       f"{type(error).__name__}: {error}")
 

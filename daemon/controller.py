@@ -14,6 +14,7 @@ from typing import Any
 
 import structlog
 
+from daemon.atomic import StoreError
 from daemon.beam import BeamTracker, trace_capacity
 from daemon.bringup import BringUp
 from daemon.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
@@ -26,7 +27,7 @@ from daemon.safety import SafetyMonitor
 from daemon.scan import Scan, ScanReport, ScanSettings
 from daemon.scan_time import job_time
 from daemon.states import ScanState, ScanStateMachine, state_groups
-from daemon.store import ScanStore, StoreError
+from daemon.store import ScanStore
 from daemon.utc import utc_now
 from drivers.errors import DeviceGone
 from drivers.panel.protocol import StatusLed

@@ -22,17 +22,19 @@ import shutil
 from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Generic, Protocol, TypeVar
 
 import structlog
 
 from daemon.atomic import StoreError, StoreFull
-from daemon.job import stop_tasks
 from daemon.manifest import ImageStatus
 from daemon.store import ScanFolder
+from daemon.tasks import stop_tasks
 
 PullFn = Callable[[str, Path], Awaitable[tuple[int, str]]]
 _CHUNK = 1 << 20
+K = TypeVar("K", bound=Hashable)
+ImageKey = tuple[int, int]  # (camera index, angle index): what a ledger files a picture under
 
 log = structlog.get_logger(__name__)
 
@@ -64,11 +66,11 @@ def file_sha256(path: Path) -> str:
 
 
 @dataclass(frozen=True)
-class Pull:
+class Pull(Generic[K]):
     """One picture on a phone and where it goes. ``key``: what the ledger files it under;
     ``delete``: remove it from the phone once verified (None: it stays there)."""
 
-    key: Hashable
+    key: K
     camera_id: str
     angle_index: int | None
     phone_path: str
@@ -89,7 +91,7 @@ class PullPolicy:
     space_margin_bytes: int = 1 << 20
 
 
-async def pull_verified(job: Pull, policy: PullPolicy = PullPolicy(),
+async def pull_verified(job: Pull[K], policy: PullPolicy = PullPolicy(),
                         on_attempt: Callable[[int], None] | None = None) -> tuple[int, str]:
     """Pull ``job`` into ``job.dest`` and verify it; (size in bytes, sha256 hex).
 
@@ -146,19 +148,19 @@ def _verify(dest: Path, size: int, sha: str, expected: int | None) -> None:
 class PullLedger(Protocol):
     """Where a job records what happens to its pulls (raising StoreError stops the queue)."""
 
-    def attempt(self, job: Pull, attempt: int) -> None:
+    def attempt(self, job: Pull[ImageKey], attempt: int) -> None:
         """Attempt number ``attempt`` (1-based) starts."""
 
-    def verified(self, job: Pull, size: int, sha256: str) -> None:
+    def verified(self, job: Pull[ImageKey], size: int, sha256: str) -> None:
         """The picture is on disk and verified."""
 
-    def failed(self, job: Pull, failure: ImagePullFailed) -> None:
+    def failed(self, job: Pull[ImageKey], failure: ImagePullFailed) -> None:
         """Every attempt failed; the picture stays on the phone."""
 
-    def not_pulled(self, job: Pull, error: StoreError) -> None:
+    def not_pulled(self, job: Pull[ImageKey], error: StoreError) -> None:
         """Not pulled because the store cannot take it (disk full); the picture stays on the phone."""
 
-    def not_deleted(self, job: Pull, error: Exception) -> None:
+    def not_deleted(self, job: Pull[ImageKey], error: Exception) -> None:
         """Verified, but the phone did not delete its copy."""
 
 
@@ -182,7 +184,7 @@ class PullQueue:
         self.verified = 0
         self.failures: list[ImagePullFailed] = []
         self.fatal: StoreError | None = None
-        self._queue: asyncio.Queue[Pull] = asyncio.Queue()
+        self._queue: asyncio.Queue[Pull[ImageKey]] = asyncio.Queue()
         self._tasks: list[asyncio.Task[None]] = []
 
     async def __aenter__(self) -> PullQueue:
@@ -196,7 +198,7 @@ class PullQueue:
         if not self._tasks:
             self._tasks = [asyncio.create_task(self._worker(), name=f"pull-{i}") for i in range(self.n_workers)]
 
-    def submit(self, job: Pull) -> None:
+    def submit(self, job: Pull[ImageKey]) -> None:
         """Queue one captured picture (never blocks the capture)."""
         self._queue.put_nowait(job)
 
@@ -224,7 +226,7 @@ class PullQueue:
             finally:
                 self._queue.task_done()
 
-    async def _serve(self, job: Pull) -> None:
+    async def _serve(self, job: Pull[ImageKey]) -> None:
         ledger = self.ledger
         if self.fatal is not None:
             ledger.not_pulled(job, self.fatal)
@@ -259,32 +261,32 @@ class ScanImages:
         self.folder = folder
 
     def pull(self, camera_index: int, angle_index: int, phone_path: str, pull: PullFn, *,
-             expected_size: int | None = None) -> Pull:
+             expected_size: int | None = None) -> Pull[ImageKey]:
         """The pull of a planned image (refuses unknown images up front)."""
         image = self.folder.image(camera_index, angle_index)
         return Pull((camera_index, angle_index), image.camera_id, angle_index, phone_path,
                     self.folder.image_dest(camera_index, angle_index, phone_path), pull, expected_size)
 
-    def attempt(self, job: Pull, attempt: int) -> None:
-        c, k = job.key  # type: ignore[misc]
+    def attempt(self, job: Pull[ImageKey], attempt: int) -> None:
+        c, k = job.key
         self.folder.update_image(c, k, attempts=attempt, save=False)
 
-    def verified(self, job: Pull, size: int, sha256: str) -> None:
-        c, k = job.key  # type: ignore[misc]
+    def verified(self, job: Pull[ImageKey], size: int, sha256: str) -> None:
+        c, k = job.key
         self.folder.update_image(c, k, status=ImageStatus.VERIFIED, file=str(job.dest.relative_to(self.folder.path)),
                                  size_bytes=size, sha256=sha256, error=None)
 
-    def failed(self, job: Pull, failure: ImagePullFailed) -> None:
-        c, k = job.key  # type: ignore[misc]
+    def failed(self, job: Pull[ImageKey], failure: ImagePullFailed) -> None:
+        c, k = job.key
         self.folder.record_failure(c, k, str(failure))
 
-    def not_pulled(self, job: Pull, error: StoreError) -> None:
+    def not_pulled(self, job: Pull[ImageKey], error: StoreError) -> None:
         """The image is still on the phone: it stays 'captured', with the reason."""
-        c, k = job.key  # type: ignore[misc]
+        c, k = job.key
         try:
             self.folder.update_image(c, k, error=str(error))
         except StoreFull:
             self.folder.update_image(c, k, error=str(error), save=False)
 
-    def not_deleted(self, job: Pull, error: Exception) -> None:
+    def not_deleted(self, job: Pull[ImageKey], error: Exception) -> None:
         """A scan does not delete pictures on the phones."""

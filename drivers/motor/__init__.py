@@ -8,7 +8,7 @@ with the simulated drive in ``drivers.sim.drive`` (``tbp sim motor``: ``sim.proc
 
 from drivers.motor.bringup import CONTROL_RPDO, controlword_pdo
 from drivers.motor.cia402 import Cia402State
-from drivers.motor.drive import BeamDrive, BeamSample, DriveIdentity
+from drivers.motor.drive import BeamDrive, DriveIdentity
 from drivers.motor.errors import (
     CanBusError,
     DriveError,
@@ -34,6 +34,7 @@ from drivers.motor.errors import (
 )
 from drivers.motor.nmt import rpdo_cob_id
 from drivers.motor.port import CanPort, LazyCanPort, LoopbackCanBus, PythonCanPort, RealtimePort
+from drivers.motor.samples import BeamSample
 from drivers.motor.stop_config import StopConfiguration, read_stop_configuration, required_stop_configuration
 
 __all__ = [
