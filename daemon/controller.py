@@ -202,12 +202,12 @@ class RigController:
     async def _new_rotation(self, rotation_id: str | None) -> CalibrationRotation:
         try:
             target = await asyncio.to_thread(load_target, self.settings.calibration_target or DEFAULT_TARGET_PATH)
-            rotation_id, folder = await asyncio.to_thread(create_rotation_folder, self.store.root, rotation_id)
+            made_id, folder = await asyncio.to_thread(create_rotation_folder, self.store.root, rotation_id)
         except (TargetError, StoreError, OSError) as exc:
             raise self._refused("calibration", rotation_id,
                                 ScanRefused(rotation_id, f"calibration rotation: {type(exc).__name__}: {exc}")) from exc
         return CalibrationRotation(self.rig, self.hw, self.machine, self.safety, self.tracker, target,
-                                   rotation_id, folder)
+                                   made_id, folder)
 
     async def _run_job(self, job: RigJob) -> Any:
         """Run ``job`` in a task of its own: a cancel of this task aborts the job, which still

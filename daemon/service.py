@@ -17,10 +17,12 @@ from typing import Any
 
 import structlog
 
+from daemon.calibration_rotation import CalibrationRotation
 from daemon.clinic.patient import PatientError, ScanSubject
 from daemon.clinic.site import Site
 from daemon.control import ControlServer
 from daemon.controller import RigController
+from daemon.devices import Panel
 from daemon.errors import DaemonError, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
 from daemon.looplag import LoopLagMonitor
@@ -96,7 +98,7 @@ class RigService:
             asyncio.create_task(ctl.bringup.run(self._readiness_changed), name="reprobe"),
         ]
         if ctl.hw.panel is not None:
-            self._tasks.append(asyncio.create_task(self._panel_events(), name="panel-events"))
+            self._tasks.append(asyncio.create_task(self._panel_events(ctl.hw.panel), name="panel-events"))
         self._readiness_changed(ready)
 
     def _readiness_changed(self, ready: bool) -> None:
@@ -206,10 +208,10 @@ class RigService:
             if event.kind == "transition":
                 self.notifier.status(f"{event.state.value}: {event.cause}")
 
-    async def _panel_events(self) -> None:
+    async def _panel_events(self, panel: Panel) -> None:
         """Start, stop and e-stop from the operator panel."""
         ctl = self.controller
-        async for event in ctl.hw.panel.events():
+        async for event in panel.events():
             log.info("panel_event", panel_event=event.name)
             if event is PanelEvent.START_PRESSED:  # started aside: a STOP or e-stop right after is read at once
                 self._tasks = [t for t in self._tasks if not t.done()]
@@ -249,12 +251,13 @@ class RigService:
         from daemon.clinic.worklist import query
         from daemon.utc import utc_now
 
-        if self.site is None or self.site.worklist is None:
-            raise WorklistUnavailable("no worklist provider in the site file (site.yaml: worklist)")
         site = self.site
+        if site is None or site.worklist is None:
+            raise WorklistUnavailable("no worklist provider in the site file (site.yaml: worklist)")
+        worklist = site.worklist
         today = f"{utc_now().astimezone():%Y%m%d}"  # the clinic's day, in this PC's time zone
-        answer = await asyncio.to_thread(query, site.worklist, site, today)
-        log.info("worklist_read", provider=str(site.worklist.peer), items=len(answer.items),
+        answer = await asyncio.to_thread(query, worklist, site, today)
+        log.info("worklist_read", provider=str(worklist.peer), items=len(answer.items),
                  left_out=len(answer.problems))
         return answer.as_dict()
 
@@ -277,8 +280,9 @@ class RigService:
         """Start a calibration rotation (the cuboid in place); its folder is in the answer."""
         rotation_id = args.get("rotation_id") or new_scan_id()
         await self.controller.start_calibration(rotation_id)
-        rotation = self.controller.current
-        return {"rotation_id": rotation_id, "folder": str(rotation.folder) if rotation else None,
+        rotation = self.controller.current  # the job start_calibration made
+        folder = str(rotation.folder) if isinstance(rotation, CalibrationRotation) else None
+        return {"rotation_id": rotation_id, "folder": folder,
                 "state": self.controller.machine.state.value}
 
     def abort(self) -> dict[str, Any]:
