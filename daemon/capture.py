@@ -377,9 +377,10 @@ class CaptureRunner:
         try:
             for i, target in enumerate(targets):
                 record = self.records[self.rig.pose_index(target.angle_index, c)]
-                if self.dropped[c] is not None:
+                dropped = self.dropped[c]
+                if dropped is not None:
                     self._fail(c, record, PhoneDropped(record.camera_id, target.angle_index, target.angle_deg,
-                                                       self.failures_in_row[c], self.dropped[c]), pass_name)
+                                                       self.failures_in_row[c], dropped), pass_name)
                     continue
                 if self.gone[c]:
                     self._failed(c, record, CaptureMissed(record.camera_id, target.angle_index,
@@ -488,7 +489,7 @@ class CaptureRunner:
                 raise CaptureMissed(record.camera_id, record.angle_index, angle_deg,
                                     f"beam already at {latest.angle_deg:.3f} deg")
             crossing = self._predict_crossing(angle_deg, pass_name)
-            if not math.isfinite(crossing):
+            if latest is None or not math.isfinite(crossing):  # no sample: the crossing is inf
                 try:
                     async with asyncio.timeout(1.0):  # a cancel landing with the sample still cancels
                         await self.tracker.next_sample()

@@ -72,6 +72,7 @@ class ClockFit:
 
     def to_host(self, device_ns: int | np.ndarray) -> float | np.ndarray:
         """Host loop time (s) of device clock reading(s) (ns)."""
+        dt: float | np.ndarray
         if isinstance(device_ns, np.ndarray):
             dt = (device_ns.astype(np.int64) - self.ref_device_ns).astype(float) * 1e-9
         else:

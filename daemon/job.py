@@ -14,7 +14,7 @@ folder closing.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable
+from collections.abc import Coroutine
 from typing import Any, ClassVar
 
 import structlog
@@ -68,7 +68,7 @@ class RigJob:
 
     # ------------------------------------------------------------------ for subclasses
 
-    def body(self) -> Awaitable[None]:
+    def body(self) -> Coroutine[Any, Any, None]:
         """The job's steps (run as the body task)."""
         raise NotImplementedError
 

@@ -104,7 +104,7 @@ def trace_bytes(time_s: np.ndarray, angle_deg: np.ndarray, speed_deg_s: np.ndarr
     if speed_deg_s is not None:
         arrays["speed_deg_s"] = np.asarray(speed_deg_s, float)
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub reads **arrays as maybe allow_pickle
     return buffer.getvalue()
 
 
@@ -202,8 +202,9 @@ class ScanFolder:
         ordered.raise_failure()
 
         def listed(written: asyncio.Future[None]) -> None:
-            if written.exception() is not None:
-                ordered.keep_failure(written.exception())
+            failure = written.exception()
+            if failure is not None:
+                ordered.keep_failure(failure)
             elif self._ordered is ordered:
                 self.manifest.files[key] = name
                 self._queue_manifest()
@@ -290,8 +291,9 @@ class ScanFolder:
 
             def listed(future: asyncio.Future[None]) -> None:
                 self._events_listing = False
-                if future.exception() is not None:
-                    ordered.keep_failure(future.exception())
+                failure = future.exception()
+                if failure is not None:
+                    ordered.keep_failure(failure)
                 elif self._ordered is ordered:
                     self.manifest.files.setdefault("events", "events.jsonl")
                     self._queue_manifest()
