@@ -16,6 +16,7 @@ fails its own captures; the operator's reset brings the drive back on a fresh li
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
@@ -148,10 +149,10 @@ class BringUp:
             steps.append(("drive", self._drive))
         for i, name in enumerate(self.phone_ids):
             if not self.devices[name].ok:
-                steps.append((name, lambda i=i: self._phone(i)))
+                steps.append((name, functools.partial(self._phone, i)))
         for i, name in enumerate(self.depth_ids):
             if not self.devices[name].ok:
-                steps.append((name, lambda i=i: self._depth(i)))
+                steps.append((name, functools.partial(self._depth, i)))
         if "panel" in self.devices and not self.devices["panel"].ok:
             steps.append(("panel", self._panel))
         if due_only:

@@ -16,6 +16,7 @@ by the next :meth:`FolderWriter.raise_failure` (the folder's next write asks) or
 from __future__ import annotations
 
 import asyncio
+import functools
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -94,7 +95,7 @@ class FolderWriter:
                     replaced = op.future
                     if future is None:
                         future = self._loop.create_future()
-                    future.add_done_callback(lambda f, r=replaced: _settle_like(r, f))
+                    future.add_done_callback(functools.partial(_settle_like, replaced))
         self._queue(_Op(write, future, manifest=True))
         return future
 

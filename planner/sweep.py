@@ -25,12 +25,18 @@ if TYPE_CHECKING:
 
 
 class FrameLike(Protocol):
-    camera_id: str
-    frame_number: int
-    timestamp_s: float
-    depth: np.ndarray
-    depth_unit_mm: float
-    intrinsics: np.ndarray
+    @property
+    def camera_id(self) -> str: ...
+    @property
+    def frame_number(self) -> int: ...
+    @property
+    def timestamp_s(self) -> float: ...
+    @property
+    def depth(self) -> np.ndarray: ...
+    @property
+    def depth_unit_mm(self) -> float: ...
+    @property
+    def intrinsics(self) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)

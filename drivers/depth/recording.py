@@ -59,7 +59,7 @@ def save_sweep(sweep: Sweep, folder: Path | str) -> Path:
     entries = []
     for i, f in enumerate(sweep.frames):
         name = f"{i:05d}_{f.camera_id}_{f.frame_number:06d}.npz"
-        atomic_write(folder / name, lambda fh, d=f.depth: np.savez_compressed(fh, depth=d))
+        atomic_write(folder / name, lambda fh: np.savez_compressed(fh, depth=f.depth))  # called here, with this f
         entries.append(
             {
                 "file": name,

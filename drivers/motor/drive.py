@@ -658,8 +658,8 @@ class BeamDrive:
         for next_state, controlword in steps:
             await self._write_controlword(controlword)
             await self._until(
-                lambda s=next_state: self.state is s,
-                self.TRANSITION_TIMEOUT_S,  # type: ignore[misc]
+                lambda: self.state is next_state,  # awaited here: next_state is this step's
+                self.TRANSITION_TIMEOUT_S,
                 self._transition_timeout(next_state.value, controlword),
             )
 
