@@ -118,7 +118,7 @@ class AdbConnection:
                 raise AdbProtocolError(self.name, self.state,
                                        f"AUTH token of {len(msg.payload)} bytes, expected {TOKEN_SIZE}")
             if not sent_signature:
-                await self.transport.send(AdbMessage(A_AUTH, AUTH_SIGNATURE, 0, self.key.sign(msg.payload)))
+                await self.transport.send(AdbMessage(A_AUTH, AUTH_SIGNATURE, 0, self.key.sign(bytes(msg.payload))))
                 sent_signature = True
             elif not sent_key:
                 await self.transport.send(AdbMessage(A_AUTH, AUTH_RSAPUBLICKEY, 0, self.key.public_key_payload()))
@@ -132,10 +132,10 @@ class AdbConnection:
         version, max_payload = msg.arg0, msg.arg1
         if version < A_VERSION_MIN:
             raise AdbProtocolError(self.name, self.state, f"device protocol version 0x{version:08X} too old")
-        kind, props = parse_banner(msg.payload)
+        kind, props = parse_banner(bytes(msg.payload))
         features = frozenset(f for f in props.pop("features", "").split(",") if f)
         size = max(min(max_payload, self.MAX_PAYLOAD), MAX_PAYLOAD_LEGACY)  # both directions use the smaller
-        return DeviceBanner(kind, props, features, min(version, A_VERSION), size, msg.payload)
+        return DeviceBanner(kind, props, features, min(version, A_VERSION), size, bytes(msg.payload))
 
     async def _run(self) -> None:
         await self.mux.run()

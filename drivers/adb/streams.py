@@ -336,7 +336,8 @@ class StreamMux:
                                        f"WRTE on {stream.service!r} beyond its flow-control window "
                                        f"({len(stream._payloads)} payloads unread, no OKAY outstanding)")
             stream._peer_credit -= 1
-            stream._payloads.append(msg.payload)
+            payload = msg.payload  # bytes or a receive buffer from a transport; a view only if handed over in memory
+            stream._payloads.append(bytes(payload) if isinstance(payload, memoryview) else payload)
             stream._arrived.set()
             if stream._credit_given:
                 stream._credit_given = False
@@ -348,7 +349,7 @@ class StreamMux:
             stream._mark_closed()
 
     async def _accept(self, msg: AdbMessage) -> None:
-        service = msg.payload.rstrip(b"\0").decode("utf-8", "replace")
+        service = bytes(msg.payload).rstrip(b"\0").decode("utf-8", "replace")
         handler = self.resolver(service) if self.resolver is not None else None
         if handler is None or msg.arg0 == 0:
             await self.send(AdbMessage(A_CLSE, 0, msg.arg0))

@@ -40,7 +40,7 @@ _STAT = struct.Struct("<4sIII")
 _DENT = struct.Struct("<4sIIII")
 
 
-def _writeback_starter() -> Callable[[int, int, int], object] | None:
+def _writeback_starter() -> Callable[[int, int, int, int], object] | None:
     """Linux sync_file_range(SYNC_FILE_RANGE_WRITE) through libc, or None where libc lacks it.
 
     Starting writeback of each few MiB as it is written leaves the final fsync of a pull with
@@ -245,7 +245,7 @@ class SyncClient:
 
     async def list(self, path: str) -> list[DirEntry]:
         await self.stream.write(request(b"LIST", path))
-        entries = []
+        entries: list[DirEntry] = []
         while True:
             ident, mode, size, mtime, namelen = _DENT.unpack(await self.stream.readexactly(_DENT.size))
             if ident == b"DONE":

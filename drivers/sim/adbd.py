@@ -188,7 +188,7 @@ class SimulatedAdbd:
         self.commands: dict[str, Command] = {"getprop": self._getprop, "echo": self._echo,
                                              "ls": self._ls, "rm": self._rm}
         self.listeners: dict[str, ServiceHandler] = {}
-        self.links: set[StreamMux] = set()
+        self.links: dict[StreamMux, StreamTransport] = {}  # each live link's mux and its transport
         self.connections = 0
         self._sessions: set[asyncio.Task[None]] = set()
         self._rng = random.Random(seed)
@@ -205,16 +205,16 @@ class SimulatedAdbd:
     def vanish(self) -> None:
         """Drop every link now and refuse reconnects (phone unplugged, crashed or out of battery)."""
         self.vanished = True
-        for mux in list(self.links):
-            mux.transport.writer.transport.abort()
+        for transport in list(self.links.values()):
+            transport.writer.transport.abort()
 
     def reappear(self) -> None:
         self.vanished = False
 
     async def shut_down(self) -> None:
         """Drop every link and wait until their sessions (and what they run, the agent) have ended."""
-        for mux in list(self.links):
-            mux.transport.writer.transport.abort()
+        for transport in list(self.links.values()):
+            transport.writer.transport.abort()
         await asyncio.gather(*self._sessions, return_exceptions=True)
 
     # ---------------------------------------------------------------- link
@@ -238,12 +238,12 @@ class SimulatedAdbd:
             return
         mux.max_payload = min(host_max, MAX_PAYLOAD)
         mux.with_checksum = host_version < A_VERSION_SKIP_CHECKSUM
-        self.links.add(mux)
+        self.links[mux] = transport
         self.connections += 1
         try:
             await mux.run()
         finally:
-            self.links.discard(mux)
+            self.links.pop(mux, None)
             await mux.close()  # the session ends once its services (the agent's shell) have
 
     async def _handshake(self, transport: StreamTransport) -> tuple[int, int]:
@@ -258,13 +258,13 @@ class SimulatedAdbd:
             if reply.command != A_AUTH:
                 raise ConnectionLost(self.serial, "auth", f"expected AUTH, got {reply.name}")
             if reply.arg0 == AUTH_SIGNATURE:
-                if not self.refuse_auth and any(verify_token_signature(k, token, reply.payload)
+                if not self.refuse_auth and any(verify_token_signature(k, token, bytes(reply.payload))
                                                 for k in self.known_keys):
                     break
             elif reply.arg0 == AUTH_RSAPUBLICKEY:
                 if self.refuse_auth or not self.accept_new_keys:
                     raise ConnectionLost(self.serial, "auth", "user refused the host's public key")
-                self.known_keys.append(parse_public_key_text(reply.payload))
+                self.known_keys.append(parse_public_key_text(bytes(reply.payload)))
                 break
             else:
                 raise ConnectionLost(self.serial, "auth", f"AUTH type {reply.arg0}")
@@ -377,7 +377,7 @@ class SimulatedAdbd:
             cut = (limit // SYNC_DATA_MAX) * frame
             await stream.write(view[:cut])
             log.info("sim_adbd_fault_disconnect", serial=self.serial, path=path, after_bytes=limit)
-            stream.mux.transport.writer.transport.abort()
+            self.links[stream.mux].writer.transport.abort()
             return
         for start in range(0, len(view), batch):
             await stream.write(view[start:start + batch])
