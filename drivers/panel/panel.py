@@ -164,7 +164,7 @@ class OperatorPanel:
             await self._open_session()
         except BaseException:
             await self._stop_tasks()
-            if self.state is LinkState.CONNECTING:
+            if self.state is LinkState.CONNECTING:  # type: ignore[comparison-overlap]  # _open_session moves it on
                 self.state = LinkState.NEW
             if self._reopen is not None and self._writer is not None:  # the next connect reopens the port
                 self._writer.close()
@@ -286,6 +286,8 @@ class OperatorPanel:
         raw = protocol.encode(Line(seq, verb, args), FROM_HOST)
         if self.state is LinkState.DISCONNECTED:
             raise self.fault  # type: ignore[misc]
+        if self._writer is None:  # never opened
+            raise PanelStateError(self.name, self.state.value, f"send {verb}")
         try:
             self._writer.write(raw)
             await self._writer.drain()
@@ -332,6 +334,8 @@ class OperatorPanel:
     async def _read_loop(self) -> None:
         buffer = b""
         while True:
+            if self._reader is None:  # never opened
+                raise PanelStateError(self.name, self.state.value, "read")
             try:
                 chunk = await self._reader.read(self.READ_CHUNK)
             except (OSError, ConnectionError) as exc:
@@ -474,7 +478,8 @@ class OperatorPanel:
         while True:
             await asyncio.sleep(self.REOPEN_PERIOD_S)
             try:
-                self._writer.close()
+                if self._writer is not None:
+                    self._writer.close()
                 self._reader, self._writer = await self._reopen()  # type: ignore[misc]
                 await self._stop_tasks()
                 await self._open_session()

@@ -44,6 +44,7 @@ class FdStreamWriter(asyncio.StreamWriter):
                  reader: asyncio.StreamReader, loop: asyncio.AbstractEventLoop,
                  read_transport: asyncio.ReadTransport, line_fd: int) -> None:
         super().__init__(transport, protocol, reader, loop)
+        self._line_loop = loop
         self._read_transport = read_transport
         self._line_fd = line_fd
         self._line_closed: asyncio.Future[None] | None = None
@@ -53,7 +54,7 @@ class FdStreamWriter(asyncio.StreamWriter):
         super().close()
         if self._line_closed is None:
             try:
-                self._line_closed = self._loop.run_in_executor(None, os.close, self._line_fd)
+                self._line_closed = self._line_loop.run_in_executor(None, os.close, self._line_fd)
             except RuntimeError:  # the loop's executor is already shut down: the process is ending
                 os.close(self._line_fd)
 
