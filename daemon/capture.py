@@ -150,7 +150,7 @@ class CaptureRunner:
         latency: Sequence[TriggerLatency],
         *,
         on_capture: Callable[[CaptureRecord], None] = lambda r: None,
-        progress: Callable[..., None] = lambda event, **kw: None,
+        progress: Callable[..., object] = lambda event, **kw: None,
         gone: Sequence[bool] | None = None,
         on_drop: Callable[[str, int, str], None] = lambda camera, failures, why: None,
     ) -> None:

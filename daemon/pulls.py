@@ -176,7 +176,7 @@ class PullQueue:
     CLOSE_TIMEOUT_S = 5.0
 
     def __init__(self, ledger: PullLedger, *, workers: int = 2, policy: PullPolicy = PullPolicy(),
-                 on_verified: Callable[[int], None] | None = None) -> None:
+                 on_verified: Callable[[int], object] | None = None) -> None:
         self.ledger = ledger
         self.n_workers = workers
         self.policy = policy

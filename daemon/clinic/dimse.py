@@ -63,6 +63,7 @@ def associate(ae_title: str, peer: Peer, contexts: Sequence[tuple[str, Sequence[
     """An established pynetdicom association to ``peer`` for ``contexts`` ((SOP class UID,
     transfer syntaxes) each). Raises PeerUnreachable, AssociationRejected or ContextsRefused."""
     from pynetdicom import AE, evt
+    from pynetdicom.events import EventHandlerType
     from pynetdicom.pdu import A_ASSOCIATE_RJ
 
     ae = AE(ae_title=ae_title)
@@ -75,7 +76,7 @@ def associate(ae_title: str, peer: Peer, contexts: Sequence[tuple[str, Sequence[
     # rejection and the close it brings come before the requesting thread looks at the connection,
     # pynetdicom reports a failed connection and aborts, with no answer kept.
     rejections: list[Any] = []
-    handlers = [(evt.EVT_PDU_RECV, lambda event: rejections.append(event.pdu)
+    handlers: list[EventHandlerType] = [(evt.EVT_PDU_RECV, lambda event: rejections.append(event.pdu)
                  if isinstance(event.pdu, A_ASSOCIATE_RJ) else None)]
     assoc = ae.associate(peer.host, peer.port, ae_title=peer.called_aet, tls_args=tls_args, evt_handlers=handlers)
     if assoc.is_established:

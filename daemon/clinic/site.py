@@ -124,7 +124,7 @@ def _site(values: dict[str, Any], path: Path | str) -> Site:
         station = w["station_aet"]
         worklist = WorklistSource(_peer(w), w["modality"], None if station is None else station.strip())
     if (t := values["tls"]) is not None:
-        tls = Tls(*(None if t[k] is None else base / t[k] for k in ("ca_file", "cert_file", "key_file")))
+        tls = Tls(base / t["ca_file"], *(None if t[k] is None else base / t[k] for k in ("cert_file", "key_file")))
     if (a := values["archive"]) is not None:
         if (a["pacs"] is None) == (a["dicomweb"] is None):
             raise SiteConfigError(str(path), "archive", "give exactly one of pacs (C-STORE) and dicomweb (STOW-RS)")
