@@ -100,7 +100,8 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     """(H * W, 3) float camera-frame ray directions (z = 1) through every pixel centre of a distorted lens."""
     u, v = np.meshgrid(np.arange(intrinsics.width_px, dtype=np.float64), np.arange(intrinsics.height_px, dtype=np.float64))
     pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
-    und = cv2.undistortPointsIter(pts, intrinsics.matrix, intrinsics.dist, None, None,
+    # cv2's stub has no None (noArray) for R and P; None gives normalized coordinates
+    und = cv2.undistortPointsIter(pts, intrinsics.matrix, intrinsics.dist, None, None,  # type: ignore[call-overload]
                                   (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)).reshape(-1, 2)
     result: np.ndarray = np.c_[und, np.ones(len(und))]
     return result

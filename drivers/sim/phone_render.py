@@ -10,7 +10,7 @@ pixel takes the level nearest its own CoC: cheap, and enough to see focus errors
 from __future__ import annotations
 
 import io
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from PIL import Image
@@ -18,6 +18,9 @@ from scipy.ndimage import gaussian_filter
 
 from drivers.sim.skin_texture import pigment, pigmented
 from planner.rig import Optics
+
+if TYPE_CHECKING:
+    import trimesh
 
 SKIN_RGB = np.array([224.0, 178.0, 150.0])
 FLOOR_RGB = np.array([90.0, 90.0, 96.0])
@@ -47,7 +50,7 @@ class SubjectScene:
     swayed visit shows the same spots on the same skin), else the mesh's own vertices.
     """
 
-    def __init__(self, mesh) -> None:
+    def __init__(self, mesh: trimesh.Trimesh) -> None:
         import open3d as o3d  # seconds to import: only where a scene is ray cast
 
         self._o3d = o3d
