@@ -104,13 +104,13 @@ def search_group(sets: list[np.ndarray], weight: np.ndarray) -> tuple[float, lis
             held |= sets[i][j]
         left = np.where(held, 0.0, weight)
         gain = (before @ left)[:, None] + (last @ left)[None, :] - (before * left) @ last.T
-        i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
-        value = float(weight[held].sum()) + float(gain[i, j])
+        row, col = np.unravel_index(int(np.argmax(gain)), gain.shape)
+        value = float(weight[held].sum()) + float(gain[row, col])
         if value > best:
             best = value
             for pose, set_index in zip(leading, picked):
                 choice[pose] = set_index
-            choice[b], choice[c] = int(i), int(j)
+            choice[b], choice[c] = int(row), int(col)
     return best, choice
 
 

@@ -168,8 +168,8 @@ def pose_angles_deg(poses: Poses, rig: Rig) -> np.ndarray:
     np.add.at(xy, poses.angle_index, poses.centres[:, :2])
     angles = np.degrees(np.arctan2(xy[:, 1], xy[:, 0]))
     if n_angles == rig.n_angles:  # e.g. noisy poses of this rig: stay next to its angles
-        nominal = rig.capture.angles_deg
-        angles = nominal + (angles - nominal + 180.0) % 360.0 - 180.0
+        nominal_deg = rig.capture.angles_deg
+        angles = nominal_deg + (angles - nominal_deg + 180.0) % 360.0 - 180.0
     return np.round(angles, 3)
 
 
@@ -227,7 +227,8 @@ def check_inside_ring(mesh: trimesh.Trimesh, rig: Rig, name: str) -> None:
         bad = np.flatnonzero(~np.isfinite(v).all(axis=1) | ~(radial < rig.ring_radius_mm))
     if len(bad):
         i = int(bad[0])
-        raise SubjectOutsideRing(name, i, tuple(float(c) for c in v[i]), rig.ring_radius_mm)
+        x, y, z = (float(c) for c in v[i])
+        raise SubjectOutsideRing(name, i, (x, y, z), rig.ring_radius_mm)
 
 
 def check_focus(focus_mm: np.ndarray, n_poses: int) -> np.ndarray:

@@ -70,7 +70,7 @@ def refine_focus(
     init_point_best(order, point_ptr, pair_cost, best, second, best_pair, INVISIBLE_COST)
     # Sharp views per point, and the value of one more: weight * miss^k * (1 - miss).
     sharp_views = np.bincount(vis.point[sharp_pair], minlength=n).astype(np.int64)
-    extra = np.zeros(1)
+    extra: np.ndarray = np.zeros(1)
     if redundancy is not None:
         # weight * (1 - miss) * miss^k for k = 0 .. the most views any point has.
         extra = redundancy.weight * (1.0 - redundancy.miss_probability) * (

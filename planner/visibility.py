@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -41,7 +42,9 @@ class RayScene:
         vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
         faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
         self._triangles = (vertices, faces)
-        self._open3d: object | None = None
+        # Open3D's RaycastingScene or embreex's EmbreeScene: both libraries are untyped here
+        self._open3d: Any = None
+        self._scene: Any
         if backend == "open3d":
             self._scene = self._open3d_scene()
         else:
@@ -59,7 +62,7 @@ class RayScene:
         else:
             import embreex  # noqa: F401
 
-    def _open3d_scene(self) -> object:
+    def _open3d_scene(self) -> Any:
         if self._open3d is None:
             import open3d as o3d
 
@@ -90,7 +93,8 @@ class RayScene:
             import open3d as o3d
 
             rays = np.concatenate([origins, directions], axis=1)
-            return self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
+            result: np.ndarray = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
+            return result
         hit = self._scene.run(origins, directions, output=1)
         return np.where(np.asarray(hit["geomID"]) != -1, np.asarray(hit["tfar"], dtype=float), np.inf)
 
@@ -129,7 +133,8 @@ class RayScene:
             import open3d as o3d
 
             hits = self._scene.cast_rays(o3d.core.Tensor(np.hstack([o, d])))
-            return hits["t_hit"].numpy().astype(float)
+            result: np.ndarray = hits["t_hit"].numpy().astype(float)
+            return result
         t = np.asarray(self._scene.run(o, d, query="DISTANCE"), dtype=float)
         return np.where(t >= 1e37, np.inf, t)
 

@@ -103,7 +103,7 @@ class CorneredTarget:
             if len(mine) < 2:
                 continue
             ch_corners, ch_ids, _, _ = self.boards[face.index].detectBoard(
-                grey, markerCorners=tuple(corners[i] for i in mine), markerIds=ids[mine].reshape(-1, 1))
+                grey, markerCorners=tuple(corners[int(i)] for i in mine), markerIds=ids[mine].reshape(-1, 1))
             if ch_ids is None or len(ch_ids) < MIN_CORNERS_PER_FACE:
                 continue
             out_ids.append(ch_ids.ravel() + face.index * self.target.corners_per_face)

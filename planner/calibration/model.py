@@ -225,7 +225,9 @@ def load_calibration(path: Path | str) -> Calibration:
     cameras = []
     for c in v["cameras"]:
         k = c["intrinsics"]
-        intr = Intrinsics(*k["image_size_px"], k["fx"], k["fy"], k["cx"], k["cy"], tuple(k["distortion"]))
+        width, height = k["image_size_px"]  # the table reads 2 integers and 5 distortion numbers
+        k1, k2, p1, p2, k3 = k["distortion"]
+        intr = Intrinsics(width, height, k["fx"], k["fy"], k["cx"], k["cy"], (k1, k2, p1, p2, k3))
         cameras.append(CameraCalibration(c["id"], c["kind"], intr, _pose(c["beam_from_camera"])))
     ids = [c.id for c in cameras]
     if len(set(ids)) != len(ids):

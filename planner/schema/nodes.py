@@ -164,7 +164,7 @@ class Integer(Number):
     def form(self) -> str:
         return f"an integer in [{_bound(self.low, '-inf')}, {_bound(self.high, 'inf')}]"
 
-    def read(self, value: Any, key: str, reader: Reader) -> int:  # type: ignore[override]
+    def read(self, value: Any, key: str, reader: Reader) -> int:
         if not self.within(value) or (isinstance(value, float) and not value.is_integer()):
             raise self.refuse(value, key, reader)
         return int(value)

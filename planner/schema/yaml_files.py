@@ -76,6 +76,8 @@ class _BoundedLoader(yaml.SafeLoader):
         try:
             alias = self.check_event(yaml.AliasEvent)
             node = super().compose_node(parent, index)
+            if node is None:  # PyYAML composes a node or raises; its stub allows None
+                raise yaml.YAMLError(f"no node composed at {''.join(self._path).lstrip('.') or '<document>'}")
             if alias:  # its anchor, counted once composed; one still being composed (a cycle) counts once
                 size = self._expanded.get(id(node), 1)
             else:
