@@ -142,21 +142,21 @@ def test_only_the_clock_owners_read_the_wall_clock() -> None:
 
 
 @pytest.mark.parametrize("importer, module, allowed", [
-    ("daemon/scan.py", "sim.body", False),
-    ("daemon/scan.py", "drivers.sim.phone", False),
-    ("daemon/scan.py", "drivers.motor.drive", True),
-    ("planner/plan.py", "daemon.store", False),
+    ("daemon/jobs/scan.py", "sim.body", False),
+    ("daemon/jobs/scan.py", "drivers.sim.phone", False),
+    ("daemon/jobs/scan.py", "drivers.motor.drive", True),
+    ("planner/plan.py", "daemon.records.store", False),
     ("drivers/adb/usb.py", "drivers.sim.adbd", False),
     ("drivers/sim/phone.py", "sim.body", False),
     ("sim/rig.py", "drivers.sim.drive", True),
     ("analysis/navigate.py", "cli", False),
     ("cli/scan.py", "analysis.qa_report", True),
-    ("daemon/service.py", "web.app", False),
+    ("daemon/server/service.py", "web.app", False),
     ("web/rig.py", "sim.run", False),
     ("web/scans.py", "analysis.navigate", True),
     ("archive/instances.py", "analysis.marks", True),
     ("archive/instances.py", "web.app", False),
-    ("daemon/service.py", "archive.queue", False),
+    ("daemon/server/service.py", "archive.queue", False),
 ])
 def test_the_rule_itself(importer: str, module: str, allowed: bool) -> None:
     """The checker catches a forbidden arrow (so an empty violation list means something)."""

@@ -10,7 +10,7 @@ the mean of the encoder samples while the pictures were taken.
 The rotation's folder (``<store>/calibration/<YYYYmmdd-HHMMSS>-<id>/``) is what ``tbp calibrate
 --pictures`` reads: ``captures.json`` (rewritten atomically after every stop, so it always lists
 exactly the pictures that are safely on disk) and one picture per camera and stop,
-``<camera>/a<index>.jpg`` pulled from the phone (daemon/pulls.py: verified, retried) and deleted
+``<camera>/a<index>.jpg`` pulled from the phone (daemon/jobs/pulls.py: verified, retried) and deleted
 there, ``<depth camera>/a<index>.png`` its infrared frame. ``captures.json`` says ``in progress``
 until the rotation ends, then ``complete``, ``aborted`` or ``fault`` with the reason. A phone that
 fails or vanishes is named and the rotation goes on with the others; a depth camera that cannot
@@ -33,16 +33,16 @@ import cv2
 import numpy as np
 import structlog
 
-from daemon.atomic import AtomicWriter, fsync_dir, raise_for
-from daemon.beam import BeamTracker, rebase_angle
 from daemon.errors import DaemonError
-from daemon.hardware import RigHardware
-from daemon.job import JOB_END, RigJob
-from daemon.phones import focus_range_mm
-from daemon.pulls import ImagePullFailed, Pull, PullQueue
-from daemon.safety import SafetyMonitor
-from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import SCAN_ID, StoreError, new_scan_id
+from daemon.jobs.job import JOB_END, RigJob
+from daemon.jobs.phones import focus_range_mm
+from daemon.jobs.pulls import ImagePullFailed, Pull, PullQueue
+from daemon.records.atomic import AtomicWriter, fsync_dir, raise_for
+from daemon.records.store import SCAN_ID, StoreError, new_scan_id
+from daemon.rig.beam import BeamTracker, rebase_angle
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.utc import utc_now
 from drivers.depth.base import DepthFrame
 from drivers.phone.camera import CaptureDone
@@ -50,7 +50,7 @@ from planner.calibration.target import CuboidTarget
 from planner.poses import rgb_poses
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.calibration_rotation")
+log = structlog.get_logger("daemon.jobs.calibration_rotation")
 
 FOLDER = "calibration"
 """The store's sub-folder of calibration rotations (scans never match its name)."""
@@ -164,7 +164,7 @@ class _Capture:
 
 class CalibrationRotation(RigJob):
     """One calibration rotation on connected hardware: a job like a scan (abort, a latched fault
-    and the folder's consistency follow the same rules, daemon/job.py)."""
+    and the folder's consistency follow the same rules, daemon/jobs/job.py)."""
 
     kind = "calibration rotation"
     device = "calibration"

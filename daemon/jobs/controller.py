@@ -1,7 +1,7 @@
 """The rig controller: hardware bring-up, one job at a time (a scan or a calibration rotation),
 abort, latched fault and reset.
 
-Shared by the long-running service (daemon/service.py) and the one-shot ``tbp scan --sim``, so
+Shared by the long-running service (daemon/server/service.py) and the one-shot ``tbp scan --sim``, so
 both run exactly the same scan code against whatever hardware they were given.
 """
 
@@ -14,19 +14,19 @@ from typing import Any
 
 import structlog
 
-from daemon.beam import BeamTracker, trace_capacity
-from daemon.bringup import BringUp
-from daemon.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
 from daemon.clinic.patient import ScanSubject
 from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.hardware import RigHardware
-from daemon.job import RigJob
-from daemon.safety import SafetyMonitor
-from daemon.scan import Scan, ScanReport, ScanSettings
-from daemon.scan_time import job_time
-from daemon.states import ScanState, ScanStateMachine, state_groups
-from daemon.store import ScanStore, StoreError
+from daemon.jobs.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
+from daemon.jobs.job import RigJob
+from daemon.jobs.scan import Scan, ScanReport, ScanSettings
+from daemon.jobs.scan_time import job_time
+from daemon.records.store import ScanStore, StoreError
+from daemon.rig.beam import BeamTracker, trace_capacity
+from daemon.rig.bringup import BringUp
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import ScanState, ScanStateMachine, state_groups
 from daemon.utc import utc_now
 from drivers.errors import DeviceGone
 from drivers.panel.protocol import StatusLed
@@ -36,7 +36,7 @@ from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_ta
 from planner.rig import Rig
 from planner.schedule import RigTime, scan_rig_time
 
-log = structlog.get_logger("daemon.controller")
+log = structlog.get_logger("daemon.jobs.controller")
 
 
 class RigController:
@@ -333,7 +333,7 @@ class RigController:
         return scan_rig_time(self.rig)
 
     def job_time(self) -> dict[str, Any] | None:
-        """The running job's elapsed and remaining time (daemon/scan_time.py); None without one."""
+        """The running job's elapsed and remaining time (daemon/jobs/scan_time.py); None without one."""
         if not self.busy or self.current is None:
             return None
         machine = self.machine

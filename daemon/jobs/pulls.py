@@ -26,10 +26,10 @@ from typing import Protocol
 
 import structlog
 
-from daemon.atomic import StoreError, StoreFull
-from daemon.job import stop_tasks
-from daemon.manifest import ImageStatus
-from daemon.store import ScanFolder
+from daemon.jobs.job import stop_tasks
+from daemon.records.atomic import StoreError, StoreFull
+from daemon.records.manifest import ImageStatus
+from daemon.records.store import ScanFolder
 
 PullFn = Callable[[str, Path], Awaitable[tuple[int, str]]]
 _CHUNK = 1 << 20
