@@ -14,7 +14,7 @@ def write_focus_figure(table: Any, previous: Any, path: Path) -> Path:
     """Left: each distance's sharpness over the commanded settings (each sweep scaled to its peak)
     with the interpolated peak; right: the fitted lens (commanded diopters -> sharpest distance)
     through the measured peaks, beside the table the phone used before. ``table``: a
-    daemon.focus_sweep.FocusTable; ``previous``: the phone's FocusCalibration before."""
+    daemon.jobs.focus_sweep.FocusTable; ``previous``: the phone's FocusCalibration before."""
     import matplotlib
 
     matplotlib.use("Agg")

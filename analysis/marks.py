@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.atomic import AtomicWriter
+from daemon.records.atomic import AtomicWriter
 from daemon.utc import utc_stamp
 
 MARKS = "marks.json"

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from analysis.scan_views import ScanRecord, open_scan
-from daemon.manifest import ImageStatus
+from daemon.records.manifest import ImageStatus
 
 
 class NavigationError(ValueError):

@@ -22,7 +22,7 @@ import numpy as np
 
 from analysis.scan_views import ScanRecord, open_scan
 from analysis.skin_map import skin_status_at, write_skin_mesh
-from daemon.manifest import ImageStatus, Manifest, ScanEnd
+from daemon.records.manifest import ImageStatus, Manifest, ScanEnd
 
 REPORT_DIR = "report"
 SAMPLES = 20_000

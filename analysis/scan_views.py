@@ -1,6 +1,6 @@
 """What a finished scan shows: its capture poses at the actual exposure angles, and which skin
 each image holds sharp. Shared by the QA report and image navigation; the scan folder is read
-through the store's typed manifest (daemon/store.py)."""
+through the store's typed manifest (daemon/records/store.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from daemon.manifest import MANIFEST, ImageRecord, ImageStatus, Manifest
-from daemon.store import ScanFileError, ScanFolder, read_folder
+from daemon.records.manifest import MANIFEST, ImageRecord, ImageStatus, Manifest
+from daemon.records.store import ScanFileError, ScanFolder, read_folder
 from planner.calibration.model import Calibration, load_calibration
 from planner.poses import Poses, rig_rgb_poses
 from planner.rig import Rig, load_rig

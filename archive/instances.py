@@ -30,7 +30,7 @@ import numpy as np
 from analysis.scan_views import ScanRecord, open_scan
 from daemon.clinic.patient import derived_uid
 from daemon.errors import DaemonError
-from daemon.manifest import ImageRecord, ImageStatus
+from daemon.records.manifest import ImageRecord, ImageStatus
 
 VL_PHOTOGRAPHIC = "1.2.840.10008.5.1.4.1.1.77.1.4"
 ENCAPSULATED_STL = "1.2.840.10008.5.1.4.1.1.104.3"

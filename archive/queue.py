@@ -34,11 +34,11 @@ from typing import Any
 import structlog
 
 from archive.instances import ExportError, Instance, StudyBuilder
-from daemon.atomic import AtomicWriter, StoreError
 from daemon.clinic.dimse import DicomPeerError
 from daemon.clinic.site import Site
-from daemon.manifest import ScanEnd
-from daemon.store import ScanStore
+from daemon.records.atomic import AtomicWriter, StoreError
+from daemon.records.manifest import ScanEnd
+from daemon.records.store import ScanStore
 from daemon.utc import utc_stamp
 
 log = structlog.get_logger("archive.queue")

@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from archive.instances import ENCAPSULATED_STL, JPEG_BASELINE, KEY_OBJECT_SELECTION, VL_PHOTOGRAPHIC, ExportError
-from daemon.atomic import AtomicWriter
 from daemon.clinic.patient import Patient, PatientError, Study
 from daemon.clinic.site import Tls
-from daemon.manifest import ImageRecord, ImageStatus, Manifest, ScanEnd
-from daemon.store import ScanFolder
+from daemon.records.atomic import AtomicWriter
+from daemon.records.manifest import ImageRecord, ImageStatus, Manifest, ScanEnd
+from daemon.records.store import ScanFolder
 from planner.rig import Rig
 
 STUDY_FIELDS = ("PatientName", "PatientID", "PatientBirthDate", "StudyDate", "StudyTime", "AccessionNumber",

@@ -171,7 +171,7 @@ def _rotate_rig(args: argparse.Namespace) -> Path | None:
     or None (printed why) when it did not complete."""
     import asyncio
 
-    from daemon.control import ControlError
+    from daemon.server.control import ControlError
 
     try:
         return asyncio.run(_follow_rotation(args.socket))
@@ -183,7 +183,7 @@ def _rotate_rig(args: argparse.Namespace) -> Path | None:
 async def _follow_rotation(socket: Path | None) -> Path | None:
     import contextlib
 
-    from daemon.control import ControlClient, DaemonUnavailable
+    from daemon.server.control import ControlClient, DaemonUnavailable
 
     client = ControlClient(socket)
     async with contextlib.aclosing(client.subscribe()) as events:
@@ -212,7 +212,7 @@ async def _follow_rotation(socket: Path | None) -> Path | None:
 
 def _focus(args: argparse.Namespace, rig: Any, target: Any) -> int:
     from analysis.focus_report import write_focus_figure
-    from daemon.focus_sweep import SweepSettings
+    from daemon.jobs.focus_sweep import SweepSettings
     from planner.calibration.focus_fit import FocusFitError
 
     try:
@@ -251,8 +251,8 @@ def _focus_sim(args: argparse.Namespace, rig: Any, target: Any, settings: Any, f
 def _focus_rig(args: argparse.Namespace, rig: Any, settings: Any, figure: Any) -> int:
     import asyncio
 
-    from daemon.focus_sweep import SweepPictureError
-    from daemon.hardware_config import HardwareConfigError, load_hardware
+    from daemon.jobs.focus_sweep import SweepPictureError
+    from daemon.rig.hardware_config import HardwareConfigError, load_hardware
     from drivers.phone.errors import PhoneError
     from planner.calibration.focus_fit import FocusFitError
 
@@ -285,7 +285,7 @@ def _focus_rig(args: argparse.Namespace, rig: Any, settings: Any, figure: Any) -
 def _daemon_running(args: argparse.Namespace) -> bool:
     import asyncio
 
-    from daemon.control import ControlClient, ControlError, default_socket
+    from daemon.server.control import ControlClient, ControlError, default_socket
 
     try:
         asyncio.run(ControlClient(args.socket or default_socket()).status())
@@ -298,8 +298,8 @@ async def _focus_one_phone(args: argparse.Namespace, rig: Any, config: Any, phon
                            figure: Any) -> None:
     import asyncio
 
-    from daemon.focus_sweep import calibrate_focus
-    from daemon.real_rig import make_phone
+    from daemon.jobs.focus_sweep import calibrate_focus
+    from daemon.server.real_rig import make_phone
     from daemon.utc import utc_stamp
     from drivers.adb.auth import AdbKey
     from drivers.phone.focus import FocusCalibration

@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if loaded is None:
         return 2
     rig, config = loaded
-    from daemon.control import CommandFailed
+    from daemon.server.control import CommandFailed
 
     try:
         probes, source = asyncio.run(_probe_or_ask_daemon(rig, config, args))
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) -> tuple[list[Probe], str]:
-    from daemon.control import ControlClient, DaemonUnavailable, ProtocolError, default_socket
+    from daemon.server.control import ControlClient, DaemonUnavailable, ProtocolError, default_socket
 
     try:
         status = await ControlClient(args.socket or default_socket()).status()
@@ -110,8 +110,8 @@ async def _probe_or_ask_daemon(rig: Any, config: Any, args: argparse.Namespace) 
 
 async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
     """Probe every device of ``config`` concurrently, each under ``config.timeouts.open_s``."""
-    from daemon.bringup import CHECK
-    from daemon.real_rig import depth_finders
+    from daemon.rig.bringup import CHECK
+    from daemon.server.real_rig import depth_finders
     from drivers.adb.auth import AdbKey
 
     key = AdbKey.load_or_create(key_dir)
@@ -148,7 +148,7 @@ async def probe_devices(rig: Any, config: Any, key_dir: Path) -> list[Probe]:
 async def _drive(rig: Any, config: Any, probe: Probe) -> tuple[str, float]:
     """Connect the drive (bring-up writes and reads back its stop configuration), then read what
     it holds; a drive that refuses a setting is still found, with the refusal as its problem."""
-    from daemon.real_rig import make_drive
+    from daemon.server.real_rig import make_drive
     from drivers.motor import DriveSettingError, cia402
 
     drive = make_drive(rig, config)
@@ -172,7 +172,7 @@ async def _drive(rig: Any, config: Any, probe: Probe) -> tuple[str, float]:
 
 
 async def _phone(rig: Any, config: Any, phone: Any, key: Any) -> tuple[str, float]:
-    from daemon.real_rig import make_phone
+    from daemon.server.real_rig import make_phone
 
     camera = make_phone(rig, phone, config.phones[phone.id], key, config.capture_agent)
     try:
@@ -185,7 +185,7 @@ async def _phone(rig: Any, config: Any, phone: Any, key: Any) -> tuple[str, floa
 
 
 async def _depth(rig: Any, config: Any, finders: dict[str, Any], index: int) -> tuple[str, float]:
-    from daemon.real_rig import find_depth_camera
+    from daemon.server.real_rig import find_depth_camera
 
     started = time.perf_counter()
     identity = await find_depth_camera(rig, config, finders, index)

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from cli.status_table import event_line, status_table
-    from daemon.control import CommandFailed, ControlClient, ControlError, DaemonUnavailable
+    from daemon.server.control import CommandFailed, ControlClient, ControlError, DaemonUnavailable
 
     client = ControlClient(args.socket)
 

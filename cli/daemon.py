@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from daemon.control import default_group, default_socket
+    from daemon.server.control import default_group, default_socket
     from planner.rig import RigConfigError
 
     socket_path = args.socket or default_socket()
@@ -107,8 +107,8 @@ def _real(args: argparse.Namespace, socket_path: Path, group: str | None, qa_rep
     (systemd's RestartPreventExitStatus: restarting would not fix it)."""
     import asyncio
 
-    from daemon.control import ControlError
-    from daemon.real_rig import real_service
+    from daemon.server.control import ControlError
+    from daemon.server.real_rig import real_service
 
     loaded = options.rig_and_hardware(args, "daemon")
     if loaded is None:

@@ -41,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
     from archive.deidentify import deidentified, new_uid
     from archive.instances import ExportError, StudyBuilder, study_file
     from archive.send import send_dimse, send_stow
-    from daemon.atomic import StoreError
     from daemon.clinic.dimse import DicomPeerError
     from daemon.clinic.site import Peer, SiteConfigError, ae_title
+    from daemon.records.atomic import StoreError
     from planner.schema.tables import HOST_PORT
 
     started = time.perf_counter()

@@ -61,7 +61,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _open_port(args: argparse.Namespace, rig: Any) -> Any:
     """The drive's bus: the hardware file's ``can`` section (when there is a file), overridden by
     the command line; without either, SocketCAN ``can0``."""
-    from daemon.hardware_config import CanBus
+    from daemon.rig.hardware_config import CanBus
     from drivers.motor import PythonCanPort
 
     path = options.hardware_path(args)
@@ -77,7 +77,7 @@ def _open_port(args: argparse.Namespace, rig: Any) -> Any:
 
 
 def _configured_bus(path: Any, rig: Any) -> Any:
-    from daemon.hardware_config import load_hardware
+    from daemon.rig.hardware_config import load_hardware
 
     return load_hardware(path, rig).can
 

@@ -32,7 +32,7 @@ def hardware(parser: argparse.ArgumentParser) -> None:
 
 def hardware_path(args: argparse.Namespace) -> Path:
     """--hardware, else hardware.yaml beside the rig file (--rig, else the default rig)."""
-    from daemon.hardware_config import default_hardware_path
+    from daemon.rig.hardware_config import default_hardware_path
     from planner.rig import DEFAULT_RIG_PATH
 
     return args.hardware or default_hardware_path(args.rig or DEFAULT_RIG_PATH)
@@ -41,7 +41,7 @@ def hardware_path(args: argparse.Namespace) -> Path:
 def rig_and_hardware(args: argparse.Namespace, command: str) -> tuple[Any, Any] | None:
     """The rig file and its hardware file (--rig, --hardware); None, after one line on stderr
     naming the file and the key, when either is unusable (the caller exits 2)."""
-    from daemon.hardware_config import load_hardware
+    from daemon.rig.hardware_config import load_hardware
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
     try:

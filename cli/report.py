@@ -24,8 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.qa_report import generate_report
-    from daemon.atomic import StoreError
     from daemon.logs import configure_logging
+    from daemon.records.atomic import StoreError
 
     configure_logging(level="warning", stream=sys.stderr)
     try:

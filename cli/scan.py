@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.sim:
         return _simulated(args, subject)
-    from daemon.control import CommandFailed, ControlError, DaemonUnavailable
+    from daemon.server.control import CommandFailed, ControlError, DaemonUnavailable
 
     try:
         return asyncio.run(_remote(args.socket, patient_args(args)))
@@ -119,7 +119,7 @@ def _summary(report: Any) -> None:
 async def _remote(socket: Path | None, patient: dict[str, str]) -> int:
     """Ask the running daemon for a scan (for ``patient``, the control API's arguments) and follow
     its events until it ends."""
-    from daemon.control import ControlClient, DaemonUnavailable
+    from daemon.server.control import ControlClient, DaemonUnavailable
 
     client = ControlClient(socket)
     async with contextlib.aclosing(client.subscribe()) as events:

@@ -37,8 +37,8 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from analysis.skin_map import read_skin_shares
-    from daemon.manifest import ManifestError, ScanEnd
-    from daemon.store import ScanStore
+    from daemon.records.manifest import ManifestError, ScanEnd
+    from daemon.records.store import ScanStore
 
     root = options.store_root(args)
     problem = ("does not exist" if not root.exists() else "is not a folder" if not root.is_dir()
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _verified(manifest: Any) -> int:
     """The verified images ``--check`` re-reads in a scan."""
-    from daemon.manifest import ImageStatus
+    from daemon.records.manifest import ImageStatus
 
     return sum(image.status is ImageStatus.VERIFIED for image in manifest.images)
 

@@ -29,8 +29,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from analysis.atlas import AtlasError
     from analysis.body_texture import TextureError, write_body
-    from daemon.atomic import StoreError
     from daemon.logs import configure_logging
+    from daemon.records.atomic import StoreError
 
     configure_logging(level="warning")
     started = time.perf_counter()

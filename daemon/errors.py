@@ -1,9 +1,9 @@
 """The daemon's exception tree: every error the daemon raises derives from :class:`DaemonError`.
 
 Here: scan sequencing, capture and safety errors. Elsewhere in the daemon, under the same root:
-the scan store's ``StoreError`` (daemon/atomic.py: ``StoreFull``, ``StoreWriteError``,
+the scan store's ``StoreError`` (daemon/records/atomic.py: ``StoreFull``, ``StoreWriteError``,
 ``ManifestError``, ``ScanFileError``, ``ImagePullFailed``, ``VerifyFailed``), the control API's
-``ControlError`` (daemon/control.py) and ``ClockSyncError`` (daemon/clocksync.py).
+``ControlError`` (daemon/server/control.py) and ``ClockSyncError`` (daemon/rig/clocksync.py).
 Driver errors (``DriveError``, ``PhoneError``, ``AdbError``...) keep their own trees; the daemon
 wraps them only where it adds the scan state, and always keeps the original as ``__cause__``.
 """

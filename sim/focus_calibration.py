@@ -1,5 +1,5 @@
 """Focus calibration on the simulated phones, through the real phone driver: each phone's sweep
-(daemon/focus_sweep.py, the procedure a rig's phones go through) runs over ADB against a simulated
+(daemon/jobs/focus_sweep.py, the procedure a rig's phones go through) runs over ADB against a simulated
 phone that photographs a board on a stand in front of it (drivers/sim/focus_target.py), moved to
 each distance the procedure asks for. Virtual time: a phone's ~250 pictures take no real waiting.
 
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.focus_sweep import FocusTable, SweepSettings, calibrate_focus
+from daemon.jobs.focus_sweep import FocusTable, SweepSettings, calibrate_focus
 from drivers.phone.focus import FocusCalibration
 from planner.calibration.focus_fit import CHECK_MM
 from planner.calibration.target import CuboidTarget

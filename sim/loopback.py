@@ -37,7 +37,7 @@ from typing import IO, Any
 
 import yaml
 
-from daemon.states import ScanOutcome
+from daemon.rig.states import ScanOutcome
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -457,13 +457,13 @@ class LoopbackRig:
         return self.root / "srv" / "scans"
 
     def control(self, cmd: str, **args: Any) -> Any:
-        from daemon.control import ControlClient
+        from daemon.server.control import ControlClient
 
         return asyncio.run(ControlClient(self.socket_path).request(cmd, **args))
 
     def wait_status(self, predicate: Callable[[dict[str, Any]], bool], what: str, timeout_s: float) -> dict[str, Any]:
         """Poll ``status`` until ``predicate(status)``; raises naming ``what`` and the last status."""
-        from daemon.control import ControlError
+        from daemon.server.control import ControlError
 
         deadline = time.monotonic() + timeout_s
         status: dict[str, Any] = {}

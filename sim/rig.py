@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import structlog
 
-from daemon.devices import Panel, Phone
-from daemon.hardware import RigHardware
+from daemon.rig.devices import Panel, Phone
+from daemon.rig.hardware import RigHardware
 from drivers.adb.auth import AdbKey
 from drivers.motor.drive import BeamDrive
 from drivers.motor.port import LoopbackCanBus

@@ -14,16 +14,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from daemon.clinic.patient import ScanSubject
-from daemon.controller import RigController
-from daemon.scan import ScanReport, ScanSettings
-from daemon.states import StatusEvent
-from daemon.store import ScanStore
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanReport, ScanSettings
+from daemon.records.store import ScanStore
+from daemon.rig.states import StatusEvent
 from planner.refine import warm_up
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 from sim.rig import SimOptions, build_sim_rig
 
 if TYPE_CHECKING:
-    from daemon.calibration_rotation import RotationReport
+    from daemon.jobs.calibration_rotation import RotationReport
     from sim.cuboid_stage import CuboidStage
 
 
@@ -64,7 +64,7 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
-        # As the daemon's worker does (daemon/worker.py): compile the planner's loops, or load
+        # As the daemon's worker does (daemon/offload/worker.py): compile the planner's loops, or load
         # them from numba's cache, while the rig starts, not in the first plan between the sweep
         # and the capture (0.4-0.6 s of the 2 s there).
         executor.submit(warm_up, rig)
@@ -105,13 +105,13 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
 
-    Compute runs in a worker process as on the real rig (daemon/worker.py): in a thread, the
+    Compute runs in a worker process as on the real rig (daemon/offload/worker.py): in a thread, the
     TSDF extraction held the interpreter lock the console's events and the panel wait for."""
     from daemon.logs import follow_machine
-    from daemon.looplag import freeze_startup_heap
-    from daemon.notify import SystemdNotifier
-    from daemon.service import RigService
-    from daemon.worker import compute_pool
+    from daemon.offload.worker import compute_pool
+    from daemon.server.looplag import freeze_startup_heap
+    from daemon.server.notify import SystemdNotifier
+    from daemon.server.service import RigService
     from sim.body import load_subject
 
     rig = load_rig(config or DEFAULT_RIG_PATH)

@@ -33,12 +33,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from daemon.controller import RigController
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.scan import ScanSettings
-from daemon.service import RigService
-from daemon.states import ScanState
-from daemon.store import ScanStore
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanSettings
+from daemon.records.store import ScanStore
+from daemon.rig.states import ScanState
+from daemon.server.service import RigService
 from planner.rig import Rig, Sector
 from sim.clock import TasksLeftPending, run_virtual
 from tests.daemon_mocks import MockPhone

@@ -1,6 +1,6 @@
 """Mock-tier devices for the daemon's unit tests: instant to build, analytic, recording calls.
 
-They implement the daemon's device protocols (daemon/devices.py: Drive, Phone; checked by
+They implement the daemon's device protocols (daemon/rig/devices.py: Drive, Phone; checked by
 tests/test_device_protocols.py) to exercise the capture executor alone, and answer with the drivers' own result and error types; the end-to-end
 tests use the protocol-level simulators instead.
 """
@@ -233,7 +233,7 @@ def answering_daemon(sock: Path, status: dict[str, Any] | Exception) -> Iterator
     """A stand-in daemon answering ``status`` (or refusing it with the exception) on the control
     socket ``sock``, served by the real ControlServer from its own event loop in a thread (the
     command under test runs its own loop)."""
-    from daemon.control import ControlServer
+    from daemon.server.control import ControlServer
 
     class Daemon:
         def status(self) -> dict[str, Any]:

@@ -17,10 +17,10 @@ from typing import Any
 
 import trimesh
 
-from daemon.controller import RigController
-from daemon.hardware import RigHardware
-from daemon.scan import ScanReport, ScanSettings
-from daemon.store import ScanStore
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanReport, ScanSettings
+from daemon.records.store import ScanStore
+from daemon.rig.hardware import RigHardware
 from planner.rig import Rig, load_rig
 from sim.clock import run_virtual
 from sim.rig import sim_depth_model

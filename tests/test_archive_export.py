@@ -14,7 +14,7 @@ import pytest
 
 from analysis.marks import MarkBook, new_mark, write_marks
 from daemon.clinic.patient import Patient
-from daemon.store import read_folder
+from daemon.records.store import read_folder
 from tests.dicom_services import free_port, need, orthanc
 
 pytestmark = pytest.mark.slow

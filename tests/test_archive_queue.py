@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon.store import read_folder
+from daemon.records.store import read_folder
 from tests.dicom_services import Orthanc
 from tests.sim_daemons import SimDaemon
 

@@ -13,7 +13,7 @@ from archive.queue import PENDING, SENT, ExportQueue, ExportRecord
 from archive.send import send_dimse
 from daemon.clinic.dimse import TransferAborted
 from daemon.clinic.site import Archive, Peer, Site
-from daemon.store import ScanStore
+from daemon.records.store import ScanStore
 
 PACS = Peer(host="127.0.0.1", port=11112, called_aet="ORTHANC")
 

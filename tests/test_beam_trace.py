@@ -1,4 +1,4 @@
-"""The tracker's encoder trace (daemon/beam.py TraceBuffer): bounded, numbered rows, exact lookups."""
+"""The tracker's encoder trace (daemon/rig/beam.py TraceBuffer): bounded, numbered rows, exact lookups."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.beam import TraceBuffer
+from daemon.rig.beam import TraceBuffer
 
 
 def _filled(n: int, capacity: int) -> TraceBuffer:

@@ -1,4 +1,4 @@
-"""The bring-up's re-probe of missing devices (daemon/bringup.py), in virtual time."""
+"""The bring-up's re-probe of missing devices (daemon/rig/bringup.py), in virtual time."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 import structlog
 
-from daemon.bringup import BringUp
-from daemon.controller import RigController
-from daemon.hardware_config import Timeouts
-from daemon.store import ScanStore
+from daemon.jobs.controller import RigController
+from daemon.records.store import ScanStore
+from daemon.rig.bringup import BringUp
+from daemon.rig.hardware_config import Timeouts
 from sim.clock import run_virtual
 from tests.daemon_rigs import RIG, build_rig
 
@@ -119,7 +119,7 @@ def test_two_bring_ups_at_once_never_connect_one_device_twice(tmp_path: Path) ->
 def test_a_renewed_drive_is_everyones_drive_at_once(tmp_path: Path) -> None:
     """A drive whose link died is replaced by the device set alone: the jobs, the safety watch and
     the encoder follower all act on the fresh one."""
-    from daemon.hardware import RigHardware
+    from daemon.rig.hardware import RigHardware
     from drivers.motor.errors import HeartbeatLost
     from tests.daemon_mocks import MockDrive
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import yaml
 
-from daemon.controller import RigController
 from daemon.errors import CalibrationRefused
-from daemon.hardware import RigHardware
-from daemon.store import ScanStore, calibration_digest
+from daemon.jobs.controller import RigController
+from daemon.records.store import ScanStore, calibration_digest
+from daemon.rig.hardware import RigHardware
 from planner.calibration.target import load_target
 from planner.poses import rgb_poses, rig_depth_pose, rig_rgb_poses
 from planner.rig import CALIBRATION_DIR, DEFAULT_RIG_PATH, load_rig

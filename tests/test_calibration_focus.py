@@ -59,7 +59,7 @@ def test_simulated_phones_focus_error_is_recovered(tmp_path: Path) -> None:
 def _bench_sweep(tmp_path: Path, distances: tuple[float, ...], fault=None):
     """One simulated phone on the focus bench, swept through the phone driver on virtual time;
     ``fault(bench, distance)`` runs as the board reaches each distance."""
-    from daemon.focus_sweep import SweepSettings, calibrate_focus
+    from daemon.jobs.focus_sweep import SweepSettings, calibrate_focus
     from drivers.adb.auth import AdbKey
     from planner.calibration.target import load_target
     from planner.rig import load_rig
@@ -120,7 +120,7 @@ def test_a_phone_that_vanishes_mid_sweep_is_named_and_its_pictures_kept(tmp_path
 @settings(max_examples=80, deadline=None)
 @given(peak=st.floats(0.3, 10.0), highest=st.floats(3.0, 12.0), coarse=st.floats(0.2, 1.0))
 def test_sweep_settings_stay_in_the_lens_range_and_never_repeat(peak: float, highest: float, coarse: float) -> None:
-    from daemon.focus_sweep import SweepSettings
+    from daemon.jobs.focus_sweep import SweepSettings
 
     s = SweepSettings(coarse_step=coarse)
     first = s.coarse(highest)
@@ -137,14 +137,14 @@ def test_sweep_settings_stay_in_the_lens_range_and_never_repeat(peak: float, hig
     ({"board_share": 0.0}, "board width"),
 ])
 def test_bad_sweep_settings_are_refused(kwargs, message: str) -> None:
-    from daemon.focus_sweep import SweepSettings
+    from daemon.jobs.focus_sweep import SweepSettings
 
     with pytest.raises(ValueError, match=message):
         SweepSettings(**kwargs)
 
 
 def test_an_unreadable_sweep_picture_is_named(tmp_path: Path) -> None:
-    from daemon.focus_sweep import SweepPictureError, board_sharpness
+    from daemon.jobs.focus_sweep import SweepPictureError, board_sharpness
 
     bad = tmp_path / "sweep.jpg"
     bad.write_bytes(b"not a jpeg")

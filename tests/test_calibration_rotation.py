@@ -17,13 +17,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.calibration_rotation import create_rotation_folder, focus_on_cuboid_mm
-from daemon.controller import RigController
 from daemon.errors import ScanBusy
 from daemon.faults import AbortCause, AbortSource
-from daemon.scan import ScanSettings
-from daemon.states import ScanOutcome, ScanState
-from daemon.store import ScanStore, StoreError
+from daemon.jobs.calibration_rotation import create_rotation_folder, focus_on_cuboid_mm
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanSettings
+from daemon.records.store import ScanStore, StoreError
+from daemon.rig.states import ScanOutcome, ScanState
 from planner.calibration.target import load_target
 from planner.poses import rgb_poses
 from sim.clock import run_virtual
@@ -226,7 +226,7 @@ def test_refused_while_a_rotation_runs(tmp_path: Path) -> None:
 def test_tbp_calibrate_follows_the_daemons_rotation_over_the_socket(tmp_path: Path,
                                                                    capsys: pytest.CaptureFixture[str]) -> None:
     from cli.calibrate import _follow_rotation
-    from daemon.service import RigService
+    from daemon.server.service import RigService
 
     sock = tmp_path / "control.sock"
 

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from daemon.beam import BeamTracker
-from daemon.capture import CaptureRunner, TriggerLatency
-from daemon.clocksync import ClockSync
+from daemon.jobs.capture import CaptureRunner, TriggerLatency
+from daemon.rig.beam import BeamTracker
+from daemon.rig.clocksync import ClockSync
 from drivers.motor.samples import BeamSample
 from planner.schedule import compile_plan, phone_timings, rig_profile
 from sim.clock import run_virtual
@@ -137,7 +137,7 @@ class StubbornPhone(MockPhone):
 def test_a_capture_worker_that_does_not_stop_is_named_and_left_behind() -> None:
     """The phones' workers of a pass are stopped with a bound: the pass ends on time and names
     the worker it left (cancelled) instead of waiting for it."""
-    from daemon.phones import prepare_phones
+    from daemon.jobs.phones import prepare_phones
 
     async def main() -> tuple[list[str], float]:
         drive = MockDrive()

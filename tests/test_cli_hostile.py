@@ -146,7 +146,7 @@ class _Daemon:
 @contextlib.contextmanager
 def _daemon_in_thread(sock: Path, handler: _Daemon):
     """A control server on its own loop in a thread, so `tbp scan` can run here with asyncio.run."""
-    from daemon.control import ControlServer
+    from daemon.server.control import ControlServer
 
     ready, stop = threading.Event(), threading.Event()
 

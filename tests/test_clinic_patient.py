@@ -13,8 +13,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from daemon.clinic.patient import Patient, PatientError, ScanSubject, Study
-from daemon.manifest import ManifestError
-from daemon.store import ScanStore, read_folder
+from daemon.records.manifest import ManifestError
+from daemon.records.store import ScanStore, read_folder
 from planner.rig import load_rig
 
 NAME = "Testperson^Synthia"

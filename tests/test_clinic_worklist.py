@@ -88,7 +88,7 @@ class _ServiceStub:
     """The console's side of RigService: the site file, the worklist, and scans asked for."""
 
     def __init__(self, site: Any) -> None:
-        from daemon.service import RigService
+        from daemon.server.service import RigService
 
         self.site = site
         self.started: list[dict[str, Any]] = []

@@ -1,4 +1,4 @@
-"""Phone clock -> host clock and exposure angles (daemon/clocksync.py)."""
+"""Phone clock -> host clock and exposure angles (daemon/rig/clocksync.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.clocksync import (
+from daemon.rig.clocksync import (
     BadSample,
     ClockSync,
     ClockSyncError,

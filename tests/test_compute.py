@@ -1,5 +1,5 @@
-"""The compute worker process (daemon/worker.py) and the depth sweep handed to it through shared memory
-(daemon/compute.py)."""
+"""The compute worker process (daemon/offload/worker.py) and the depth sweep handed to it through shared memory
+(daemon/offload/compute.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.compute import SHM_DIR, release, share_frames, unshare_frames
-from daemon.worker import compute_pool, compute_threads
+from daemon.offload.compute import SHM_DIR, release, share_frames, unshare_frames
+from daemon.offload.worker import compute_pool, compute_threads
 from planner.sweep import PosedDepth
 
 
@@ -68,7 +68,8 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
             got = pool.submit(_digest, shared).result(timeout=120)
             policy = pool.submit(os.sched_getscheduler, 0).result(timeout=30)
             threads = pool.submit(_omp_threads).result(timeout=30)
-            imported = pool.submit(_imported, "daemon.fusion", "daemon.planning", "daemon.scan").result(timeout=30)
+            imported = pool.submit(_imported, "daemon.offload.fusion", "daemon.offload.planning",
+                                   "daemon.jobs.scan").result(timeout=30)
     finally:
         release(block)
     assert [(c, s) for c, s, _ in got] == [(f.camera_id, int(f.depth.astype(np.int64).sum())) for f in frames]
@@ -77,7 +78,7 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     assert threads == str(compute_threads()) and int(threads) < max(2, len(os.sched_getaffinity(0)))
     assert os.environ.get("OMP_NUM_THREADS") == ours  # this process's environment is left as it was
     # the jobs' modules are loaded before the first scan, and not the daemon's
-    assert imported == {"daemon.fusion": True, "daemon.planning": True, "daemon.scan": False}
+    assert imported == {"daemon.offload.fusion": True, "daemon.offload.planning": True, "daemon.jobs.scan": False}
 
 
 def _imported(*names: str) -> dict[str, bool]:
@@ -103,7 +104,7 @@ def _worker_pid(pool: object) -> int:
 
 def _open_sessions() -> int:
     """Runs in the worker process."""
-    from daemon.fusion import _OPEN
+    from daemon.offload.fusion import _OPEN
 
     return len(_OPEN)
 
@@ -112,11 +113,11 @@ def _open_sessions() -> int:
 @pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """daemon/fusion.py: the TSDF lives in the worker between jobs; images go through shared memory."""
+    """daemon/offload/fusion.py: the TSDF lives in the worker between jobs; images go through shared memory."""
     import asyncio
 
-    import daemon.fusion
-    from daemon.fusion import _OPEN, FusionSession
+    import daemon.offload.fusion
+    from daemon.offload.fusion import _OPEN, FusionSession
     from planner.mesh_metrics import shape_metrics
     from planner.tsdf import fuse
     from tests.depth_helpers import cylinder_sweep, small_rig
@@ -130,7 +131,7 @@ def test_a_sweep_fused_batch_by_batch_in_the_worker_gives_the_whole_sweep_s_mesh
         blocks.append(block.name)
         return block, shared
 
-    monkeypatch.setattr(daemon.fusion, "share_frames", sharing)
+    monkeypatch.setattr(daemon.offload.fusion, "share_frames", sharing)
 
     async def fused(pool: object) -> object:
         async with FusionSession(pool, rig, "scan-1") as fusion:
@@ -160,7 +161,7 @@ def test_the_daemon_process_does_not_load_numba() -> None:
     import subprocess
     import sys
 
-    probe = "import sys, daemon.scan, daemon.planning, planner.em; print('numba' in sys.modules)"
+    probe = "import sys, daemon.jobs.scan, daemon.offload.planning, planner.em; print('numba' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "False"

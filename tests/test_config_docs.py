@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from daemon.hardware_config import HARDWARE
+from daemon.rig.hardware_config import HARDWARE
 from planner.schema.docs import reference
 from planner.schema.tables import CALIBRATION_FILE, FOCUS_FILE, RIG_FILE, SITE_FILE, TARGET_FILE
 

@@ -1,4 +1,4 @@
-"""Control API over a real Unix socket (daemon/control.py, cli/control.py)."""
+"""Control API over a real Unix socket (daemon/server/control.py, cli/control.py)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from cli import main as tbp_main
-from daemon.control import CommandFailed, ControlClient, ControlServer, DaemonUnavailable, SocketInUse
 from daemon.faults import FaultCause, FaultSource
-from daemon.states import ScanState, ScanStateMachine
+from daemon.rig.states import ScanState, ScanStateMachine
+from daemon.server.control import CommandFailed, ControlClient, ControlServer, DaemonUnavailable, SocketInUse
 
 
 class Refused(RuntimeError):
@@ -191,7 +191,7 @@ async def test_socket_is_given_to_the_operators_group(sock):
 
 
 async def test_unknown_group_is_refused(sock):
-    from daemon.control import ControlError
+    from daemon.server.control import ControlError
 
     with pytest.raises(ControlError, match="no group"):
         await ControlServer(sock, FakeDaemon(), group="no-such-group-tbp").start()

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from structlog.testing import capture_logs
 
-from daemon.control import CommandFailed, ControlClient, ControlServer
-from daemon.states import ScanState
+from daemon.rig.states import ScanState
+from daemon.server.control import CommandFailed, ControlClient, ControlServer
 from sim.clock import run_virtual
 from tests.memory import within_rss
 from tests.test_control import FakeDaemon

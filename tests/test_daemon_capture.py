@@ -8,9 +8,9 @@ from typing import Any, NamedTuple
 import numpy as np
 import pytest
 
-from daemon.beam import BeamTracker
-from daemon.capture import CaptureRunner, TriggerLatency
-from daemon.phones import prepare_phones
+from daemon.jobs.capture import CaptureRunner, TriggerLatency
+from daemon.jobs.phones import prepare_phones
+from daemon.rig.beam import BeamTracker
 from planner.rig import load_rig
 from planner.schedule import compile_plan, phone_timings, rig_profile
 from sim.clock import run_virtual

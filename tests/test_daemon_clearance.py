@@ -7,7 +7,7 @@ import json
 import pytest
 import trimesh
 
-from daemon.scan import ScanOutcome
+from daemon.jobs.scan import ScanOutcome
 from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from daemon.control import CommandFailed, ControlClient, DaemonUnavailable
+from daemon.server.control import CommandFailed, ControlClient, DaemonUnavailable
 from tests.daemon_rigs import capsule_subject
 from tests.test_daemon_restart import TBP, _ready
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon.control import ControlClient, DaemonUnavailable
+from daemon.server.control import ControlClient, DaemonUnavailable
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]

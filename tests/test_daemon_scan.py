@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from daemon.atomic import AtomicWriter
 from daemon.errors import ScanBusy
 from daemon.faults import AbortSource, FaultSource
-from daemon.states import ScanOutcome, ScanState
-from daemon.store import ScanStore
+from daemon.records.atomic import AtomicWriter
+from daemon.records.store import ScanStore
+from daemon.rig.states import ScanOutcome, ScanState
 from drivers.motor.errors import StateTransitionTimeout
 from tests.daemon_rigs import RIG, run_scan, wait_captured
 

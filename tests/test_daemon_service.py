@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from daemon.control import CommandFailed, ControlClient
-from daemon.controller import RigController
 from daemon.faults import FaultSource
-from daemon.notify import SystemdNotifier
-from daemon.scan import ScanSettings
-from daemon.service import RigService
-from daemon.store import ScanStore
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanSettings
+from daemon.records.store import ScanStore
+from daemon.server.control import CommandFailed, ControlClient
+from daemon.server.notify import SystemdNotifier
+from daemon.server.service import RigService
 from sim.clock import run_virtual
 from tests.daemon_rigs import PLAN_POINTS, RIG, build_rig
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from analysis.body_texture import report_and_body
-from daemon.scan import ScanReport
-from daemon.states import ScanOutcome, ScanState
+from daemon.jobs.scan import ScanReport
+from daemon.rig.states import ScanOutcome, ScanState
 from sim.run import run_sim_scan
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject, wait_captured
 
@@ -123,11 +123,11 @@ def test_the_planner_is_warmed_up_before_the_first_plan(tmp_path: Path, monkeypa
     planner's loops first, so the first plan does not compile them between the sweep and the capture."""
     import threading
 
-    import daemon.scan_steps
+    import daemon.jobs.scan_steps
     import sim.run
 
     calls: list[tuple[str, str]] = []
-    warm_up, plan_capture = sim.run.warm_up, daemon.scan_steps.plan_capture
+    warm_up, plan_capture = sim.run.warm_up, daemon.jobs.scan_steps.plan_capture
 
     def warming(rig):
         calls.append(("warm_up", threading.current_thread().name))
@@ -138,7 +138,7 @@ def test_the_planner_is_warmed_up_before_the_first_plan(tmp_path: Path, monkeypa
         return plan_capture(*args, **kwargs)
 
     monkeypatch.setattr(sim.run, "warm_up", warming)
-    monkeypatch.setattr(daemon.scan_steps, "plan_capture", planning)
+    monkeypatch.setattr(daemon.jobs.scan_steps, "plan_capture", planning)
     assert _scan(tmp_path).outcome is ScanOutcome.COMPLETED
     assert [name for name, _ in calls][:2] == ["warm_up", "plan"]
     assert calls[0][1] == calls[1][1] and calls[0][1].startswith("compute")

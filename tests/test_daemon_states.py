@@ -8,7 +8,7 @@ import pytest
 
 from daemon.errors import IllegalTransition
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.states import TRANSITIONS, ScanState, ScanStateMachine
+from daemon.rig.states import TRANSITIONS, ScanState, ScanStateMachine
 
 S = ScanState
 ESTOP = FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed")
@@ -143,7 +143,7 @@ async def test_wait_for_state() -> None:
 
 def test_the_scan_steps_follow_the_table() -> None:
     """Each scan step hands over to the next one the table allows; RETAKING may be skipped."""
-    from daemon.states import SCAN_STEPS
+    from daemon.rig.states import SCAN_STEPS
 
     assert SCAN_STEPS[0] in TRANSITIONS[S.IDLE]
     for state, after in zip(SCAN_STEPS, SCAN_STEPS[1:]):
@@ -155,7 +155,7 @@ def test_the_status_carries_the_state_lists_the_console_reads() -> None:
     """The console (web/static/console.js) keeps no state list of its own: it reads these."""
     from pathlib import Path
 
-    from daemon.states import ACTIVE_STATES, SCAN_STATES, state_groups
+    from daemon.rig.states import ACTIVE_STATES, SCAN_STATES, state_groups
 
     groups = state_groups()
     assert set(groups["active"]) == {s.value for s in ACTIVE_STATES}

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon.devices import DepthCamera
-from daemon.hardware_config import HardwareConfig, HardwareConfigError, hardware_from_mapping
-from daemon.real_rig import build_real_rig
+from daemon.rig.devices import DepthCamera
+from daemon.rig.hardware_config import HardwareConfig, HardwareConfigError, hardware_from_mapping
+from daemon.server.real_rig import build_real_rig
 from drivers.depth.base import DepthFinder, DepthFrame, DepthSource
 from drivers.depth.errors import DepthCameraError
 from drivers.depth.kinds import DEPTH_KINDS, DepthKind

@@ -254,8 +254,8 @@ async def test_the_daemons_sweep_poses_a_played_back_recording_at_its_recorded_a
 
     import trimesh
 
-    from daemon.beam import BeamTracker
-    from daemon.depth_sweep import DepthSweeper
+    from daemon.jobs.depth_sweep import DepthSweeper
+    from daemon.rig.beam import BeamTracker
     from drivers.sim.depth import DepthScene, record_sweep, record_sweep_frames
     from planner.poses import depth_camera_pose
     from planner.rig import load_rig

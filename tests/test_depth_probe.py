@@ -97,8 +97,8 @@ async def test_the_daemons_reprobes_make_no_librealsense_call_in_its_process(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A rig PC with the depth cameras not plugged in (the real pyrealsense2 in the probe
     process finds none): every re-probe used to make and destroy a context in the daemon."""
-    from daemon.hardware_config import hardware_from_mapping
-    from daemon.real_rig import build_real_rig
+    from daemon.rig.hardware_config import hardware_from_mapping
+    from daemon.server.real_rig import build_real_rig
 
     world = FakeRealSense()  # the daemon's own pyrealsense2: must not be asked
     monkeypatch.setitem(sys.modules, "pyrealsense2", world.module())

@@ -1,5 +1,5 @@
 """Depth sweep: beam-angle tagging from the motor trace, refusals, frame selection, and the daemon's
-sweep (daemon/depth_sweep.py) with simulated cameras and recordings on a mock beam, in virtual time."""
+sweep (daemon/jobs/depth_sweep.py) with simulated cameras and recordings on a mock beam, in virtual time."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.beam import BeamTracker
-from daemon.depth_sweep import DepthSweeper, SweepRecord
 from daemon.errors import SweepFailed
+from daemon.jobs.depth_sweep import DepthSweeper, SweepRecord
+from daemon.rig.beam import BeamTracker
 from drivers.depth.base import DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
 from drivers.motor.samples import BeamSample

@@ -1,4 +1,4 @@
-"""Every device the daemon is given implements its protocol (daemon/devices.py), member by member:
+"""Every device the daemon is given implements its protocol (daemon/rig/devices.py), member by member:
 the real drivers, the simulated rig's devices and the test doubles alike."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from daemon.devices import DepthCamera, Drive, Panel, Phone
+from daemon.rig.devices import DepthCamera, Drive, Panel, Phone
 from planner.rig import DEFAULT_RIG_PATH, load_rig
 
 RIG = load_rig(DEFAULT_RIG_PATH)

@@ -1,5 +1,5 @@
 """One fault latch: the state machine's FAULT and its causes, which the safety monitor latches and
-reads (daemon/states.py, daemon/safety.py). Whatever trips, resets and job steps come in whatever
+reads (daemon/rig/states.py, daemon/rig/safety.py). Whatever trips, resets and job steps come in whatever
 order, the monitor and the machine tell the same story, and only a reset that saw no new trip
 clears it."""
 
@@ -14,8 +14,8 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from daemon.errors import FaultLatched, IllegalTransition
 from daemon.faults import FaultCause, FaultSource
-from daemon.safety import SafetyMonitor
-from daemon.states import ScanState, ScanStateMachine
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import ScanState, ScanStateMachine
 
 CAUSES = st.builds(FaultCause, st.sampled_from(list(FaultSource)), st.sampled_from(["beam", "panel", "scan"]),
                    st.sampled_from(["e-stop pressed", "EMCY 0x5441", "stalled"]))

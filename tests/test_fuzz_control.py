@@ -12,8 +12,8 @@ from typing import Any
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.control import COMMANDS, ControlServer
-from daemon.subscriber import LINGER_MAX_BYTES
+from daemon.server.control import COMMANDS, ControlServer
+from daemon.server.subscriber import LINGER_MAX_BYTES
 from sim.clock import run_virtual
 from tests.fuzz import EXAMPLES, FUZZ
 

@@ -16,7 +16,7 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.hardware_config import MAX_FILE_BYTES, HardwareConfigError, load_hardware
+from daemon.rig.hardware_config import MAX_FILE_BYTES, HardwareConfigError, load_hardware
 from planner.rig import load_rig
 from tests.fuzz import FUZZ
 from tests.memory import run_bounded

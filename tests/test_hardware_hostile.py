@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from daemon.hardware_config import MAX_FILE_BYTES, HardwareConfigError, load_hardware
+from daemon.rig.hardware_config import MAX_FILE_BYTES, HardwareConfigError, load_hardware
 from planner.rig import load_rig
 from tests.memory import rss_bytes, run_bounded
 
@@ -51,7 +51,7 @@ def _refused_in_child(tmp_path: Path, texts: dict[str, str]) -> dict[str, dict[s
         paths[name] = str(tmp_path / f"{name}.yaml")
         Path(paths[name]).write_text(text)
     child = run_bounded(
-        "import json\nfrom daemon.hardware_config import HardwareConfigError, load_hardware\n"
+        "import json\nfrom daemon.rig.hardware_config import HardwareConfigError, load_hardware\n"
         "from planner.rig import load_rig\nrig = load_rig()",
         f"out = {{}}\nfor name, path in {paths!r}.items():\n"
         "    try:\n        load_hardware(path, rig)\n"

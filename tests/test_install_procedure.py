@@ -84,7 +84,7 @@ def test_the_procedure_runs_against_a_temporary_root(tmp_path: Path):
         answer = _run([*words[:-1], str(root / words[-1].lstrip("/"))])
         assert answer.returncode == 0, (command, answer.stderr)
     from daemon.clinic.site import load_site
-    from daemon.hardware_config import load_hardware
+    from daemon.rig.hardware_config import load_hardware
     from planner.rig import load_rig
 
     rig = load_rig(etc / "rig.yaml")
@@ -100,7 +100,7 @@ def test_the_procedure_runs_against_a_temporary_root(tmp_path: Path):
     assert (state / "adbkey").is_file()  # the key the phones are asked to authorise
 
     from daemon.clinic.patient import ScanSubject
-    from daemon.store import ScanStore
+    from daemon.records.store import ScanStore
 
     os.chown(scans, 0, operators)  # the store as tmpfiles made it, written by this test's user
     folder = ScanStore(scans, reserve_bytes=0).create(rig, scan_id="install1", subject=ScanSubject.from_args(

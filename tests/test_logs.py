@@ -23,7 +23,7 @@ from daemon.logs import (
     set_context_source,
     under_journald,
 )
-from daemon.states import ScanState, ScanStateMachine
+from daemon.rig.states import ScanState, ScanStateMachine
 
 
 @pytest.fixture(autouse=True)

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from daemon.control import CommandFailed
-from daemon.looplag import WARN_S
-from daemon.manifest import ImageStatus
-from daemon.store import ScanStore
+from daemon.records.manifest import ImageStatus
+from daemon.records.store import ScanStore
+from daemon.server.control import CommandFailed
+from daemon.server.looplag import WARN_S
 from sim.loopback import LoopbackRig, scan_from_panel
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]

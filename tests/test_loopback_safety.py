@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon.store import ScanStore
+from daemon.records.store import ScanStore
 from sim.loopback import LoopbackRig
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]

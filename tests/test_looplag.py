@@ -1,4 +1,4 @@
-"""The event loop's lateness, per scan state (daemon/looplag.py)."""
+"""The event loop's lateness, per scan state (daemon/server/looplag.py)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import structlog
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.looplag import LoopLagMonitor
-from daemon.scan import ScanReport
-from daemon.states import ScanOutcome
+from daemon.jobs.scan import ScanReport
+from daemon.rig.states import ScanOutcome
+from daemon.server.looplag import LoopLagMonitor
 
 
 def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -> None:
@@ -104,7 +104,7 @@ def test_sweep_to_capture_counts_compute_once_on_either_clock(rig_s: float, tsdf
 def test_the_startup_heap_is_frozen_so_full_collections_skip_it() -> None:
     import gc
 
-    from daemon.looplag import freeze_startup_heap
+    from daemon.server.looplag import freeze_startup_heap
 
     kept = [object() for _ in range(10)]  # alive at start-up: frozen with the rest
     try:

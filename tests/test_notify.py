@@ -1,4 +1,4 @@
-"""sd_notify datagrams and the health-gated watchdog (daemon/notify.py)."""
+"""sd_notify datagrams and the health-gated watchdog (daemon/server/notify.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import uuid
 
 import pytest
 
-from daemon.notify import SystemdNotifier, run_watchdog, watchdog_period_s
+from daemon.server.notify import SystemdNotifier, run_watchdog, watchdog_period_s
 from sim.clock import run_virtual
 
 

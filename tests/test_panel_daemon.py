@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from daemon.controller import RigController
 from daemon.errors import ScanBusy
 from daemon.faults import FaultCause, FaultSource
-from daemon.scan import ScanSettings
-from daemon.service import RigService
-from daemon.store import ScanStore
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanSettings
+from daemon.records.store import ScanStore
+from daemon.server.service import RigService
 from drivers.panel import OperatorPanel, StatusLed
 from drivers.sim.panel import SimulatedPanel
 from sim.clock import run_virtual

@@ -14,16 +14,16 @@ from typing import Any
 
 import pytest
 
-import daemon.fusion
-import daemon.scan
-import daemon.scan_steps
-import daemon.store
-from daemon.controller import RigController
+import daemon.jobs.scan
+import daemon.jobs.scan_steps
+import daemon.offload.fusion
+import daemon.records.store
 from daemon.errors import ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultSource
-from daemon.scan import ScanSettings
-from daemon.states import ScanOutcome, ScanState
-from daemon.store import ScanFolder, ScanStore
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanSettings
+from daemon.records.store import ScanFolder, ScanStore
+from daemon.rig.states import ScanOutcome, ScanState
 from sim.clock import run_virtual
 from tests.daemon_rigs import PLAN_POINTS, RIG, build_rig, run_scan
 
@@ -73,11 +73,11 @@ class _Failure:
 
 
 @pytest.mark.parametrize("phase, owner, name", [
-    ("PREPARING", daemon.scan_steps, "prepare_phones"),
-    ("DEPTH_SWEEP", daemon.scan_steps.DepthSweeper, "run"),
-    ("RECONSTRUCTING", daemon.fusion, "fused_mesh"),
-    ("PLANNING", daemon.scan_steps, "plan_capture"),
-    ("CAPTURING", daemon.scan_steps.CaptureRunner, "main_pass"),
+    ("PREPARING", daemon.jobs.scan_steps, "prepare_phones"),
+    ("DEPTH_SWEEP", daemon.jobs.scan_steps.DepthSweeper, "run"),
+    ("RECONSTRUCTING", daemon.offload.fusion, "fused_mesh"),
+    ("PLANNING", daemon.jobs.scan_steps, "plan_capture"),
+    ("CAPTURING", daemon.jobs.scan_steps.CaptureRunner, "main_pass"),
 ])
 def test_an_oserror_in_any_phase_aborts_the_scan_on_record_within_5_s(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, phase: str, owner: Any, name: str) -> None:
@@ -101,7 +101,7 @@ def test_an_oserror_in_any_phase_aborts_the_scan_on_record_within_5_s(
 def test_an_oserror_while_storing_is_recorded_and_the_rig_goes_idle(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """The probe: EMFILE in the storing steps left the rig in STORING for good."""
-    monkeypatch.setattr(daemon.store, "trace_bytes", _emfile)
+    monkeypatch.setattr(daemon.records.store, "trace_bytes", _emfile)
     report, controller, _ = run_scan(tmp_path)
     assert controller.machine.state is ScanState.IDLE
     assert report.outcome is ScanOutcome.COMPLETED and report.captured == RIG.n_poses
@@ -115,7 +115,7 @@ def test_a_failure_while_closing_the_scan_latches_fault_with_its_cause(tmp_path:
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """Closing itself raises (here a bug in the summary): FAULT names it, the folder is closed as
     fault, reset clears it and the next scan runs."""
-    original = daemon.scan.Scan._summarise
+    original = daemon.jobs.scan.Scan._summarise
     calls = {"n": 0}
 
     def broken_once(self: Any, *args: Any) -> None:
@@ -124,7 +124,7 @@ def test_a_failure_while_closing_the_scan_latches_fault_with_its_cause(tmp_path:
             raise RuntimeError("summary bug")
         original(self, *args)
 
-    monkeypatch.setattr(daemon.scan.Scan, "_summarise", broken_once)
+    monkeypatch.setattr(daemon.jobs.scan.Scan, "_summarise", broken_once)
 
     async def after(controller: RigController, world: Any) -> None:
         assert controller.machine.state is ScanState.FAULT
@@ -214,7 +214,7 @@ def test_a_scan_that_cannot_be_stored_is_refused_before_the_answer(tmp_path: Pat
 
 def test_a_scan_state_left_without_its_scan_makes_the_daemon_unhealthy(tmp_path: Path) -> None:
     """Defence in depth: should a scan state ever outlive its scan, the watchdog restarts the daemon."""
-    from daemon.service import RigService
+    from daemon.server.service import RigService
 
     async def main() -> tuple[bool, bool]:
         hardware, _world = await build_rig(RIG, 0)
@@ -271,14 +271,14 @@ def test_the_installed_calibration_is_read_off_the_event_loop(tmp_path: Path,
                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     import threading
 
-    import daemon.controller
+    import daemon.jobs.controller
 
     readers: list[threading.Thread] = []
 
     def installed(rig: Any) -> None:
         readers.append(threading.current_thread())
 
-    monkeypatch.setattr(daemon.controller, "installed_calibration", installed)
+    monkeypatch.setattr(daemon.jobs.controller, "installed_calibration", installed)
 
     async def scenario(controller: RigController, events: Any) -> None:
         assert await controller.calibration("x") is None

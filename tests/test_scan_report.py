@@ -16,8 +16,8 @@ from analysis.qa_report import generate_report
 from analysis.scan_views import open_scan
 from analysis.skin_map import BLURRED, SHARP, payload_shares, read_skin_mesh, read_skin_shares, skin_shares
 from cli import main
-from daemon.manifest import ManifestError, ScanEnd
-from daemon.store import read_folder
+from daemon.records.manifest import ManifestError, ScanEnd
+from daemon.records.store import read_folder
 from planner.visibility import RayScene
 
 

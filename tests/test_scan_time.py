@@ -1,12 +1,12 @@
-"""The running scan's elapsed and remaining time (daemon/scan_time.py), and the state machine's
-recent-events buffer the console shows on load (daemon/states.py)."""
+"""The running scan's elapsed and remaining time (daemon/jobs/scan_time.py), and the state machine's
+recent-events buffer the console shows on load (daemon/rig/states.py)."""
 
 from __future__ import annotations
 
 import pytest
 
-from daemon.scan_time import job_time, remaining_rig_s
-from daemon.states import ScanState, ScanStateMachine
+from daemon.jobs.scan_time import job_time, remaining_rig_s
+from daemon.rig.states import ScanState, ScanStateMachine
 from planner.schedule import RigTime
 
 S = ScanState

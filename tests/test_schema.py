@@ -17,7 +17,7 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.hardware_config import HARDWARE, HardwareConfigError, hardware_from_mapping
+from daemon.rig.hardware_config import HARDWARE, HardwareConfigError, hardware_from_mapping
 from drivers.phone.errors import FocusCalibrationError
 from drivers.phone.focus import load_focus_calibration
 from planner.calibration.model import CalibrationFileError, load_calibration

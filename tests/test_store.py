@@ -1,4 +1,4 @@
-"""Scan store: atomic writes, manifest, recover(), background pulls, disk full (daemon/store.py)."""
+"""Scan store: atomic writes, manifest, recover(), background pulls, disk full (daemon/records/store.py)."""
 
 from __future__ import annotations
 
@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.atomic import AtomicWriter, StoreError, StoreFull
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.manifest import ManifestError, ScanEnd
-from daemon.pulls import PullPolicy, PullQueue, ScanImages
-from daemon.store import ScanStore, _writer_thread
+from daemon.jobs.pulls import PullPolicy, PullQueue, ScanImages
+from daemon.records.atomic import AtomicWriter, StoreError, StoreFull
+from daemon.records.manifest import ManifestError, ScanEnd
+from daemon.records.store import ScanStore, _writer_thread
 from planner.rig import load_rig
 
 NOW = datetime(2026, 11, 22, 9, 30, 0, tzinfo=UTC)

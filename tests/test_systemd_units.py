@@ -57,7 +57,7 @@ def test_unit_has_the_required_directives():
     assert set(" ".join(_unit(UNIT)["Unit"]["After"]).split()) - {"network.target"} <= wanted
     assert "/srv/tbp-rig/scans" in one["ReadWritePaths"].split()
     assert "PrivateDevices" not in svc
-    from daemon.control import ControlServer
+    from daemon.server.control import ControlServer
     from web.server import WebServer
 
     clients = ControlServer.MAX_DESCRIPTORS + WebServer.MAX_CONNECTIONS + WebServer.BACKLOG

@@ -15,8 +15,8 @@ from analysis.marks import MARKS
 from analysis.navigate import navigate
 from analysis.skin_map import read_skin_shares
 from daemon.faults import AbortCause, AbortSource
-from daemon.manifest import ScanEnd
-from daemon.store import ScanStore, read_folder
+from daemon.records.manifest import ScanEnd
+from daemon.records.store import ScanStore, read_folder
 from web.access import Access, AccessError, parse_listen
 from web.app import make_app
 
@@ -440,7 +440,7 @@ async def test_a_scan_is_read_off_the_loop_once_per_manifest_and_again_when_it_i
     import threading
 
     import web.scans
-    from daemon.store import ScanStore
+    from daemon.records.store import ScanStore
 
     reads: list[str] = []
     real = web.scans.open_scan
@@ -470,7 +470,7 @@ class MachineService:
     """The rig handler's status, history and events, from a real state machine."""
 
     def __init__(self) -> None:
-        from daemon.states import ScanStateMachine
+        from daemon.rig.states import ScanStateMachine
 
         self.machine = ScanStateMachine()
 
@@ -500,7 +500,7 @@ async def _sse_until(response, kind: str) -> list[tuple[str, Any]]:
 
 
 async def test_the_event_stream_starts_with_the_history_then_only_new_events(scan_store):
-    from daemon.states import ScanState
+    from daemon.rig.states import ScanState
 
     service = MachineService()
     service.machine.transition(ScanState.PREPARING, "scan requested")

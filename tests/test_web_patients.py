@@ -11,7 +11,7 @@ import pytest
 
 from analysis.marks import MarkBook, write_marks
 from daemon.clinic.patient import Patient
-from daemon.store import read_folder
+from daemon.records.store import read_folder
 from tests.test_web import client_for, folder_of
 
 

@@ -9,7 +9,7 @@ from typing import Any
 import structlog
 from aiohttp import web
 
-from daemon.store import ScanStore
+from daemon.records.store import ScanStore
 from web import keys, login, marks, patients, rig, scans
 from web.access import Access
 

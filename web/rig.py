@@ -1,6 +1,6 @@
 """The operator console's server side: status, the event stream, START / ABORT / RESET.
 
-Every action calls the daemon's control handler (daemon.service.RigService), the same object
+Every action calls the daemon's control handler (daemon.server.service.RigService), the same object
 that serves the control socket and the panel's buttons; refusals come back as 409 with the
 handler's error type and message. Events are Server-Sent Events: the recent events first
 (``history``: the daemon's bounded buffer, so a console opened mid-scan shows what happened), the
@@ -20,8 +20,8 @@ import structlog
 from aiohttp import web
 
 from daemon.clinic.patient import PatientError
-from daemon.control import to_jsonable
 from daemon.errors import ScanBusy
+from daemon.server.control import to_jsonable
 from web import keys
 from web.marks import read_json
 from web.scans import json_error
@@ -112,7 +112,7 @@ async def worklist(request: web.Request) -> web.Response:
     """Today's worklist (the console picks a patient from it); 404 without a provider, 502 when it
     cannot be asked (the message names the provider and the reason)."""
     from daemon.clinic.dimse import DicomPeerError
-    from daemon.service import WorklistUnavailable
+    from daemon.server.service import WorklistUnavailable
 
     service = _service(request)
     try:

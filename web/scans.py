@@ -28,10 +28,10 @@ from aiohttp import web
 from analysis.navigate import NavigationError, Navigator
 from analysis.scan_views import ScanRecord, open_scan
 from analysis.skin_map import mesh_digest, payload_shares, read_skin_mesh, read_skin_shares, skin_mesh, vertex_skin
-from daemon.atomic import StoreError
 from daemon.clinic.patient import Patient
-from daemon.manifest import ImageStatus, Manifest, ManifestError
-from daemon.store import ScanStore
+from daemon.records.atomic import StoreError
+from daemon.records.manifest import ImageStatus, Manifest, ManifestError
+from daemon.records.store import ScanStore
 from web import images, keys
 
 

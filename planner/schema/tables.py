@@ -3,7 +3,7 @@ target, the focus tables, the site file and (given the depth camera kinds) the h
 
 Every key's form, range and default is here; the modules that turn the values into dataclasses
 (planner/rig.py, planner/calibration/model.py and target.py, drivers/phone/focus.py,
-daemon/hardware_config.py) check only the relations between keys, listed in each file's rules.
+daemon/rig/hardware_config.py) check only the relations between keys, listed in each file's rules.
 docs/configuration.md is generated from these tables (tests/test_config_docs.py).
 """
 

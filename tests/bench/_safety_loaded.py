@@ -22,8 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from daemon.manifest import ImageStatus
-from daemon.store import ScanStore
+from daemon.records.manifest import ImageStatus
+from daemon.records.store import ScanStore
 from sim.loopback import LoopbackRig
 
 UNIT_STOP_TIMEOUT_S = 30.0

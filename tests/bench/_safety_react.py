@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from daemon.control import CommandFailed
+from daemon.server.control import CommandFailed
 from sim.loopback import LoopbackError, LoopbackRig
 
 QUICK_STOP = "0x0002"

@@ -32,8 +32,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from daemon.control import CommandFailed, ControlClient, DaemonUnavailable
 from daemon.logs import configure_logging
+from daemon.server.control import CommandFailed, ControlClient, DaemonUnavailable
 from tests.daemon_rigs import PLAN_POINTS, capsule_subject
 
 SILENT = 20

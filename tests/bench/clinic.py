@@ -18,7 +18,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from daemon.store import read_folder
+from daemon.records.store import read_folder
 from tests.dicom_services import Orthanc, need
 
 

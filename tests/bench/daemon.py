@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from daemon.logs import configure_logging
-from daemon.states import ScanState
+from daemon.rig.states import ScanState
 from tests.daemon_rigs import RIG, run_scan, wait_captured
 
 WINDOW_S = 10.0

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from daemon.store import ScanStore
+from daemon.records.store import ScanStore
 from sim.loopback import LoopbackRig
 
 SCANS = 3

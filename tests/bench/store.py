@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.atomic import sha256_of
-from daemon.manifest import ScanEnd
-from daemon.store import ScanStore
+from daemon.records.atomic import sha256_of
+from daemon.records.manifest import ScanEnd
+from daemon.records.store import ScanStore
 from planner.rig import load_rig
 from planner.schedule import compile_plan, phone_timings
 

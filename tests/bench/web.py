@@ -77,11 +77,11 @@ def _event_latency(root: Path, subject: object) -> list[tuple[float, str]]:
     """ms from the state machine publishing an event to the console page receiving it, over one scan
     of the simulated rig (daemon in this process, paced at 10x real time, compute in its worker
     process as ``tbp daemon --sim`` runs it, browser in a thread)."""
-    from daemon.controller import RigController
-    from daemon.scan import ScanSettings
-    from daemon.service import RigService
-    from daemon.store import ScanStore
-    from daemon.worker import compute_pool
+    from daemon.jobs.controller import RigController
+    from daemon.jobs.scan import ScanSettings
+    from daemon.offload.worker import compute_pool
+    from daemon.records.store import ScanStore
+    from daemon.server.service import RigService
     from planner.rig import load_rig
     from sim.clock import VirtualTimeLoop
     from sim.rig import SimOptions, build_sim_rig

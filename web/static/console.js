@@ -6,7 +6,7 @@ const $ = (id) => document.getElementById(id);
 const hooks = { events: [], status: null };
 window.tbpConsole = hooks;
 let state = null;
-// The daemon's state lists (daemon/states.py, in every status): "job" (a scan or calibration
+// The daemon's state lists (daemon/rig/states.py, in every status): "job" (a scan or calibration
 // rotation runs) and "active" (the beam may move under it: ABORT is taken).
 let states = { active: [], job: [] };
 let counts = { captured: 0, verified: 0 };
@@ -110,7 +110,7 @@ function showHistory(events) {
   lastSeq = events.length ? events[events.length - 1].seq : 0;
 }
 
-// The running job's elapsed time and the beam's schedule left (daemon/scan_time.py).
+// The running job's elapsed time and the beam's schedule left (daemon/jobs/scan_time.py).
 function showJobTime(t) {
   $("job-time").textContent = !t ? ""
     : `Elapsed ${span(t.elapsed_s)}, ${t.remaining_s === null ? "time left not known in this state"

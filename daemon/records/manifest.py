@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from daemon.atomic import StoreError
 from daemon.clinic.patient import Patient, PatientError, Study
 from daemon.faults import Cause
+from daemon.records.atomic import StoreError
 
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
@@ -54,7 +54,7 @@ class MissingReason(str, enum.Enum):
     """Why a planned image is not in the folder (an image's ``missing_reason``).
 
     PHONE_DROPPED: its phone had failed several captures in a row and was dropped for the rest
-    of the scan (daemon/capture.py, ``DROP_AFTER_FAILURES``). CAPTURE_MISSED: the phone did not
+    of the scan (daemon/jobs/capture.py, ``DROP_AFTER_FAILURES``). CAPTURE_MISSED: the phone did not
     take it (an error, no answer, the lens or the trigger too late), retake included.
     PULL_FAILED: taken, but the pull from the phone failed or did not verify. NOT_PULLED: taken
     and still on the phone (the scan ended before its pull). NOT_REACHED: the scan ended before

@@ -19,18 +19,18 @@ from typing import Any, ClassVar
 
 import structlog
 
-from daemon.beam import BeamTracker
 from daemon.errors import FaultLatched
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.hardware import RigHardware
-from daemon.manifest import ScanEnd
-from daemon.safety import SafetyMonitor
-from daemon.states import ScanOutcome, ScanState, ScanStateMachine
+from daemon.records.manifest import ScanEnd
+from daemon.rig.beam import BeamTracker
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.tasks import describe, settle, stop_tasks
 from drivers.motor.errors import DriveError, MotionInterrupted
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.job")
+log = structlog.get_logger("daemon.jobs.job")
 
 
 class RigJob:

@@ -4,7 +4,7 @@ A board stands square-on in front of the phone, its centre on the optical axis, 
 known distances in turn (``place_board`` is awaited before each: the operator moves the stand and
 confirms). At each distance the lens setting itself (Camera2's LENS_FOCUS_DISTANCE, diopters, not
 the focus table's millimetres) is stepped coarsely over the lens' range, then finely around the
-sharpest coarse setting; every picture is pulled (daemon/pulls.py: verified, retried), measured
+sharpest coarse setting; every picture is pulled (daemon/jobs/pulls.py: verified, retried), measured
 (variance of the Laplacian over the centre of the picture that the board covers at that distance,
 so the background's blur does not count) and deleted from the phone. The sharpest picture of each
 distance is kept in ``workdir`` for the report. ``planner/calibration/focus_fit.py`` turns the
@@ -22,9 +22,9 @@ import cv2
 import numpy as np
 import structlog
 
-from daemon.devices import Phone
 from daemon.errors import DaemonError
-from daemon.pulls import Pull, pull_verified
+from daemon.jobs.pulls import Pull, pull_verified
+from daemon.rig.devices import Phone
 from drivers.phone.camera import PhoneInfo
 from planner.calibration.detect import sharpness
 from planner.calibration.focus_fit import DISTANCES_MM, TABLE_DIOPTERS, FocusSweep, fit_focus_table, table_yaml

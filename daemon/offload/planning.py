@@ -1,7 +1,7 @@
-"""The scan's focus plan, computed in the compute worker (daemon/compute.py).
+"""The scan's focus plan, computed in the compute worker (daemon/offload/compute.py).
 
 Only what the worker needs lives here: the worker imports this module when it starts, so a
-scan's first plan does not first import the daemon (``daemon.scan`` and what it pulls in took
+scan's first plan does not first import the daemon (``daemon.jobs.scan`` and what it pulls in took
 0.3 s on this machine, inside the first scan's gap between the sweep and the capture).
 """
 

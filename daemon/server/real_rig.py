@@ -2,7 +2,7 @@
 
 Nothing is opened here. The drive gets a CAN port that opens its bus on first use, each phone
 a link factory (USB by serial, or ADB over TCP), each depth camera the driver of its kind
-(drivers/depth/kinds.py), the panel its serial port; the bring-up (daemon/bringup.py) connects
+(drivers/depth/kinds.py), the panel its serial port; the bring-up (daemon/rig/bringup.py) connects
 them under the hardware file's timeouts and re-probes the ones that are missing. So a rig PC
 whose CAN adapter or a phone is unplugged still starts, reports NOT READY naming the device, and
 comes up when it is back.
@@ -18,16 +18,16 @@ from typing import Any
 
 import structlog
 
-from daemon.controller import RigController
-from daemon.hardware import RigHardware
-from daemon.hardware_config import HardwareConfig, PhoneLink
+from daemon.jobs.controller import RigController
+from daemon.jobs.scan import ScanSettings
 from daemon.logs import follow_machine
-from daemon.looplag import freeze_startup_heap
-from daemon.notify import SystemdNotifier
-from daemon.scan import ScanSettings
-from daemon.service import RigService
-from daemon.store import ScanStore
-from daemon.worker import compute_pool
+from daemon.offload.worker import compute_pool
+from daemon.records.store import ScanStore
+from daemon.rig.hardware import RigHardware
+from daemon.rig.hardware_config import HardwareConfig, PhoneLink
+from daemon.server.looplag import freeze_startup_heap
+from daemon.server.notify import SystemdNotifier
+from daemon.server.service import RigService
 from drivers.adb.auth import AdbKey
 from drivers.depth.base import DepthCamera, DepthFinder
 from drivers.depth.kinds import DEPTH_KINDS
@@ -41,7 +41,7 @@ from planner.rig import DepthCamera as DepthCameraConfig
 from planner.rig import Phone as PhoneConfig
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.real_rig")
+log = structlog.get_logger("daemon.server.real_rig")
 
 
 def build_real_rig(rig: Rig, config: HardwareConfig, *, state_dir: Path) -> RigHardware:
@@ -123,7 +123,7 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                        attach: Callable[[Any], None] | None = None) -> int:
     """The daemon on the real rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
 
-    Compute runs in a worker process (daemon/worker.py), so fusing and planning never stall
+    Compute runs in a worker process (daemon/offload/worker.py), so fusing and planning never stall
     the drive's heartbeat."""
     hardware = build_real_rig(rig, config, state_dir=state_dir)
     stop = asyncio.Event()

@@ -4,7 +4,7 @@ Modelled on Klipper's shutdown: the first trip runs every registered handler (qu
 drive, the panel's fault light...), each under its own timeout and even if another one fails;
 the failures become further fault causes instead of log lines. Only :meth:`SafetyMonitor.reset`,
 the operator's explicit reset, clears the latch. The latch itself is the state machine's FAULT
-and its causes (daemon/states.py): the monitor latches through it and reads it, so the two can
+and its causes (daemon/rig/states.py): the monitor latches through it and reads it, so the two can
 never tell different stories.
 """
 
@@ -18,12 +18,12 @@ import structlog
 
 from daemon.errors import FaultLatched
 from daemon.faults import FaultCause, FaultSource
-from daemon.hardware import RigHardware
-from daemon.states import ScanState, ScanStateMachine
+from daemon.rig.hardware import RigHardware
+from daemon.rig.states import ScanState, ScanStateMachine
 from daemon.tasks import stop_tasks
 from drivers.motor.errors import HostStalled
 
-log = structlog.get_logger("daemon.safety")
+log = structlog.get_logger("daemon.rig.safety")
 
 Handler = Callable[[], Awaitable[Any]]
 

@@ -10,7 +10,7 @@ the mean of the encoder samples while the pictures were taken.
 The rotation's folder (``<store>/calibration/<YYYYmmdd-HHMMSS>-<id>/``) is what ``tbp calibrate
 --pictures`` reads: ``captures.json`` (rewritten atomically after every stop, so it always lists
 exactly the pictures that are safely on disk) and one picture per camera and stop,
-``<camera>/a<index>.jpg`` pulled from the phone (daemon/pulls.py: verified, retried) and deleted
+``<camera>/a<index>.jpg`` pulled from the phone (daemon/jobs/pulls.py: verified, retried) and deleted
 there, ``<depth camera>/a<index>.png`` its infrared frame. ``captures.json`` says ``in progress``
 until the rotation ends, then ``complete``, ``aborted`` or ``fault`` with the reason. A phone that
 fails or vanishes is named and the rotation goes on with the others; a depth camera that cannot
@@ -50,7 +50,7 @@ from planner.calibration.target import CuboidTarget
 from planner.poses import rgb_poses
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.calibration_rotation")
+log = structlog.get_logger("daemon.jobs.calibration_rotation")
 
 FOLDER = "calibration"
 """The store's sub-folder of calibration rotations (scans never match its name)."""
@@ -164,7 +164,7 @@ class _Capture:
 
 class CalibrationRotation(RigJob):
     """One calibration rotation on connected hardware: a job like a scan (abort, a latched fault
-    and the folder's consistency follow the same rules, daemon/job.py)."""
+    and the folder's consistency follow the same rules, daemon/jobs/job.py)."""
 
     kind = "calibration rotation"
     device = "calibration"

@@ -9,7 +9,7 @@ replays as the sweep it was whatever its playback pace. A camera silent for ``FR
 ends the sweep with ``DepthStreamStalled``; a recording that ends before the beam does is done.
 Whatever ends the sweep, every camera is stopped before ``run()`` returns or raises.
 
-With a ``sink`` (the scan's TSDF, daemon/fusion.py), frames are posed while the beam turns:
+With a ``sink`` (the scan's TSDF, daemon/offload/fusion.py), frames are posed while the beam turns:
 every ``FEED_PERIOD_S`` the kept frames the encoder trace already covers go to the sink, so the
 fusion keeps up with the sweep; the few posed at its end are left in ``SweepRecord.unfed``.
 """
@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import structlog
 
-from daemon.beam import BeamTracker
-from daemon.devices import DepthCamera, Drive
 from daemon.errors import SweepFailed
+from daemon.rig.beam import BeamTracker
+from daemon.rig.devices import DepthCamera, Drive
 from daemon.tasks import despite_cancel, stop_tasks
 from drivers.depth.base import DepthFrame
 from drivers.depth.errors import DepthCameraError, DepthStreamStalled
@@ -36,7 +36,7 @@ from planner.rig import Rig
 from planner.sweep import AngleSpacing, BeamTrace, PosedDepth, Sweep, pose_frame, tag_frame
 from planner.tsdf import FRAME_SPACING_DEG
 
-log = structlog.get_logger("daemon.depth_sweep")
+log = structlog.get_logger("daemon.jobs.depth_sweep")
 
 
 @dataclass(frozen=True)

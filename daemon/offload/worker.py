@@ -7,7 +7,7 @@ nothing of the daemon's threads or sockets is inherited), as a batch job (SCHED_
 preempts the daemon when it wakes, yet keeps its fair share of a core), imports the heavy
 libraries once and logs as the daemon does (JSON lines on the daemon's stdout, each with
 ``process: compute``). Its jobs get their depth images through shared memory
-(daemon/compute.py).
+(daemon/offload/compute.py).
 """
 
 from __future__ import annotations
@@ -74,8 +74,8 @@ def _warm_up(log_setup: dict[str, Any]) -> None:
     # daemon's process seconds and memory it never uses.
     import open3d  # noqa: F401
 
-    import daemon.fusion
-    import daemon.planning  # noqa: F401
+    import daemon.offload.fusion
+    import daemon.offload.planning  # noqa: F401
     from planner.refine import warm_up
     from planner.rig import load_rig
 

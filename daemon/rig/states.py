@@ -4,7 +4,7 @@ The table is data, so a reviewer can read the whole life of a scan in one place 
 walk every edge. Leaving FAULT is only possible through :meth:`ScanStateMachine.reset`
 (Klipper's latched shutdown): a scan, a retry or a restart can never clear a fault by itself.
 The machine is the rig's one fault latch: FAULT and its causes are held here, and the safety
-monitor (daemon/safety.py) latches and reads them through it, keeping no copy of its own.
+monitor (daemon/rig/safety.py) latches and reads them through it, keeping no copy of its own.
 Every transition is logged with its cause and published to the subscribers (the control API
 streams them to clients).
 """
@@ -24,7 +24,7 @@ from daemon.errors import IllegalTransition
 from daemon.faults import Cause, FaultCause
 from daemon.utc import utc_stamp
 
-log = structlog.get_logger("daemon.states")
+log = structlog.get_logger("daemon.rig.states")
 
 
 class ScanState(enum.Enum):
@@ -59,7 +59,7 @@ class ScanOutcome(enum.Enum):
 S = ScanState
 
 SCAN_STEPS = (S.PREPARING, S.DEPTH_SWEEP, S.RECONSTRUCTING, S.PLANNING, S.CAPTURING, S.RETAKING)
-"""A scan's states in order, each run by its step (daemon/scan_steps.py); a step that has
+"""A scan's states in order, each run by its step (daemon/jobs/scan_steps.py); a step that has
 nothing for the next state to do (no missed capture to retake) skips it."""
 
 _ACTIVE = (*SCAN_STEPS, S.CALIBRATING)

@@ -1,7 +1,7 @@
 """Compute steps off the event loop: their compute time measured where they run, and the depth
 sweep handed to them in shared memory.
 
-The steps run in the compute worker (daemon/worker.py). A sweep is hundreds of megabytes of depth
+The steps run in the compute worker (daemon/offload/worker.py). A sweep is hundreds of megabytes of depth
 images; pickling it to the worker would hold the lock for as long as the copy takes.
 :func:`share_frames` copies the images into one shared memory block instead (NumPy copies without
 the lock, in a thread) and the worker gets only their names, shapes and poses.

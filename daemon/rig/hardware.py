@@ -1,6 +1,6 @@
 """The rig's devices as the daemon sees them: one drive, the phones, the depth cameras, the panel.
 
-Real and simulated rigs fill the same structure (daemon/real_rig.py, sim/rig.py), so the scan and
+Real and simulated rigs fill the same structure (daemon/server/real_rig.py, sim/rig.py), so the scan and
 the service never know which they drive. :class:`RigHardware` is the one owner of the device set:
 whoever acts on a device reads it from here when it acts, so a drive renewed on a fresh link is
 everyone's drive at once.
@@ -14,17 +14,17 @@ from typing import Any
 
 import structlog
 
-from daemon.devices import DepthCamera, Drive, Panel, Phone
-from daemon.hardware_config import Timeouts
+from daemon.rig.devices import DepthCamera, Drive, Panel, Phone
+from daemon.rig.hardware_config import Timeouts
 
-log = structlog.get_logger("daemon.hardware")
+log = structlog.get_logger("daemon.rig.hardware")
 
 
 class RigHardware:
     """Connected-or-not device objects of one rig.
 
     drive, phones (rig order), depth_cameras (rig order), panel (None: no panel fitted): the
-    device protocols of daemon/devices.py.
+    device protocols of daemon/rig/devices.py.
     closers: extra shutdown steps (simulator tasks, sockets, probe processes), run last.
     addresses: device name -> where it is reached (shown in status and errors).
     drive_factory: a fresh drive on a fresh link, for a drive whose link died (a real rig; the

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from daemon.states import ScanState
+from daemon.rig.states import ScanState
 from planner.schedule import RigTime
 
 S = ScanState

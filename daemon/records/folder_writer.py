@@ -24,7 +24,7 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from daemon.atomic import AtomicWriter
+from daemon.records.atomic import AtomicWriter
 
 
 @dataclass

@@ -1,5 +1,5 @@
-"""A scan's steps: one coroutine per state of :data:`daemon.states.SCAN_STEPS`, run in that order
-by the scan's body (:meth:`daemon.scan.Scan.body`).
+"""A scan's steps: one coroutine per state of :data:`daemon.rig.states.SCAN_STEPS`, run in that order
+by the scan's body (:meth:`daemon.jobs.scan.Scan.body`).
 
 Each step does the work of its state and says why the scan moves on to the next (:class:`Next`),
 or that the next state has nothing to do (None: no missed capture to retake). Some work runs
@@ -24,25 +24,25 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import structlog
 
-from daemon.atomic import StoreError
-from daemon.beam import rebase_angle
-from daemon.capture import CaptureRecord, CaptureRunner
-from daemon.compute import timed
-from daemon.depth_sweep import DepthSweeper
 from daemon.faults import AbortCause, AbortSource
-from daemon.fusion import FusionSession
-from daemon.manifest import ImageStatus
-from daemon.phones import PhonePrep, keep_clocks_synced, prepare_phones
-from daemon.planning import BASELINES, plan_capture
-from daemon.pulls import PullQueue, ScanImages
-from daemon.states import ScanOutcome, ScanState
+from daemon.jobs.capture import CaptureRecord, CaptureRunner
+from daemon.jobs.depth_sweep import DepthSweeper
+from daemon.jobs.phones import PhonePrep, keep_clocks_synced, prepare_phones
+from daemon.jobs.pulls import PullQueue, ScanImages
+from daemon.offload.compute import timed
+from daemon.offload.fusion import FusionSession
+from daemon.offload.planning import BASELINES, plan_capture
+from daemon.records.atomic import StoreError
+from daemon.records.manifest import ImageStatus
+from daemon.rig.beam import rebase_angle
+from daemon.rig.states import ScanOutcome, ScanState
 from daemon.tasks import settle, stop_tasks
 from planner.schedule import CaptureSchedule, MotionProfile, PhoneTiming, compile_plan, rig_profile
 
 if TYPE_CHECKING:
-    from daemon.scan import Scan
+    from daemon.jobs.scan import Scan
 
-log = structlog.get_logger("daemon.scan")
+log = structlog.get_logger("daemon.jobs.scan")
 
 S = ScanState
 

@@ -1,7 +1,7 @@
 """The rig controller: hardware bring-up, one job at a time (a scan or a calibration rotation),
 abort, latched fault and reset.
 
-Shared by the long-running service (daemon/service.py) and the one-shot ``tbp scan --sim``, so
+Shared by the long-running service (daemon/server/service.py) and the one-shot ``tbp scan --sim``, so
 both run exactly the same scan code against whatever hardware they were given.
 """
 
@@ -37,7 +37,7 @@ from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_ta
 from planner.rig import Rig
 from planner.schedule import RigTime, scan_rig_time
 
-log = structlog.get_logger("daemon.controller")
+log = structlog.get_logger("daemon.jobs.controller")
 
 
 class RigController:
@@ -334,7 +334,7 @@ class RigController:
         return scan_rig_time(self.rig)
 
     def job_time(self) -> dict[str, Any] | None:
-        """The running job's elapsed and remaining time (daemon/scan_time.py); None without one."""
+        """The running job's elapsed and remaining time (daemon/jobs/scan_time.py); None without one."""
         if not self.busy or self.current is None:
             return None
         machine = self.machine

@@ -1,8 +1,8 @@
 """One scan, start to end: PREPARING -> DEPTH_SWEEP -> RECONSTRUCTING -> PLANNING -> CAPTURING
 (-> RETAKING) -> STORING -> IDLE.
 
-The steps (daemon/scan_steps.py, one per state) run as the job's body; an abort (stop button,
-control API) or a safety trip cancels it at any await, and the job (daemon/job.py) stops the
+The steps (daemon/jobs/scan_steps.py, one per state) run as the job's body; an abort (stop button,
+control API) or a safety trip cancels it at any await, and the job (daemon/jobs/job.py) stops the
 beam, then stores what was captured here and closes the scan folder.
 """
 
@@ -19,21 +19,21 @@ from typing import Any
 import numpy as np
 import structlog
 
-from daemon.atomic import StoreError
-from daemon.beam import BeamTracker
-from daemon.capture import CaptureRecord
 from daemon.faults import AbortCause, AbortSource, Cause
-from daemon.hardware import RigHardware
-from daemon.job import JOB_END, RigJob
-from daemon.manifest import ImageStatus, MissingReason, missing_text
-from daemon.safety import SafetyMonitor
-from daemon.scan_steps import ScanSteps
-from daemon.states import SCAN_STEPS, ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import ScanFolder
+from daemon.jobs.capture import CaptureRecord
+from daemon.jobs.job import JOB_END, RigJob
+from daemon.jobs.scan_steps import ScanSteps
+from daemon.records.atomic import StoreError
+from daemon.records.manifest import ImageStatus, MissingReason, missing_text
+from daemon.records.store import ScanFolder
+from daemon.rig.beam import BeamTracker
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import SCAN_STEPS, ScanOutcome, ScanState, ScanStateMachine
 from planner.calibration.model import Calibration
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.scan")
+log = structlog.get_logger("daemon.jobs.scan")
 
 
 @dataclass(frozen=True)
@@ -69,10 +69,10 @@ class ScanReport:
     missing: int = 0
     """Planned images not in the folder (not verified), whatever the reason."""
     missing_by_phone: dict[str, dict[str, int]] = field(default_factory=dict)
-    """Those images per camera id and reason (daemon.manifest.MissingReason values)."""
+    """Those images per camera id and reason (daemon.records.manifest.MissingReason values)."""
     dropped_phones: list[dict[str, Any]] = field(default_factory=list)
     """Phones dropped for the rest of the scan, and any that rode along on the retake
-    (daemon.capture.CaptureRunner.drops)."""
+    (daemon.jobs.capture.CaptureRunner.drops)."""
     retaken: int = 0
     lens_late: int = 0
     focus_clipped: int = 0
@@ -123,8 +123,8 @@ class ScanReport:
 
 
 class Scan(RigJob):
-    """One scan on connected hardware: its steps (daemon/scan_steps.py) run from the state table,
-    its end as every job's (daemon/job.py), its store step here.
+    """One scan on connected hardware: its steps (daemon/jobs/scan_steps.py) run from the state table,
+    its end as every job's (daemon/jobs/job.py), its store step here.
 
     Args:
         folder: the scan's folder, already created (a scan is only started once its folder

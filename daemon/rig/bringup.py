@@ -23,17 +23,17 @@ from typing import Any
 
 import structlog
 
-from daemon.beam import BeamTracker
 from daemon.errors import DevicesMissing
 from daemon.faults import FaultCause, FaultSource
-from daemon.hardware import RigHardware
 from daemon.logs import bound_device
-from daemon.safety import SafetyMonitor
+from daemon.rig.beam import BeamTracker
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
 from drivers.panel.protocol import StatusLed
 from drivers.phone.errors import PhoneUnauthorized
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.bringup")
+log = structlog.get_logger("daemon.rig.bringup")
 
 CHECK = {
     "drive": "check the CAN cable, the bus (ip link show can0) and the drive's power; then `tbp check`",

@@ -1,7 +1,7 @@
 """The TSDF fused while the depth sweep runs, in the compute executor.
 
-The sweep delivers posed frames in batches (daemon/depth_sweep.py); each batch is fused at once
-in the compute worker (daemon/compute.py: images through shared memory, never pickled on the
+The sweep delivers posed frames in batches (daemon/jobs/depth_sweep.py); each batch is fused at once
+in the compute worker (daemon/offload/compute.py: images through shared memory, never pickled on the
 loop), so when the beam stops only the last frames, the mesh extraction and the cleaning are
 left before planning. The fusion lives in the process that fuses: the worker keeps it in
 :data:`_OPEN` under the scan's key between jobs (the pool has one worker; a thread executor keeps
@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import Any
 
-from daemon.compute import SharedFrames, release, share_frames, timed, unshare_frames
+from daemon.offload.compute import SharedFrames, release, share_frames, timed, unshare_frames
 from planner.rig import Rig
 from planner.sweep import PosedDepth
 from planner.tsdf import TsdfFusion, TsdfResult

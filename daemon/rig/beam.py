@@ -14,14 +14,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 import structlog
 
-from daemon.devices import Drive
 from daemon.errors import BeamTimeout
+from daemon.rig.devices import Drive
 
 if TYPE_CHECKING:
     from drivers.motor.samples import BeamSample
     from planner.rig import Rig
 
-log = structlog.get_logger("daemon.beam")
+log = structlog.get_logger("daemon.rig.beam")
 
 
 TRACE_KEPT_S = 3600.0

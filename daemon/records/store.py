@@ -13,7 +13,7 @@ Layout of ``<root>/<YYYYmmdd-HHMMSS>-<scan id>/``::
 This module is the only reader and writer of a scan folder: the daemon writes it through
 :class:`ScanFolder`; reports, navigation and the CLI read it with :func:`read_folder`.
 
-Every file is written atomically (daemon/atomic.py: temp file in the same folder, fsync,
+Every file is written atomically (daemon/records/atomic.py: temp file in the same folder, fsync,
 rename, fsync of the folder), so a reader sees the previous or the new version, never a
 torn one. The manifest
 says ``incomplete`` and ``in_progress: true`` from the moment the folder exists until the scan
@@ -43,11 +43,11 @@ from typing import Any
 import numpy as np
 import structlog
 
-from daemon.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
 from daemon.clinic.patient import ScanSubject
 from daemon.faults import Cause
-from daemon.folder_writer import FolderWriter
-from daemon.manifest import (
+from daemon.records.atomic import AtomicWriter, StoreError, StoreFull, fsync_dir, raise_for, sha256_of
+from daemon.records.folder_writer import FolderWriter
+from daemon.records.manifest import (
     MANIFEST,
     ImageRecord,
     ImageStatus,
@@ -177,7 +177,7 @@ class ScanFolder:
     def save_in_background(self, enabled: bool = True) -> None:
         """From now on every write of the folder (events.jsonl lines, whole files, the manifest)
         leaves the event loop: they are queued in order for the store's writer thread
-        (daemon/folder_writer.py), saves asked for while one waits are coalesced (a capture
+        (daemon/records/folder_writer.py), saves asked for while one waits are coalesced (a capture
         rotation saves twice per image, 14 times at each angle, each write an fdatasync and a
         folder fsync), and a file is listed in the manifest once it is durable. A failed write
         is raised by the next one. Needs the running event loop. Turning it off (and

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import structlog
 
-log = structlog.get_logger("daemon.looplag")
+log = structlog.get_logger("daemon.server.looplag")
 
 WARN_S = 0.05
 """A wake this late is logged as ``loop_lag`` (and a collection this long as ``gc_pause``)."""

@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import structlog
 
-from daemon.capture import TriggerLatency
-from daemon.clocksync import ClockSync
-from daemon.devices import Phone
+from daemon.jobs.capture import TriggerLatency
+from daemon.rig.clocksync import ClockSync
+from daemon.rig.devices import Phone
 from planner.rig import Rig
 
-log = structlog.get_logger("daemon.phones")
+log = structlog.get_logger("daemon.jobs.phones")
 
 
 @dataclass

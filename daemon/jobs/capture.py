@@ -27,17 +27,17 @@ from typing import Any
 import numpy as np
 import structlog
 
-from daemon.beam import BeamTracker
-from daemon.clocksync import ClockSync, EncoderTrace, exposure_angle
-from daemon.devices import Drive, Phone
 from daemon.errors import BeamTimeout, CaptureMissed, PhoneDropped
-from daemon.manifest import MissingReason
+from daemon.records.manifest import MissingReason
+from daemon.rig.beam import BeamTracker
+from daemon.rig.clocksync import ClockSync, EncoderTrace, exposure_angle
+from daemon.rig.devices import Drive, Phone
 from daemon.tasks import stop_tasks
 from drivers.errors import DeviceGone
 from planner.rig import Rig
 from planner.schedule import CaptureSchedule, MotionProfile, OutsideProfile, move_duration
 
-log = structlog.get_logger("daemon.capture")
+log = structlog.get_logger("daemon.jobs.capture")
 
 
 @dataclass

@@ -25,14 +25,16 @@ from daemon.controller import RigController
 from daemon.devices import Panel
 from daemon.errors import DaemonError, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.looplag import LoopLagMonitor
-from daemon.notify import SystemdNotifier, run_watchdog
-from daemon.states import SCAN_STATES
-from daemon.store import new_scan_id
+from daemon.jobs.controller import RigController
+from daemon.records.store import new_scan_id
+from daemon.rig.states import SCAN_STATES
+from daemon.server.control import ControlServer
+from daemon.server.looplag import LoopLagMonitor
+from daemon.server.notify import SystemdNotifier, run_watchdog
 from daemon.tasks import stop_tasks
 from drivers.panel import PanelEvent, StatusLed
 
-log = structlog.get_logger("daemon.service")
+log = structlog.get_logger("daemon.server.service")
 
 
 class WorklistUnavailable(DaemonError):
@@ -50,7 +52,7 @@ class RigService:
     """
 
     MAX_LAG_S = 0.5
-    """The loop is unhealthy when a sleep wakes this much late (daemon/looplag.py measures it)."""
+    """The loop is unhealthy when a sleep wakes this much late (daemon/server/looplag.py measures it)."""
 
     def __init__(self, controller: RigController, *, socket_path: Path | None = None,
                  group: str | None = None, notifier: SystemdNotifier | None = None) -> None:

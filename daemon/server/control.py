@@ -37,7 +37,7 @@ from typing import Any, Protocol
 import structlog
 
 from daemon.errors import DaemonError
-from daemon.subscriber import Ended, Subscriber, close_events, hang_up, peer_of
+from daemon.server.subscriber import Ended, Subscriber, close_events, hang_up, peer_of
 from drivers.noise import NoiseLog
 
 DEFAULT_SOCKET = Path("/run/tbp-rig/control.sock")
@@ -143,7 +143,7 @@ class ControlServer:
     * requests: at most MAX_CONNECTIONS at once; one idle for IDLE_TIMEOUT_S, or not reading its
       replies for as long, is closed;
     * subscriptions: at most MAX_SUBSCRIBERS, counted apart (a subscription leaves the request
-      pool), each with a send queue of MAX_PENDING_EVENTS (daemon/subscriber.py);
+      pool), each with a send queue of MAX_PENDING_EVENTS (daemon/server/subscriber.py);
     * overflow: a connection beyond MAX_CONNECTIONS is read for one request (at most RESERVED of
       them wait REFUSE_WAIT_S for it; beyond, only a request already received is read): ``status``,
       ``abort`` and ``reset`` are served there, ``subscribe`` goes to its own pool, anything else
