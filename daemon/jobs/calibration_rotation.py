@@ -33,16 +33,16 @@ import cv2
 import numpy as np
 import structlog
 
-from daemon.atomic import AtomicWriter, StoreError, fsync_dir, raise_for
-from daemon.beam import BeamTracker, rebase_angle
 from daemon.errors import DaemonError
-from daemon.hardware import RigHardware
-from daemon.job import JOB_END, RigJob
-from daemon.phones import focus_range_mm
-from daemon.pulls import ImageKey, ImagePullFailed, Pull, PullQueue
-from daemon.safety import SafetyMonitor
-from daemon.states import ScanOutcome, ScanState, ScanStateMachine
-from daemon.store import SCAN_ID, new_scan_id
+from daemon.jobs.job import JOB_END, RigJob
+from daemon.jobs.phones import focus_range_mm
+from daemon.jobs.pulls import ImageKey, ImagePullFailed, Pull, PullQueue
+from daemon.records.atomic import AtomicWriter, StoreError, fsync_dir, raise_for
+from daemon.records.store import SCAN_ID, new_scan_id
+from daemon.rig.beam import BeamTracker, rebase_angle
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import ScanOutcome, ScanState, ScanStateMachine
 from daemon.utc import utc_now
 from drivers.depth.base import DepthFrame
 from drivers.phone.camera import CaptureDone

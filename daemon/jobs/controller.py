@@ -14,20 +14,20 @@ from typing import Any
 
 import structlog
 
-from daemon.atomic import StoreError
-from daemon.beam import BeamTracker, trace_capacity
-from daemon.bringup import BringUp
-from daemon.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
 from daemon.clinic.patient import ScanSubject
 from daemon.errors import CalibrationRefused, DevicesMissing, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
-from daemon.hardware import RigHardware
-from daemon.job import RigJob
-from daemon.safety import SafetyMonitor
-from daemon.scan import Scan, ScanReport, ScanSettings
-from daemon.scan_time import job_time
-from daemon.states import ScanState, ScanStateMachine, state_groups
-from daemon.store import ScanStore
+from daemon.jobs.calibration_rotation import CalibrationRotation, RotationReport, create_rotation_folder
+from daemon.jobs.job import RigJob
+from daemon.jobs.scan import Scan, ScanReport, ScanSettings
+from daemon.jobs.scan_time import job_time
+from daemon.records.atomic import StoreError
+from daemon.records.store import ScanStore
+from daemon.rig.beam import BeamTracker, trace_capacity
+from daemon.rig.bringup import BringUp
+from daemon.rig.hardware import RigHardware
+from daemon.rig.safety import SafetyMonitor
+from daemon.rig.states import ScanState, ScanStateMachine, state_groups
 from daemon.utc import utc_now
 from drivers.errors import DeviceGone
 from drivers.panel.protocol import StatusLed

@@ -26,9 +26,9 @@ from typing import Generic, Protocol, TypeVar
 
 import structlog
 
-from daemon.atomic import StoreError, StoreFull
-from daemon.manifest import ImageStatus
-from daemon.store import ScanFolder
+from daemon.records.atomic import StoreError, StoreFull
+from daemon.records.manifest import ImageStatus
+from daemon.records.store import ScanFolder
 from daemon.tasks import stop_tasks
 
 PullFn = Callable[[str, Path], Awaitable[tuple[int, str]]]

@@ -17,16 +17,14 @@ from typing import Any
 
 import structlog
 
-from daemon.calibration_rotation import CalibrationRotation
 from daemon.clinic.patient import PatientError, ScanSubject
 from daemon.clinic.site import Site
-from daemon.control import ControlServer
-from daemon.controller import RigController
-from daemon.devices import Panel
 from daemon.errors import DaemonError, ScanBusy, ScanRefused
 from daemon.faults import AbortCause, AbortSource, FaultCause, FaultSource
+from daemon.jobs.calibration_rotation import CalibrationRotation
 from daemon.jobs.controller import RigController
 from daemon.records.store import new_scan_id
+from daemon.rig.devices import Panel
 from daemon.rig.states import SCAN_STATES
 from daemon.server.control import ControlServer
 from daemon.server.looplag import LoopLagMonitor
