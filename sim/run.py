@@ -7,7 +7,6 @@ load and the time scale: compute steps stop the clock, every simulator link deli
 from __future__ import annotations
 
 import asyncio
-import signal
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -103,36 +102,17 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       group: str | None = None, subject_path: Path | None = None,
                       panel: bool = True, qa_report: Callable[..., Path] | None = None,
                       attach: Callable[[Any], None] | None = None) -> int:
-    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
-
-    Compute runs in a worker process as on the real rig (daemon/offload/worker.py): in a thread, the
-    TSDF extraction held the interpreter lock the console's events and the panel wait for."""
-    from daemon.logs import follow_machine
-    from daemon.offload.worker import compute_pool
-    from daemon.server.looplag import freeze_startup_heap
-    from daemon.server.notify import SystemdNotifier
-    from daemon.server.service import RigService
+    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
+    from daemon.server.serve import serve
     from sim.body import load_subject
 
     rig = load_rig(config or DEFAULT_RIG_PATH)
     subject = load_subject(subject_path) if subject_path is not None else None
     hardware, _world = await build_sim_rig(
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    with compute_pool() as executor:
-        controller = RigController(rig, hardware, ScanStore(store),
-                                   settings=ScanSettings(seed=seed, plan_points=plan_points,
-                                                         executor=executor, qa_report=qa_report))
-        service = RigService(controller, socket_path=socket_path, group=group,
-                             notifier=SystemdNotifier.from_env())
-        if attach is not None:
-            attach(service)
-        follow_machine(controller.machine)
-        freeze_startup_heap()
-        return await service.run(stop)
+    return await serve(rig, hardware, store=store,
+                       settings=ScanSettings(seed=seed, plan_points=plan_points, qa_report=qa_report),
+                       socket_path=socket_path, group=group, attach=attach)
 
 
 async def sim_calibration_rotation(rig: Rig, stage: CuboidStage, *, store: Path, target: Path | None = None,

@@ -10,24 +10,16 @@ comes up when it is back.
 
 from __future__ import annotations
 
-import asyncio
-import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import structlog
 
-from daemon.jobs.controller import RigController
 from daemon.jobs.scan import ScanSettings
-from daemon.logs import follow_machine
-from daemon.offload.worker import compute_pool
-from daemon.records.store import ScanStore
 from daemon.rig.hardware import RigHardware
 from daemon.rig.hardware_config import HardwareConfig, PhoneLink
-from daemon.server.looplag import freeze_startup_heap
-from daemon.server.notify import SystemdNotifier
-from daemon.server.service import RigService
+from daemon.server.serve import serve
 from drivers.adb.auth import AdbKey
 from drivers.depth.base import DepthCamera, DepthFinder
 from drivers.depth.kinds import DEPTH_KINDS
@@ -121,23 +113,7 @@ async def real_service(*, rig: Rig, config: HardwareConfig, store: Path, socket_
                        state_dir: Path, group: str | None = None, plan_points: int | None = None,
                        qa_report: Callable[..., Path] | None = None,
                        attach: Callable[[Any], None] | None = None) -> int:
-    """The daemon on the real rig until SIGINT/SIGTERM; attach(service) adds servers (the web).
-
-    Compute runs in a worker process (daemon/offload/worker.py), so fusing and planning never stall
-    the drive's heartbeat."""
-    hardware = build_real_rig(rig, config, state_dir=state_dir)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    with compute_pool() as executor:
-        controller = RigController(rig, hardware, ScanStore(store),
-                                   settings=ScanSettings(plan_points=plan_points, executor=executor,
-                                                         qa_report=qa_report))
-        service = RigService(controller, socket_path=socket_path, group=group,
-                             notifier=SystemdNotifier.from_env())
-        if attach is not None:
-            attach(service)
-        follow_machine(controller.machine)
-        freeze_startup_heap()
-        return await service.run(stop)
+    """The daemon on the real rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
+    return await serve(rig, build_real_rig(rig, config, state_dir=state_dir), store=store,
+                       settings=ScanSettings(plan_points=plan_points, qa_report=qa_report),
+                       socket_path=socket_path, group=group, attach=attach)
