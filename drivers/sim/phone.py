@@ -58,7 +58,7 @@ AGENT_RUNTIMES = ("python", "jvm")
 
 def _scene_for(subject: Any, lesion_changes: LesionChanges | None) -> SubjectScene:
     """One ray-casting scene per subject mesh and lesion changes, shared by every simulated phone."""
-    scenes = _SCENES.setdefault(subject, {})
+    scenes: dict[LesionChanges | None, SubjectScene] = _SCENES.setdefault(subject, {})
     scene = scenes.get(lesion_changes)
     if scene is None:
         scene = scenes[lesion_changes] = SubjectScene(subject, lesion_changes)
