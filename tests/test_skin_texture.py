@@ -137,7 +137,8 @@ def test_the_same_seed_makes_the_same_changes_and_another_seed_others():
 
 
 @pytest.mark.parametrize(("field", "value"), [("seed", -1), ("seed", 1.5), ("grown_share", 1.5),
-                                              ("appeared_share", float("nan")), ("growth", 0.5)])
+                                              ("appeared_share", float("nan")), ("growth", 0.5),
+                                              ("darkening", "dark")])
 def test_lesion_changes_out_of_range_are_refused_naming_the_value(field, value):
     arguments = {"seed": 1, field: value}
     with pytest.raises(LesionChangesError) as caught:

@@ -83,12 +83,11 @@ class LesionChanges:
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise LesionChangesError("seed", self.seed, "not a whole number >= 0")
-        for name in ("grown_share", "appeared_share", "darkening"):
+        for name, low, high in (("grown_share", 0.0, 1.0), ("appeared_share", 0.0, 1.0), ("darkening", 0.0, 1.0),
+                                ("growth", 1.0, 4.0)):
             value = getattr(self, name)
-            if not 0.0 <= value <= 1.0:  # also false for NaN
-                raise LesionChangesError(name, value, "outside [0, 1]")
-        if not 1.0 <= self.growth <= 4.0:
-            raise LesionChangesError("growth", self.growth, "outside [1, 4]")
+            if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= high:  # NaN too
+                raise LesionChangesError(name, value, f"not a number in [{low:g}, {high:g}]")
 
 
 @dataclass(frozen=True)
