@@ -99,6 +99,7 @@ def _serve(args: argparse.Namespace) -> int:
             config=args.rig, store=options.store_root(args), socket_path=socket_path, seed=args.seed,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
             subject_path=args.subject, panel=not args.no_panel, qa_report=report_and_body, attach=attach,
+            lesion_changes=args.lesion_changes,
         ))
 
 

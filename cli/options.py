@@ -117,3 +117,17 @@ def simulated_rig(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--subject", type=Path, default=None, metavar="MESH",
                         help="with --sim: the subject's mesh file (default: a body for --seed)")
     parser.add_argument("--no-panel", action="store_true", help="with --sim: a rig without a panel")
+    parser.add_argument("--lesion-changes", type=lesion_changes, default=None, metavar="SEED",
+                        help="with --sim: a follow-up visit of the subject, some of its larger spots grown "
+                             "and new ones appeared, chosen by SEED (default: the skin as it is)")
+
+
+def lesion_changes(text: str) -> Any:
+    """``--lesion-changes SEED``: the seeded LesionChanges (drivers/sim/skin_texture.py)."""
+    from drivers.sim.skin_texture import LesionChanges, LesionChangesError
+
+    try:
+        return LesionChanges(int(text))
+    except ValueError as exc:  # int() or LesionChangesError
+        problem = exc if isinstance(exc, LesionChangesError) else f"lesion changes seed {text!r}: not a whole number"
+        raise argparse.ArgumentTypeError(str(problem)) from exc

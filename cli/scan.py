@@ -90,6 +90,7 @@ def _simulated(args: argparse.Namespace, patient: Any) -> int:
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, out=sys.stdout,
             subject=load_subject(args.subject) if args.subject else None,
             panel=not args.no_panel, qa_report=report_and_body, patient=patient,
+            lesion_changes=args.lesion_changes,
         )
     except (RigConfigError, FocusPlanError, DaemonError, BodyError) as exc:  # DaemonError: ScanRefused (the store)
         print(f"tbp scan: {exc}", file=sys.stderr)

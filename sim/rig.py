@@ -32,6 +32,7 @@ from drivers.sim.depth import DEPTH_TWINS, DepthScene
 from drivers.sim.drive import SimulatedDrive
 from drivers.sim.panel import SimulatedPanel
 from drivers.sim.phone import SimulatedPhone
+from drivers.sim.skin_texture import LesionChanges
 from planner.poses import rgb_poses
 from planner.rig import DepthCameraModel, Rig
 
@@ -49,6 +50,8 @@ class SimOptions:
         casting 1280 x 720 takes ~0.5 s of CPU a frame; the TSDF fuses at half resolution anyway).
     depth_fps: simulated frame rate (the sweep keeps one frame per 3 deg: 10 fps at 30 deg/s).
     depth_kind: the kind of depth camera simulated (drivers/depth/kinds.py): its twin streams.
+    lesion_changes: the subject's grown and new spots at this visit (drivers/sim/skin_texture.py;
+        None: the skin as it is).
     """
 
     seed: int = 0
@@ -57,6 +60,7 @@ class SimOptions:
     panel: bool = True
     state_dir: Path | None = None
     depth_kind: str = "realsense"
+    lesion_changes: LesionChanges | None = None
 
     def __post_init__(self) -> None:
         if self.depth_kind not in DEPTH_TWINS:
@@ -174,6 +178,7 @@ async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
         sim = SimulatedPhone(
             phone.serial, subject=world.subject, pose=pose,
             seed=options.seed * 100 + i, optics=rig.optics, known_keys=[key.public_blob()],
+            lesion_changes=options.lesion_changes,
         )
         if stage is not None:
             sim.picture_source = stage.phone_picture(phone.id)

@@ -23,6 +23,7 @@ from sim.rig import SimOptions, build_sim_rig
 
 if TYPE_CHECKING:
     from daemon.jobs.calibration_rotation import RotationReport
+    from drivers.sim.skin_texture import LesionChanges
     from sim.cuboid_stage import CuboidStage
 
 
@@ -52,15 +53,18 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
                    out: TextIO | None = None, subject: Any | None = None, panel: bool = True,
                    qa_report: Callable[..., Path] | None = None,
                    on_ready: Callable[[RigController, Any], None] | None = None,
-                   patient: ScanSubject | None = None) -> ScanReport:
+                   patient: ScanSubject | None = None,
+                   lesion_changes: LesionChanges | None = None) -> ScanReport:
     """Build the simulated rig, run one scan, close everything; returns the scan's report.
 
     on_ready(controller, world) is called once the rig is up (tests inject faults from it);
-    patient: who the scan is for (a synthetic identity), kept in its manifest.
+    patient: who the scan is for (a synthetic identity), kept in its manifest; lesion_changes:
+    the subject's grown and new spots at this visit.
     """
     rig = load_rig(config or DEFAULT_RIG_PATH)
     hardware, world = await build_sim_rig(
-        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
+        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel, lesion_changes=lesion_changes),
+        subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
         # As the daemon's worker does (daemon/offload/worker.py): compile the planner's loops, or load
@@ -101,15 +105,18 @@ async def sim_service(*, config: Path | None, store: Path, socket_path: Path | N
                       plan_points: int | None = None, depth_decimation: int = 2,
                       group: str | None = None, subject_path: Path | None = None,
                       panel: bool = True, qa_report: Callable[..., Path] | None = None,
-                      attach: Callable[[Any], None] | None = None) -> int:
-    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web)."""
+                      attach: Callable[[Any], None] | None = None,
+                      lesion_changes: LesionChanges | None = None) -> int:
+    """The daemon on the simulated rig until SIGINT/SIGTERM; attach(service) adds servers (the web);
+    lesion_changes: the subject's grown and new spots at this visit."""
     from daemon.server.serve import serve
     from sim.body import load_subject
 
     rig = load_rig(config or DEFAULT_RIG_PATH)
     subject = load_subject(subject_path) if subject_path is not None else None
     hardware, _world = await build_sim_rig(
-        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel), subject=subject)
+        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel, lesion_changes=lesion_changes),
+        subject=subject)
     return await serve(rig, hardware, store=store,
                        settings=ScanSettings(seed=seed, plan_points=plan_points, qa_report=qa_report),
                        socket_path=socket_path, group=group, attach=attach)

@@ -96,3 +96,49 @@ def test_a_command_logs_on_stderr_and_leaves_stdout_to_its_results(tmp_path: Pat
     structlog.get_logger("tbp.plan").info("plan_progress", step=1)
     captured = capsys.readouterr()
     assert "plan_progress" in captured.err and "plan_progress" not in captured.out
+
+
+class _Reached(Exception):
+    pass
+
+
+def test_lesion_changes_reach_the_simulated_rig_s_phones(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """``--lesion-changes SEED`` on ``tbp scan --sim`` and ``tbp daemon --sim`` reaches the
+    simulated scan, and the simulated rig's phones render their subject with it."""
+    import sim.run
+    from drivers.sim.phone import _scene_for
+    from drivers.sim.skin_texture import LesionChanges
+    from planner.rig import DEFAULT_RIG_PATH, load_rig
+    from sim.clock import run_virtual
+    from sim.rig import SimOptions, build_sim_rig
+    from tests.daemon_rigs import capsule_subject
+
+    def scan(**kwargs: object) -> None:
+        raise _Reached(kwargs["lesion_changes"])
+
+    monkeypatch.setattr(sim.run, "run_sim_scan", scan)
+    args = build_parser().parse_args(["scan", "--sim", "--lesion-changes", "7", "--store", str(tmp_path)])
+    with pytest.raises(_Reached) as reached:
+        args.func(args)
+    assert reached.value.args == (LesionChanges(7),)
+    assert build_parser().parse_args(["daemon", "--sim", "--lesion-changes", "7"]).lesion_changes == LesionChanges(7)
+    assert build_parser().parse_args(["scan", "--sim"]).lesion_changes is None
+
+    rig = load_rig(DEFAULT_RIG_PATH)
+
+    async def build() -> list[object]:
+        options = SimOptions(depth_decimation=8, lesion_changes=LesionChanges(7))
+        _hardware, world = await build_sim_rig(rig, options, subject=capsule_subject())
+        try:
+            return [_scene_for(phone.subject, phone.lesion_changes).lesion_changes for phone in world.phones]
+        finally:
+            await world.close()
+
+    assert run_virtual(build()) == [LesionChanges(7)] * len(rig.phones)
+
+@pytest.mark.parametrize(("value", "said"), [("-3", "seed=-3"), ("soon", "'soon'")])
+def test_a_bad_lesion_changes_seed_is_refused_naming_it(value: str, said: str,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        build_parser().parse_args(["scan", "--sim", "--lesion-changes", value])
+    assert exited.value.code == 2 and said in capsys.readouterr().err

@@ -14,7 +14,8 @@ CAPTURE_LATENCY_S (+ seeded jitter) after the request and the JPEG is ready ENCO
 exposure. The sensor clock has its own offset and drift (seeded); a clock read happens after a
 seeded one-way delay, so round trips are not zero. Each image is the subject ray
 cast from ``pose(t)`` (time -> (4, 4) camera-to-world, provided by the sim wiring so the phone
-knows nothing of the motor) and blurred by its distance from the focal plane; with a
+knows nothing of the motor), its skin freckled as at a visit with ``lesion_changes`` (none by
+default), and blurred by its distance from the focal plane; with a
 ``board`` (drivers/sim/focus_target.py: a board on a stand in front of the phone, for the focus
 calibration's sweep) the picture is that board instead, and with a ``picture_source`` (the sim
 wiring's calibration cuboid, seen from ``pose(t)``) it is what the source renders.
@@ -44,6 +45,7 @@ from drivers.sim.focus_target import BoardStand
 from drivers.sim.jvm_agent import JvmRuntime
 from drivers.sim.phone_agent import CaptureFailure, TwinRuntime
 from drivers.sim.phone_render import PhoneRenderer, SubjectScene, empty_rig_picture, encode_jpeg
+from drivers.sim.skin_texture import LesionChanges
 from planner.rig import Optics, load_rig
 
 PoseSource = Callable[[float], np.ndarray]
@@ -54,11 +56,12 @@ _SCENES: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
 AGENT_RUNTIMES = ("python", "jvm")
 
 
-def _scene_for(subject: Any) -> SubjectScene:
-    """One ray-casting scene per subject mesh, shared by every simulated phone."""
-    scene = _SCENES.get(subject)
+def _scene_for(subject: Any, lesion_changes: LesionChanges | None) -> SubjectScene:
+    """One ray-casting scene per subject mesh and lesion changes, shared by every simulated phone."""
+    scenes: dict[LesionChanges | None, SubjectScene] = _SCENES.setdefault(subject, {})
+    scene = scenes.get(lesion_changes)
     if scene is None:
-        scene = _SCENES[subject] = SubjectScene(subject)
+        scene = scenes[lesion_changes] = SubjectScene(subject, lesion_changes)
     return scene
 
 
@@ -93,10 +96,11 @@ class SimulatedPhone(SimulatedAdbd):
                  render_size: tuple[int, int] | None = (192, 256), min_focus_diopters: float = 10.0,
                  focus_calibration_quality: int = 1, timestamp_source: str = "realtime",
                  model: str = "TBP Simulated Phone", agent_runtime: str = "python",
-                 agent_jar: Path | None = None) -> None:
+                 agent_jar: Path | None = None, lesion_changes: LesionChanges | None = None) -> None:
         super().__init__(serial, properties={"ro.product.model": model}, known_keys=known_keys,
                          accept_new_keys=accept_new_keys, seed=seed)
         self.subject = subject
+        self.lesion_changes = lesion_changes
         self.pose = pose
         self.seed = seed
         self.board: BoardStand | None = None
@@ -223,7 +227,7 @@ class SimulatedPhone(SimulatedAdbd):
         if self.subject is None or pose is None or self.render_size is None:
             return encode_jpeg(empty_rig_picture(width, height, seed=index))
         if self._renderer is None:
-            self._renderer = PhoneRenderer(_scene_for(self.subject), self.optics, width, height)
+            self._renderer = PhoneRenderer(_scene_for(self.subject, self.lesion_changes), self.optics, width, height)
         return encode_jpeg(self._renderer.render(pose, self.sharp_distance_mm(focus_diopters)))
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-from drivers.sim.skin_texture import pigment, pigmented
+from drivers.sim.skin_texture import LesionChanges, pigment, pigmented
 from planner.rig import Optics
 
 if TYPE_CHECKING:
@@ -47,13 +47,15 @@ class SubjectScene:
 
     The skin carries freckles (drivers/sim/skin_texture.py) in skin coordinates: the mesh's
     ``vertex_attributes["skin_mm"]`` when the body generator gave them (the unswayed body, so a
-    swayed visit shows the same spots on the same skin), else the mesh's own vertices.
+    swayed visit shows the same spots on the same skin), else the mesh's own vertices;
+    ``lesion_changes``: a follow-up visit's grown and new spots (None: none).
     """
 
-    def __init__(self, mesh: trimesh.Trimesh) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, lesion_changes: LesionChanges | None = None) -> None:
         import open3d as o3d  # seconds to import: only where a scene is ray cast
 
         self._o3d = o3d
+        self.lesion_changes = lesion_changes
         skin = getattr(mesh, "vertex_attributes", {}).get("skin_mm")
         self.skin_mm = np.asarray(mesh.vertices if skin is None else skin, dtype=np.float32)
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
@@ -86,7 +88,7 @@ class SubjectScene:
             uv = answer["primitive_uvs"].numpy()[on_skin]
             weights = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
             both = np.einsum("kc,kcj->kj", weights, self._skin_and_normal[corners])
-            darkness[on_skin] = pigment(both[:, :3])
+            darkness[on_skin] = pigment(both[:, :3], changes=self.lesion_changes)
             smooth = both[:, 3:]
             normals[on_skin] = smooth / np.maximum(np.linalg.norm(smooth, axis=1, keepdims=True), 1e-6)
         return answer["t_hit"].numpy(), normals, darkness
