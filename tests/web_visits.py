@@ -20,6 +20,8 @@ class Visits:
     later: Path
     subject_earlier: Any
     subject_later: Any
+    lesion_changes: Any = None
+    """The seeded lesion changes of the later visit (drivers/sim/skin_texture.LesionChanges), or None."""
 
 
 def placed(mesh: Any, shift_mm: tuple[float, float, float], turn_deg: float) -> Any:
@@ -43,9 +45,10 @@ def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, 
     return out
 
 
-def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2) -> Visits:
+def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2,
+               lesion_changes: Any = None) -> Visits:
     """Scan the same simulated adult (one synthetic patient) twice (seeds 1 and 2) into ``store``;
-    QA reports included."""
+    QA reports included. ``lesion_changes``: spots grown and new at the second visit."""
     from analysis.qa_report import generate_report
     from daemon.clinic.patient import ScanSubject
     from sim.body import make_body
@@ -55,13 +58,13 @@ def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, de
     swayed = placed(make_body(seed=person_seed, sway_deg=SWAY_DEG, sway_seed=person_seed * 100 + 7),
                     VISIT_SHIFT_MM, VISIT_TURN_DEG)
     folders = []
-    for seed, subject in ((1, still), (2, swayed)):
+    for seed, subject, changes in ((1, still, None), (2, swayed, lesion_changes)):
         report = run_sim_scan(store=store, seed=seed, plan_points=plan_points, depth_decimation=depth_decimation,
-                              subject=subject, panel=False, qa_report=generate_report,
+                              subject=subject, panel=False, qa_report=generate_report, lesion_changes=changes,
                               patient=ScanSubject.from_args({"patient_id": f"SYN-{person_seed:04d}",
                                                              "patient_name": f"Testperson^Seed{person_seed}"}))
         folders.append(Path(report.folder))
-    return Visits(folders[0], folders[1], still, swayed)
+    return Visits(folders[0], folders[1], still, swayed, lesion_changes)
 
 
 def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, Any]:

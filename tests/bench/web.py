@@ -3,7 +3,8 @@
 Goals (issue 11): first paint of a scan (mesh + colours) in headless Chromium <= 1.5 s; click to
 best image <= 200 ms server time; console events within 100 ms of the daemon's state change;
 marks carried to a second scan of the same simulated person (new seed, 2 deg sway, standing
-29 mm and 6 deg elsewhere) within 5 mm of the same skin point.
+29 mm and 6 deg elsewhere, some spots grown and new: LESION_CHANGES) within 5 mm of the same skin
+point.
 
 Two simulated adult scans at the rig defaults (1500 planning points to keep it short) are made
 first (several minutes); TBP_BENCH_DIR keeps them between runs.
@@ -24,6 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from analysis.registration import MarkCarrier
+from drivers.sim.skin_texture import LesionChanges
+from sim.lesions import changed_lesions
 from tests.web_browser import chromium, chromium_missing, serve_in_thread, wait_for
 from tests.web_visits import Visits, carry_errors, two_visits
 
@@ -31,13 +34,17 @@ PAINTS = 5
 CLICKS = 40
 
 
+LESION_CHANGES = LesionChanges(seed=5)
+"""The second visit's grown and new spots (tbp scan --sim --lesion-changes 5)."""
+
+
 def _visits(root: Path) -> Visits:
-    cache = root / "visits.pickle"
+    cache = root / "visits-changed.pickle"
     if cache.exists():
         visits = pickle.loads(cache.read_bytes())
-        if visits.earlier.exists() and visits.later.exists():
+        if visits.earlier.exists() and visits.later.exists() and visits.lesion_changes == LESION_CHANGES:
             return visits
-    visits = two_visits(root / "scans")
+    visits = two_visits(root / "scans", lesion_changes=LESION_CHANGES)
     cache.write_bytes(pickle.dumps(visits))
     return visits
 
@@ -158,6 +165,9 @@ def run() -> None:
         started = time.perf_counter()
         visits = _visits(root)
         print(f"two simulated adult scans ready in {time.perf_counter() - started:.0f} s")
+        changed = changed_lesions(visits.subject_later, LESION_CHANGES)
+        print(f"the second visit's skin (--lesion-changes {LESION_CHANGES.seed}): {int((~changed.appeared).sum())} "
+              f"spots grown, {int(changed.appeared.sum())} new; the marks below are carried over that skin")
         store, folder = visits.earlier.parent, visits.earlier.name
         import trimesh
 
