@@ -182,6 +182,19 @@ def unit_command(unit: Path, root: Path) -> tuple[list[str], dict[str, str]]:
     return _tbp(*argv[1:]), {k: moved(v) for k, v in env.items()}
 
 
+def machine_caused(stall: dict[str, Any]) -> bool:
+    """Whether a daemon's ``loop_lag`` line is the machine's doing: the loop thread waited at least
+    half the stall for a CPU (``runqueue_ms``; other processes kept the cores, e.g. parallel test
+    runs), or it was blocked, not running, while for at least half the stall tasks on the machine
+    waited for a CPU or the hypervisor ran another guest (``pressure_ms`` + ``steal_ms``: a thread
+    holding the interpreter lock, itself waiting for a CPU, holds the loop too). A stall the loop
+    thread spent running its own code is its own whatever the machine."""
+    half = stall["lag_ms"] / 2
+    ran = stall.get("cpu_ms") or 0.0
+    machine = (stall.get("pressure_ms") or 0.0) + (stall.get("steal_ms") or 0.0)
+    return (stall.get("runqueue_ms") or 0.0) >= half or (ran < half and machine >= half)
+
+
 class LoopbackRig:
     """Simulators and the daemon on this machine; ``with LoopbackRig(folder) as rig:``.
 
@@ -439,13 +452,11 @@ class LoopbackRig:
 
     def loop_stalls(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
         """The daemon's ``loop_lag`` lines so far (each a wake more than 50 ms late), split into
-        its own stalls and the ones the machine caused: the loop thread waited at least half the
-        stall for a CPU (``runqueue_ms``; other processes kept the cores, e.g. parallel test runs)."""
+        its own stalls and the ones the machine caused (:func:`machine_caused`)."""
         own, starved = [], []
         for line in self.daemon_lines():
             if line.get("event") == "loop_lag":
-                waited = line.get("runqueue_ms")
-                (starved if waited is not None and waited >= line["lag_ms"] / 2 else own).append(line)
+                (starved if machine_caused(line) else own).append(line)
         return own, starved
 
     @property

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from daemon.jobs.scan import ScanReport
 from daemon.rig.states import ScanOutcome
-from daemon.server.looplag import LoopLagMonitor
+from daemon.server.looplag import LoopLagMonitor, MachineTimes
 
 
 def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -> None:
@@ -69,6 +69,46 @@ def test_a_stall_says_whether_the_loop_ran_code_or_was_blocked() -> None:
     assert stalls["PLANNING"]["cpu_ms"] >= 100.0
     assert stalls["STORING"]["cpu_ms"] < stalls["STORING"]["lag_ms"] / 2
     assert "runqueue_ms" in stalls["STORING"]
+    assert {"pressure_ms", "steal_ms"} <= set(stalls["STORING"])  # the machine's side of a blocked loop
+
+
+def test_the_machines_contention_only_grows() -> None:
+    machine = MachineTimes()
+    try:
+        first = machine.read()
+        busy = time.thread_time()
+        while time.thread_time() - busy < 0.02:
+            pass
+        second = machine.read()
+    finally:
+        machine.close()
+    for before, after in zip(first, second, strict=True):
+        assert (before is None) == (after is None)
+        assert before is None or 0.0 <= before <= after
+
+
+def _stall(lag: float, cpu: float | None, runqueue: float | None, pressure: float | None = None,
+           steal: float | None = None) -> dict:
+    return {"event": "loop_lag", "lag_state": "CAPTURING", "lag_ms": lag, "cpu_ms": cpu, "runqueue_ms": runqueue,
+            "pressure_ms": pressure, "steal_ms": steal}
+
+
+def test_a_stall_is_the_machines_only_when_the_machine_was_contended_and_the_loop_not_running() -> None:
+    from sim.loopback import LoopbackRig
+
+    lines = [
+        _stall(60.0, 55.0, 1.0, pressure=60.0),  # code on the loop: its own, however busy the machine
+        _stall(60.0, 1.0, 40.0),  # waited for a CPU itself
+        _stall(50.6, 1.1, 0.9, pressure=30.0),  # blocked while tasks waited for CPUs (a lock holder)
+        _stall(50.6, 1.1, 0.9, pressure=5.0, steal=25.0),  # blocked while the hypervisor ran another guest
+        _stall(50.6, 1.1, 0.9, pressure=5.0),  # blocked on a quiet machine: a system call on the loop
+        _stall(50.6, 1.1, None),  # an older kernel that reports nothing: its own
+    ]
+    rig = object.__new__(LoopbackRig)
+    rig.daemon_lines = lambda: lines  # type: ignore[method-assign]
+    own, starved = rig.loop_stalls()
+    assert own == [lines[0], lines[4], lines[5]]
+    assert starved == [lines[1], lines[2], lines[3]]
 
 
 @given(st.lists(st.tuples(st.sampled_from(["IDLE", "DEPTH_SWEEP", "PLANNING"]),

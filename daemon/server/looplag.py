@@ -8,7 +8,10 @@ logged as ``loop_lag`` with the state it happened in; leaving a state logs that 
 ``loop_lag`` line says why the loop was late: ``cpu_ms`` the loop thread ran meanwhile (code
 on the loop), ``runqueue_ms`` it waited for a CPU (the machine was busy: the process was not
 scheduled), neither (it was blocked: a system call, or waiting for the interpreter lock a thread
-held). A garbage collection that long is logged as ``gc_pause``.
+held). For a blocked loop the machine's side is given too: ``pressure_ms``, how long some task on
+the machine waited for a CPU meanwhile (the kernel's CPU pressure; a thread holding the
+interpreter lock may have been one), and ``steal_ms``, CPU time the hypervisor gave elsewhere
+(summed over the CPUs). A garbage collection that long is logged as ``gc_pause``.
 """
 
 from __future__ import annotations
@@ -71,6 +74,47 @@ class ThreadTimes:
             self._fd = None
 
 
+class MachineTimes:
+    """The machine's CPU contention so far (s): time some task waited for a CPU (the kernel's
+    /proc/pressure/cpu ``some`` total) and CPU time stolen by the hypervisor (/proc/stat, all
+    CPUs); each None where the kernel does not report it."""
+
+    def __init__(self) -> None:
+        self._tick_s = 1.0 / os.sysconf("SC_CLK_TCK")
+        self._pressure = self._open("/proc/pressure/cpu")
+        self._stat = self._open("/proc/stat")
+
+    @staticmethod
+    def _open(path: str) -> int | None:
+        try:
+            return os.open(path, os.O_RDONLY)
+        except OSError:
+            return None
+
+    def read(self) -> tuple[float | None, float | None]:
+        pressure = steal = None
+        try:
+            if self._pressure is not None:
+                some = os.pread(self._pressure, 256, 0).split(b"\n", 1)[0]
+                pressure = int(some.rsplit(b"total=", 1)[1]) / 1e6
+            if self._stat is not None:
+                fields = os.pread(self._stat, 256, 0).split(b"\n", 1)[0].split()
+                steal = int(fields[8]) * self._tick_s if fields[0] == b"cpu" and len(fields) > 8 else None
+        except (OSError, ValueError, IndexError):
+            pass
+        return pressure, steal
+
+    def close(self) -> None:
+        for fd in (self._pressure, self._stat):
+            if fd is not None:
+                os.close(fd)
+        self._pressure = self._stat = None
+
+
+def _ms_between(before: float | None, after: float | None) -> float | None:
+    return None if before is None or after is None else round((after - before) * 1000, 1)
+
+
 @dataclass
 class StateLag:
     """Lag samples (s) of one state as a histogram on a geometric scale (bins 5 % wide from
@@ -124,21 +168,22 @@ class LoopLagMonitor:
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
         gc.callbacks.append(self._collection)
-        times = ThreadTimes()
+        times, machine = ThreadTimes(), MachineTimes()
         try:
             while True:
-                before, (cpu0, wait0) = loop.time(), times.read()
+                before, (cpu0, wait0), (pressure0, steal0) = loop.time(), times.read(), machine.read()
                 await asyncio.sleep(self.period_s)
                 lag_s = max(loop.time() - before - self.period_s, 0.0)
                 if lag_s > self.warn_s:
-                    cpu1, wait1 = times.read()
-                    why = {"cpu_ms": round((cpu1 - cpu0) * 1000, 1),
-                           "runqueue_ms": None if wait1 is None or wait0 is None else round((wait1 - wait0) * 1000, 1)}
-                    self.record(self.state(), lag_s, **why)
+                    (cpu1, wait1), (pressure1, steal1) = times.read(), machine.read()
+                    self.record(self.state(), lag_s, cpu_ms=_ms_between(cpu0, cpu1),
+                                runqueue_ms=_ms_between(wait0, wait1), pressure_ms=_ms_between(pressure0, pressure1),
+                                steal_ms=_ms_between(steal0, steal1))
                 else:
                     self.record(self.state(), lag_s)
         finally:
             times.close()
+            machine.close()
             gc.callbacks.remove(self._collection)
 
     def _collection(self, phase: str, info: dict[str, int]) -> None:

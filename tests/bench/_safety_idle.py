@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sim.loopback import DEVICE_KINDS, LoopbackRig
+from sim.loopback import DEVICE_KINDS, LoopbackRig, machine_caused
 
 DEFAULT_S = 600.0
 DEFAULT_MISSING = "phones,depth,panel"
@@ -89,13 +89,14 @@ def run() -> None:
         r = idle(root, missing, duration_s)
         print(f"idle with {','.join(sorted(missing))} missing: ran {r['ran_s']:.0f} s; "
               f"up {', '.join(r['up']) or 'nothing'}; state {r['state']}")
-        starved = [x for x in r["stalls"] if (x.get("runqueue_ms") or 0) >= x["lag_ms"] / 2]
+        starved = [x for x in r["stalls"] if machine_caused(x)]
         print(f"  faults {r['faults']}   (goal 0); stdout lines not JSON {r['not_json']}; loop stalls > 50 ms: "
-              f"{len(r['stalls']) - len(starved)} the daemon's, {len(starved)} while it waited for a CPU "
+              f"{len(r['stalls']) - len(starved)} the daemon's, {len(starved)} the machine's (a CPU waited for, or stolen) "
               f"(machine load average up to {r['load']:.1f} on {os.cpu_count()} cores)")
         for x in r["stalls"][:10]:
             print(f"    {x['timestamp'][11:23]} {x['lag_state']:<10} {x['lag_ms']:7.1f} ms  "
-                  f"cpu {x.get('cpu_ms')} ms  waiting for a CPU {x.get('runqueue_ms')} ms")
+                  f"cpu {x.get('cpu_ms')} ms  waiting for a CPU {x.get('runqueue_ms')} ms  machine: tasks "
+                  f"waiting {x.get('pressure_ms')} ms, stolen {x.get('steal_ms')} ms")
         probes = r["probes"]
         print(f"  probes made: {sum(p or 0 for p in probes.values())} "
               f"({', '.join(f'{k} {v}' for k, v in sorted(probes.items()))})")
