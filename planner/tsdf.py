@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import structlog
@@ -73,6 +74,20 @@ class TsdfResult:
     frames_used: int
     per_camera: dict[str, int]
     timings_s: dict[str, float] = field(default_factory=dict)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickles the mesh as its vertex and face arrays only: a Trimesh pickles its caches too
+        (normals, adjacency: 10x the bytes), and the daemon unpickles what the compute worker
+        sends on a thread holding the interpreter lock the event loop needs."""
+        mesh = self.mesh
+        arrays = (np.asarray(mesh.vertices).view(np.ndarray), np.asarray(mesh.faces).view(np.ndarray))
+        return _rebuild_result, (arrays, self.frames_used, self.per_camera, self.timings_s)
+
+
+def _rebuild_result(arrays: tuple[np.ndarray, np.ndarray], frames_used: int, per_camera: dict[str, int],
+                    timings_s: dict[str, float]) -> TsdfResult:
+    vertices, faces = arrays
+    return TsdfResult(trimesh.Trimesh(vertices, faces, process=False), frames_used, per_camera, timings_s)
 
 
 def _decimate(depth: np.ndarray, intrinsics: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:

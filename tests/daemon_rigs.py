@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import functools
 from collections.abc import Awaitable, Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,27 +85,30 @@ Hook = Callable[[RigController, MockWorld], Awaitable[None]]
 def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: Hook | None = None,
              store_factory: Callable[[Path], ScanStore] = ScanStore,
              prepare: Callable[[MockWorld], None] | None = None,
-             rig: Rig = RIG) -> tuple[ScanReport, RigController, MockWorld]:
+             rig: Rig = RIG, executor: Callable[[], Executor] = lambda: ThreadPoolExecutor(max_workers=1),
+             ) -> tuple[ScanReport, RigController, MockWorld]:
     """One scan in virtual time; ``during`` runs concurrently with it, ``after`` once it ended."""
     return run_job(store, lambda controller: controller.scan(f"test-seed{seed}"), seed=seed, during=during,
-                   after=after, store_factory=store_factory, prepare=prepare, rig=rig)
+                   after=after, store_factory=store_factory, prepare=prepare, rig=rig, executor=executor)
 
 
 def run_job(store: Path, job: Callable[[RigController], Awaitable[Any]], *, seed: int = 0,
             during: Hook | None = None, after: Hook | None = None,
             store_factory: Callable[[Path], ScanStore] = ScanStore,
             prepare: Callable[[MockWorld], None] | None = None,
-            rig: Rig = RIG) -> tuple[Any, RigController, MockWorld]:
+            rig: Rig = RIG, executor: Callable[[], Executor] = lambda: ThreadPoolExecutor(max_workers=1),
+            ) -> tuple[Any, RigController, MockWorld]:
     """``job(controller)`` (a scan, a calibration rotation) to its report in virtual time on the
-    mock-phone rig; ``during`` runs concurrently with it, ``after`` once it ended."""
+    mock-phone rig, its compute steps in ``executor()``; ``during`` runs concurrently with it,
+    ``after`` once it ended."""
 
     async def main() -> tuple[Any, RigController, MockWorld]:
         hardware, world = await build_rig(rig, seed)
         if prepare is not None:
             prepare(world)
-        with ThreadPoolExecutor(max_workers=1) as executor:
+        with executor() as compute:
             controller = RigController(rig, hardware, store_factory(store), settings=ScanSettings(
-                executor=executor, seed=seed, plan_points=PLAN_POINTS))
+                executor=compute, seed=seed, plan_points=PLAN_POINTS))
             await controller.start()
             side = asyncio.create_task(during(controller, world)) if during is not None else None
             try:

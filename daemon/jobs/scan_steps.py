@@ -29,7 +29,6 @@ from daemon.jobs.capture import CaptureRecord, CaptureRunner
 from daemon.jobs.depth_sweep import DepthSweeper
 from daemon.jobs.phones import PhonePrep, keep_clocks_synced, prepare_phones
 from daemon.jobs.pulls import PullQueue, ScanImages
-from daemon.offload.compute import timed
 from daemon.offload.fusion import FusionSession
 from daemon.offload.planning import BASELINES, plan_capture
 from daemon.records.atomic import StoreError
@@ -83,6 +82,7 @@ class ScanSteps:
         self._sweep_file: asyncio.Task[Path] | None = None
         self._reposition: asyncio.Task[None] | None = None
         self._planning: asyncio.Future[Any] | None = None
+        self._baselines_job: asyncio.Future[Any] | None = None
         self._writing: asyncio.Task[Path] | None = None
         self._fusion_open = contextlib.AsyncExitStack()
         self.table: dict[ScanState, Callable[[], Awaitable[Next | None]]] = {
@@ -154,6 +154,7 @@ class ScanSteps:
         s = scan.settings
         self.fused, self._planning = await fusion.result_then(plan_capture, rig, s.seed, s.plan_points,
                                                               scan.calibration)
+        self._baselines_job = fusion.on_mesh(plan_capture, rig, s.seed, s.plan_points, scan.calibration, BASELINES)
         scan.report.compute_s["tsdf"] = fusion.seconds - scan.report.compute_s["tsdf_during_sweep"]
         return Next("subject mesh ready", {"vertices": len(self.fused.mesh.vertices)})
 
@@ -174,7 +175,8 @@ class ScanSteps:
             focus = self._reachable(plan.focus_mm)
             angles = plan.angles_deg
             await folder.write_plan(plan_json, plan_summary(plan_json))
-            self.baselines = asyncio.create_task(self._plan_baselines(self.fused.mesh, plan_json),
+            assert self._baselines_job is not None
+            self.baselines = asyncio.create_task(self._plan_baselines(self._baselines_job, plan_json),
                                                  name="plan-baselines")
             folder.plan_images(angles, focus)
             prep = self.prep
@@ -261,14 +263,14 @@ class ScanSteps:
             except Exception as exc:  # the end of the scan writes it again; the scan goes on
                 log.warning("trace_save_failed", error=f"{type(exc).__name__}: {exc}")
 
-    async def _plan_baselines(self, mesh: Any, plan_json: dict[str, Any]) -> None:
-        """The QA report's baselines (:data:`BASELINES`) on the capture plan's samples, planned while
-        the beam turns; plan.json is rewritten with them beside the capture's. A failure is logged:
-        the capture's plan stands on its own."""
-        scan, s = self.scan, self.scan.settings
+    async def _plan_baselines(self, job: asyncio.Future[Any], plan_json: dict[str, Any]) -> None:
+        """The QA report's baselines (:data:`BASELINES`) on the capture plan's samples, planned by
+        ``job`` in the worker on its own mesh (asked for with the plan, done while the beam turns);
+        plan.json is rewritten with them beside the capture's. A failure is logged: the capture's
+        plan stands on its own."""
+        scan = self.scan
         try:
-            baselines, scan.report.compute_s["baselines"] = await asyncio.get_running_loop().run_in_executor(
-                s.executor, timed, plan_capture, mesh, scan.rig, s.seed, s.plan_points, scan.calibration, BASELINES)
+            baselines, scan.report.compute_s["baselines"] = await job
             both = {**plan_json, "methods": {**baselines.json["methods"], **plan_json["methods"]}}
             await scan.folder.write_plan(both, plan_summary(both))
         except Exception as exc:  # the QA report then compares what it has
@@ -278,6 +280,8 @@ class ScanSteps:
         """A completed scan waits for its baselines (done long before the capture ends); a scan that
         stopped early does not."""
         task = self.baselines
+        if task is None and self._baselines_job is not None:
+            self._baselines_job.cancel()  # the scan stopped before its plan: nothing awaits them
         if task is None or task.done():
             return
         if outcome is not ScanOutcome.COMPLETED:

@@ -6,8 +6,11 @@ loop), so when the beam stops only the last frames, the mesh extraction and the 
 left before planning. The fusion lives in the process that fuses: the worker keeps it in
 :data:`_OPEN` under the scan's key between jobs (the pool has one worker; a thread executor keeps
 it in this process). Jobs of one session are awaited one after the other, never concurrently;
-the one exception, :meth:`FusionSession.result_then`, only reads the extracted mesh, which the
-fusion keeps (and extracts once) until the session closes.
+the exceptions, :meth:`FusionSession.result_then` and :meth:`FusionSession.on_mesh`, only read
+the extracted mesh, which the fusion keeps (and extracts once) until the session closes; the
+session closes once they are done. Work on the mesh is asked for this way so the mesh never
+crosses back to the worker: pickling it holds this process's interpreter lock, which the event
+loop needs, for tens of milliseconds.
 """
 
 from __future__ import annotations
@@ -71,13 +74,20 @@ class FusionSession:
         self._lock = asyncio.Lock()
         self.closed: asyncio.Future[Any] | None = None
         """The worker's drop of this fusion, once asked for (awaitable; nothing waits for it)."""
+        self._on_mesh: list[asyncio.Future[Any]] = []
 
     async def __aenter__(self) -> FusionSession:
         await self._run(_open, self.key, self.rig)
         return self
 
     async def __aexit__(self, *_exc: object) -> None:
-        self.closed = asyncio.get_running_loop().run_in_executor(self.executor, _close, self.key)
+        self.closed = asyncio.ensure_future(self._close())
+
+    async def _close(self) -> None:
+        """Drop the fusion in the worker once the jobs on its mesh are done (or cancelled)."""
+        if self._on_mesh:
+            await asyncio.wait(self._on_mesh)
+        await asyncio.get_running_loop().run_in_executor(self.executor, _close, self.key)
 
     async def add(self, frames: Sequence[PosedDepth]) -> None:
         """Fuse ``frames`` (each camera's in time order, after the ones already added)."""
@@ -115,6 +125,15 @@ class FusionSession:
                 raise
             self.seconds += seconds
             return result, then
+
+    def on_mesh(self, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        """``func(mesh, *args)`` on the extracted mesh where it was made, asked for now; the
+        future of (its result, its compute seconds). Closing the session waits for it; cancel the
+        future if nothing will await it."""
+        job = asyncio.get_running_loop().run_in_executor(self.executor, timed, on_fused_mesh, self.key, func, *args)
+        job.add_done_callback(_ignore)  # its awaiter gets the error; a job nobody awaits is not news
+        self._on_mesh.append(job)
+        return job
 
     async def _run(self, func: Any, *args: Any) -> Any:
         async with self._lock:  # one job of this session at a time, in the order asked
