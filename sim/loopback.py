@@ -19,8 +19,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import grp
 import json
+import math
 import os
 import re
 import shlex
@@ -319,11 +321,17 @@ class LoopbackRig:
         self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")
         self.phone_ports[index] = port
 
-    def _renice(self, proc: Proc, niceness: int) -> None:
-        """Give ``proc`` the priority its counterpart has on a rig PC; a user who may not raise a
+    def _renice(self, proc: Proc, niceness: int, *, share: int | None = None) -> None:
+        """Give ``proc`` the priority its counterpart has on a rig PC: ``niceness`` among its own
+        threads and children, and ``share`` (a nice level; default ``niceness``) for its session
+        against the rest of the machine. Every simulator and the daemon start a session of their
+        own, and with the kernel's autogroup scheduling a session competes with the others as one
+        task at its autogroup's nice level, whatever its threads' levels: on a rig PC systemd
+        gives the service its share by the unit's CPUWeight= instead. A user who may not raise a
         priority (not root) runs it at the default, and says so."""
         try:
             os.setpriority(os.PRIO_PROCESS, proc.popen.pid, niceness)
+            set_autogroup_nice(proc.popen.pid, niceness if share is None else share)
         except PermissionError:
             self.say(f"{proc.name}: may not set niceness {niceness}; it runs at the default priority")
 
@@ -424,8 +432,9 @@ class LoopbackRig:
         environ.pop("TBP_CAPTURE_AGENT_JAR", None)
         # systemd-sysusers makes the operators' group on a rig PC; here it is the user's own.
         environ["TBP_CONTROL_GROUP"] = grp.getgrgid(os.getgid()).gr_name
+        environ["TBP_LOOP_STALL_TRACEBACKS"] = str(self.stall_tracebacks)
         daemon = self._spawn("daemon", argv, env=environ, stderr=self.root / "logs" / "daemon.stderr.log")
-        self._renice(daemon, unit_nice(UNIT))
+        self._renice(daemon, unit_nice(UNIT), share=weight_nice(unit_cpu_weight(UNIT)))
         log = self.root / "logs" / "daemon.log"
 
         def pump() -> None:
@@ -458,6 +467,11 @@ class LoopbackRig:
             if line.get("event") == "loop_lag":
                 (starved if machine_caused(line) else own).append(line)
         return own, starved
+
+    @property
+    def stall_tracebacks(self) -> Path:
+        """Every daemon thread's stack during each loop stall past 50 ms (daemon/server/looplag.py)."""
+        return self.root / "logs" / "loop-stalls.txt"
 
     @property
     def socket_path(self) -> Path:
@@ -516,6 +530,33 @@ def unit_nice(unit: Path) -> int:
     """The unit's Nice= (0 when it sets none)."""
     found = re.search(r"^Nice=(-?\d+)$", unit.read_text(), re.MULTILINE)
     return int(found[1]) if found else 0
+
+
+def unit_cpu_weight(unit: Path) -> int:
+    """The unit's CPUWeight= (systemd's default, 100, when it sets none)."""
+    found = re.search(r"^CPUWeight=(\d+)$", unit.read_text(), re.MULTILINE)
+    return int(found[1]) if found else 100
+
+
+def weight_nice(weight: int) -> int:
+    """The nice level (-20..19) whose scheduler weight is ``weight`` / 100 times nice 0's: each
+    level is a factor of about 1.25 (the kernel's weight table)."""
+    return max(-20, min(19, round(-math.log(weight / 100) / math.log(1.25))))
+
+
+def set_autogroup_nice(pid: int, niceness: int) -> bool:
+    """Set the nice level of ``pid``'s session as the scheduler sees it (/proc/PID/autogroup);
+    False where the kernel has no autogroup scheduling (then thread nice levels are global)."""
+    try:
+        with open(f"/proc/{pid}/autogroup", "w") as group:
+            group.write(str(niceness))
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        if exc.errno == errno.EPERM or exc.errno == errno.EACCES:
+            raise PermissionError(exc.errno, f"autogroup nice {niceness} of {pid}") from exc
+        return False
+    return True
 
 
 def free_port() -> int:
