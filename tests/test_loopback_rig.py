@@ -26,12 +26,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 UNIT_STOP_TIMEOUT_S = 30.0  # systemd/tbp-rig.service TimeoutStopSec
 LOOP_LAG_MAX_MS = 50.0  # issue 28's goal: the event loop carries the triggers, the panel and the console
-LOOP_LAG_FAIL_MS = 100.0
-"""Where the test fails. Quiet, the daemon's worst stall is about 30 ms (CAPTURING); while the
-whole suite runs beside the rig's ten processes on two cores, one CAPTURING stall of 50-74 ms
-came in each of three runs, its cause not pinned down (the loop thread mostly blocked, not
-running). The stop paths do not ride on the loop (the drive guard's thread and the drive's own
-heartbeat consumer, tests/test_loopback_safety.py), so those stalls are shown, not failed."""
 
 
 def _describe(stalls: list[dict]) -> list[tuple]:
@@ -40,17 +34,14 @@ def _describe(stalls: list[dict]) -> list[tuple]:
 
 
 def _assert_loop_kept_time(rig: LoopbackRig) -> None:
-    """No stall of the daemon's own past LOOP_LAG_FAIL_MS in any state (every wake later than
-    LOOP_LAG_MAX_MS is a loop_lag line, shown); a stall the machine caused is shown too."""
+    """No stall of the daemon's own past LOOP_LAG_MAX_MS in any state (each is a loop_lag line,
+    with every thread's stack taken during it); a stall the machine caused is shown."""
     assert WARN_S * 1000 == LOOP_LAG_MAX_MS
     own, starved = rig.loop_stalls()
     figures = rig.control("status")["loop_lag"]
-    failing = [x for x in own if x["lag_ms"] > LOOP_LAG_FAIL_MS]
-    assert not failing, (f"the loop stalled past {LOOP_LAG_FAIL_MS:g} ms (state, lag, cpu, runqueue, machine "
-                         f"pressure, steal; ms): {_describe(failing)}; per state {figures}")
-    if own:
-        print(f"loop stalls past the {LOOP_LAG_MAX_MS:g} ms goal (state, lag, cpu, runqueue, pressure, steal; ms): "
-              f"{_describe(own)}")
+    stacks = rig.stall_tracebacks.read_text()[:20000] if rig.stall_tracebacks.exists() else ""
+    assert not own, (f"the loop stalled past {LOOP_LAG_MAX_MS:g} ms (state, lag, cpu, runqueue, machine "
+                     f"pressure, steal; ms): {_describe(own)}; per state {figures}; the threads meanwhile:\n{stacks}")
     if starved:
         print(f"loop stalls the machine caused: {_describe(starved)}")
 

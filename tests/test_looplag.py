@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import math
+import subprocess
 import time
 from pathlib import Path
 
+import pytest
 import structlog
 from hypothesis import given
 from hypothesis import strategies as st
@@ -14,6 +16,7 @@ from hypothesis import strategies as st
 from daemon.jobs.scan import ScanReport
 from daemon.rig.states import ScanOutcome
 from daemon.server.looplag import LoopLagMonitor, MachineTimes
+from sim.loopback import UNIT, set_autogroup_nice, unit_cpu_weight, weight_nice
 
 
 def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -> None:
@@ -40,6 +43,42 @@ def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -
     assert stalls and all(e["lag_state"] == "PLANNING" for e in stalls)
     summaries = [e["lag_state"] for e in logs if e["event"] == "loop_lag_summary"]
     assert summaries == ["IDLE", "PLANNING"]  # each state summarised when the loop leaves it
+
+
+def _hold_the_loop() -> None:
+    time.sleep(0.15)
+
+
+def test_a_stall_leaves_every_threads_stack_taken_while_it_lasted(tmp_path: Path) -> None:
+    stacks = tmp_path / "loop-stalls.txt"
+    monitor = LoopLagMonitor(lambda: "CAPTURING", period_s=0.01, warn_s=0.05, tracebacks=stacks)
+
+    async def scenario() -> None:
+        task = asyncio.create_task(monitor.run())
+        await asyncio.sleep(0.05)
+        _hold_the_loop()
+        await asyncio.sleep(0.05)
+        task.cancel()
+
+    with structlog.testing.capture_logs() as logs:
+        asyncio.run(scenario())
+    text = stacks.read_text()
+    assert "in _hold_the_loop" in text and "in scenario" in text  # taken during the stall, not after
+    stalls = [e for e in logs if e["event"] == "loop_lag"]
+    assert stalls and all(e["tracebacks"] == str(stacks) for e in stalls)
+
+
+def test_no_stack_is_taken_while_the_loop_keeps_time(tmp_path: Path) -> None:
+    stacks = tmp_path / "loop-stalls.txt"
+    monitor = LoopLagMonitor(lambda: "IDLE", period_s=0.01, warn_s=0.5, tracebacks=stacks)
+
+    async def scenario() -> None:
+        task = asyncio.create_task(monitor.run())
+        await asyncio.sleep(0.2)
+        task.cancel()
+
+    asyncio.run(scenario())
+    assert stacks.read_text() == ""
 
 
 def test_a_stall_says_whether_the_loop_ran_code_or_was_blocked() -> None:
@@ -172,3 +211,27 @@ def test_a_long_collection_is_logged_as_a_gc_pause_under_its_state() -> None:
     pauses = [e for e in logs if e["event"] == "gc_pause"]
     assert any(e["generation"] == 2 and e["lag_state"] == "CAPTURING" and e["pause_ms"] >= 0 for e in pauses)
     assert monitor._collection not in gc.callbacks  # gone with the monitor
+
+
+@given(st.integers(1, 10000), st.integers(1, 10000))
+def test_a_larger_cpu_weight_is_a_lower_or_equal_nice_level(a: int, b: int) -> None:
+    low, high = sorted((a, b))
+    assert -20 <= weight_nice(high) <= weight_nice(low) <= 19
+    assert weight_nice(100) == 0 and weight_nice(1000) == -10  # the kernel's table: 1024 -> 9548
+
+
+def test_the_loopback_rig_gives_a_session_its_share_as_the_scheduler_weighs_it() -> None:
+    """Each simulator and the daemon run in a session of their own; with autogroup scheduling the
+    scheduler weighs the session, so that is where the unit's share must be set."""
+    if not Path("/proc/self/autogroup").exists():
+        pytest.skip("this kernel has no autogroup scheduling: nice levels are weighed per thread")
+    child = subprocess.Popen(["sleep", "30"], start_new_session=True)
+    try:
+        assert set_autogroup_nice(child.pid, 7)
+        assert Path(f"/proc/{child.pid}/autogroup").read_text().split()[-1] == "7"
+        own = Path("/proc/self/autogroup").read_text()
+        assert Path(f"/proc/{child.pid}/autogroup").read_text().split()[0] != own.split()[0]
+    finally:
+        child.kill()
+        child.wait()
+    assert weight_nice(unit_cpu_weight(UNIT)) < 0  # the unit asks for more than a default share

@@ -12,17 +12,26 @@ held). For a blocked loop the machine's side is given too: ``pressure_ms``, how 
 the machine waited for a CPU meanwhile (the kernel's CPU pressure; a thread holding the
 interpreter lock may have been one), and ``steal_ms``, CPU time the hypervisor gave elsewhere
 (summed over the CPUs). A garbage collection that long is logged as ``gc_pause``.
+
+Where the time went is only visible during the stall. With ``TBP_LOOP_STALL_TRACEBACKS=FILE`` in
+the daemon's environment (a diagnostic for engineers: it starts a timer thread at every sample),
+a stall past ``warn_s`` appends every thread's stack, taken by the interpreter's fault handler
+while the loop is still held (it needs no interpreter lock), to FILE; the ``loop_lag`` line names
+the file. The thread holding the loop shows there: the loop's own code, or another thread
+holding the interpreter lock, or a system call.
 """
 
 from __future__ import annotations
 
 import asyncio
+import faulthandler
 import gc
 import math
 import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import structlog
 
@@ -154,10 +163,13 @@ class StateLag:
 class LoopLagMonitor:
     """Samples the loop's lateness every ``period_s`` under the state ``state()`` names."""
 
-    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = WARN_S) -> None:
+    def __init__(self, state: Callable[[], str], *, period_s: float = 0.01, warn_s: float = WARN_S,
+                 tracebacks: Path | None = None) -> None:
         self.state = state
         self.period_s = period_s
         self.warn_s = warn_s
+        self.tracebacks = tracebacks
+        """Where every thread's stack is appended during a stall past ``warn_s`` (None: nowhere)."""
         self.last_s = 0.0
         self.worst_since_s = 0.0
         """The worst lag since :meth:`take_worst` last ran (the watchdog's view between two pings)."""
@@ -169,19 +181,31 @@ class LoopLagMonitor:
         loop = asyncio.get_running_loop()
         gc.callbacks.append(self._collection)
         times, machine = ThreadTimes(), MachineTimes()
+        stacks = None
+        if self.tracebacks is not None:
+            try:
+                stacks = self.tracebacks.open("a")
+            except OSError as exc:
+                log.error("loop_stall_tracebacks_unwritable", path=str(self.tracebacks), error=str(exc))
         try:
             while True:
                 before, (cpu0, wait0), (pressure0, steal0) = loop.time(), times.read(), machine.read()
+                if stacks is not None:
+                    faulthandler.dump_traceback_later(self.period_s + self.warn_s, file=stacks)
                 await asyncio.sleep(self.period_s)
                 lag_s = max(loop.time() - before - self.period_s, 0.0)
                 if lag_s > self.warn_s:
                     (cpu1, wait1), (pressure1, steal1) = times.read(), machine.read()
+                    where = {} if stacks is None else {"tracebacks": str(self.tracebacks)}
                     self.record(self.state(), lag_s, cpu_ms=_ms_between(cpu0, cpu1),
                                 runqueue_ms=_ms_between(wait0, wait1), pressure_ms=_ms_between(pressure0, pressure1),
-                                steal_ms=_ms_between(steal0, steal1))
+                                steal_ms=_ms_between(steal0, steal1), **where)
                 else:
                     self.record(self.state(), lag_s)
         finally:
+            if stacks is not None:
+                faulthandler.cancel_dump_traceback_later()
+                stacks.close()
             times.close()
             machine.close()
             gc.callbacks.remove(self._collection)
@@ -198,7 +222,7 @@ class LoopLagMonitor:
             log.warning("gc_pause", lag_state=self.state(), generation=info.get("generation"),
                         collected=info.get("collected"), pause_ms=round(held * 1000, 1))
 
-    def record(self, state: str, lag_s: float, **why: float | None) -> None:
+    def record(self, state: str, lag_s: float, **why: float | str | None) -> None:
         if state != self._current:
             if self._current is not None and self._current in self.by_state:
                 log.info("loop_lag_summary", lag_state=self._current, **self.by_state[self._current].summary())

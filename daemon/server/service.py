@@ -11,6 +11,7 @@ since the last ping; panel buttons and control requests go through the same cont
 from __future__ import annotations
 
 import asyncio
+import os
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -59,7 +60,9 @@ class RigService:
         self.group = group
         self.notifier = notifier or SystemdNotifier()
         self.recovered: list[dict[str, Any]] = []
-        self.lag = LoopLagMonitor(lambda: controller.machine.state.value)
+        stall_tracebacks = os.environ.get("TBP_LOOP_STALL_TRACEBACKS")
+        self.lag = LoopLagMonitor(lambda: controller.machine.state.value,
+                                  tracebacks=Path(stall_tracebacks) if stall_tracebacks else None)
         self._tasks: list[asyncio.Task[Any]] = []
         self._server: Any = None
         self.attached: list[Any] = []
