@@ -314,10 +314,12 @@ class LoopbackRig:
         proc = self._spawn(phone.id, _tbp("sim", "phone", "--port", str(port), "--serial", phone.serial,
                                           "--camera", phone.id, "--seed", str(index), "--rig", str(self.rig_path),
                                           "--body-seed", str(self.body_seed), *follow))
-        # A phone is its own computer; here seven renderers share the rig PC's cores, so they run
-        # at a lower priority, as the daemon's compute worker does, to leave the daemon and the
-        # drive's simulator the real-time share a rig PC gives them.
-        self._renice(proc, PHONE_NICENESS)
+        # A phone is its own computer; here seven renderers share the rig PC's cores. Their
+        # threads run at a lower priority, as the daemon's compute worker does, and their sessions
+        # get an ordinary share of the machine: below the daemon's and the drive's, which the
+        # scheduler serves first, but not starved by other work (a starved phone misses captures
+        # a real one would not).
+        self._renice(proc, PHONE_NICENESS, share=0)
         self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")
         self.phone_ports[index] = port
 
