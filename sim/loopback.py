@@ -123,6 +123,8 @@ class Proc:
     name: str
     popen: subprocess.Popen[bytes]
     log: Path
+    log_start: int = 0
+    """Where this process's output begins in ``log`` (a restarted phone appends to its log)."""
 
     def alive(self) -> bool:
         return self.popen.poll() is None
@@ -243,34 +245,34 @@ class LoopbackRig:
 
     def _spawn(self, name: str, argv: list[str], *, stdin: Any = subprocess.DEVNULL,
                env: dict[str, str] | None = None, stderr: Path | None = None) -> Proc:
+        """Start ``argv`` in a session of its own, its output written straight to logs/NAME.log
+        (stderr to ``stderr`` if given): never through a pipe this process must drain, so a busy
+        test process can never block a simulated device, or the daemon, on a write."""
         log = self.root / "logs" / f"{name}.log"
-        popen = subprocess.Popen(argv, stdin=stdin, stdout=subprocess.PIPE, stderr=open(stderr or log, "ab"),  # noqa: SIM115
-                                 cwd=ROOT, env=env, start_new_session=True)
-        proc = Proc(name, popen, log)
+        with open(log, "ab") as out, open(stderr or log, "ab") as err:
+            start = out.tell()
+            popen = subprocess.Popen(argv, stdin=stdin, stdout=out, stderr=err, cwd=ROOT, env=env,
+                                     start_new_session=True)
+        proc = Proc(name, popen, log, start)
         self.procs[name] = proc
         return proc
 
     def _first_line(self, proc: Proc, pattern: str, timeout_s: float = 120.0) -> re.Match[str]:
-        """Read the process's stdout until a line matches; the rest of its output goes to its log."""
-        found: list[re.Match[str]] = []
-        ready = threading.Event()
-
-        def pump() -> None:
-            assert proc.popen.stdout is not None
-            with open(proc.log, "ab") as log:
-                for raw in proc.popen.stdout:
-                    log.write(raw)
-                    log.flush()
+        """The first line of the process's log matching ``pattern`` (read as it grows)."""
+        deadline = time.monotonic() + timeout_s
+        with open(proc.log, "rb") as log:
+            log.seek(proc.log_start)
+            pending = b""
+            while True:
+                pending += log.read()
+                *lines, pending = pending.split(b"\n")
+                for raw in lines:
                     match = re.search(pattern, raw.decode(errors="replace"))
-                    if match and not found:
-                        found.append(match)
-                        ready.set()
-            ready.set()
-
-        threading.Thread(target=pump, name=f"out-{proc.name}", daemon=True).start()
-        if not ready.wait(timeout_s) or not found:
-            raise LoopbackError(f"{proc.name} did not start ({proc.log}: {self._tail(proc.log)})")
-        return found[0]
+                    if match:
+                        return match
+                if not proc.alive() or time.monotonic() > deadline:
+                    raise LoopbackError(f"{proc.name} did not start ({proc.log}: {self._tail(proc.log)})")
+                time.sleep(0.05)
 
     @staticmethod
     def _tail(path: Path, lines: int = 5) -> str:
@@ -288,9 +290,10 @@ class LoopbackRig:
             # At info level the drive logs its state changes and controlwords, stamped for log_events().
             motor = self._spawn("motor", _tbp("sim", "--log-level", "info", "motor", "--port", "0", "--rig", rig),
                                 stdin=subprocess.PIPE)
-            # The drive is hardware of its own on a rig; here it shares the PC, so it gets the
-            # priority the daemon has rather than wait behind the phones' renderers.
-            self._renice(motor, DRIVE_NICENESS)
+            # The drive is hardware of its own on a rig; here it shares the PC, so its session gets
+            # the share the daemon's has rather than wait behind the daemon's depth playback and
+            # fusion (a drive starved for 400 ms misses the host's heartbeats and faults).
+            self._renice(motor, DRIVE_NICENESS, share=weight_nice(unit_cpu_weight(UNIT)))
             self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
         for index in range(len(self.rig.phones)):
             if index not in self.missing_phones:
@@ -437,16 +440,6 @@ class LoopbackRig:
         environ["TBP_LOOP_STALL_TRACEBACKS"] = str(self.stall_tracebacks)
         daemon = self._spawn("daemon", argv, env=environ, stderr=self.root / "logs" / "daemon.stderr.log")
         self._renice(daemon, unit_nice(UNIT), share=weight_nice(unit_cpu_weight(UNIT)))
-        log = self.root / "logs" / "daemon.log"
-
-        def pump() -> None:
-            assert daemon.popen.stdout is not None
-            with open(log, "ab") as out:
-                for raw in daemon.popen.stdout:
-                    out.write(raw)
-                    out.flush()
-
-        threading.Thread(target=pump, name="out-daemon", daemon=True).start()
         self.say(f"daemon: {shlex.join(argv)}")
         return daemon
 
