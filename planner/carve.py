@@ -1,10 +1,10 @@
 """Space carving of the TSDF surface with the depth frames' free space.
 
 Open3D's VoxelBlockGrid updates only voxels within the truncation band of each measured depth, so
-the space a depth ray crossed far in front of its surface is never marked free; and the TSDF's hole
-filling (``planner.tsdf.close_openings``) spans a narrow gap between body parts it did not see
-closed, such as between an arm and the torso or a hand and the thigh. Both leave "webbing": surface
-bridging the gap, centimetres off the skin. :class:`FreeSpace` keeps each fused frame's depth
+the space a depth ray crossed far in front of its surface is never marked free; and where few frames
+saw into a narrow gap between body parts (an arm and the torso, a hand and the thigh) the extraction
+leaves a hole that the hole filling (``planner.tsdf.close_openings``) spans from one part to the
+other. Both leave "webbing": surface bridging the gap, up to centimetres off the skin. :class:`FreeSpace` keeps each fused frame's depth
 (decimated as fused) and answers whether a point lies where some frame saw through; :func:`carve`
 drops the faces touching such points and the small pieces this cuts off.
 
@@ -42,7 +42,7 @@ MIN_PIECE_SHARE = 0.002
 
 class FreeSpace:
     """The free space seen by a set of depth frames (each decimated as fused): about 150 kB a frame
-    for the default camera and voxel, a tenth of what the frame adds to the voxel grid."""
+    for the default camera and voxel size."""
 
     def __init__(self, model: DepthCameraModel, margin_mm: float) -> None:
         self.model = model
@@ -55,6 +55,10 @@ class FreeSpace:
 
     def add(self, depth_mm: np.ndarray, intrinsics: np.ndarray, camera_to_world: np.ndarray) -> None:
         """One frame: (H, W) depth in mm (0 = no measurement), (3, 3) intrinsics, (4, 4) pose (OpenCV axes)."""
+        shapes = (np.ndim(depth_mm), np.shape(intrinsics), np.shape(camera_to_world))
+        if shapes[0] != 2 or shapes[1:] != ((3, 3), (4, 4)):
+            raise ValueError(f"a frame needs (H, W) depth, (3, 3) intrinsics and a (4, 4) pose; got {np.shape(depth_mm)}, "
+                             f"{shapes[1]}, {shapes[2]}")
         m = self.model
         depth = np.where((depth_mm >= m.min_range_mm) & (depth_mm <= m.max_range_mm), depth_mm, 0).astype(np.float32)
         nearest = ndimage.minimum_filter(depth, size=NEIGHBOURHOOD_PX, mode="constant", cval=0.0)
@@ -95,6 +99,14 @@ def _free_points(points, projections, reach, offsets, sizes, min_z, max_z):  # t
                 result[i] = True
                 break
     return result
+
+
+def warm_up(model: DepthCameraModel) -> None:
+    """Compile the free-space test (or load it from numba's cache) now rather than in the first
+    scan's carving, where compiling takes about a second."""
+    space = FreeSpace(model, margin_mm=1.0)
+    space.add(np.zeros((NEIGHBOURHOOD_PX, NEIGHBOURHOOD_PX), dtype=np.float32), np.eye(3), np.eye(4))
+    space.free(np.zeros((1, 3)))
 
 
 @functools.cache

@@ -159,7 +159,8 @@ class TsdfFusion:
 
     Frames are chosen as :func:`fuse` chooses them (per camera, :data:`FRAME_SPACING_DEG` of beam
     rotation apart, empty frames skipped), so each camera's frames must come in time order; the
-    cameras may interleave. One fusion is used from one thread at a time (a lock makes sure).
+    cameras may interleave. Each fused frame's decimated depth is kept (:class:`FreeSpace`) to carve
+    the extracted surface. One fusion is used from one thread at a time (a lock makes sure).
     """
 
     def __init__(self, rig: Rig) -> None:

@@ -146,3 +146,8 @@ def test_the_webbing_of_a_simulated_body_is_carved_and_its_skin_kept(monkeypatch
     skin = uncarved.vertices[surface_distance(uncarved.vertices, body) < 1.0]
     kept = {tuple(v) for v in carved.vertices}
     assert all(tuple(v) in kept for v in skin)
+
+
+def test_a_frame_of_the_wrong_shape_is_refused_naming_the_shapes() -> None:
+    with pytest.raises(ValueError, match=r"\(3, 3\) intrinsics.*got \(4, 5\), \(3, 4\)"):
+        FreeSpace(MODEL, MARGIN_MM).add(np.zeros((4, 5)), np.zeros((3, 4)), np.eye(4))
