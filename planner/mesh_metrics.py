@@ -19,7 +19,10 @@ COVERAGE_MM = (5.0, 10.0)
 
 @dataclass(frozen=True)
 class ShapeMetrics:
-    """Chamfer true->estimate (how much of the body the estimate misses or misplaces) and back, mm."""
+    """Chamfer true->estimate (how much of the body the estimate misses or misplaces) and back, mm;
+    the share of the true surface within 5 / 10 mm of the estimate (coverage); the share of the
+    estimate within 5 mm of the true surface and its area more than 10 mm off it (cm^2: surface
+    that is not skin, such as webbing bridging two body parts)."""
 
     true_to_estimate_mean_mm: float
     true_to_estimate_p95_mm: float
@@ -27,6 +30,8 @@ class ShapeMetrics:
     estimate_to_true_p95_mm: float
     coverage_5mm: float
     coverage_10mm: float
+    estimate_within_5mm: float
+    estimate_off_10mm_cm2: float
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -53,7 +58,8 @@ def sample_surface(mesh: trimesh.Trimesh, count: int, seed: int) -> np.ndarray:
 def shape_metrics(
     true_mesh: trimesh.Trimesh, estimate: trimesh.Trimesh, *, samples: int = DEFAULT_SAMPLES, seed: int = 0
 ) -> ShapeMetrics:
-    """Chamfer (mean, 95th percentile) both ways and the share of the true surface within 5 / 10 mm."""
+    """Chamfer (mean, 95th percentile) both ways, the share of the true surface within 5 / 10 mm of
+    the estimate and of the estimate within 5 / beyond 10 mm of the true surface."""
     to_estimate = surface_distance(sample_surface(true_mesh, samples, seed), estimate)
     to_true = surface_distance(sample_surface(estimate, samples, seed + 1), true_mesh)
     return ShapeMetrics(
@@ -63,4 +69,6 @@ def shape_metrics(
         estimate_to_true_p95_mm=float(np.percentile(to_true, 95)),
         coverage_5mm=float(np.mean(to_estimate <= COVERAGE_MM[0])),
         coverage_10mm=float(np.mean(to_estimate <= COVERAGE_MM[1])),
+        estimate_within_5mm=float(np.mean(to_true <= COVERAGE_MM[0])),
+        estimate_off_10mm_cm2=float(np.mean(to_true > COVERAGE_MM[1]) * estimate.area / 100.0),
     )

@@ -4,7 +4,7 @@ Steps: pick frames a fixed beam-angle step apart per camera; integrate them on t
 voxel size, truncation and weight threshold from ``rig.tsdf``) as they arrive (:class:`TsdfFusion`;
 the daemon fuses during the sweep); extract the zero-level triangle mesh;
 keep the subject only (inside the scan-volume cylinder, above the floor, largest connected
-component); validate that it is a plausible, fully contained person. The result is a trimesh in mm.
+component); close its openings; carve away the surface the frames saw through (planner/carve.py); validate that it is a plausible, fully contained person. The result is a trimesh in mm.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from planner.carve import FreeSpace, carve
 from planner.order import stable_argsort
 from planner.rig import Rig
 from planner.shape_errors import (
@@ -143,17 +144,20 @@ def _new_grid(rig: Rig) -> object:
     )
 
 
-def _integrate_frame(vbg: object, f: PosedDepth, rig: Rig) -> bool:
-    """Fuse one posed frame (only depth inside the scan volume); False when nothing of it was inside."""
+def _integrate_frame(vbg: object, f: PosedDepth, rig: Rig, space: FreeSpace) -> bool:
+    """Fuse one posed frame (only depth inside the scan volume) and add all its depth to ``space``;
+    False (and nothing added) when nothing of it was inside."""
     import open3d as o3d
     import open3d.core as o3c
 
     cfg = rig.tsdf
     factor = max(1, int(cfg.voxel_mm * min(f.intrinsics[0, 0], f.intrinsics[1, 1]) / DECIMATION_DEPTH_MM))
-    depth, k = _decimate(f.depth, f.intrinsics, factor)
-    depth = _mask_outside_volume(depth * np.float32(f.depth_unit_mm), k, f.camera_to_world, rig)
+    measured, k = _decimate(f.depth, f.intrinsics, factor)
+    measured = measured * np.float32(f.depth_unit_mm)
+    depth = _mask_outside_volume(measured, k, f.camera_to_world, rig)
     if np.count_nonzero(depth) < MIN_FRAME_PIXELS:
         return False
+    space.add(measured, k, f.camera_to_world)
     image = o3d.t.geometry.Image(o3c.Tensor(depth))
     intrinsic = o3c.Tensor(k, dtype=o3c.float64)
     extrinsic = o3c.Tensor(np.linalg.inv(f.camera_to_world), dtype=o3c.float64)
@@ -170,7 +174,8 @@ class TsdfFusion:
 
     Frames are chosen as :func:`fuse` chooses them (per camera, :data:`FRAME_SPACING_DEG` of beam
     rotation apart, empty frames skipped), so each camera's frames must come in time order; the
-    cameras may interleave. One fusion is used from one thread at a time (a lock makes sure).
+    cameras may interleave. Each fused frame's decimated depth is kept (:class:`FreeSpace`) to carve
+    the extracted surface. One fusion is used from one thread at a time (a lock makes sure).
     """
 
     def __init__(self, rig: Rig) -> None:
@@ -181,6 +186,7 @@ class TsdfFusion:
         self.integrate_s = 0.0
         self._spacing = AngleSpacing(FRAME_SPACING_DEG)
         self._vbg: object | None = None
+        self._space = FreeSpace(rig.depth_camera_model, margin_mm=rig.tsdf.voxel_mm)
         self._lock = threading.Lock()
         self._result: tuple[bool, TsdfResult] | None = None  # (validated, result) until the next add
 
@@ -197,7 +203,7 @@ class TsdfFusion:
                 self.per_camera[f.camera_id] = self.per_camera.get(f.camera_id, 0) + 1
                 if self._vbg is None:
                     self._vbg = _new_grid(self.rig)
-                self.integrated += _integrate_frame(self._vbg, f, self.rig)
+                self.integrated += _integrate_frame(self._vbg, f, self.rig, self._space)
             self.integrate_s += time.perf_counter() - started
             if chosen:
                 self._result = None
@@ -232,12 +238,14 @@ class TsdfFusion:
         t2 = time.perf_counter()
         if len(triangles) == 0:
             raise NoSubject(f"the fused volume holds no surface ({chosen} frames)")
-        subject = _subject(vertices, triangles, self.rig)
+        vertices, faces = _subject(vertices, triangles, self.rig)
+        t3 = time.perf_counter()
+        subject = trimesh.Trimesh(*carve(vertices, faces, self._space), process=False)
         if validate:
             _validate(subject, self.rig)
-        t3 = time.perf_counter()
-        timings = {"integrate": self.integrate_s, "extract": t2 - t1, "clean": t3 - t2,
-                   "total": self.integrate_s + t3 - t1}
+        t4 = time.perf_counter()
+        timings = {"integrate": self.integrate_s, "extract": t2 - t1, "clean": t3 - t2, "carve": t4 - t3,
+                   "total": self.integrate_s + t4 - t1}
         log.info("tsdf.fused", frames=chosen, vertices=len(subject.vertices),
                  **{f"{k}_s": round(v, 3) for k, v in timings.items()})
         return TsdfResult(subject, chosen, dict(self.per_camera), timings)
@@ -269,8 +277,9 @@ def _face_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return result
 
 
-def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
-    """Crop (V, 3) vertices / (T, 3) triangles to the scan cylinder above the floor; keep the largest component."""
+def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    """Crop (V, 3) vertices / (T, 3) triangles to the scan cylinder above the floor; keep the largest
+    component; close its openings. Returns the canonical (V', 3) vertices and (F', 3) faces."""
     cfg = rig.tsdf
     r = np.hypot(v[:, 0], v[:, 1])
     inside = (r <= cfg.volume_radius_mm) & (v[:, 2] >= cfg.floor_clearance_mm) & (v[:, 2] <= cfg.volume_height_mm)
@@ -299,8 +308,7 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> trimesh.Trimesh:
     keep = remap[keep]
     keep = _lowest_first(keep)
     keep = keep[stable_argsort(_face_keys(keep, len(used)))]
-    vertices, faces = close_openings(v[used], keep, FLOOR_BAND_MM + cfg.floor_clearance_mm)
-    return trimesh.Trimesh(vertices, faces, process=False)
+    return close_openings(v[used], keep, FLOOR_BAND_MM + cfg.floor_clearance_mm)
 
 
 def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float) -> tuple[np.ndarray, np.ndarray]:

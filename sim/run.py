@@ -17,6 +17,7 @@ from daemon.jobs.controller import RigController
 from daemon.jobs.scan import ScanReport, ScanSettings
 from daemon.records.store import ScanStore
 from daemon.rig.states import StatusEvent
+from planner import carve
 from planner.refine import warm_up
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 from sim.rig import SimOptions, build_sim_rig
@@ -67,10 +68,11 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
         subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:
-        # As the daemon's worker does (daemon/offload/worker.py): compile the planner's loops, or load
-        # them from numba's cache, while the rig starts, not in the first plan between the sweep
+        # As the daemon's worker does (daemon/offload/worker.py): compile the planner's loops and the
+        # TSDF's carving, or load them from numba's cache, while the rig starts, not between the sweep
         # and the capture (0.4-0.6 s of the 2 s there).
         executor.submit(warm_up, rig)
+        executor.submit(carve.warm_up, rig.depth_camera_model)
         controller = RigController(rig, hardware, scans,
                                    settings=ScanSettings(seed=seed, plan_points=plan_points,
                                                          executor=executor, qa_report=qa_report))

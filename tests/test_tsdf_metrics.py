@@ -44,6 +44,7 @@ def test_identical_meshes_have_zero_chamfer_and_full_coverage():
     m = shape_metrics(ball, ball, samples=5000)
     assert m.true_to_estimate_mean_mm < 1e-3 and m.estimate_to_true_mean_mm < 1e-3
     assert m.coverage_5mm == 1.0 and m.coverage_10mm == 1.0
+    assert m.estimate_within_5mm == 1.0 and m.estimate_off_10mm_cm2 == 0.0
 
 
 @settings(max_examples=10, deadline=None)
@@ -56,15 +57,28 @@ def test_concentric_spheres_are_their_radius_difference_apart(grow):
     assert m.estimate_to_true_mean_mm == pytest.approx(grow, abs=0.3)
     assert m.coverage_10mm == (1.0 if grow < 9.7 else 0.0) or 9.7 <= grow <= 10.3
     assert m.coverage_5mm == (1.0 if grow < 4.7 else 0.0) or 4.7 <= grow <= 5.3
+    assert m.estimate_within_5mm == (1.0 if grow < 4.7 else 0.0) or 4.7 <= grow <= 5.3
+    off = outer.area / 100 if grow > 10.3 else 0.0
+    assert m.estimate_off_10mm_cm2 == pytest.approx(off) or 9.7 <= grow <= 10.3
 
 
 def test_missing_half_counts_against_true_to_estimate_only():
     ball = sphere(300.0)
     upper = ball.submesh([np.flatnonzero(ball.triangles_center[:, 2] > 1000.0)], append=True)
     m = shape_metrics(ball, upper, samples=20_000)
-    assert m.estimate_to_true_mean_mm < 0.2
+    assert m.estimate_to_true_mean_mm < 0.2 and m.estimate_within_5mm == 1.0
     assert m.coverage_10mm == pytest.approx(0.5, abs=0.03)
     assert m.true_to_estimate_p95_mm > 200.0
+
+
+def test_a_bridge_off_the_body_counts_against_the_estimate_only():
+    """Webbing: surface spanning between two body parts, off both, is area more than 10 mm off."""
+    ball = sphere(300.0)
+    bridge = trimesh.creation.box(extents=[100.0, 100.0, 2.0]).apply_translation([0.0, 0.0, 1400.0])
+    m = shape_metrics(ball, trimesh.util.concatenate([ball, bridge]), samples=50_000)
+    assert m.coverage_5mm == 1.0
+    assert m.estimate_off_10mm_cm2 == pytest.approx(bridge.area / 100, rel=0.1)
+    assert m.estimate_within_5mm == pytest.approx(ball.area / (ball.area + bridge.area), abs=0.003)
 
 
 def test_surface_distance_is_exact_for_a_box():

@@ -65,8 +65,8 @@ def _started() -> None:
 def _warm_up(log_setup: dict[str, Any]) -> None:
     """In the worker: log as the daemon does (``log_setup``: :func:`daemon.logs.log_settings`), run
     as a batch job and import what every scan's jobs need, so the first scan's do not (their
-    modules, not the daemon's), and compile the planner's descent loop (seconds the first time,
-    from numba's cache after)."""
+    modules, not the daemon's), and compile the planner's descent loop and the TSDF's carving
+    (seconds the first time, from numba's cache after)."""
     configure_logging(json=log_setup["json"], level=log_setup["level"])
     structlog.contextvars.bind_contextvars(process="compute")
     os.sched_setscheduler(0, WORKER_POLICY, os.sched_param(0))
@@ -76,7 +76,9 @@ def _warm_up(log_setup: dict[str, Any]) -> None:
 
     import daemon.offload.fusion
     import daemon.offload.planning  # noqa: F401
-    from planner.refine import warm_up
+    from planner import carve, refine
     from planner.rig import load_rig
 
-    warm_up(load_rig())
+    rig = load_rig()
+    refine.warm_up(rig)
+    carve.warm_up(rig.depth_camera_model)
