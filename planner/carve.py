@@ -114,7 +114,7 @@ def _kernel():  # type: ignore[no-untyped-def]
     """:func:`_free_points` compiled (numba's import takes most of a second: only where meshes are carved)."""
     from planner.jit import jit
 
-    return jit(_free_points)
+    return jit(_free_points)  # type: ignore[no-untyped-call]
 
 
 def carve(vertices: np.ndarray, faces: np.ndarray, space: FreeSpace) -> tuple[np.ndarray, np.ndarray]:
@@ -147,5 +147,6 @@ def _without_small_pieces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     _, labels = connected_components(graph, directed=False)
     face_labels = labels[faces[:, 0]]
     sizes = np.bincount(face_labels)
-    return faces[sizes[face_labels] >= MIN_PIECE_SHARE * sizes.max()]
+    kept: np.ndarray = faces[sizes[face_labels] >= MIN_PIECE_SHARE * sizes.max()]
+    return kept
 

@@ -32,6 +32,24 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.xdist_group("web_store"))
 
 
+BACKGROUND_NICENESS = 10
+"""Under pytest-xdist, a worker runs its tests other than the realtime ones at this nice level."""
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Under pytest-xdist the workers share the cores (and one scheduler group: one session), so a
+    worker running a realtime test keeps the default priority and one running any other test
+    yields to it: a realtime test measures the code it tests, not the worker beside it. Processes a
+    test starts inherit its level (the loopback rig sets its own: sim/loopback.py)."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        return
+    niceness = 0 if item.get_closest_marker("realtime") else BACKGROUND_NICENESS
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, niceness)
+    except PermissionError:  # not root: the worker may lower its priority but not raise it again
+        pass
+
+
 @pytest.fixture(autouse=True)
 def _structlog_defaults() -> Iterator[None]:
     """A CLI run in-process binds structlog to pytest's captured stdout, which closes after the
