@@ -13,9 +13,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cli import options
+
+if TYPE_CHECKING:
+    from planner.rig import Rig
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -88,6 +91,14 @@ async def _list(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cameras_known(args: argparse.Namespace, rig: Rig) -> bool:
+    """Whether every --camera names a depth camera of the rig file; says which one does not."""
+    unknown = sorted(set(args.camera or ()) - {c.id for c in rig.depth_cameras})
+    if unknown:
+        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+    return not unknown
+
+
 async def _check(args: argparse.Namespace) -> int:
     from drivers.depth.errors import DepthCameraError
     from drivers.depth.realsense import RealSenseCamera
@@ -95,9 +106,7 @@ async def _check(args: argparse.Namespace) -> int:
 
     rig = load_rig(args.rig or DEFAULT_RIG_PATH)
     cameras = [c for c in rig.depth_cameras if args.camera is None or c.id in args.camera]
-    unknown = sorted(set(args.camera or ()) - {c.id for c in rig.depth_cameras})
-    if unknown:
-        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+    if not _cameras_known(args, rig):
         return 2
     failures = 0
     for config in cameras:
@@ -121,9 +130,7 @@ def _record(args: argparse.Namespace) -> int:
     from sim.rig import sim_depth_model
 
     rig = load_rig(args.rig or DEFAULT_RIG_PATH)
-    unknown = sorted(set(args.camera or ()) - {c.id for c in rig.depth_cameras})
-    if unknown:
-        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+    if not _cameras_known(args, rig):
         return 2
     if args.decimation < 1 or (args.fps is not None and not 0 < args.fps <= 90):
         print(f"tbp depth: --decimation {args.decimation} must be >= 1 and --fps {args.fps} in (0, 90]",
