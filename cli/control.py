@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from cli.status_table import event_line, status_table
-    from daemon.server.control import CommandFailed, ControlClient, ControlError, DaemonUnavailable
+    from daemon.server.control import CommandFailed, ControlClient, ControlError
 
     client = ControlClient(args.socket)
 
@@ -55,10 +55,7 @@ def run(args: argparse.Namespace) -> int:
     except CommandFailed as exc:
         print(f"tbp {args.control_cmd}: refused: {exc}", file=sys.stderr)
         return 1
-    except DaemonUnavailable as exc:
-        print(f"tbp {args.control_cmd}: {exc}", file=sys.stderr)
-        return 2
-    except ControlError as exc:
+    except ControlError as exc:  # DaemonUnavailable among them
         print(f"tbp {args.control_cmd}: {exc}", file=sys.stderr)
         return 2
     return 0

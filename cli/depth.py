@@ -88,6 +88,14 @@ async def _list(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cameras_known(wanted: list[str] | None, rig_cameras: list[str]) -> bool:
+    """Whether every --camera names a depth camera of the rig file; says which one does not."""
+    unknown = sorted(set(wanted or ()) - set(rig_cameras))
+    if unknown:
+        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+    return not unknown
+
+
 async def _check(args: argparse.Namespace) -> int:
     from drivers.depth.errors import DepthCameraError
     from drivers.depth.realsense import RealSenseCamera
@@ -95,9 +103,7 @@ async def _check(args: argparse.Namespace) -> int:
 
     rig = load_rig(args.rig or DEFAULT_RIG_PATH)
     cameras = [c for c in rig.depth_cameras if args.camera is None or c.id in args.camera]
-    unknown = sorted(set(args.camera or ()) - {c.id for c in rig.depth_cameras})
-    if unknown:
-        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+    if not _cameras_known(args.camera, [c.id for c in rig.depth_cameras]):
         return 2
     failures = 0
     for config in cameras:
@@ -121,9 +127,7 @@ def _record(args: argparse.Namespace) -> int:
     from sim.rig import sim_depth_model
 
     rig = load_rig(args.rig or DEFAULT_RIG_PATH)
-    unknown = sorted(set(args.camera or ()) - {c.id for c in rig.depth_cameras})
-    if unknown:
-        print(f"tbp depth: no depth camera {unknown[0]!r} in the rig file", file=sys.stderr)
+    if not _cameras_known(args.camera, [c.id for c in rig.depth_cameras]):
         return 2
     if args.decimation < 1 or (args.fps is not None and not 0 < args.fps <= 90):
         print(f"tbp depth: --decimation {args.decimation} must be >= 1 and --fps {args.fps} in (0, 90]",

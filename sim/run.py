@@ -7,7 +7,8 @@ load and the time scale: compute steps stop the clock, every simulator link deli
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+import contextlib
+from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -76,18 +77,26 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
         controller = RigController(rig, hardware, scans,
                                    settings=ScanSettings(seed=seed, plan_points=plan_points,
                                                          executor=executor, qa_report=qa_report))
-        printer = asyncio.create_task(_print_events(controller, out)) if out is not None else None
-        try:
-            await controller.start()
+        async with _started(controller, _print_events(controller, out) if out is not None else None):
             if on_ready is not None:
                 on_ready(controller, world)
             report = await controller.scan(sim_scan_id(seed), patient)
-        finally:
-            if printer is not None:
-                printer.cancel()
-                await asyncio.gather(printer, return_exceptions=True)
-            await controller.close()
     return report
+
+
+@contextlib.asynccontextmanager
+async def _started(controller: RigController, printer: Coroutine[Any, Any, None] | None) -> AsyncIterator[None]:
+    """The controller started for the block, ``printer`` following its events; the printer is
+    cancelled and the controller closed when the block ends."""
+    task = asyncio.create_task(printer) if printer is not None else None
+    try:
+        await controller.start()
+        yield
+    finally:
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        await controller.close()
 
 
 async def _print_events(controller: RigController, out: TextIO) -> None:
@@ -134,15 +143,8 @@ async def sim_calibration_rotation(rig: Rig, stage: CuboidStage, *, store: Path,
     hardware, _world = await build_sim_rig(
         rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=False), stage=stage)
     controller = RigController(rig, hardware, ScanStore(store), settings=ScanSettings(calibration_target=target))
-    printer = asyncio.create_task(_print_stops(controller, out)) if out is not None else None
-    try:
-        await controller.start()
+    async with _started(controller, _print_stops(controller, out) if out is not None else None):
         return await (await controller.start_calibration(f"sim-seed{seed}"))
-    finally:
-        if printer is not None:
-            printer.cancel()
-            await asyncio.gather(printer, return_exceptions=True)
-        await controller.close()
 
 
 async def _print_stops(controller: RigController, out: TextIO) -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -226,13 +227,19 @@ async def scan_detail(request: web.Request) -> web.Response:
     })
 
 
-async def scan_mesh(request: web.Request) -> web.Response:
-    scan = await _library(request).opened(request.match_info["folder"])
+async def _from_mesh(scan: OpenScan, make: Callable[[], Any]) -> Any:
+    """What ``make`` builds from the scan's mesh, off the loop under the scan's lock; 409 when the
+    scan has no mesh (it ended before the depth sweep)."""
     async with scan.lock:
         try:
-            payload = await _off_loop(scan.mesh_payload)
-        except StoreError as exc:  # the scan ended before the depth sweep: no mesh
+            return await _off_loop(make)
+        except StoreError as exc:
             raise json_error(web.HTTPConflict, exc) from exc
+
+
+async def scan_mesh(request: web.Request) -> web.Response:
+    scan = await _library(request).opened(request.match_info["folder"])
+    payload = await _from_mesh(scan, scan.mesh_payload)
     if scan.warming is None:  # the first click comes soon: build the navigator meanwhile
         scan.warming = asyncio.create_task(scan.navigator_ready(), name=f"navigator-{scan.record.path.name}")
         scan.warming.add_done_callback(lambda task: task.cancelled() or task.exception())  # a click reports it
@@ -256,12 +263,7 @@ async def scan_skin(request: web.Request) -> web.Response:
     """The sharp skin of the coloured mesh the viewer shows: {"sharp", "blurred", "unseen"}
     shares of its area."""
     scan = await _library(request).opened(request.match_info["folder"])
-    async with scan.lock:
-        try:
-            shares = await _off_loop(scan.skin_shares)
-        except StoreError as exc:  # the scan ended before the depth sweep: no mesh
-            raise json_error(web.HTTPConflict, exc) from exc
-    return web.json_response(shares)
+    return web.json_response(await _from_mesh(scan, scan.skin_shares))
 
 
 def _value(reason: Any) -> str | None:

@@ -25,6 +25,7 @@ the store's group (the operators) and nobody else (:attr:`ScanStore.FOLDER_MODE`
 from __future__ import annotations
 
 import asyncio
+import functools
 import hashlib
 import io
 import json
@@ -60,6 +61,7 @@ from daemon.records.manifest import (
     json_safe,
 )
 from daemon.utc import utc_now, utc_stamp
+from planner.files import read_at_most
 from planner.rig import Rig
 
 RESERVE = ".reserve"
@@ -108,15 +110,10 @@ def trace_bytes(time_s: np.ndarray, angle_deg: np.ndarray, speed_deg_s: np.ndarr
     return buffer.getvalue()
 
 
-_WRITER: ThreadPoolExecutor | None = None
-
-
+@functools.cache
 def _writer_thread() -> ThreadPoolExecutor:
     """The store's one writer thread: large files are written in the order they are asked for."""
-    global _WRITER
-    if _WRITER is None:
-        _WRITER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="store-writer")
-    return _WRITER
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="store-writer")
 
 
 class ScanFolder:
@@ -659,10 +656,7 @@ def read_folder(path: Path | str, *, writer: AtomicWriter | None = None) -> Scan
     if not manifest.is_file():
         raise ManifestError(manifest, "missing: not a scan folder")
     try:
-        with open(manifest, "rb") as f:
-            raw = f.read(MAX_MANIFEST_BYTES + 1)
-        if len(raw) > MAX_MANIFEST_BYTES:
-            raise ManifestError(manifest, f"larger than {MAX_MANIFEST_BYTES} bytes: not a manifest")
+        raw = read_at_most(manifest, MAX_MANIFEST_BYTES, "manifest", lambda problem: ManifestError(manifest, problem))
         data = json.loads(raw)
     except (OSError, ValueError, RecursionError) as exc:
         raise ManifestError(manifest, f"unreadable: {str(exc)[:200]}") from exc

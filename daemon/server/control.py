@@ -400,6 +400,17 @@ class ControlClient:
         except TimeoutError:
             raise DaemonUnavailable(self.path, f"no connection within {self.TIMEOUT_S:g} s") from None
 
+    @contextlib.asynccontextmanager
+    async def _connection(self) -> AsyncIterator[tuple[asyncio.StreamReader, asyncio.StreamWriter]]:
+        """A connection to the daemon for the block, closed when the block ends."""
+        reader, writer = await self._open()
+        try:
+            yield reader, writer
+        finally:
+            writer.close()
+            with contextlib.suppress(OSError):  # ENOTCONN after a hang-up is no news
+                await writer.wait_closed()
+
     async def _exchange(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
                         cmd: str, args: dict[str, Any]) -> Any:
         self._next_id += 1
@@ -416,19 +427,13 @@ class ControlClient:
             raise DaemonUnavailable(self.path, f"the daemon hung up during {cmd!r}")
         reply = _parse_reply(raw)
         if not reply.get("ok"):
-            err = reply.get("error") or {}
-            raise CommandFailed(cmd, str(err.get("type", "Error")), str(err.get("message", "")))
+            raise _refusal(cmd, reply)
         return reply.get("result")
 
     async def request(self, cmd: str, **args: Any) -> Any:
         """Send one command and return its result; CommandFailed if the daemon refuses it."""
-        reader, writer = await self._open()
-        try:
+        async with self._connection() as (reader, writer):
             return await self._exchange(reader, writer, cmd, args)
-        finally:
-            writer.close()
-            with contextlib.suppress(OSError):  # ENOTCONN after a hang-up is no news
-                await writer.wait_closed()
 
     async def status(self) -> dict[str, Any]:
         reply: dict[str, Any] = await self.request("status")
@@ -469,8 +474,7 @@ class ControlClient:
 
         CommandFailed when the daemon refuses the subscription (TooManySubscribers) or ends it
         (SubscriberTooSlow: the client fell MAX_PENDING_EVENTS behind)."""
-        reader, writer = await self._open()
-        try:
+        async with self._connection() as (reader, writer):
             yield await self._exchange(reader, writer, "subscribe", {})
             while True:
                 try:
@@ -481,15 +485,16 @@ class ControlClient:
                     raise DaemonUnavailable(self.path, "the daemon closed the subscription")
                 message = _parse_reply(raw)
                 if message.get("ok") is False:  # the daemon ends the subscription and says why
-                    err = message.get("error") or {}
-                    raise CommandFailed("subscribe", str(err.get("type", "Error")), str(err.get("message", "")))
+                    raise _refusal("subscribe", message)
                 if "event" not in message:
                     raise ProtocolError(f"expected an event line, got {raw[:200]!r}")
                 yield message["event"]
-        finally:
-            writer.close()
-            with contextlib.suppress(OSError):  # ENOTCONN after a hang-up is no news
-                await writer.wait_closed()
+
+
+def _refusal(cmd: str, reply: dict[str, Any]) -> CommandFailed:
+    """The daemon's refusal of ``cmd`` (a reply with ok false), typed."""
+    err = reply.get("error") or {}
+    return CommandFailed(cmd, str(err.get("type", "Error")), str(err.get("message", "")))
 
 
 def _parse_reply(raw: bytes) -> dict[str, Any]:

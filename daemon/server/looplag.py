@@ -58,15 +58,20 @@ def freeze_startup_heap() -> int:
     return frozen
 
 
+def _open_kernel_file(path: str) -> int | None:
+    """A descriptor on a /proc file, re-read with pread at each sample; None where the kernel has none."""
+    try:
+        return os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+
+
 class ThreadTimes:
     """The calling thread's CPU time and time spent waiting for a CPU (s), from the kernel's
     /proc/thread-self/schedstat; the wait is None where the kernel does not report it."""
 
     def __init__(self) -> None:
-        try:
-            self._fd: int | None = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
-        except OSError:
-            self._fd = None
+        self._fd = _open_kernel_file("/proc/thread-self/schedstat")
 
     def read(self) -> tuple[float, float | None]:
         if self._fd is not None:
@@ -90,15 +95,8 @@ class MachineTimes:
 
     def __init__(self) -> None:
         self._tick_s = 1.0 / os.sysconf("SC_CLK_TCK")
-        self._pressure = self._open("/proc/pressure/cpu")
-        self._stat = self._open("/proc/stat")
-
-    @staticmethod
-    def _open(path: str) -> int | None:
-        try:
-            return os.open(path, os.O_RDONLY)
-        except OSError:
-            return None
+        self._pressure = _open_kernel_file("/proc/pressure/cpu")
+        self._stat = _open_kernel_file("/proc/stat")
 
     def read(self) -> tuple[float | None, float | None]:
         pressure = steal = None

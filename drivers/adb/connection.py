@@ -20,15 +20,14 @@ from drivers.adb.errors import AdbError, AdbProtocolError, AdbTimeout, AuthRefus
 from drivers.adb.message import (
     A_AUTH,
     A_CNXN,
-    A_VERSION,
     A_VERSION_MIN,
-    A_VERSION_SKIP_CHECKSUM,
     AUTH_RSAPUBLICKEY,
     AUTH_SIGNATURE,
     AUTH_TOKEN,
     MAX_PAYLOAD,
-    MAX_PAYLOAD_LEGACY,
     AdbMessage,
+    agreed,
+    checksummed,
     connect_message,
     parse_banner,
 )
@@ -86,7 +85,7 @@ class AdbConnection:
             raise
         self.device = banner
         self.mux.max_payload = banner.max_payload
-        self.mux.with_checksum = banner.version < A_VERSION_SKIP_CHECKSUM
+        self.mux.with_checksum = checksummed(banner.version)
         self.state = "online"
         self._reader = asyncio.create_task(self._run(), name=f"adb-{self.name}")
         log.info("adb_online", device=self.name, model=banner.properties.get("ro.product.model"),
@@ -134,8 +133,8 @@ class AdbConnection:
             raise AdbProtocolError(self.name, self.state, f"device protocol version 0x{version:08X} too old")
         kind, props = parse_banner(bytes(msg.payload))
         features = frozenset(f for f in props.pop("features", "").split(",") if f)
-        size = max(min(max_payload, self.MAX_PAYLOAD), MAX_PAYLOAD_LEGACY)  # both directions use the smaller
-        return DeviceBanner(kind, props, features, min(version, A_VERSION), size, bytes(msg.payload))
+        version, size = agreed(version, max_payload, self.MAX_PAYLOAD)  # both directions use these
+        return DeviceBanner(kind, props, features, version, size, bytes(msg.payload))
 
     async def _run(self) -> None:
         await self.mux.run()

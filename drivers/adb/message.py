@@ -118,6 +118,17 @@ def decode(data: bytes, *, device: str = "adb") -> AdbMessage:
     return finish_message(header, data[HEADER_SIZE:], device=device)
 
 
+def agreed(peer_version: int, peer_max_payload: int, own_max_payload: int) -> tuple[int, int]:
+    """(version, max payload in bytes) both ends use once they have exchanged CNXN: the older
+    version, and the smaller maximum, never below the 4096 bytes every end accepts."""
+    return min(peer_version, A_VERSION), max(min(peer_max_payload, own_max_payload), MAX_PAYLOAD_LEGACY)
+
+
+def checksummed(version: int) -> bool:
+    """Whether messages of this (agreed) version carry a payload checksum."""
+    return version < A_VERSION_SKIP_CHECKSUM
+
+
 def connect_message(banner: bytes, *, version: int = A_VERSION, max_payload: int = MAX_PAYLOAD) -> AdbMessage:
     """CNXN(version, maxdata, "<system-identity>\\0")."""
     return AdbMessage(A_CNXN, version, max_payload, banner + b"\0")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
+import functools
 import hashlib
 import os
 import stat as statmod
@@ -99,15 +100,10 @@ def data_chunks(data: bytes | memoryview, chunk: int = SYNC_DATA_MAX) -> bytes:
                     for i in range(0, len(view), chunk))
 
 
-_WRITERS: ThreadPoolExecutor | None = None
-
-
+@functools.cache
 def _writer_threads() -> ThreadPoolExecutor:
     """The threads pulled files are hashed and written in (a few pulls run at once)."""
-    global _WRITERS
-    if _WRITERS is None:
-        _WRITERS = ThreadPoolExecutor(max_workers=4, thread_name_prefix="adb-pull")
-    return _WRITERS
+    return ThreadPoolExecutor(max_workers=4, thread_name_prefix="adb-pull")
 
 
 async def _in_thread(func: Callable[[], T]) -> T:

@@ -30,6 +30,17 @@ class AdbTransport(Protocol):
     async def close(self) -> None: ...
 
 
+def _write(sink: asyncio.StreamWriter | asyncio.WriteTransport, name: str, closed: bool, message: AdbMessage,
+           with_checksum: bool) -> None:
+    """A message's header and payload written back to back, with no await between, so messages
+    never interleave; ConnectionLost once the link is closed."""
+    if closed or sink.is_closing():
+        raise ConnectionLost(name, "closed", f"cannot send {message.name}: transport closed")
+    sink.write(message.header(with_checksum=with_checksum))
+    if message.payload:
+        sink.write(message.payload)
+
+
 class StreamTransport:
     """ADB over an asyncio reader/writer pair: TCP (adbd port 5555, simulators) or a socketpair.
 
@@ -44,11 +55,7 @@ class StreamTransport:
         self.closed = False
 
     async def send(self, message: AdbMessage, *, with_checksum: bool = True) -> None:
-        if self.closed or self.writer.is_closing():
-            raise ConnectionLost(self.name, "closed", f"cannot send {message.name}: transport closed")
-        self.writer.write(message.header(with_checksum=with_checksum))
-        if message.payload:
-            self.writer.write(message.payload)
+        _write(self.writer, self.name, self.closed, message, with_checksum)
         try:
             await self.writer.drain()
         except (ConnectionError, OSError) as exc:
@@ -188,11 +195,7 @@ class SocketTransport:
         self._receiver.credit_hook = hook
 
     async def send(self, message: AdbMessage, *, with_checksum: bool = True) -> None:
-        if self.closed or self._transport.is_closing():
-            raise ConnectionLost(self.name, "closed", f"cannot send {message.name}: transport closed")
-        self._transport.write(message.header(with_checksum=with_checksum))
-        if message.payload:
-            self._transport.write(message.payload)
+        _write(self._transport, self.name, self.closed, message, with_checksum)
         await self._receiver._drained.wait()
         if self._receiver.error is not None and self._transport.is_closing():
             raise ConnectionLost(self.name, "sending", f"{message.name}: {self._receiver.error}")

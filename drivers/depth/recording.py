@@ -24,6 +24,7 @@ from typing import BinaryIO
 import numpy as np
 
 from drivers.depth.base import DepthCamera
+from planner.files import read_at_most
 from planner.rig import Rig
 from planner.shape_errors import ShapeEstimateError
 from planner.sweep import AngleSpacing, BeamTrace, PosedDepth, Sweep, pose_frame
@@ -118,10 +119,7 @@ def load_sweep(folder: Path | str, *, max_frame_px: int = MAX_FRAME_PX) -> Sweep
     folder = Path(folder)
     path = folder / INDEX
     try:
-        with open(path, "rb") as f:
-            text = f.read(MAX_INDEX_BYTES + 1)
-        if len(text) > MAX_INDEX_BYTES:
-            raise RecordingError(path, f"larger than {MAX_INDEX_BYTES} bytes: not a sweep index")
+        text = read_at_most(path, MAX_INDEX_BYTES, "sweep index", lambda problem: RecordingError(path, problem))
         index = json.loads(text)
     except FileNotFoundError:
         raise RecordingError(folder, f"no {INDEX}: not a recorded depth sweep") from None

@@ -30,15 +30,15 @@ from drivers.adb.errors import AdbError, ConnectionLost
 from drivers.adb.message import (
     A_AUTH,
     A_CNXN,
-    A_VERSION,
     A_VERSION_MIN,
-    A_VERSION_SKIP_CHECKSUM,
     AUTH_RSAPUBLICKEY,
     AUTH_SIGNATURE,
     AUTH_TOKEN,
     MAX_PAYLOAD,
     MAX_PAYLOAD_LEGACY,
     AdbMessage,
+    agreed,
+    checksummed,
     connect_message,
 )
 from drivers.adb.streams import AdbStream, ServiceHandler, StreamMux
@@ -231,13 +231,13 @@ class SimulatedAdbd:
         mux = StreamMux(transport, name=self.serial, resolver=self.resolve)
         try:
             async with asyncio.timeout(self.HANDSHAKE_TIMEOUT_S):
-                host_version, host_max = await self._handshake(transport)
+                version, max_payload = await self._handshake(transport)
         except (AdbError, TimeoutError) as exc:
             log.info("sim_adbd_handshake_failed", serial=self.serial, error=repr(exc))
             await transport.close()
             return
-        mux.max_payload = min(host_max, MAX_PAYLOAD)
-        mux.with_checksum = host_version < A_VERSION_SKIP_CHECKSUM
+        mux.max_payload = max_payload
+        mux.with_checksum = checksummed(version)
         self.links[mux] = transport
         self.connections += 1
         try:
@@ -250,7 +250,7 @@ class SimulatedAdbd:
         msg = await transport.recv(MAX_PAYLOAD_LEGACY)
         if msg.command != A_CNXN or msg.arg0 < A_VERSION_MIN:
             raise ConnectionLost(self.serial, "handshake", f"expected CNXN, got {msg.name}({msg.arg0:#x})")
-        version, max_payload = min(msg.arg0, A_VERSION), max(msg.arg1, MAX_PAYLOAD_LEGACY)
+        version, max_payload = agreed(msg.arg0, msg.arg1, MAX_PAYLOAD)
         while True:
             token = self._rng.randbytes(TOKEN_SIZE)
             await transport.send(AdbMessage(A_AUTH, AUTH_TOKEN, 0, token))

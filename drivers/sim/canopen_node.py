@@ -173,11 +173,11 @@ class SimulatedNode:
         Raises:
             SdoAbortRequest: the write is refused (code says why).
         """
-        comm_index = self._communication_of(index)
-        if comm_index is not None:  # a mapping parameter
-            self._check_mapping_write(comm_index, index, subindex, value)
+        parameters = self._pdo_parameters(index)
+        if parameters is not None and parameters[0] == index:  # a mapping parameter
+            self._check_mapping_write(parameters[1], index, subindex, value)
             self._mapping_cache.pop(index, None)
-        elif self._mapping_of(index) is not None:  # a communication parameter
+        elif parameters is not None:  # a communication parameter
             self._check_communication_write(index, subindex, value)
         elif index == 0x1029 and value not in tuple(nmt.CommunicationErrorBehaviour):
             raise SdoAbortRequest(sdo_aborts.ABORT_VALUE_RANGE)
@@ -188,20 +188,14 @@ class SimulatedNode:
         through :meth:`write_object`, so an object acts the same whichever carried it."""
         self.write_object(index, subindex, value)
 
-    def _communication_of(self, mapping_index: int) -> int | None:
-        """The communication parameter of a PDO mapping parameter (None: not one)."""
+    def _pdo_parameters(self, index: int) -> tuple[int, int] | None:
+        """(mapping, communication) parameter indices of the PDO whose mapping or communication
+        parameter ``index`` is (None: neither)."""
         for mapping, comm, count in ((pdo.TPDO_MAPPING, pdo.TPDO_COMMUNICATION, self.TPDO_COUNT),
                                      (pdo.RPDO_MAPPING, pdo.RPDO_COMMUNICATION, self.RPDO_COUNT)):
-            if mapping <= mapping_index < mapping + count:
-                return mapping_index - mapping + comm
-        return None
-
-    def _mapping_of(self, comm_index: int) -> int | None:
-        """The mapping parameter of a PDO communication parameter (None: not one)."""
-        for mapping, comm, count in ((pdo.TPDO_MAPPING, pdo.TPDO_COMMUNICATION, self.TPDO_COUNT),
-                                     (pdo.RPDO_MAPPING, pdo.RPDO_COMMUNICATION, self.RPDO_COUNT)):
-            if comm <= comm_index < comm + count:
-                return comm_index - comm + mapping
+            for first in (mapping, comm):
+                if first <= index < first + count:
+                    return mapping + index - first, comm + index - first
         return None
 
     def _check_communication_write(self, index: int, subindex: int, value: int) -> None:

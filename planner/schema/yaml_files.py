@@ -22,6 +22,8 @@ from typing import Any
 
 import yaml
 
+from planner.files import read_at_most
+
 MAX_FLOW_NESTING = 32
 _FLOW_SYNTAX = re.compile(rb"[\[\]{}'\"#\n]")
 
@@ -127,12 +129,9 @@ def read_yaml(path: Path, *, max_bytes: int, what: str,
     what: the kind of file, for messages ("rig file", "focus table").
     """
     try:
-        with open(path, "rb") as f:
-            text = f.read(max_bytes + 1)
+        text = read_at_most(path, max_bytes, what, lambda problem: error("<file>", problem))
     except OSError as exc:
         raise error("<file>", f"cannot read: {exc.strerror or exc}") from exc
-    if len(text) > max_bytes:
-        raise error("<file>", f"larger than {max_bytes} bytes: not a {what}")
     if flow_nesting(text) > MAX_FLOW_NESTING:
         raise error("<file>", f"lists or mappings nested more than {MAX_FLOW_NESTING} deep: not a {what}")
     try:

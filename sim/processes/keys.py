@@ -1,4 +1,5 @@
-"""Fault keys on a simulator's standard input, each acknowledged with when it acted.
+"""Fault keys on a simulator's standard input, each acknowledged with when it acted, and the
+signals that stop a simulator process.
 
 A harness (the loopback rig, ``./dev bench safety``) writes one character to a simulator's stdin
 to press a button or inject a fault; the simulator acts on it and prints ``<action> mono_s=<t>``
@@ -9,12 +10,17 @@ how long the daemon took to react.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
+import signal
 import stat
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
+
+Keys = dict[str, tuple[str, Callable[[], None]]]
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def is_stream(file: Any) -> bool:
@@ -25,7 +31,7 @@ def is_stream(file: Any) -> bool:
     return stat.S_ISFIFO(mode) or file.isatty()
 
 
-def watch_keys(keys: dict[str, tuple[str, Callable[[], None]]]) -> Callable[[], None]:
+def watch_keys(keys: Keys) -> Callable[[], None]:
     """Act on ``keys`` (character -> (action name, action)) read from stdin, if stdin is a pipe or
     terminal; returns the function that stops watching."""
     loop = asyncio.get_running_loop()
@@ -45,3 +51,20 @@ def watch_keys(keys: dict[str, tuple[str, Callable[[], None]]]) -> Callable[[], 
 
     loop.add_reader(fd, on_stdin)
     return lambda: loop.remove_reader(fd)
+
+
+@contextlib.contextmanager
+def stop_signals(keys: Keys | None = None) -> Iterator[asyncio.Event]:
+    """An event SIGINT or SIGTERM sets, with ``keys`` watched on stdin (:func:`watch_keys`) while
+    the block runs; leaving it stops the watch and removes the signal handlers."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in STOP_SIGNALS:
+        loop.add_signal_handler(sig, stop.set)
+    unwatch = watch_keys(keys) if keys is not None else (lambda: None)
+    try:
+        yield stop
+    finally:
+        unwatch()
+        for sig in STOP_SIGNALS:
+            loop.remove_signal_handler(sig)

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 from collections.abc import Callable
 from typing import Any
 
 from drivers.motor.port import LoopbackCanBus
 from drivers.sim.drive import SimulatedDrive
-from sim.processes.keys import watch_keys
+from sim.processes.keys import stop_signals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,31 +53,25 @@ async def serve(args: argparse.Namespace) -> None:
     drive.sdo_delay_s = args.sdo_delay
     server = SocketcandServer(bus, channel=args.channel, host="127.0.0.1", port=args.port)
     await server.start()
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     tasks = [
         asyncio.create_task(drive.run(), name="sim-drive"),
         asyncio.create_task(_inject_later(args.estop_after, drive.press_estop)),
         asyncio.create_task(_inject_later(args.fault_after, lambda: drive.inject_fault(args.fault_code))),
     ]
-    unwatch = watch_keys({
+    keys = {
         "f": (f"fault 0x{args.fault_code:04X} raised", lambda: drive.inject_fault(args.fault_code)),
         "h": ("heartbeat stopped", drive.stop_heartbeat), "H": ("heartbeat resumed", drive.resume_heartbeat),
         "e": ("e-stop input opened", drive.press_estop), "r": ("e-stop input closed", drive.release_estop),
-    })
-    print(
-        f"simulated drive node {rig.motor.node_id} on socketcand "
-        f"127.0.0.1:{server.port} channel {args.channel}",
-        flush=True,
-    )
+    }
     try:
-        await stop.wait()
+        with stop_signals(keys) as stop:
+            print(
+                f"simulated drive node {rig.motor.node_id} on socketcand "
+                f"127.0.0.1:{server.port} channel {args.channel}",
+                flush=True,
+            )
+            await stop.wait()
     finally:
-        unwatch()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 
 from drivers.panel import protocol
 from drivers.sim.panel import SimulatedPanel
-from sim.processes.keys import watch_keys
+from sim.processes.keys import stop_signals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,21 +37,14 @@ async def serve(args: argparse.Namespace) -> int:
     panel.on_change = lambda p: print(
         f"LED {p.led.value}, light {'on' if p.light else 'off'}"
         + (", host lost" if p.host_lost else ""), flush=True)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    unwatch = watch_keys({"s": ("start pressed", panel.press_start), "x": ("stop pressed", panel.press_stop),
-                          "e": ("e-stop pressed", panel.press_estop), "r": ("e-stop released", panel.release_estop),
-                          "h": ("heartbeats stopped", panel.stop_heartbeats),
-                          "H": ("heartbeats resumed", panel.resume_heartbeats)})
+    keys = {"s": ("start pressed", panel.press_start), "x": ("stop pressed", panel.press_stop),
+            "e": ("e-stop pressed", panel.press_estop), "r": ("e-stop released", panel.release_estop),
+            "h": ("heartbeats stopped", panel.stop_heartbeats), "H": ("heartbeats resumed", panel.resume_heartbeats)}
     runner = asyncio.create_task(panel.run(), name="sim-panel")
     try:
-        await stop.wait()
+        with stop_signals(keys) as stop:
+            await stop.wait()
     finally:
-        unwatch()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
         runner.cancel()
         await asyncio.gather(runner, return_exceptions=True)
         panel.close()

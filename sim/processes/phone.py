@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 from pathlib import Path
 
 import numpy as np
 
 from drivers.sim.phone import AGENT_RUNTIMES, SimulatedPhone
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
+from sim.processes.keys import stop_signals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -102,15 +102,10 @@ async def serve(args: argparse.Namespace) -> int:
         follower.start()
         host, bridge_port = args.follow_beam
         print(f"following the beam's position on socketcand {host}:{bridge_port}", flush=True)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    async with server:
-        await stop.wait()
-    await phone.shut_down()  # the host links and the agent end before the process does
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.remove_signal_handler(sig)
+    with stop_signals() as stop:
+        async with server:
+            await stop.wait()
+        await phone.shut_down()  # the host links and the agent end before the process does
     if follower is not None:
         await asyncio.to_thread(follower.stop)  # the join may wait out a reconnection attempt
     return 0
