@@ -481,6 +481,22 @@ class LoopbackRig:
 
         return asyncio.run(ControlClient(self.socket_path).request(cmd, **args))
 
+    def reset(self, timeout_s: float = 10.0) -> str:
+        """The operator's reset (the new state), repeated while the daemon refuses it because the
+        panel still reports the e-stop pressed or has not been heard again since it was lost (the
+        e-stop's state unknown): an operator waits for the panel too."""
+        from daemon.server.control import CommandFailed
+
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                state: str = self.control("reset")["state"]
+                return state
+            except CommandFailed as exc:
+                if "e-stop" not in str(exc) or time.monotonic() > deadline:
+                    raise
+            time.sleep(0.5)
+
     def wait_status(self, predicate: Callable[[dict[str, Any]], bool], what: str, timeout_s: float) -> dict[str, Any]:
         """Poll ``status`` until ``predicate(status)``; raises naming ``what`` and the last status."""
         from daemon.server.control import ControlError

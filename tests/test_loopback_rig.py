@@ -58,18 +58,6 @@ def _device(status: dict, name: str) -> dict:
     return next(d for d in status["devices"] if d["device"] == name)
 
 
-def _reset_once_released(rig: LoopbackRig, timeout_s: float = 10.0) -> str:
-    """The operator's reset, repeated while the panel still reports the e-stop pressed."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            return rig.control("reset")["state"]
-        except CommandFailed:  # "e-stop still pressed" until the panel's release arrives
-            if time.monotonic() > deadline:
-                raise
-        time.sleep(0.5)
-
-
 def test_a_scan_started_from_the_panel_completes_on_the_real_code_path(tmp_path: Path) -> None:
     with LoopbackRig(tmp_path) as rig:
         folder = scan_from_panel(rig)
@@ -153,7 +141,7 @@ def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Pa
         with pytest.raises(CommandFailed, match="reset"):
             rig.control("scan")
         rig.press("r")
-        assert _reset_once_released(rig) == "IDLE"
+        assert rig.reset() == "IDLE"
 
         # SIGTERM during a capture: the beam stops, the scan folder is closed, the daemon exits in time.
         rig.control("scan")
