@@ -20,6 +20,7 @@ import argparse
 import asyncio
 import contextlib
 import errno
+import functools
 import grp
 import json
 import math
@@ -293,7 +294,7 @@ class LoopbackRig:
             # The drive is hardware of its own on a rig; here it shares the PC, so its session gets
             # the share the daemon's has rather than wait behind the daemon's depth playback and
             # fusion (a drive starved for 400 ms misses the host's heartbeats and faults).
-            self._renice(motor, DRIVE_NICENESS, share=weight_nice(unit_cpu_weight(UNIT)))
+            self._renice(motor, DRIVE_NICENESS, share=self.daemon_share)
             self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
         for index in range(len(self.rig.phones)):
             if index not in self.missing_phones:
@@ -439,7 +440,7 @@ class LoopbackRig:
         environ["TBP_CONTROL_GROUP"] = grp.getgrgid(os.getgid()).gr_name
         environ["TBP_LOOP_STALL_TRACEBACKS"] = str(self.stall_tracebacks)
         daemon = self._spawn("daemon", argv, env=environ, stderr=self.root / "logs" / "daemon.stderr.log")
-        self._renice(daemon, unit_nice(UNIT), share=weight_nice(unit_cpu_weight(UNIT)))
+        self._renice(daemon, unit_nice(UNIT), share=self.daemon_share)
         self.say(f"daemon: {shlex.join(argv)}")
         return daemon
 
@@ -462,6 +463,11 @@ class LoopbackRig:
             if line.get("event") == "loop_lag":
                 (starved if machine_caused(line) else own).append(line)
         return own, starved
+
+    @functools.cached_property
+    def daemon_share(self) -> int:
+        """The nice level of the daemon's session: the unit's CPUWeight= as the scheduler weighs it."""
+        return weight_nice(unit_cpu_weight(UNIT))
 
     @property
     def stall_tracebacks(self) -> Path:

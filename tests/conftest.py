@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,10 +45,8 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     if "PYTEST_XDIST_WORKER" not in os.environ:
         return
     niceness = 0 if item.get_closest_marker("realtime") else BACKGROUND_NICENESS
-    try:
+    with contextlib.suppress(PermissionError):  # not root: a worker may lower its priority, not raise it
         os.setpriority(os.PRIO_PROCESS, 0, niceness)
-    except PermissionError:  # not root: the worker may lower its priority but not raise it again
-        pass
 
 
 @pytest.fixture(autouse=True)

@@ -85,7 +85,7 @@ Hook = Callable[[RigController, MockWorld], Awaitable[None]]
 def run_scan(store: Path, *, seed: int = 0, during: Hook | None = None, after: Hook | None = None,
              store_factory: Callable[[Path], ScanStore] = ScanStore,
              prepare: Callable[[MockWorld], None] | None = None,
-             rig: Rig = RIG, executor: Callable[[], Executor] = lambda: ThreadPoolExecutor(max_workers=1),
+             rig: Rig = RIG, executor: Callable[[], Executor] = functools.partial(ThreadPoolExecutor, max_workers=1),
              ) -> tuple[ScanReport, RigController, MockWorld]:
     """One scan in virtual time; ``during`` runs concurrently with it, ``after`` once it ended."""
     return run_job(store, lambda controller: controller.scan(f"test-seed{seed}"), seed=seed, during=during,
@@ -96,7 +96,7 @@ def run_job(store: Path, job: Callable[[RigController], Awaitable[Any]], *, seed
             during: Hook | None = None, after: Hook | None = None,
             store_factory: Callable[[Path], ScanStore] = ScanStore,
             prepare: Callable[[MockWorld], None] | None = None,
-            rig: Rig = RIG, executor: Callable[[], Executor] = lambda: ThreadPoolExecutor(max_workers=1),
+            rig: Rig = RIG, executor: Callable[[], Executor] = functools.partial(ThreadPoolExecutor, max_workers=1),
             ) -> tuple[Any, RigController, MockWorld]:
     """``job(controller)`` (a scan, a calibration rotation) to its report in virtual time on the
     mock-phone rig, its compute steps in ``executor()``; ``during`` runs concurrently with it,

@@ -49,19 +49,25 @@ def _hold_the_loop() -> None:
     time.sleep(0.15)
 
 
-def test_a_stall_leaves_every_threads_stack_taken_while_it_lasted(tmp_path: Path) -> None:
-    stacks = tmp_path / "loop-stalls.txt"
-    monitor = LoopLagMonitor(lambda: "CAPTURING", period_s=0.01, warn_s=0.05, tracebacks=stacks)
+def _monitored(monitor: LoopLagMonitor, hold: bool) -> None:
+    """Run ``monitor`` 0.1 s, the loop held by :func:`_hold_the_loop` in the middle if ``hold``."""
 
     async def scenario() -> None:
         task = asyncio.create_task(monitor.run())
         await asyncio.sleep(0.05)
-        _hold_the_loop()
+        if hold:
+            _hold_the_loop()
         await asyncio.sleep(0.05)
         task.cancel()
 
+    asyncio.run(scenario())
+
+
+def test_a_stall_leaves_every_threads_stack_taken_while_it_lasted(tmp_path: Path) -> None:
+    stacks = tmp_path / "loop-stalls.txt"
+    monitor = LoopLagMonitor(lambda: "CAPTURING", period_s=0.01, warn_s=0.05, tracebacks=stacks)
     with structlog.testing.capture_logs() as logs:
-        asyncio.run(scenario())
+        _monitored(monitor, hold=True)
     text = stacks.read_text()
     assert "in _hold_the_loop" in text and "in scenario" in text  # taken during the stall, not after
     stalls = [e for e in logs if e["event"] == "loop_lag"]
@@ -70,14 +76,7 @@ def test_a_stall_leaves_every_threads_stack_taken_while_it_lasted(tmp_path: Path
 
 def test_no_stack_is_taken_while_the_loop_keeps_time(tmp_path: Path) -> None:
     stacks = tmp_path / "loop-stalls.txt"
-    monitor = LoopLagMonitor(lambda: "IDLE", period_s=0.01, warn_s=0.5, tracebacks=stacks)
-
-    async def scenario() -> None:
-        task = asyncio.create_task(monitor.run())
-        await asyncio.sleep(0.2)
-        task.cancel()
-
-    asyncio.run(scenario())
+    _monitored(LoopLagMonitor(lambda: "IDLE", period_s=0.01, warn_s=0.5, tracebacks=stacks), hold=False)
     assert stacks.read_text() == ""
 
 
