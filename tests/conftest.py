@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -38,15 +39,29 @@ BACKGROUND_NICENESS = 10
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    """Under pytest-xdist the workers share the cores (and one scheduler group: one session), so a
+    """A realtime test runs with the heap the earlier tests left frozen, as the daemon freezes its
+    own after start-up (daemon/server/looplag.py): a full collection then walks only what the test
+    made, not the whole run's objects, which paused the loop past a drive's 0.5 s host guard late in
+    a CI run. Its teardown thaws them.
+
+    Under pytest-xdist the workers share the cores (and one scheduler group: one session), so a
     worker running a realtime test keeps the default priority and one running any other test
     yields to it: a realtime test measures the code it tests, not the worker beside it. Processes a
     test starts inherit its level (the loopback rig sets its own: sim/loopback.py)."""
+    realtime = item.get_closest_marker("realtime") is not None
+    if realtime:
+        gc.freeze()
     if "PYTEST_XDIST_WORKER" not in os.environ:
         return
-    niceness = 0 if item.get_closest_marker("realtime") else BACKGROUND_NICENESS
+    niceness = 0 if realtime else BACKGROUND_NICENESS
     with contextlib.suppress(PermissionError):  # not root: a worker may lower its priority, not raise it
         os.setpriority(os.PRIO_PROCESS, 0, niceness)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item: pytest.Item) -> None:
+    if item.get_closest_marker("realtime") is not None:
+        gc.unfreeze()
 
 
 @pytest.fixture(autouse=True)

@@ -166,6 +166,7 @@ async def test_handshake_refuses_unknown_channel(bridge: tuple[SocketcandServer,
         await _client_port(server, channel="vcan9")
 
 
+@pytest.mark.realtime
 async def test_beam_drive_over_socketcand_bridge(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
     server, sim = bridge
     drive = BeamDrive(await _client_port(server), MOTOR)
@@ -189,6 +190,7 @@ async def test_beam_drive_over_socketcand_bridge(bridge: tuple[SocketcandServer,
         await drive.close()
 
 
+@pytest.mark.realtime
 async def test_handshake_survives_a_busy_bus(bridge: tuple[SocketcandServer, SimulatedDrive]) -> None:
     server, _ = bridge
     chatter_port = server.bus.port("chatter")
@@ -210,6 +212,7 @@ async def test_handshake_survives_a_busy_bus(bridge: tuple[SocketcandServer, Sim
         await asyncio.gather(task, return_exceptions=True)
 
 
+@pytest.mark.realtime
 async def test_client_going_away_leaves_the_bridge_serving(
     bridge: tuple[SocketcandServer, SimulatedDrive],
 ) -> None:
@@ -312,6 +315,7 @@ def test_served_drive_injects_the_e_stop_it_was_told_to(capsys: pytest.CaptureFi
         assert "0x5441 (emergency stop input" in capsys.readouterr().err
 
 
+@pytest.mark.realtime
 async def test_a_simulated_phone_follows_the_angle_the_daemon_drives(
     bridge: tuple[SocketcandServer, SimulatedDrive],
 ) -> None:
