@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import os
 from collections.abc import Iterator
@@ -34,28 +33,13 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.xdist_group("web_store"))
 
 
-BACKGROUND_NICENESS = 10
-"""Under pytest-xdist, a worker runs its tests other than the realtime ones at this nice level."""
-
-
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """A realtime test runs with the heap the earlier tests left frozen, as the daemon freezes its
     own after start-up (daemon/server/looplag.py): a full collection then walks only what the test
     made, not the whole run's objects, which paused the loop past a drive's 0.5 s host guard late in
-    a CI run. Its teardown thaws them.
-
-    Under pytest-xdist the workers share the cores (and one scheduler group: one session), so a
-    worker running a realtime test keeps the default priority and one running any other test
-    yields to it: a realtime test measures the code it tests, not the worker beside it. Processes a
-    test starts inherit its level (the loopback rig sets its own: sim/loopback.py)."""
-    realtime = item.get_closest_marker("realtime") is not None
-    if realtime:
+    a CI run. Its teardown thaws them."""
+    if item.get_closest_marker("realtime") is not None:
         gc.freeze()
-    if "PYTEST_XDIST_WORKER" not in os.environ:
-        return
-    niceness = 0 if realtime else BACKGROUND_NICENESS
-    with contextlib.suppress(PermissionError):  # not root: a worker may lower its priority, not raise it
-        os.setpriority(os.PRIO_PROCESS, 0, niceness)
 
 
 @pytest.hookimpl(trylast=True)
