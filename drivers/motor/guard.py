@@ -33,6 +33,7 @@ longer than the limit plus ``pause_allowance_s`` trips at once whatever happened
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import enum
 import math
@@ -242,8 +243,45 @@ def _observer(node_id: int, logic: GuardLogic) -> Callable[[int, float], None]:
     return observe
 
 
-class ThreadedGuard:
-    """The guard on its own thread, for a real CAN port (:class:`RealtimePort`).
+class _GuardRunner(abc.ABC):
+    """What both runners share: the logic on one clock (``_now``), the frames they send, the
+    observer of the drive's frames, and how a trip is reported."""
+
+    def __init__(self, node_id: int, host_node_id: int, timing: GuardTiming,
+                 on_trip: Callable[[GuardTrip], None], name: str) -> None:
+        self.timing = timing
+        self.logic = GuardLogic(timing, self._now())
+        self.name = name
+        self.send_failures = 0
+        self._on_trip = on_trip
+        self._heartbeat = heartbeat_message(host_node_id)
+        self._quick_stop = quick_stop_message(node_id)
+        self._observe = _observer(node_id, self.logic)
+
+    @abc.abstractmethod
+    def _now(self) -> float:
+        """The runner's clock, s."""
+
+    def feed(self) -> None:
+        self.logic.feed(self._now())
+
+    def rearm(self) -> None:
+        self.logic.rearm(self._now())
+
+    def heartbeat_age_s(self) -> float:
+        return self._now() - self.logic.last_drive_heartbeat
+
+    def sample_age_s(self) -> float:
+        last = self.logic.last_sample
+        return math.inf if last is None else self._now() - last
+
+    def _log_trip(self, trip: GuardTrip) -> None:
+        log.error("drive_guard_tripped", drive=self.name, kind=trip.kind.value,
+                  silent_s=round(trip.silent_s, 3), limit_s=trip.limit_s)
+
+
+class ThreadedGuard(_GuardRunner):
+    """The guard on its own thread, for a real CAN port (:class:`RealtimePort`), on ``time.monotonic``.
 
     ``on_trip(trip)`` is called on the event loop (``loop``), once per trip.
     """
@@ -251,33 +289,16 @@ class ThreadedGuard:
     def __init__(self, port: RealtimePort, node_id: int, host_node_id: int, timing: GuardTiming,
                  on_trip: Callable[[GuardTrip], None], *, loop: asyncio.AbstractEventLoop,
                  name: str = "beam") -> None:
+        super().__init__(node_id, host_node_id, timing, on_trip, name)
         self.port = port
-        self.timing = timing
-        self.logic = GuardLogic(timing, time.monotonic())
-        self.name = name
-        self.send_failures = 0
-        self._on_trip = on_trip
         self._loop = loop
-        self._heartbeat = heartbeat_message(host_node_id)
-        self._quick_stop = quick_stop_message(node_id)
-        self._observe = _observer(node_id, self.logic)
         self._stopping = threading.Event()
         self._untap = port.tap(lambda msg, at: self._observe(msg.arbitration_id, at))
         self._thread = threading.Thread(target=self._run, name=f"{name}-guard", daemon=True)
         self._thread.start()
 
-    def feed(self) -> None:
-        self.logic.feed(time.monotonic())
-
-    def rearm(self) -> None:
-        self.logic.rearm(time.monotonic())
-
-    def heartbeat_age_s(self) -> float:
-        return time.monotonic() - self.logic.last_drive_heartbeat
-
-    def sample_age_s(self) -> float:
-        last = self.logic.last_sample
-        return math.inf if last is None else time.monotonic() - last
+    def _now(self) -> float:
+        return time.monotonic()
 
     @property
     def alive(self) -> bool:
@@ -296,8 +317,7 @@ class ThreadedGuard:
             if actions.heartbeat:
                 self._send(self._heartbeat)
             if actions.trip is not None:
-                log.error("drive_guard_tripped", drive=self.name, kind=actions.trip.kind.value,
-                          silent_s=round(actions.trip.silent_s, 3), limit_s=actions.trip.limit_s)
+                self._log_trip(actions.trip)
                 try:
                     self._loop.call_soon_threadsafe(self._on_trip, actions.trip)
                 except RuntimeError:  # the loop is closed: the process is ending, the drive stops itself
@@ -310,27 +330,19 @@ class ThreadedGuard:
             self.send_failures += 1
 
 
-class LoopGuard:
-    """The guard as a task of the event loop, for an in-process bus in virtual time."""
+class LoopGuard(_GuardRunner):
+    """The guard as a task of the event loop, for an in-process bus in virtual time (the loop's clock)."""
 
     def __init__(self, send: Callable[[can.Message], Any], node_id: int, host_node_id: int,
                  timing: GuardTiming, on_trip: Callable[[GuardTrip], None], *, name: str = "beam") -> None:
-        loop = asyncio.get_running_loop()
-        self.timing = timing
-        self.logic = GuardLogic(timing, loop.time())
-        self.name = name
-        self.send_failures = 0
+        self._loop = asyncio.get_running_loop()
+        super().__init__(node_id, host_node_id, timing, on_trip, name)
         self._send = send
-        self._on_trip = on_trip
-        self._loop = loop
-        self._heartbeat = heartbeat_message(host_node_id)
-        self._quick_stop = quick_stop_message(node_id)
-        self._observe = _observer(node_id, self.logic)
         self._wake = asyncio.Event()
         self._task = asyncio.create_task(self._run(), name=f"{name}-guard")
 
-    def feed(self) -> None:
-        self.logic.feed(self._loop.time())
+    def _now(self) -> float:
+        return self._loop.time()
 
     def observe(self, cob_id: int, now: float) -> None:
         """A frame from the drive, handled on the loop at loop time ``now`` (an observation only
@@ -338,15 +350,8 @@ class LoopGuard:
         self._observe(cob_id, now)
 
     def rearm(self) -> None:
-        self.logic.rearm(self._loop.time())
+        super().rearm()
         self._wake.set()
-
-    def heartbeat_age_s(self) -> float:
-        return self._loop.time() - self.logic.last_drive_heartbeat
-
-    def sample_age_s(self) -> float:
-        last = self.logic.last_sample
-        return math.inf if last is None else self._loop.time() - last
 
     @property
     def alive(self) -> bool:
@@ -364,15 +369,13 @@ class LoopGuard:
 
     async def _run(self) -> None:
         while True:
-            now = self._loop.time()
-            actions = self.logic.step(now)
+            actions = self.logic.step(self._loop.time())
             if actions.quick_stop:
                 await self._send_frame(self._quick_stop)
             if actions.heartbeat:
                 await self._send_frame(self._heartbeat)
             if actions.trip is not None:
-                log.error("drive_guard_tripped", drive=self.name, kind=actions.trip.kind.value,
-                          silent_s=round(actions.trip.silent_s, 3), limit_s=actions.trip.limit_s)
+                self._log_trip(actions.trip)
                 self._on_trip(actions.trip)
             due = self.logic.next_due(self._loop.time())
             self._wake.clear()
