@@ -30,6 +30,27 @@ RIG = load_rig()
 PLAN_POINTS = 1500
 
 
+def sparse_rig_file(folder: Path, captures_per_sector: int = 2) -> Path:
+    """A copy of the default rig's folder in ``folder`` whose rig file takes ``captures_per_sector``
+    pictures per speed sector (every phone, both speeds, the same sectors): for a test of a real
+    daemon process that needs a whole scan's states, devices and folder but not the default
+    rig's 336 rendered pictures, which take most of such a scan's time."""
+    import shutil
+
+    import yaml
+
+    from planner.rig import DEFAULT_RIG_PATH
+
+    copy = folder / "rig"
+    shutil.copytree(DEFAULT_RIG_PATH.parent, copy)
+    path = copy / DEFAULT_RIG_PATH.name
+    config = yaml.safe_load(path.read_text())
+    for sector in config["capture"]["sectors"]:
+        sector["captures"] = min(sector["captures"], captures_per_sector)
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
 def capsule_subject() -> trimesh.Trimesh:
     body = trimesh.creation.capsule(height=1400.0, radius=170.0, count=[24, 24])
     body.apply_translation([0.0, 0.0, 870.0])

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from daemon.server.control import CommandFailed, ControlClient, DaemonUnavailable
-from tests.daemon_rigs import capsule_subject
+from tests.daemon_rigs import capsule_subject, sparse_rig_file
 from tests.test_daemon_restart import TBP, _ready
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
@@ -77,7 +77,8 @@ def test_three_hundred_connections_under_a_256_descriptor_limit(tmp_path: Path) 
     resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, min(hard, 4096)), hard))
     sock, store, subject, log = tmp_path / "c.sock", tmp_path / "scans", tmp_path / "subject.ply", tmp_path / "log"
     capsule_subject().export(subject)
-    cmd = [TBP, "daemon", "--sim", "--no-panel", "--subject", str(subject), "--socket", str(sock),
+    cmd = [TBP, "daemon", "--sim", "--rig", str(sparse_rig_file(tmp_path)), "--no-panel", "--subject", str(subject),
+           "--socket", str(sock),
            "--store", str(store), "--time-scale", "10", "--plan-points", "1500", "--depth-decimation", "4",
            "--log-level", "warning", "--http", "off"]
     limited = ["sh", "-c", f'ulimit -n {LIMIT} && exec "$@"', "sh", *cmd]  # as the probe did; no preexec_fn
