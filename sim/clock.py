@@ -13,8 +13,9 @@ Two things stop the clock instead of advancing it:
   until it finishes, so its real duration never leaks into the timeline;
 * nothing scheduled at all: the loop then waits for real I/O (a control-socket client, say).
 
-With ``time_scale`` set, each jump is paced to ``delay / time_scale`` real seconds so a person can
-watch a simulated scan at, for example, 10x real time; the timeline is the same either way.
+With ``time_scale`` set, the jumps are paced (:class:`Pace`) so that virtual time runs at
+``time_scale`` times real time, and a person can watch a simulated scan at, for example, 10x real
+time; the timeline is the same either way.
 """
 
 from __future__ import annotations
@@ -41,6 +42,36 @@ class TasksLeftPending(RuntimeError):
         super().__init__(f"{len(names)} task(s) still pending when the run ended: {', '.join(names)}")
 
 
+class Pace:
+    """When, in real time, each jump of a paced virtual clock is due (``time_scale`` virtual
+    seconds per real second).
+
+    The due times run on from one jump to the next, so a jump shorter than the selector's
+    resolution (epoll waits whole milliseconds: a 0.1 ms jump would cost 1 ms, and a scan's
+    200 Hz position samples and heartbeats make thousands of such jumps a virtual second) is
+    made up by the jumps after it instead of slowing the clock. A loop that falls further than
+    ``slack_s`` behind (it cannot keep up, or the clock stood still for a compute job) is paced
+    from then on: it never races to catch up.
+    """
+
+    def __init__(self, time_scale: float, slack_s: float = 0.05) -> None:
+        self.time_scale = time_scale
+        self.slack_s = slack_s
+        self._due: float | None = None
+
+    def wait(self, jump_s: float, now: float) -> float:
+        """Real seconds to wait at real time ``now`` before a jump of ``jump_s`` virtual seconds."""
+        if self._due is None or now - self._due > self.slack_s:
+            self._due = now
+        self._due += jump_s / self.time_scale
+        return max(0.0, self._due - now)
+
+    def restart(self, now: float | None = None) -> None:
+        """Pace the next jump from ``now`` (None: from the next jump's own start): real I/O
+        ended a wait early, or the clock stood still."""
+        self._due = now
+
+
 class _PacedSelector:
     """Wraps the loop's selector: polls real I/O, then advances virtual time instead of sleeping."""
 
@@ -56,9 +87,14 @@ class _PacedSelector:
         if events or timeout == 0:
             return events
         loop = self._loop
+        pace = loop.pace
         if loop.pending_jobs:
+            if pace is not None:
+                pace.restart()
             return self._real.select(None)
         if timeout is None:
+            if pace is not None:
+                pace.restart()
             events = self._real.select(loop.idle_real_timeout)
             if not events and loop.idle_real_timeout is not None:
                 raise VirtualTimeStall(
@@ -66,13 +102,16 @@ class _PacedSelector:
                     f"scheduled and no I/O arrived within {loop.idle_real_timeout:g} s"
                 )
             return events
-        if loop.time_scale is None:
+        if pace is None:
             loop.advance(timeout)
             return []
         started = time.monotonic()
-        events = self._real.select(timeout / loop.time_scale)
+        wait = pace.wait(timeout, started)
+        events = self._real.select(wait) if wait > 0 else []
         if events:
-            loop.advance(min(timeout, (time.monotonic() - started) * loop.time_scale))
+            ended = time.monotonic()
+            loop.advance(min(timeout, (ended - started) * pace.time_scale))
+            pace.restart(ended)
         else:
             loop.advance(timeout)
         return events
@@ -105,6 +144,7 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
             self.close()
             raise ValueError(f"time_scale must be positive or None, got {time_scale!r}")
         self.time_scale = time_scale
+        self.pace = None if time_scale is None else Pace(time_scale)
         self.idle_real_timeout = idle_real_timeout
         self.pending_jobs = 0
         self._now = float(start)

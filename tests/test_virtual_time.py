@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import socket
 import threading
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from sim.clock import TasksLeftPending, VirtualTimeLoop, VirtualTimeStall, run_virtual
+from sim.clock import Pace, TasksLeftPending, VirtualTimeLoop, VirtualTimeStall, run_virtual
 
 
 def test_sleep_advances_the_virtual_clock_exactly():
@@ -136,3 +139,40 @@ def test_a_task_left_pending_fails_the_run_naming_it():
         return "done"
 
     assert run_virtual(tidy()) == "done"
+
+
+def _epoll_wait(seconds: float) -> float:
+    """What a wait costs on epoll, which waits whole milliseconds (rounded up)."""
+    return math.ceil(seconds * 1000.0) / 1000.0
+
+
+@given(st.lists(st.floats(1e-6, 0.2), min_size=1, max_size=400), st.floats(1.0, 100.0))
+def test_a_paced_clock_keeps_its_scale_with_jumps_shorter_than_the_selector_waits(
+        jumps: list[float], scale: float) -> None:
+    pace, now = Pace(scale), 0.0
+    for jump in jumps:
+        wait = pace.wait(jump, now)
+        assert wait >= 0.0
+        now += _epoll_wait(wait)
+    assert abs(now - sum(jumps) / scale) <= 0.001 + 1e-9
+    # Waited jump by jump, the same timeline would cost up to a millisecond per jump.
+    assert sum(_epoll_wait(j / scale) for j in jumps) >= now - 0.001
+
+
+@given(st.floats(0.06, 30.0), st.floats(0.01, 2.0), st.floats(1.0, 50.0))
+def test_a_paced_clock_that_fell_behind_paces_on_from_there_instead_of_racing(
+        stall_s: float, after_s: float, scale: float) -> None:
+    pace = Pace(scale, slack_s=0.05)
+    now = _epoll_wait(pace.wait(1.0, 0.0))  # on time
+    now += stall_s  # the loop could not run (a compute job, a loaded machine)
+    resumed = now
+    for _ in range(10):
+        now += _epoll_wait(pace.wait(after_s / 10, now))
+    assert abs((now - resumed) - after_s / scale) <= 0.001 + 1e-9
+
+
+def test_real_io_that_ends_a_wait_early_restarts_the_pace_there() -> None:
+    pace = Pace(10.0)
+    assert pace.wait(1.0, 0.0) == pytest.approx(0.1)
+    pace.restart(0.03)  # a control-socket client woke the loop 30 ms in
+    assert pace.wait(1.0, 0.03) == pytest.approx(0.1)

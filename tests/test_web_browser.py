@@ -242,10 +242,15 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
                                     " && e.previous === 'STORING')", 600)
             assert done["cause"] == "scan completed"
             wait_for(driver, "document.getElementById('report-link') !== null", 30)
-            outcome = driver.find_element("id", "last-outcome")  # in colour: green for complete
-            assert outcome.text == "COMPLETED" and outcome.value_of_css_property("background-color") == "rgba(220, 243, 227, 1)"
-            verified = int(driver.find_element("id", "verified").text)
-            assert verified == 336 and int(driver.find_element("id", "captured").text) == 336
+            # Read in one script: the console redraws these as status arrives (an element found
+            # before a redraw is stale after it).
+            shown = driver.execute_script(
+                "const text = id => document.getElementById(id).textContent;"
+                "const outcome = document.getElementById('last-outcome');"
+                "return {outcome: outcome.textContent, colour: getComputedStyle(outcome).backgroundColor,"
+                " verified: text('verified'), captured: text('captured')};")
+            assert shown["outcome"] == "COMPLETED" and shown["colour"] == "rgb(220, 243, 227)", shown  # green
+            assert int(shown["verified"]) == 336 and int(shown["captured"]) == 336, shown
             states = [e["state"] for e in driver.execute_script("return window.tbpConsole.events") if e["kind"] == "transition"]
             assert states == ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "STORING", "IDLE"]
             report = driver.find_element("id", "report-link").get_attribute("href")

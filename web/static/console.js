@@ -62,7 +62,13 @@ function showArchive(a) {
 
 // The last scan's outcome in colour (COMPLETED green, PARTIAL yellow, ABORTED orange, FAULTED
 // red), its images, and for each phone the images missing and why; phones dropped are named.
+// Drawn again only when it changes: a link replaced under the pointer between press and release
+// is never clicked.
+let lastShown;
 function showLast(last) {
+  const key = JSON.stringify(last ?? null);
+  if (key === lastShown) return;
+  lastShown = key;
   if (!last) { $("last").replaceChildren(); return; }
   const name = last.folder.split("/").pop();
   const phones = Object.entries(last.missing_by_phone || {}).map(([camera, reasons]) => el("li", {},
