@@ -46,8 +46,11 @@ def watch_keys(keys: Keys) -> Callable[[], None]:
         for key in data:
             if key in keys:
                 name, action = keys[key]
+                # Stamped before acting: the daemon may react (and, with its larger CPU share,
+                # run first) between the action's write and a stamp taken after it.
+                at = time.monotonic()
                 action()
-                print(f"{name} mono_s={time.monotonic():.6f}", flush=True)
+                print(f"{name} mono_s={at:.6f}", flush=True)
 
     loop.add_reader(fd, on_stdin)
     return lambda: loop.remove_reader(fd)
