@@ -131,6 +131,8 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """
 
     compute_stops_clock = True
+    pace: Pace | None
+    """How jumps are paced in real time (None: not at all); follows :attr:`time_scale`."""
 
     def __init__(
         self,
@@ -144,11 +146,19 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
             self.close()
             raise ValueError(f"time_scale must be positive or None, got {time_scale!r}")
         self.time_scale = time_scale
-        self.pace = None if time_scale is None else Pace(time_scale)
         self.idle_real_timeout = idle_real_timeout
         self.pending_jobs = 0
         self._now = float(start)
         self._selector = _PacedSelector(self._selector, self)  # type: ignore[has-type]
+
+    @property
+    def time_scale(self) -> float | None:
+        """Virtual seconds per real second (None: as fast as possible); may change while running."""
+        return None if self.pace is None else self.pace.time_scale
+
+    @time_scale.setter
+    def time_scale(self, scale: float | None) -> None:
+        self.pace = None if scale is None else Pace(scale)
 
     def time(self) -> float:
         return self._now

@@ -176,3 +176,25 @@ def test_real_io_that_ends_a_wait_early_restarts_the_pace_there() -> None:
     assert pace.wait(1.0, 0.0) == pytest.approx(0.1)
     pace.restart(0.03)  # a control-socket client woke the loop 30 ms in
     assert pace.wait(1.0, 0.03) == pytest.approx(0.1)
+
+
+def test_a_time_scale_set_while_running_paces_the_jumps_after_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    waits: list[tuple[float, float]] = []
+    wait = Pace.wait
+
+    def recorded(self: Pace, jump_s: float, now: float) -> float:
+        waits.append((self.time_scale, jump_s))
+        return wait(self, jump_s, now)
+
+    monkeypatch.setattr(Pace, "wait", recorded)
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        await asyncio.sleep(1.0)  # as fast as possible: no pace
+        loop.time_scale = 1000.0
+        await asyncio.sleep(0.5)
+        loop.time_scale = None
+        await asyncio.sleep(2.0)
+
+    run_virtual(main())
+    assert waits == [(1000.0, pytest.approx(0.5))]
