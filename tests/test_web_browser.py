@@ -248,8 +248,9 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
                 "const text = id => document.getElementById(id).textContent;"
                 "const outcome = document.getElementById('last-outcome');"
                 "return {outcome: outcome.textContent, colour: getComputedStyle(outcome).backgroundColor,"
-                " verified: text('verified'), captured: text('captured')};")
+                " verified: text('verified'), captured: text('captured'), last: text('last')};")
             assert shown["outcome"] == "COMPLETED" and shown["colour"] == "rgb(220, 243, 227)", shown  # green
+            assert "null" not in shown["last"], shown  # a complete scan has no reason to show, not "null"
             assert int(shown["verified"]) == 336 and int(shown["captured"]) == 336, shown
             states = [e["state"] for e in driver.execute_script("return window.tbpConsole.events") if e["kind"] == "transition"]
             assert states == ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "STORING", "IDLE"]

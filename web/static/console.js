@@ -14,6 +14,18 @@ let poses = 336;
 
 function pill(text, kind) { return el("span", { class: `pill ${kind}` }, text); }
 
+// A status box is drawn again only when what it shows changes (``data``, compared as JSON):
+// redrawn at every status, a link replaced under the pointer between press and release is
+// never clicked, and a fault's text cannot be selected and copied. ``build`` returns the box's
+// children; null ones are left out.
+const drawn = new Map();
+function redraw(id, data, build) {
+  const key = JSON.stringify(data ?? null);
+  if (drawn.get(id) === key) return;
+  drawn.set(id, key);
+  $(id).replaceChildren(...build().filter((child) => child !== null && child !== undefined));
+}
+
 function showState(name, cause) {
   state = name;
   $("state").replaceChildren(pill(name, states.job.includes(name) ? "busy" : name));
@@ -33,56 +45,54 @@ function showStatus(s) {
   $("speed").textContent = s.beam_speed_deg_s === null ? "–" : `${fmt(s.beam_speed_deg_s, 1)}°/s`;
   $("scan-id").textContent = s.scan_id || "";
   showJobTime(s.job_time);
-  const devices = $("devices");
-  devices.replaceChildren(
+  const present = s.beam_angle_deg !== null;
+  redraw("devices", [s.healthy, s.ready, present, s.devices], () => [
     el("div", {}, "Daemon ", pill(s.healthy ? "healthy" : "unhealthy", s.healthy ? "ok" : "bad")),
     el("div", {}, "Rig ", pill(s.ready ? "ready" : "NOT READY", s.ready ? "ok" : "bad")),
-    el("div", {}, "Beam drive ", pill(s.beam_angle_deg === null ? "no encoder" : "encoder live", s.beam_angle_deg === null ? "bad" : "ok")),
+    el("div", {}, "Beam drive ", pill(present ? "encoder live" : "no encoder", present ? "ok" : "bad")),
     ...(s.devices || []).map((d) => el("div", { class: "device", title: d.address },
-      `${d.device} `, pill(d.ok ? "answers" : "missing", d.ok ? "ok" : "bad"))));
+      `${d.device} `, pill(d.ok ? "answers" : "missing", d.ok ? "ok" : "bad")))]);
   const missing = (s.devices || []).filter((d) => !d.ok);
-  $("faults").replaceChildren(...s.fault_causes.map((c) => el("div", {}, `Fault: ${c.text || c.detail || c}`)),
+  redraw("faults", [s.fault_causes, missing, s.recovered_scans], () => [
+    ...s.fault_causes.map((c) => el("div", {}, `Fault: ${c.text || c.detail || c}`)),
     ...missing.map((d) => el("div", {}, `${d.device} (${d.address}): ${d.error || "not answering"}; ${d.check}`)),
-    ...(s.recovered_scans || []).map((r) => el("div", { class: "muted" }, `Recovered interrupted scan ${r.scan_id}: ${r.reason}`)));
+    ...(s.recovered_scans || []).map((r) => el("div", { class: "muted" }, `Recovered interrupted scan ${r.scan_id}: ${r.reason}`))]);
   showLast(s.last_scan);
   showArchive(s.archive);
 }
 
 // The export queue (when the site file names an archive): waiting, sending, sent, failed.
 function showArchive(a) {
-  const box = $("archive");
-  if (!a) { box.replaceChildren(); return; }
-  const c = a.counts;
-  const sending = a.sending ? `, sending ${a.sending.folder} (${a.sending.sent} / ${a.sending.total ?? "?"})` : "";
-  const retry = a.retry_in_s !== null ? `, next try in ${fmt(a.retry_in_s, 0)} s` : "";
-  box.replaceChildren(el("div", {}, "Archive ", pill(c.failed ? "failed" : c.pending || c.sending ? "waiting" : "up to date",
-    c.failed ? "bad" : "ok"), ` ${a.destination}: ${c.sent} sent, ${c.pending} waiting${sending}${retry}`),
-    ...a.problems.map((p) => el("div", { class: p.state === "failed" ? "error" : "muted" }, `${p.folder}: ${p.error}`)));
+  redraw("archive", a, () => {
+    if (!a) return [];
+    const c = a.counts;
+    const sending = a.sending ? `, sending ${a.sending.folder} (${a.sending.sent} / ${a.sending.total ?? "?"})` : "";
+    const retry = a.retry_in_s !== null ? `, next try in ${fmt(a.retry_in_s, 0)} s` : "";
+    return [el("div", {}, "Archive ", pill(c.failed ? "failed" : c.pending || c.sending ? "waiting" : "up to date",
+      c.failed ? "bad" : "ok"), ` ${a.destination}: ${c.sent} sent, ${c.pending} waiting${sending}${retry}`),
+    ...a.problems.map((p) => el("div", { class: p.state === "failed" ? "error" : "muted" }, `${p.folder}: ${p.error}`))];
+  });
 }
 
 // The last scan's outcome in colour (COMPLETED green, PARTIAL yellow, ABORTED orange, FAULTED
 // red), its images, and for each phone the images missing and why; phones dropped are named.
-// Drawn again only when it changes: a link replaced under the pointer between press and release
-// is never clicked.
-let lastShown;
 function showLast(last) {
-  const key = JSON.stringify(last ?? null);
-  if (key === lastShown) return;
-  lastShown = key;
-  if (!last) { $("last").replaceChildren(); return; }
-  const name = last.folder.split("/").pop();
-  const phones = Object.entries(last.missing_by_phone || {}).map(([camera, reasons]) => el("li", {},
-    `${camera}: ${Object.values(reasons).reduce((a, b) => a + b, 0)} missing (`,
-    Object.entries(reasons).map(([why, n]) => `${n} ${why.replace("_", " ")}`).join(", "), ")"));
-  const dropped = (last.dropped_phones || []).filter((d) => !d.rejoined)
-    .map((d) => el("li", {}, `${d.camera} dropped after ${d.failures} failed captures in a row (${d.pass_name} pass): ${d.first_error}`));
-  $("last").replaceChildren(el("b", {}, "Last scan "), `${last.scan_id} `,
-    el("span", { class: `pill ${last.outcome}`, id: "last-outcome" }, last.outcome),
-    ` ${last.verified} of ${last.verified + last.missing} images in the folder, ${last.missing} missing `,
-    el("a", { id: "report-link", href: `/scans/${encodeURIComponent(name)}/report/` }, "QA report"), " · ",
-    el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"),
-    last.reason ? el("div", { class: "why" }, last.reason) : null,
-    phones.length || dropped.length ? el("ul", { id: "last-missing", class: "why" }, ...phones, ...dropped) : null);
+  redraw("last", last, () => {
+    if (!last) return [];
+    const name = last.folder.split("/").pop();
+    const phones = Object.entries(last.missing_by_phone || {}).map(([camera, reasons]) => el("li", {},
+      `${camera}: ${Object.values(reasons).reduce((a, b) => a + b, 0)} missing (`,
+      Object.entries(reasons).map(([why, n]) => `${n} ${why.replace("_", " ")}`).join(", "), ")"));
+    const dropped = (last.dropped_phones || []).filter((d) => !d.rejoined)
+      .map((d) => el("li", {}, `${d.camera} dropped after ${d.failures} failed captures in a row (${d.pass_name} pass): ${d.first_error}`));
+    return [el("b", {}, "Last scan "), `${last.scan_id} `,
+      el("span", { class: `pill ${last.outcome}`, id: "last-outcome" }, last.outcome),
+      ` ${last.verified} of ${last.verified + last.missing} images in the folder, ${last.missing} missing `,
+      el("a", { id: "report-link", href: `/scans/${encodeURIComponent(name)}/report/` }, "QA report"), " · ",
+      el("a", { href: `/scans/${encodeURIComponent(name)}` }, "open in the viewer"),
+      last.reason ? el("div", { class: "why" }, last.reason) : null,
+      phones.length || dropped.length ? el("ul", { id: "last-missing", class: "why" }, ...phones, ...dropped) : null];
+  });
 }
 
 // An event's clock time: local wall time from its UTC stamp (not the daemon's loop seconds).
