@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import shutil
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -16,12 +17,13 @@ from pathlib import Path
 from typing import Any
 
 import trimesh
+import yaml
 
 from daemon.jobs.controller import RigController
 from daemon.jobs.scan import ScanReport, ScanSettings
 from daemon.records.store import ScanStore
 from daemon.rig.hardware import RigHardware
-from planner.rig import Rig, load_rig
+from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 from sim.clock import run_virtual
 from sim.rig import sim_depth_model
 from tests.daemon_mocks import MockPhone
@@ -35,12 +37,6 @@ def sparse_rig_file(folder: Path, captures_per_sector: int = 2) -> Path:
     pictures per speed sector (every phone, both speeds, the same sectors): for a test of a real
     daemon process that needs a whole scan's states, devices and folder but not the default
     rig's 336 rendered pictures, which take most of such a scan's time."""
-    import shutil
-
-    import yaml
-
-    from planner.rig import DEFAULT_RIG_PATH
-
     copy = folder / "rig"
     shutil.copytree(DEFAULT_RIG_PATH.parent, copy)
     path = copy / DEFAULT_RIG_PATH.name
