@@ -51,20 +51,24 @@ class CuboidScene:
 
     def radiance(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For rays from origin (3,) along (N, 3) float32 directions: grey value (N,), hit parameter t (N,)
-        and |cos incidence| (N,), float32."""
+        and |cos incidence| (N,), float32. A face whose plane the camera is behind is skipped (the
+        cuboid is convex: none of its rays can meet it)."""
         n = len(directions)
         best_t = np.full(n, np.inf, dtype=np.float32)
         grey = np.full(n, BACKGROUND_GREY, dtype=np.float32)
         cos_i = np.ones(n, dtype=np.float32)
-        length = np.sqrt(np.einsum("ij,ij->i", directions, directions))
         for face, b2w in enumerate(self.board_from_world):
-            o = b2w[:3, :3] @ origin + b2w[:3, 3]
-            dz = directions @ b2w[2, :3].astype(np.float32)
-            front = np.flatnonzero(dz > 1e-9)  # rays entering the board from outside
+            o = (b2w[:3, :3] @ origin + b2w[:3, 3]).astype(np.float32)
+            if o[2] >= 0.0:  # behind the board's plane (rays entering the board come from z < 0)
+                continue
+            rotation = b2w[:3, :3].astype(np.float32)
+            dz = directions @ rotation[2]
+            front = np.flatnonzero(dz > 1e-9)
+            along = (directions if len(front) == n else directions[front]) @ rotation[:2].T
             t = -o[2] / dz[front]
-            x = o[0] + t * (directions[front] @ b2w[0, :3].astype(np.float32))
-            y = o[1] + t * (directions[front] @ b2w[1, :3].astype(np.float32))
-            hit = (t > 0) & (t < best_t[front]) & (x >= 0) & (x <= self.board_w) & (y >= 0) & (y <= self.board_h)
+            x = o[0] + t * along[:, 0]
+            y = o[1] + t * along[:, 1]
+            hit = (t < best_t[front]) & (x >= 0) & (x <= self.board_w) & (y >= 0) & (y <= self.board_h)
             if not hit.any():
                 continue
             idx, t, x, y = front[hit], t[hit], x[hit], y[hit]
@@ -72,27 +76,32 @@ class CuboidScene:
             rows = -(-len(idx) // 4096)
             mx = np.zeros(rows * 4096, dtype=np.float32)
             my = np.zeros(rows * 4096, dtype=np.float32)
-            mx[: len(idx)] = x * self.px_per_mm - 0.5
-            my[: len(idx)] = y * self.px_per_mm - 0.5
+            mx[: len(idx)] = x * np.float32(self.px_per_mm) - np.float32(0.5)
+            my[: len(idx)] = y * np.float32(self.px_per_mm) - np.float32(0.5)
             value = cv2.remap(self.textures[face], mx.reshape(rows, 4096), my.reshape(rows, 4096),
                               cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             grey[idx] = value.ravel()[: len(idx)]
             best_t[idx] = t
-            cos_i[idx] = dz[idx] / length[idx]
-        # the unprinted top face and the floor
+            hits = directions[idx]
+            cos_i[idx] = dz[idx] / np.sqrt(np.einsum("ij,ij->i", hits, hits))
+        # the unprinted top face, seen only from above it, and the floor
         c2w = invert(self.world_from_cuboid)
-        o = c2w[:3, :3] @ origin + c2w[:3, 3]
-        dz = directions @ c2w[2, :3].astype(np.float32)
-        down = np.flatnonzero(dz < 0)
-        t = (self.target.size_mm[2] - o[2]) / dz[down]
-        x = o[0] + t * (directions[down] @ c2w[0, :3].astype(np.float32))
-        y = o[1] + t * (directions[down] @ c2w[1, :3].astype(np.float32))
-        top = (t > 0) & (t < best_t[down]) & (np.abs(x) <= self.half_size[0]) & (np.abs(y) <= self.half_size[1])
-        grey[down[top]], best_t[down[top]] = SIDE_GREY, t[top]
-        down = np.flatnonzero(directions[:, 2] < 0)
-        t = -origin[2] / directions[down, 2]
-        floor = (t > 0) & (t < best_t[down])
-        grey[down[floor]], best_t[down[floor]] = FLOOR_GREY, t[floor]
+        o = (c2w[:3, :3] @ origin + c2w[:3, 3]).astype(np.float32)
+        if o[2] > self.target.size_mm[2]:
+            rotation = c2w[:3, :3].astype(np.float32)
+            dz = directions @ rotation[2]
+            down = np.flatnonzero(dz < 0)
+            along = directions[down] @ rotation[:2].T
+            t = (np.float32(self.target.size_mm[2]) - o[2]) / dz[down]
+            x = o[0] + t * along[:, 0]
+            y = o[1] + t * along[:, 1]
+            top = (t < best_t[down]) & (np.abs(x) <= self.half_size[0]) & (np.abs(y) <= self.half_size[1])
+            grey[down[top]], best_t[down[top]] = SIDE_GREY, t[top]
+        if origin[2] > 0.0:
+            down = np.flatnonzero(directions[:, 2] < 0)
+            t = np.float32(-origin[2]) / directions[down, 2]
+            floor = t < best_t[down]
+            grey[down[floor]], best_t[down[floor]] = FLOOR_GREY, t[floor]
         return grey, best_t, cos_i
 
 

@@ -140,7 +140,7 @@ class PhoneRenderer:
         levels = np.array(BLUR_LEVELS_PX)
         index = np.searchsorted((levels[1:] + levels[:-1]) / 2, coc_px)
         out = rgb.copy()
-        for i in np.unique(index):
+        for i in np.flatnonzero(np.bincount(index.ravel(), minlength=len(levels))):  # the levels in use
             if levels[i] == 0:
                 continue
             mask = index == i
