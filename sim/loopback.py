@@ -22,6 +22,7 @@ import contextlib
 import errno
 import functools
 import grp
+import hashlib
 import json
 import math
 import os
@@ -146,8 +147,10 @@ def _tbp(*args: str) -> list[str]:
 
 def record_depth(rig_path: Path, body_seed: int, decimation: int, log: Callable[[str], None] = print) -> Path:
     """The simulated depth cameras' sweep of body ``body_seed`` as RealSense recordings, made once
-    and kept in ~/.cache/tbp/recordings (about a minute the first time)."""
-    folder = RECORDINGS_CACHE / f"body{body_seed}-d{decimation}"
+    per depth cameras and sweep and kept in ~/.cache/tbp/recordings (about a minute the first time)."""
+    rig = load_rig(rig_path)
+    depth = hashlib.sha256(repr((rig.depth_cameras, rig.depth_sweep)).encode()).hexdigest()[:12]
+    folder = RECORDINGS_CACHE / f"body{body_seed}-d{decimation}-{depth}"
     if (folder / "complete").is_file():
         return folder
     partial = folder.with_name(folder.name + f".partial{os.getpid()}")
