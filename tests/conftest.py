@@ -21,16 +21,13 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Tiers and xdist groups that follow from a test's fixtures and markers (before ``-m``
-    selects): a test of the shared simulated scan (``web_store``) is slow, and all of them run on
-    one xdist worker, which makes that scan once; every realtime test runs on one worker, one
-    after the other, so no two of them compete for the cores."""
+    """Tiers and xdist groups that follow from a test's fixtures (before ``-m`` selects): a test
+    of the shared simulated scan (``web_store``) is slow, and all of them run on one xdist worker,
+    which makes that scan once."""
     for item in items:
-        if item.get_closest_marker("realtime"):
-            item.add_marker(pytest.mark.xdist_group("realtime"))
-        elif "web_store" in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.slow)
+        if "web_store" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.xdist_group("web_store"))
+            item.add_marker(pytest.mark.slow)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
