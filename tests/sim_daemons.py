@@ -20,10 +20,11 @@ REPO = Path(__file__).resolve().parent.parent
 
 class SimDaemon:
     """One simulated rig's daemon under ``root`` (store ``root/scans``, socket ``root/control.sock``,
-    its output in ``root/daemon.log``); ``http``: serve the console on 127.0.0.1 at that port."""
+    its output in ``root/daemon.log``); ``http``: serve the console on 127.0.0.1 at that port;
+    ``rig``: a rig file other than the default rig's."""
 
     def __init__(self, root: Path, *, site: dict[str, Any] | None = None, log_level: str = "info",
-                 time_scale: float = 50.0, seed: int = 1, http: int | None = None) -> None:
+                 time_scale: float = 50.0, seed: int = 1, http: int | None = None, rig: Path | None = None) -> None:
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         self.store = root / "scans"
@@ -35,6 +36,8 @@ class SimDaemon:
                    "--subject", str(subject), "--plan-points", str(PLAN_POINTS), "--depth-decimation", "4",
                    "--time-scale", str(time_scale), "--http", "off" if http is None else f"127.0.0.1:{http}", "--log-level", log_level, "--no-panel",
                    "--seed", str(seed)]
+        if rig is not None:
+            command += ["--rig", str(rig)]
         if site is not None:
             (root / "site.yaml").write_text(yaml.safe_dump(site))
             command += ["--site", str(root / "site.yaml")]

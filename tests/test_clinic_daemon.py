@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.daemon_rigs import sparse_rig_file
 from tests.sim_daemons import SimDaemon
 
 pytestmark = pytest.mark.slow
@@ -18,7 +19,8 @@ FAMILY, GIVEN = "Nevershown", "Quintessa"
 
 
 def test_a_scan_for_a_patient_keeps_them_in_the_manifest_and_out_of_the_logs(tmp_path: Path):
-    daemon = SimDaemon(tmp_path / "rig", log_level="debug")
+    # A scan's patient, folder and logs, not its pictures: two per speed sector.
+    daemon = SimDaemon(tmp_path / "rig", log_level="debug", rig=sparse_rig_file(tmp_path / "config"))
     try:
         folder = daemon.scan("--patient-id", PATIENT_ID, "--patient-name", f"{FAMILY}^{GIVEN}",
                              "--birth-date", "1975-06-30", "--accession-number", "ACC4711")

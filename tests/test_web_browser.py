@@ -205,15 +205,18 @@ def _free_port() -> int:
 
 @pytest.mark.realtime
 def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
-    from tests.daemon_rigs import PLAN_POINTS, capsule_subject
+    from planner.rig import load_rig
+    from tests.daemon_rigs import PLAN_POINTS, capsule_subject, sparse_rig_file
 
     subject = tmp_path / "subject.ply"
     capsule_subject().export(subject)
+    rig = sparse_rig_file(tmp_path)  # the console's whole scan, two pictures per speed sector
+    poses = load_rig(rig).n_poses
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     daemon = subprocess.Popen(
-        [str(Path(sys.executable).with_name("tbp")), "daemon", "--sim", "--store", str(tmp_path / "scans"),
-         "--socket", str(tmp_path / "control.sock"), "--subject", str(subject), "--plan-points", str(PLAN_POINTS),
+        [str(Path(sys.executable).with_name("tbp")), "daemon", "--sim", "--rig", str(rig), "--store",
+         str(tmp_path / "scans"), "--socket", str(tmp_path / "control.sock"), "--subject", str(subject), "--plan-points", str(PLAN_POINTS),
          "--depth-decimation", "4", "--time-scale", "20", "--http", f"127.0.0.1:{port}", "--log-level", "warning"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=Path(__file__).resolve().parent.parent)
     try:
@@ -251,7 +254,7 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
                 " verified: text('verified'), captured: text('captured'), last: text('last')};")
             assert shown["outcome"] == "COMPLETED" and shown["colour"] == "rgb(220, 243, 227)", shown  # green
             assert "null" not in shown["last"], shown  # a complete scan has no reason to show, not "null"
-            assert int(shown["verified"]) == 336 and int(shown["captured"]) == 336, shown
+            assert int(shown["verified"]) == poses and int(shown["captured"]) == poses, shown
             states = [e["state"] for e in driver.execute_script("return window.tbpConsole.events") if e["kind"] == "transition"]
             assert states == ["PREPARING", "DEPTH_SWEEP", "RECONSTRUCTING", "PLANNING", "CAPTURING", "STORING", "IDLE"]
             report = driver.find_element("id", "report-link").get_attribute("href")
