@@ -98,3 +98,25 @@ def test_a_peer_that_closes_without_answering_is_unreachable():
         with pytest.raises(PeerUnreachable, match="no association"):
             associate("TBPRIG1", Peer(host="127.0.0.1", port=port, called_aet="RISWL"),
                       [(WORKLIST_FIND, [EXPLICIT_LE])], timeout_s=5.0)
+
+
+def test_requests_are_sent_without_waiting_for_the_peers_delayed_ack():
+    """An established association writes with TCP_NODELAY: with Nagle's algorithm each DIMSE
+    request's last segment waits for the peer's delayed ACK (about 40 ms a C-STORE)."""
+    from pynetdicom import AE
+
+    verification = "1.2.840.10008.1.1"
+    scp = AE(ae_title="PACS")
+    scp.add_supported_context(verification, [EXPLICIT_LE])
+    server = scp.start_server(("127.0.0.1", 0), block=False)
+    try:
+        port = server.server_address[1]
+        assoc = associate("TBPRIG1", Peer(host="127.0.0.1", port=port, called_aet="PACS"),
+                          [(verification, [EXPLICIT_LE])], timeout_s=5.0)
+        try:
+            assert assoc.dul.socket.socket.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+            assert int(assoc.send_c_echo().Status) == 0
+        finally:
+            assoc.release()
+    finally:
+        server.shutdown()
