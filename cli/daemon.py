@@ -84,13 +84,12 @@ def _serve(args: argparse.Namespace) -> int:
             print(f"tbp daemon: {exc}", file=sys.stderr)
             return 2
         attach = _web(args, access, attach)
-    from analysis.qa_report import generate_report
+    from analysis.body_texture import report_and_body
 
     if not args.sim:
-        return _real(args, socket_path, group, generate_report, attach)
+        return _real(args, socket_path, group, report_and_body, attach)
     import asyncio
 
-    from analysis.body_texture import report_and_body
     from sim.clock import VirtualTimeLoop
     from sim.run import sim_service
 

@@ -68,6 +68,8 @@ def test_a_scan_started_from_the_panel_completes_on_the_real_code_path(tmp_path:
         manifest = _manifest(folder)
         assert not manifest.in_progress
         assert manifest.counts()["verified"] == rig.rig.n_poses
+        # The dermatologist's photographic body, written in STORING on the real code path too.
+        assert "body" in manifest.files and (folder / manifest.files["body"]).stat().st_size > 0
         check = subprocess.run([sys.executable, "-m", "cli", "scans", "--store", str(rig.store), "--check"],
                                capture_output=True, text=True, timeout=120)
         assert check.returncode == 0, check.stdout + check.stderr
