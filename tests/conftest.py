@@ -19,15 +19,21 @@ settings.register_profile("explore", derandomize=False, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+LONGEST_FIRST = frozenset({"test_loopback_rig.py"})
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Tiers and xdist groups that follow from a test's fixtures (before ``-m`` selects): a test
-    of the shared simulated scan (``web_store``) is slow, and all of them run on one xdist worker,
-    which makes that scan once."""
+    """Tiers, xdist groups and order (before ``-m`` selects): a test of the shared simulated scan
+    (``web_store``) is slow, and all of them run on one xdist worker, which makes that scan once."""
     for item in items:
         if "web_store" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.xdist_group("web_store"))
             item.add_marker(pytest.mark.slow)
+    # The longest tests start first, one per worker, so the workers end together: the loopback
+    # rig's take minutes each at the beam's real speeds, and collected in file order both went to
+    # one worker while the other ran out of tests.
+    items.sort(key=lambda item: item.path.name not in LONGEST_FIRST)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
