@@ -145,10 +145,9 @@ def _tbp(*args: str) -> list[str]:
     return [sys.executable, "-m", "cli", *args]
 
 
-def record_depth(rig_path: Path, body_seed: int, decimation: int, log: Callable[[str], None] = print) -> Path:
+def record_depth(rig: Rig, body_seed: int, decimation: int, log: Callable[[str], None] = print) -> Path:
     """The simulated depth cameras' sweep of body ``body_seed`` as RealSense recordings, made once
     per depth cameras and sweep and kept in ~/.cache/tbp/recordings (about a minute the first time)."""
-    rig = load_rig(rig_path)
     depth = hashlib.sha256(repr((rig.depth_cameras, rig.depth_sweep)).encode()).hexdigest()[:12]
     folder = RECORDINGS_CACHE / f"body{body_seed}-d{decimation}-{depth}"
     if (folder / "complete").is_file():
@@ -156,7 +155,7 @@ def record_depth(rig_path: Path, body_seed: int, decimation: int, log: Callable[
     partial = folder.with_name(folder.name + f".partial{os.getpid()}")
     partial.mkdir(parents=True, exist_ok=True)
     log(f"recording the simulated depth sweep of body {body_seed} into {folder} (once)")
-    subprocess.run(_tbp("depth", "--rig", str(rig_path), "record", "--sim", "--out", str(partial),
+    subprocess.run(_tbp("depth", "--rig", rig.path, "record", "--sim", "--out", str(partial),
                         "--body-seed", str(body_seed), "--decimation", str(decimation)),
                    check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     (partial / "complete").write_text("")
@@ -287,7 +286,7 @@ class LoopbackRig:
 
     def start_simulators(self) -> None:
         rig = str(self.rig_path)
-        recordings = record_depth(self.rig_path, self.body_seed, self.decimation, self.say)
+        recordings = record_depth(self.rig, self.body_seed, self.decimation, self.say)
         if "drive" in self.missing:
             self.bridge_port = free_port()
         else:

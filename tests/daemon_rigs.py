@@ -32,19 +32,28 @@ RIG = load_rig()
 PLAN_POINTS = 1500
 
 
+def _rig_file_copy(folder: Path, edit: Callable[[dict[str, Any]], None]) -> Path:
+    """A copy of the default rig's folder in ``folder``/rig whose rig file ``edit`` changed."""
+    copy = folder / "rig"
+    shutil.copytree(DEFAULT_RIG_PATH.parent, copy)
+    path = copy / DEFAULT_RIG_PATH.name
+    config = yaml.safe_load(path.read_text())
+    edit(config)
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
 def sparse_rig_file(folder: Path, captures_per_sector: int = 2) -> Path:
     """A copy of the default rig's folder in ``folder`` whose rig file takes ``captures_per_sector``
     pictures per speed sector (every phone, both speeds, the same sectors): for a test of a real
     daemon process that needs a whole scan's states, devices and folder but not the default
     rig's 336 rendered pictures, which take most of such a scan's time."""
-    copy = folder / "rig"
-    shutil.copytree(DEFAULT_RIG_PATH.parent, copy)
-    path = copy / DEFAULT_RIG_PATH.name
-    config = yaml.safe_load(path.read_text())
-    for sector in config["capture"]["sectors"]:
-        sector["captures"] = min(sector["captures"], captures_per_sector)
-    path.write_text(yaml.safe_dump(config, sort_keys=False))
-    return path
+
+    def sparse(config: dict[str, Any]) -> None:
+        for sector in config["capture"]["sectors"]:
+            sector["captures"] = min(sector["captures"], captures_per_sector)
+
+    return _rig_file_copy(folder, sparse)
 
 
 def fast_rig_file(folder: Path) -> Path:
@@ -52,17 +61,15 @@ def fast_rig_file(folder: Path) -> Path:
     in every sector (a 1/1000 s exposure keeps the motion blur within the rig's bound), one
     picture per 10 deg: the turn takes 20 s instead of 80. For a real-time test of the daemon's
     faults and stops, which needs whole scans, not the default rig's slow sectors."""
-    copy = folder / "rig"
-    shutil.copytree(DEFAULT_RIG_PATH.parent, copy)
-    path = copy / DEFAULT_RIG_PATH.name
-    config = yaml.safe_load(path.read_text())
-    config["optics"]["exposure_s"] = 0.001
-    for sector in config["capture"]["sectors"]:
-        span = sector["end_deg"] - sector["start_deg"]
-        sector.update(speed_deg_s=18.0, capture_step_deg=10.0, first_capture_deg=sector["start_deg"] + 5.0,
-                      captures=int(span // 10.0))
-    path.write_text(yaml.safe_dump(config, sort_keys=False))
-    return path
+
+    def fast(config: dict[str, Any]) -> None:
+        config["optics"]["exposure_s"] = 0.001
+        for sector in config["capture"]["sectors"]:
+            span = sector["end_deg"] - sector["start_deg"]
+            sector.update(speed_deg_s=18.0, capture_step_deg=10.0, first_capture_deg=sector["start_deg"] + 5.0,
+                          captures=int(span // 10.0))
+
+    return _rig_file_copy(folder, fast)
 
 
 def capsule_subject() -> trimesh.Trimesh:
