@@ -48,6 +48,7 @@ class CuboidScene:
         self.top_normal = world_from_cuboid[:3, 2]
         self.half_size = np.array(target.size_mm[:2]) / 2
         self.world_from_cuboid = world_from_cuboid
+        self.cuboid_from_world = invert(world_from_cuboid)
 
     def radiance(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For rays from origin (3,) along (N, 3) float32 directions: grey value (N,), hit parameter t (N,)
@@ -58,16 +59,11 @@ class CuboidScene:
         grey = np.full(n, BACKGROUND_GREY, dtype=np.float32)
         cos_i = np.ones(n, dtype=np.float32)
         for face, b2w in enumerate(self.board_from_world):
-            o = (b2w[:3, :3] @ origin + b2w[:3, 3]).astype(np.float32)
-            if o[2] >= 0.0:  # behind the board's plane (rays entering the board come from z < 0)
+            # the print faces out of the cuboid: rays meet it from the board's z < 0 side
+            meeting = _plane_hits(b2w, origin, directions, 0.0, from_below=True)
+            if meeting is None:
                 continue
-            rotation = b2w[:3, :3].astype(np.float32)
-            dz = directions @ rotation[2]
-            front = np.flatnonzero(dz > 1e-9)
-            along = (directions if len(front) == n else directions[front]) @ rotation[:2].T
-            t = -o[2] / dz[front]
-            x = o[0] + t * along[:, 0]
-            y = o[1] + t * along[:, 1]
+            front, t, x, y, dz = meeting
             hit = (t < best_t[front]) & (x >= 0) & (x <= self.board_w) & (y >= 0) & (y <= self.board_h)
             if not hit.any():
                 continue
@@ -85,16 +81,9 @@ class CuboidScene:
             hits = directions[idx]
             cos_i[idx] = dz[idx] / np.sqrt(np.einsum("ij,ij->i", hits, hits))
         # the unprinted top face, seen only from above it, and the floor
-        c2w = invert(self.world_from_cuboid)
-        o = (c2w[:3, :3] @ origin + c2w[:3, 3]).astype(np.float32)
-        if o[2] > self.target.size_mm[2]:
-            rotation = c2w[:3, :3].astype(np.float32)
-            dz = directions @ rotation[2]
-            down = np.flatnonzero(dz < 0)
-            along = directions[down] @ rotation[:2].T
-            t = (np.float32(self.target.size_mm[2]) - o[2]) / dz[down]
-            x = o[0] + t * along[:, 0]
-            y = o[1] + t * along[:, 1]
+        meeting = _plane_hits(self.cuboid_from_world, origin, directions, self.target.size_mm[2], from_below=False)
+        if meeting is not None:
+            down, t, x, y, _dz = meeting
             top = (t < best_t[down]) & (np.abs(x) <= self.half_size[0]) & (np.abs(y) <= self.half_size[1])
             grey[down[top]], best_t[down[top]] = SIDE_GREY, t[top]
         if origin[2] > 0.0:
@@ -103,6 +92,23 @@ class CuboidScene:
             floor = t < best_t[down]
             grey[down[floor]], best_t[down[floor]] = FLOOR_GREY, t[floor]
         return grey, best_t, cos_i
+
+
+def _plane_hits(local_from_world: np.ndarray, origin: np.ndarray, directions: np.ndarray, height: float, *,
+                from_below: bool) -> tuple[np.ndarray, ...] | None:
+    """The rays from ``origin`` (3,) along ``directions`` (N, 3) float32 that meet the plane
+    z = ``height`` of a local frame from below it (``from_below``) or from above: their indices,
+    hit parameters t and local x, y, and every ray's local z component (N,); None when the origin
+    is on the other side (no ray can meet the plane from this one)."""
+    o = (local_from_world[:3, :3] @ origin + local_from_world[:3, 3]).astype(np.float32)
+    if (o[2] >= height) if from_below else (o[2] <= height):
+        return None
+    rotation = local_from_world[:3, :3].astype(np.float32)
+    dz = directions @ rotation[2]
+    rays = np.flatnonzero(dz > 1e-9 if from_below else dz < 0)
+    along = (directions if len(rays) == len(directions) else directions[rays]) @ rotation[:2].T
+    t = (np.float32(height) - o[2]) / dz[rays]
+    return rays, t, o[0] + t * along[:, 0], o[1] + t * along[:, 1], dz
 
 
 def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
