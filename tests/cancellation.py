@@ -165,7 +165,7 @@ def run_trials(trials: Sequence[Trial], store: Path, *, seed: int = 0) -> list[T
 
 
 async def _session(todo: list[Trial], store: Path, results: list[TrialResult], seed: int) -> None:
-    hardware, _world = await build_rig(SHORT_RIG, seed, phone=SlowPullPhone, depth_decimation=8)
+    hardware, _world = await build_rig(SHORT_RIG, seed, phone=SlowPullPhone, depth_decimation=16)
     with ThreadPoolExecutor(max_workers=1) as executor:
         controller = RigController(SHORT_RIG, hardware, ScanStore(store), settings=ScanSettings(
             executor=executor, seed=seed, plan_points=PLAN_POINTS))
