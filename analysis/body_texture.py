@@ -351,17 +351,18 @@ def write_body(scan_dir: Path | str, *, rig_path: Path | str | None = None, texe
     return scan.folder.write_body(glb_bytes(body))
 
 
-def report_and_body(scan_dir: Path | str, *, rig_path: Path | str | None = None) -> Path:
+def report_and_body(scan_dir: Path | str, *, rig_path: Path | str | None = None,
+                    texel_mm: float | None = None) -> Path:
     """The scan's QA report, then its textured body when it has a mesh and an image to texture
     it from (a scan stopped before its sweep or capture has none): the step after a scan (the
     daemon's ``qa_report`` hook); returns the report's page. The report is written first, so a
-    texture that fails leaves it in place."""
+    texture that fails leaves it in place. texel_mm: the body's texel (None: from the images)."""
     from analysis.qa_report import generate_report
 
     page = generate_report(scan_dir, rig_path=rig_path)
     scan = open_scan(scan_dir, rig_path)
     if "mesh" in scan.manifest.files and any(scan.image_on_disk(i) for i in scan.images):
-        write_body(scan_dir, rig_path=rig_path)
+        write_body(scan_dir, rig_path=rig_path, texel_mm=texel_mm)
     return page
 
 

@@ -14,6 +14,7 @@ the real rig.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--group", default=None, help="group of the control socket (default $TBP_CONTROL_GROUP)")
     options.time_scale(parser, 1.0)
     options.plan_points(parser)
+    options.body_texel(parser)
     parser.add_argument("--http", default=DEFAULT_HTTP, metavar="HOST:PORT",
                         help=f"web viewer and console address (default {DEFAULT_HTTP}: this machine only); "
                              "'off' serves none")
@@ -65,6 +67,9 @@ def _serve(args: argparse.Namespace) -> int:
     from daemon.server.control import default_group, default_socket
     from planner.rig import RigConfigError
 
+    if problem := options.texel_problem("--body-texel-mm", args.body_texel_mm):
+        print(f"tbp daemon: {problem}", file=sys.stderr)
+        return 2
     socket_path = args.socket or default_socket()
     group = args.group or default_group()
     try:
@@ -86,8 +91,9 @@ def _serve(args: argparse.Namespace) -> int:
         attach = _web(args, access, attach)
     from analysis.body_texture import report_and_body
 
+    after_scan = functools.partial(report_and_body, texel_mm=args.body_texel_mm)
     if not args.sim:
-        return _real(args, socket_path, group, report_and_body, attach)
+        return _real(args, socket_path, group, after_scan, attach)
     import asyncio
 
     from sim.clock import VirtualTimeLoop
@@ -97,7 +103,7 @@ def _serve(args: argparse.Namespace) -> int:
         return runner.run(sim_service(
             config=args.rig, store=options.store_root(args), socket_path=socket_path, seed=args.seed,
             plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
-            subject_path=args.subject, panel=not args.no_panel, qa_report=report_and_body, attach=attach,
+            subject_path=args.subject, panel=not args.no_panel, qa_report=after_scan, attach=attach,
             lesion_changes=args.lesion_changes,
         ))
 

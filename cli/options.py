@@ -122,6 +122,24 @@ def simulated_rig(parser: argparse.ArgumentParser) -> None:
                              "and new ones appeared, chosen by SEED (default: the skin as it is)")
 
 
+TEXEL_RANGE_MM = (0.05, 50.0)
+
+
+def body_texel(parser: argparse.ArgumentParser) -> None:
+    """``--body-texel-mm``: the texel of the textured body written after each scan."""
+    parser.add_argument("--body-texel-mm", type=float, default=None, metavar="MM",
+                        help="texel side on the skin of the textured body written after each scan "
+                             "(default: 0.7 of the best images' mm per pixel there; coarser is faster)")
+
+
+def texel_problem(flag: str, value: float | None) -> str | None:
+    """What is wrong with a texel option's value (None: nothing; None as the value is the default)."""
+    low, high = TEXEL_RANGE_MM
+    if value is not None and not low <= value <= high:
+        return f"{flag} {value:g}: expected {low:g} to {high:g} mm"
+    return None
+
+
 def lesion_changes(text: str) -> Any:
     """``--lesion-changes SEED``: the seeded LesionChanges (drivers/sim/skin_texture.py)."""
     from drivers.sim.skin_texture import LesionChanges, LesionChangesError

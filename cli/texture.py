@@ -38,8 +38,8 @@ def run(args: argparse.Namespace) -> int:
     def progress(text: str) -> None:
         print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
 
-    if args.texel_mm is not None and not 0.05 <= args.texel_mm <= 50.0:
-        print(f"tbp texture: --texel-mm {args.texel_mm}: expected 0.05 to 50 mm", file=sys.stderr)
+    if problem := options.texel_problem("--texel-mm", args.texel_mm):
+        print(f"tbp texture: {problem}", file=sys.stderr)
         return 2
     try:
         path = write_body(args.scan_dir, rig_path=args.rig, texel_mm=args.texel_mm, progress=progress)

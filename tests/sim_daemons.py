@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from tests.daemon_rigs import PLAN_POINTS, capsule_subject
+from tests.daemon_rigs import BODY_TEXEL_MM, PLAN_POINTS, capsule_subject
 
 TBP = str(Path(sys.executable).with_name("tbp"))
 REPO = Path(__file__).resolve().parent.parent
@@ -33,7 +33,7 @@ class SimDaemon:
         subject = root / "subject.ply"
         capsule_subject().export(subject)
         command = [TBP, "daemon", "--sim", "--store", str(self.store), "--socket", str(self.socket),
-                   "--subject", str(subject), "--plan-points", str(PLAN_POINTS), "--depth-decimation", "4",
+                   "--subject", str(subject), "--plan-points", str(PLAN_POINTS), "--depth-decimation", "4", "--body-texel-mm", BODY_TEXEL_MM,
                    "--time-scale", str(time_scale), "--http", "off" if http is None else f"127.0.0.1:{http}", "--log-level", log_level, "--no-panel",
                    "--seed", str(seed)]
         if rig is not None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from daemon.records.store import read_folder
+from tests.daemon_rigs import sparse_rig_file
 from tests.dicom_services import Orthanc
 from tests.sim_daemons import SimDaemon
 
@@ -31,8 +32,10 @@ def test_orthanc_killed_mid_export_and_the_daemon_restarted_the_study_arrives_on
     server = Orthanc(tmp_path / "orthanc").start()
     site = {"ae_title": "TBPRIG1", "archive": {"pacs": {"host": "127.0.0.1", "port": server.dicom_port,
                                                         "called_aet": "ORTHANC"},
-                                               "retry": {"first_s": 5, "max_s": 30}}}
-    daemon = SimDaemon(tmp_path / "rig", site=site)
+                                               "retry": {"first_s": 1, "max_s": 4}}}
+    # four pictures per speed sector (112 in all): enough for the archive to go down mid-export
+    rig = sparse_rig_file(tmp_path / "config", captures_per_sector=4)
+    daemon = SimDaemon(tmp_path / "rig", site=site, rig=rig)
     try:
         folder = daemon.scan("--patient-id", "SYN-QUEUE-1", "--patient-name", "Testperson^Queue")
         study = read_folder(folder).manifest.study.study_instance_uid
@@ -43,7 +46,7 @@ def test_orthanc_killed_mid_export_and_the_daemon_restarted_the_study_arrives_on
         problem = wait_until("the outage shown", lambda: daemon.status()["archive"]["problems"])
         assert "ORTHANC@127.0.0.1" in problem[0]["error"], problem
         assert daemon.stop() == 0
-        daemon = SimDaemon(tmp_path / "rig", site=site)  # the same store: the queue is on disk
+        daemon = SimDaemon(tmp_path / "rig", site=site, rig=rig)  # the same store: the queue is on disk
         # The study is queued again from disk: waiting, or already being tried against the archive
         # that is still down (which of the two depends on when this status is read).
         counts = daemon.status()["archive"]["counts"]

@@ -142,3 +142,41 @@ def test_a_bad_lesion_changes_seed_is_refused_naming_it(value: str, said: str,
     with pytest.raises(SystemExit) as exited:
         build_parser().parse_args(["scan", "--sim", "--lesion-changes", value])
     assert exited.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_the_daemons_body_texel_reaches_the_textured_body_written_after_each_scan(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """``tbp daemon --body-texel-mm`` is the texel of the body the daemon textures after a scan
+    (the step it runs in STORING); without it the texel follows the images."""
+    from types import SimpleNamespace
+
+    import analysis.body_texture
+    import analysis.qa_report
+    import sim.run
+
+    hooks: list[object] = []
+
+    async def service(**kwargs: object) -> int:
+        hooks.append(kwargs["qa_report"])
+        return 0
+
+    textured: list[object] = []
+    monkeypatch.setattr(sim.run, "sim_service", service)
+    monkeypatch.setattr(analysis.qa_report, "generate_report", lambda folder, rig_path=None: folder / "qa.html")
+    monkeypatch.setattr(analysis.body_texture, "open_scan", lambda folder, rig_path=None: SimpleNamespace(
+        manifest=SimpleNamespace(files={"mesh": "mesh.ply"}), images=["a"], image_on_disk=lambda image: True))
+    monkeypatch.setattr(analysis.body_texture, "write_body",
+                        lambda folder, rig_path=None, texel_mm=None: textured.append(texel_mm))
+    common = ["daemon", "--sim", "--http", "off", "--store", str(tmp_path), "--socket", str(tmp_path / "c.sock")]
+    for given in (["--body-texel-mm", "2.5"], []):
+        args = build_parser().parse_args(common + given)
+        assert args.func(args) == 0
+        hooks[-1](tmp_path)
+    assert textured == [2.5, None]
+
+
+@pytest.mark.parametrize("value", ["0", "80", "-1"])
+def test_a_body_texel_out_of_range_is_refused_naming_it(value: str, capsys: pytest.CaptureFixture[str]) -> None:
+    args = build_parser().parse_args(["daemon", "--sim", "--body-texel-mm", value])
+    assert args.func(args) == 2
+    assert f"--body-texel-mm {float(value):g}: expected 0.05 to 50 mm" in capsys.readouterr().err

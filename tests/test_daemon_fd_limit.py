@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from daemon.server.control import CommandFailed, ControlClient, DaemonUnavailable
-from tests.daemon_rigs import capsule_subject, sparse_rig_file
+from tests.daemon_rigs import BODY_TEXEL_MM, capsule_subject, sparse_rig_file
 from tests.test_daemon_restart import TBP, _ready
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
@@ -79,7 +79,7 @@ def test_three_hundred_connections_under_a_256_descriptor_limit(tmp_path: Path) 
     capsule_subject().export(subject)
     cmd = [TBP, "daemon", "--sim", "--rig", str(sparse_rig_file(tmp_path)), "--no-panel", "--subject", str(subject),
            "--socket", str(sock),
-           "--store", str(store), "--time-scale", "10", "--plan-points", "1500", "--depth-decimation", "4",
+           "--store", str(store), "--time-scale", "10", "--plan-points", "1500", "--depth-decimation", "4", "--body-texel-mm", BODY_TEXEL_MM,
            "--log-level", "warning", "--http", "off"]
     limited = ["sh", "-c", f'ulimit -n {LIMIT} && exec "$@"', "sh", *cmd]  # as the probe did; no preexec_fn
     proc = subprocess.Popen(limited, stdout=log.open("ab"), stderr=subprocess.STDOUT,

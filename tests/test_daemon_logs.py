@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from daemon.server.control import ControlClient, DaemonUnavailable
-from tests.daemon_rigs import PLAN_POINTS, capsule_subject, sparse_rig_file
+from tests.daemon_rigs import BODY_TEXEL_MM, PLAN_POINTS, capsule_subject, sparse_rig_file
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
@@ -46,7 +46,7 @@ def test_the_daemons_stdout_is_json_lines_naming_scan_state_and_device(tmp_path:
     out, err = tmp_path / "stdout", tmp_path / "stderr"
     cmd = [TBP, "daemon", "--sim", "--rig", str(sparse_rig_file(tmp_path)), "--subject", str(subject),
            "--socket", str(sock), "--store", str(tmp_path / "scans"), "--time-scale", "20", "--plan-points", str(PLAN_POINTS),
-           "--depth-decimation", "4", "--log-level", "info", "--http", "off"]
+           "--depth-decimation", "4", "--body-texel-mm", BODY_TEXEL_MM, "--log-level", "info", "--http", "off"]
     proc = subprocess.Popen(cmd, stdout=out.open("wb"), stderr=err.open("wb"),
                             env={**os.environ, "NOTIFY_SOCKET": ""})
     try:

@@ -206,7 +206,7 @@ def _free_port() -> int:
 @pytest.mark.realtime
 def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
     from planner.rig import load_rig
-    from tests.daemon_rigs import PLAN_POINTS, capsule_subject, sparse_rig_file
+    from tests.daemon_rigs import BODY_TEXEL_MM, PLAN_POINTS, capsule_subject, sparse_rig_file
 
     subject = tmp_path / "subject.ply"
     capsule_subject().export(subject)
@@ -217,7 +217,7 @@ def test_start_on_the_console_runs_a_scan_of_the_simulated_rig(tmp_path):
     daemon = subprocess.Popen(
         [str(Path(sys.executable).with_name("tbp")), "daemon", "--sim", "--rig", str(rig), "--store",
          str(tmp_path / "scans"), "--socket", str(tmp_path / "control.sock"), "--subject", str(subject), "--plan-points", str(PLAN_POINTS),
-         "--depth-decimation", "4", "--time-scale", "20", "--http", f"127.0.0.1:{port}", "--log-level", "warning"],
+         "--depth-decimation", "4", "--body-texel-mm", BODY_TEXEL_MM, "--time-scale", "20", "--http", f"127.0.0.1:{port}", "--log-level", "warning"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=Path(__file__).resolve().parent.parent)
     try:
         deadline = time.monotonic() + 120
