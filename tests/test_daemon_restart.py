@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,39 @@ async def _scan_until_captured(sock: Path, count: int) -> str:
     raise AssertionError("the scan never reached the capture")
 
 
+def _descendants(pid: int) -> set[int]:
+    """The processes below ``pid`` (children, theirs, ...), from /proc."""
+    parents = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    below, grew = set(), True
+    while grew:
+        more = {child for child, parent in parents.items() if parent == pid or parent in below}
+        grew = bool(more - below)
+        below |= more
+    return below
+
+
+def _still_running(pids: set[int], within_s: float) -> set[int]:
+    """Those of ``pids`` still running after ``within_s`` seconds at most (zombies count as ended)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        left = set()
+        for pid in pids:
+            try:
+                if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+                    left.add(pid)
+            except OSError:
+                pass
+        if not left or time.monotonic() > deadline:
+            return left
+        time.sleep(0.1)
+
+
 def test_sigkill_mid_scan_then_restart(tmp_path: Path) -> None:
     sock, store, subject, log = tmp_path / "c.sock", tmp_path / "scans", tmp_path / "subject.ply", tmp_path / "log"
     capsule_subject().export(subject)
@@ -60,15 +94,19 @@ def test_sigkill_mid_scan_then_restart(tmp_path: Path) -> None:
     try:
         asyncio.run(_ready(sock, first))
         scan_id = asyncio.run(_scan_until_captured(sock, 30))
+        helpers = _descendants(first.pid)  # the compute worker and the forkserver it comes from
         first.send_signal(signal.SIGKILL)
         first.wait(timeout=10)
     finally:
         if first.poll() is None:
             first.kill()
+    assert helpers, "the daemon had no compute worker"
+    left = _still_running(helpers, within_s=20.0)
+    assert not left, f"processes of the killed daemon still running: {sorted(left)}"
     folder = next(store.iterdir())
     assert folder.name.endswith(scan_id)
-    left = json.loads((folder / "manifest.json").read_text())  # a whole manifest, never torn
-    assert left["in_progress"] is True and left["state"] == "incomplete"
+    interrupted = json.loads((folder / "manifest.json").read_text())  # a whole manifest, never torn
+    assert interrupted["in_progress"] is True and interrupted["state"] == "incomplete"
 
     second = _start(sock, store, subject, log)
     try:

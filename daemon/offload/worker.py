@@ -7,13 +7,17 @@ nothing of the daemon's threads or sockets is inherited), as a batch job (SCHED_
 preempts the daemon when it wakes, yet keeps its fair share of a core), imports the heavy
 libraries once and logs as the daemon does (JSON lines on the daemon's stdout, each with
 ``process: compute``). Its jobs get their depth images through shared memory
-(daemon/offload/compute.py).
+(daemon/offload/compute.py). It ends with the daemon's process, however that ends: a daemon
+killed with SIGKILL cannot stop its pool, and the worker would otherwise wait on its job queue
+for ever (the queue's pipe never reports the end: the worker holds both of its ends).
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import select
+import threading
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
@@ -47,7 +51,7 @@ def compute_pool() -> ProcessPoolExecutor:
     os.environ.update({name: str(compute_threads()) for name in THREAD_VARIABLES})
     try:
         pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"),
-                                   initializer=_warm_up, initargs=(log_settings(),))
+                                   initializer=_warm_up, initargs=(log_settings(), os.getpid()))
         pool.submit(_started)  # starts the worker now, with the environment above
     finally:
         for name, value in saved.items():
@@ -62,11 +66,28 @@ def _started() -> None:
     """The first job: makes the pool start its worker (and run :func:`_warm_up`) at once."""
 
 
-def _warm_up(log_setup: dict[str, Any]) -> None:
-    """In the worker: log as the daemon does (``log_setup``: :func:`daemon.logs.log_settings`), run
-    as a batch job and import what every scan's jobs need, so the first scan's do not (their
-    modules, not the daemon's), and compile the planner's descent loop and the TSDF's carving
-    (seconds the first time, from numba's cache after)."""
+def exit_with(pid: int) -> None:
+    """End this process at once when process ``pid`` ends (at once if it already has): a thread
+    waits on the process's pidfd, which becomes readable when it exits."""
+    try:
+        process = os.pidfd_open(pid)
+    except ProcessLookupError:
+        os._exit(0)
+
+    def watch() -> None:
+        select.select([process], [], [])
+        os._exit(0)
+
+    threading.Thread(target=watch, name=f"exit-with-{pid}", daemon=True).start()
+
+
+def _warm_up(log_setup: dict[str, Any], daemon_pid: int) -> None:
+    """In the worker: end with the daemon's process (``daemon_pid``), log as the daemon does
+    (``log_setup``: :func:`daemon.logs.log_settings`), run as a batch job and import what every
+    scan's jobs need, so the first scan's do not (their modules, not the daemon's), and compile
+    the planner's descent loop and the TSDF's carving (seconds the first time, from numba's
+    cache after)."""
+    exit_with(daemon_pid)
     configure_logging(json=log_setup["json"], level=log_setup["level"])
     structlog.contextvars.bind_contextvars(process="compute")
     os.sched_setscheduler(0, WORKER_POLICY, os.sched_param(0))
