@@ -50,13 +50,14 @@ def run(
     motor: Motor = MOTOR,
     connect: bool = True,
     enable: bool = True,
+    sim_class: type[SimulatedDrive] = SimulatedDrive,
     **sim_options: Any,
 ) -> Any:
     """Run ``scenario(drive, sim)`` with a connected (and enabled) drive in virtual time."""
 
     async def main() -> Any:
         bus = LoopbackCanBus()
-        sim = SimulatedDrive(bus.port("sim"), motor, **sim_options)
+        sim = sim_class(bus.port("sim"), motor, **sim_options)
         sim_task = asyncio.create_task(sim.run())
         drive = BeamDrive(bus.port("host"), motor)
         try:

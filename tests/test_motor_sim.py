@@ -57,12 +57,14 @@ class Master:
         return sum(1 for t, c, _ in self.frames if c == cob_id and since <= t < until)
 
 
-def run(scenario: Callable[[Master, SimulatedDrive], Awaitable[Any]]) -> Any:
+def run(scenario: Callable[[Master, SimulatedDrive], Awaitable[Any]], **sim_options: Any) -> Any:
+    """Run ``scenario(master, sim)``: a raw CAN master and the simulated drive, in virtual time."""
+
     async def main() -> Any:
         bus = LoopbackCanBus()
         master = Master(bus.port("master"))
         pump = asyncio.create_task(master.pump())
-        sim = SimulatedDrive(bus.port("sim"), MOTOR)
+        sim = SimulatedDrive(bus.port("sim"), MOTOR, **sim_options)
         task = asyncio.create_task(sim.run())
         await asyncio.sleep(0.001)
         try:
@@ -71,6 +73,36 @@ def run(scenario: Callable[[Master, SimulatedDrive], Awaitable[Any]]) -> Any:
             for t in (task, pump):
                 t.cancel()
             await asyncio.gather(task, pump, return_exceptions=True)
+
+    return run_virtual(main())
+
+
+def run_sdo(scenario: Callable[[SdoClient], Awaitable[Any]]) -> Any:
+    """Run ``scenario(client)``: the driver's SDO client against the simulated drive, in virtual time."""
+
+    async def main() -> Any:
+        bus = LoopbackCanBus()
+        host = bus.port("host")
+        sim_task = asyncio.create_task(SimulatedDrive(bus.port("sim"), MOTOR).run())
+
+        async def send(cob_id: int, payload: bytes) -> None:
+            await host.send(can.Message(arbitration_id=cob_id, data=payload, is_extended_id=False))
+
+        client = SdoClient(send, N, device="test", state=lambda: "pre-operational")
+
+        async def pump() -> None:
+            while True:
+                msg = await host.recv()
+                if msg.arbitration_id == 0x580 + N:
+                    client.on_frame(bytes(msg.data))
+
+        pump_task = asyncio.create_task(pump())
+        try:
+            return await scenario(client)
+        finally:
+            for task in (sim_task, pump_task):
+                task.cancel()
+            await asyncio.gather(sim_task, pump_task, return_exceptions=True)
 
     return run_virtual(main())
 
@@ -222,34 +254,14 @@ def test_sdo_client_and_server_agree_on_every_value(obj: tuple[int, str], data: 
     value = data.draw(st.integers(-(2 ** (bits - 1)) if signed else 0, 2 ** (bits - int(signed)) - 1))
     subindex = 1 if index == 0x1016 else 0
 
-    async def main() -> int | str:
-        bus = LoopbackCanBus()
-        host = bus.port("host")
-        sim_task = asyncio.create_task(SimulatedDrive(bus.port("sim"), MOTOR).run())
-
-        async def send(cob_id: int, payload: bytes) -> None:
-            await host.send(can.Message(arbitration_id=cob_id, data=payload, is_extended_id=False))
-
-        client = SdoClient(send, N, device="test", state=lambda: "pre-operational")
-
-        async def pump() -> None:
-            while True:
-                msg = await host.recv()
-                if msg.arbitration_id == 0x580 + N:
-                    client.on_frame(bytes(msg.data))
-
-        pump_task = asyncio.create_task(pump())
+    async def scenario(client: SdoClient) -> int | str:
         try:
             await client.write(index, subindex, fmt, value)
             return await client.read(index, subindex, fmt)
         except SdoAbort as exc:
             return f"{exc.code:08X}"
-        finally:
-            for task in (sim_task, pump_task):
-                task.cancel()
-            await asyncio.gather(sim_task, pump_task, return_exceptions=True)
 
-    result = run_virtual(main())
+    result = run_sdo(scenario)
     if index == 0x6083 and value == 0:
         assert result == "06090030"  # a zero acceleration is refused
     else:

@@ -12,14 +12,12 @@ import struct
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-import can
 import pytest
 from structlog.testing import capture_logs
 
 from drivers.motor import (
     BeamDrive,
     Cia402State,
-    LoopbackCanBus,
     SettingMismatch,
     SettingRefused,
     cia402,
@@ -34,8 +32,8 @@ from drivers.motor import (
 from drivers.motor.sdo import SdoClient
 from drivers.sim.drive import SimulatedDrive
 from planner.rig import load_rig
-from sim.clock import run_virtual
-from tests.test_motor_sim import Master
+from tests.test_motor_drive import run as run_drive
+from tests.test_motor_sim import Master, run, run_sdo
 
 MOTOR = load_rig().motor
 N = MOTOR.node_id
@@ -46,21 +44,7 @@ SPEED, ACCELERATION, SLOW_DOWN, COAST = 30.0, 60.0, 20.0, 3.0  # deg/s, deg/s^2 
 
 
 def run_wire(scenario: Callable[[Master, SimulatedDrive], Awaitable[Any]], **sim_options: Any) -> Any:
-    async def main() -> Any:
-        bus = LoopbackCanBus()
-        master = Master(bus.port("master"))
-        pump = asyncio.create_task(master.pump())
-        sim = SimulatedDrive(bus.port("sim"), MOTOR, coast_deceleration_deg_s2=COAST, **sim_options)
-        task = asyncio.create_task(sim.run())
-        await asyncio.sleep(0.001)
-        try:
-            return await scenario(master, sim)
-        finally:
-            for t in (task, pump):
-                t.cancel()
-            await asyncio.gather(task, pump, return_exceptions=True)
-
-    return run_virtual(main())
+    return run(scenario, coast_deceleration_deg_s2=COAST, **sim_options)
 
 
 async def write(master: Master, index: int, subindex: int, fmt: str, value: int) -> str:
@@ -247,23 +231,6 @@ def test_rpdo_mapping_follows_cia_301_rules() -> None:
 # ---------------------------------------------------------------------- the rig's configuration
 
 
-def run_rig(scenario: Callable[[BeamDrive, SimulatedDrive], Awaitable[Any]], sim_class: type = SimulatedDrive,
-            connect: bool = True) -> Any:
-    async def main() -> Any:
-        bus = LoopbackCanBus()
-        sim = sim_class(bus.port("sim"), MOTOR)
-        sim_task = asyncio.create_task(sim.run())
-        drive = BeamDrive(bus.port("host"), MOTOR)
-        try:
-            if connect:
-                await drive.connect()
-            return await scenario(drive, sim)
-        finally:
-            await drive.close()
-            sim_task.cancel()
-            await asyncio.gather(sim_task, return_exceptions=True)
-
-    return run_virtual(main())
 
 
 def test_the_rig_configuration_reads_back_as_the_rig_requires() -> None:
@@ -274,36 +241,15 @@ def test_the_rig_configuration_reads_back_as_the_rig_requires() -> None:
         assert stop.abort_connection == 1 and stop.fault_reaction == 2 and stop.communication_error == 1
         assert stop.control_rpdo_cob_id == 0x200 + N and stop.control_rpdo_mapping == (0x6040_0010,)
 
-    run_rig(scenario)
+    run_drive(scenario, enable=False)
 
 
 def test_a_drive_fresh_from_power_on_deviates_where_it_would_not_stop() -> None:
-    async def main() -> list[str]:
-        bus = LoopbackCanBus()
-        host = bus.port("host")
-        sim_task = asyncio.create_task(SimulatedDrive(bus.port("sim"), MOTOR).run())
+    async def scenario(client: SdoClient) -> list[str]:
+        stop = await read_stop_configuration(client)
+        return [str(row) for row in stop.deviations(MOTOR, HOST)]
 
-        async def send(cob_id: int, payload: bytes) -> None:
-            await host.send(can.Message(arbitration_id=cob_id, data=payload, is_extended_id=False))
-
-        client = SdoClient(send, N, device="test", state=lambda: "pre-operational")
-
-        async def pump() -> None:
-            while True:
-                msg = await host.recv()
-                if msg.arbitration_id == 0x580 + N:
-                    client.on_frame(bytes(msg.data))
-
-        pump_task = asyncio.create_task(pump())
-        try:
-            stop = await read_stop_configuration(client)
-            return [str(row) for row in stop.deviations(MOTOR, HOST)]
-        finally:
-            for task in (sim_task, pump_task):
-                task.cancel()
-            await asyncio.gather(sim_task, pump_task, return_exceptions=True)
-
-    assert run_virtual(main()) == [
+    assert run_sdo(scenario) == [
         "0x6007:0 abort connection option code is 0 (no action), the rig requires 1 (fault)",
         "0x1029:1 error behaviour on a communication error is 0 (pre operational), the rig requires 1 (no change)",
         f"0x1017:0 heartbeat producer time is off, the rig requires {MOTOR.heartbeat_producer_ms} ms",
@@ -335,7 +281,7 @@ def test_a_drive_that_refuses_0x6007_fails_bring_up_naming_it() -> None:
         assert "abort connection option code 0x6007:0 = 1: refused with SDO abort 0x06020000" in str(info.value)
         assert sim.value(0x1016, 1) == 0  # bring-up stopped before the drive watched the host
 
-    run_rig(scenario, _WithoutAbortConnection, connect=False)
+    run_drive(scenario, connect=False, sim_class=_WithoutAbortConnection)
 
 
 def test_a_drive_that_reads_back_another_value_fails_bring_up_naming_both() -> None:
@@ -345,7 +291,7 @@ def test_a_drive_that_reads_back_another_value_fails_bring_up_naming_both() -> N
         assert (info.value.index, info.value.written, info.value.read) == (0x605E, 2, 1)
         assert "fault reaction option code 0x605E:0 = 2: written, but reads back 1" in str(info.value)
 
-    run_rig(scenario, _ClampingFaultReaction, connect=False)
+    run_drive(scenario, connect=False, sim_class=_ClampingFaultReaction)
 
 
 def test_the_guards_quick_stop_frame_stops_the_beam_without_an_sdo() -> None:
@@ -360,7 +306,7 @@ def test_the_guards_quick_stop_frame_stops_the_beam_without_an_sdo() -> None:
         assert drive.state is S.QUICK_STOP_ACTIVE  # the host sees it in the statusword TPDO
         return logs
 
-    logs = run_rig(scenario)
+    logs = run_drive(scenario, enable=False)
     assert [(e["word"], e["transport"]) for e in logs if e["event"] == "sim_drive_controlword"] == [("0x0002", "rpdo")]
     assert any(e["event"] == "sim_drive_standstill" for e in logs)
 

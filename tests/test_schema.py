@@ -23,46 +23,29 @@ from drivers.phone.focus import load_focus_calibration
 from planner.calibration.model import CalibrationFileError, load_calibration
 from planner.calibration.target import DEFAULT_TARGET_PATH, TargetError, load_target
 from planner.rig import CALIBRATION_DIR, DEFAULT_RIG_PATH, RigConfigError, load_rig, rig_from_mapping
-from planner.schema import (
-    Choice,
-    ConfigError,
-    Flag,
-    Integer,
-    Kinds,
-    ListOf,
-    MapOf,
-    Node,
-    Note,
-    Nullable,
-    Number,
-    Section,
-    Serial,
-    Text,
-    Tuple,
-)
-from planner.schema.nodes import Reader, child
+from planner.schema import nodes as schema
 from planner.schema.tables import CALIBRATION_FILE, FOCUS_FILE, RIG_FILE, TARGET_FILE
 from tests.fuzz import FUZZ
 
 RIG = load_rig()
-LEAVES = (Number, Text, Flag, Choice, Serial, Note, Kinds)
+LEAVES = (schema.Number, schema.Text, schema.Flag, schema.Choice, schema.Serial, schema.Note, schema.Kinds)
 
 
-def table_leaves(node: Node, key: str, nullable: bool = False) -> Iterator[tuple[str, Node, bool]]:
+def table_leaves(node: schema.Node, key: str, nullable: bool = False) -> Iterator[tuple[str, schema.Node, bool]]:
     """(key path, leaf node, null allowed) of every value a table reads ("[]" for any entry)."""
-    if isinstance(node, Nullable):
+    if isinstance(node, schema.Nullable):
         yield from table_leaves(node.inner, key, True)
-    elif isinstance(node, Section):
+    elif isinstance(node, schema.Section):
         for name, field in node.fields.items():
-            yield from table_leaves(field, child(key, name))
-    elif isinstance(node, ListOf):
+            yield from table_leaves(field, schema.child(key, name))
+    elif isinstance(node, schema.ListOf):
         yield from table_leaves(node.item, f"{key}[0]")
-    elif isinstance(node, Tuple):
+    elif isinstance(node, schema.Tuple):
         for i, item in enumerate(node.items):
             yield from table_leaves(item, f"{key}[{i}]")
-    elif isinstance(node, MapOf):
-        yield from table_leaves(node.values, child(key, "k"))
-    elif isinstance(node, Kinds):
+    elif isinstance(node, schema.MapOf):
+        yield from table_leaves(node.values, schema.child(key, "k"))
+    elif isinstance(node, schema.Kinds):
         yield key, node, nullable
         for name, kind in node.kinds.items():
             yield from table_leaves(kind.value, f"{key}.{name}")
@@ -79,9 +62,9 @@ wrong_types = st.one_of(st.none(), st.booleans(), st.integers(-(10**30), 10**30)
                         st.dictionaries(st.text(max_size=4), st.integers(), max_size=2), st.dates())
 
 
-def invalid(node: Node) -> st.SearchStrategy[Any]:
+def invalid(node: schema.Node) -> st.SearchStrategy[Any]:
     """Values ``node`` must refuse: outside its range, of another type, or not of its form."""
-    if isinstance(node, Number):
+    if isinstance(node, schema.Number):
         outside = [st.sampled_from([math.nan, math.inf, -math.inf])]
         if node.low is not None:
             outside += [st.floats(max_value=node.low, exclude_max=True, allow_infinity=False, allow_nan=False),
@@ -89,10 +72,10 @@ def invalid(node: Node) -> st.SearchStrategy[Any]:
         if node.high is not None:
             outside += [st.floats(min_value=node.high, exclude_min=True, allow_infinity=False, allow_nan=False),
                         st.integers(min_value=math.floor(node.high) + 1, max_value=10**400)]
-        if isinstance(node, Integer):
+        if isinstance(node, schema.Integer):
             outside.append(st.floats(node.low, node.high).filter(lambda x: not x.is_integer()))
         return st.one_of(*outside, wrong_types.filter(lambda v: isinstance(v, bool) or not isinstance(v, (int, float))))
-    if isinstance(node, Text):
+    if isinstance(node, schema.Text):
         bad = [wrong_types.filter(lambda v: not isinstance(v, str)), st.text(min_size=node.max_len + 1,
                                                                              max_size=node.max_len + 50)]
         if node.min_len:
@@ -101,16 +84,16 @@ def invalid(node: Node) -> st.SearchStrategy[Any]:
             pattern = node.pattern
             bad.append(st.text(max_size=40).filter(lambda v: not pattern.fullmatch(v)))
         return st.one_of(*bad)
-    if isinstance(node, Flag):
+    if isinstance(node, schema.Flag):
         return st.one_of(wrong_types.filter(lambda v: not isinstance(v, bool)), st.sampled_from(["true", "yes", 0, 1]))
-    if isinstance(node, Choice):
+    if isinstance(node, schema.Choice):
         return st.one_of(wrong_types, st.text(max_size=12)).filter(lambda v: v not in node.options)
-    if isinstance(node, Serial):
+    if isinstance(node, schema.Serial):
         return st.one_of(st.integers(max_value=-1), st.integers(min_value=2**64, max_value=10**400), st.booleans(),
                          st.floats(), st.none(), st.lists(st.text(), max_size=2), st.text(min_size=257, max_size=300))
-    if isinstance(node, Note):
+    if isinstance(node, schema.Note):
         return st.one_of(st.lists(st.integers(), max_size=3), st.dictionaries(st.text(max_size=3), st.integers()))
-    assert isinstance(node, Kinds)
+    assert isinstance(node, schema.Kinds)
     bare = [name for name, kind in node.kinds.items() if kind.bare]
     return st.one_of(wrong_types.filter(lambda v: v not in bare and not (isinstance(v, dict) and len(v) == 1)),
                      st.dictionaries(st.sampled_from(sorted(node.kinds)), st.none(), min_size=2),
@@ -118,30 +101,30 @@ def invalid(node: Node) -> st.SearchStrategy[Any]:
                                      min_size=1, max_size=1))
 
 
-def valid(node: Node) -> st.SearchStrategy[Any]:
+def valid(node: schema.Node) -> st.SearchStrategy[Any]:
     """Values ``node`` must accept and return as written."""
-    if isinstance(node, Integer):
+    if isinstance(node, schema.Integer):
         return st.integers(node.low, node.high)  # type: ignore[arg-type]
-    if isinstance(node, Number):
+    if isinstance(node, schema.Number):
         return st.floats(node.low, node.high, allow_nan=False, allow_infinity=False)
-    if isinstance(node, Text):
+    if isinstance(node, schema.Text):
         if node.pattern is not None:
             return st.from_regex(node.pattern, fullmatch=True).filter(lambda v: len(v) <= node.max_len)
         return st.text(min_size=node.min_len, max_size=node.max_len)
-    if isinstance(node, Flag):
+    if isinstance(node, schema.Flag):
         return st.booleans()
-    if isinstance(node, Choice):
+    if isinstance(node, schema.Choice):
         return st.sampled_from(node.options)
-    if isinstance(node, Serial):
+    if isinstance(node, schema.Serial):
         return st.one_of(st.text(max_size=256), st.integers(0, 2**64 - 1))
-    if isinstance(node, Note):
+    if isinstance(node, schema.Note):
         return st.one_of(st.text(), st.integers(), st.floats(allow_nan=False), st.booleans(), st.none(), st.dates())
-    assert isinstance(node, Kinds)
+    assert isinstance(node, schema.Kinds)
     return st.sampled_from([name for name, kind in node.kinds.items() if kind.bare] or [None]).filter(bool)
 
 
-def _read(node: Node, value: Any, key: str) -> Any:
-    return node.read(value, key, Reader("t.yaml", ConfigError))
+def _read(node: schema.Node, value: Any, key: str) -> Any:
+    return node.read(value, key, schema.Reader("t.yaml", schema.ConfigError))
 
 
 @FUZZ
@@ -150,7 +133,7 @@ def test_a_value_outside_a_field_or_of_another_type_is_refused_naming_key_and_fo
     (key, node, nullable), value = case
     if nullable and value is None:
         return
-    with pytest.raises(ConfigError) as info:
+    with pytest.raises(schema.ConfigError) as info:
         _read(node, value, key)
     assert info.value.key == key, (info.value, value)
     assert info.value.path == "t.yaml" and node.form() in info.value.problem
@@ -158,24 +141,24 @@ def test_a_value_outside_a_field_or_of_another_type_is_refused_naming_key_and_fo
 
 
 @FUZZ
-@given(st.sampled_from([leaf for leaf in ALL_LEAVES if not isinstance(leaf[1], Kinds)]).flatmap(
+@given(st.sampled_from([leaf for leaf in ALL_LEAVES if not isinstance(leaf[1], schema.Kinds)]).flatmap(
     lambda leaf: st.tuples(st.just(leaf), valid(leaf[1]))))
 def test_a_value_inside_a_field_is_read_as_written(case: tuple) -> None:
     (key, node, _), value = case
     got = _read(node, value, key)
-    assert got == (str(value) if isinstance(node, Serial) else value)
-    assert type(got) is {Integer: int, Number: float}.get(type(node), type(got))
+    assert got == (str(value) if isinstance(node, schema.Serial) else value)
+    assert type(got) is {schema.Integer: int, schema.Number: float}.get(type(node), type(got))
 
 
 def test_a_kind_reads_as_its_name_and_value() -> None:
-    kinds = [(key, node) for key, node, _ in ALL_LEAVES if isinstance(node, Kinds)]
+    kinds = [(key, node) for key, node, _ in ALL_LEAVES if isinstance(node, schema.Kinds)]
     assert [key for key, _ in kinds] == ["phones.k", "depth_cameras.k"]
     for key, node in kinds:
         for name, kind in node.kinds.items():
             if kind.bare:
                 assert _read(node, name, key) == (name, None)
             else:
-                with pytest.raises(ConfigError, match=f"{key}: got '{name}'; expected"):
+                with pytest.raises(schema.ConfigError, match=f"{key}: got '{name}'; expected"):
                     _read(node, name, key)
     assert _read(kinds[0][1], {"tcp": "[::1]:5555"}, "p") == ("tcp", "[::1]:5555")
     assert _read(kinds[1][1], {"realsense": 12}, "d") == ("realsense", "12")
@@ -184,21 +167,21 @@ def test_a_kind_reads_as_its_name_and_value() -> None:
 # ---------------------------------------------------------------------------- whole files
 
 
-def doc_leaves(node: Node, raw: Any, path: tuple, key: str) -> Iterator[tuple[tuple, str, Node, bool]]:
+def doc_leaves(node: schema.Node, raw: Any, path: tuple, key: str) -> Iterator[tuple[tuple, str, schema.Node, bool]]:
     """(path in the document, key path, leaf node, null allowed) of every value of a parsed file,
     and of every optional field it leaves out."""
-    nullable = isinstance(node, Nullable)
-    inner = node.inner if isinstance(node, Nullable) else node
-    if isinstance(inner, Section) and (isinstance(raw, dict) or raw is None and inner.optional):
+    nullable = isinstance(node, schema.Nullable)
+    inner = node.inner if isinstance(node, schema.Nullable) else node
+    if isinstance(inner, schema.Section) and (isinstance(raw, dict) or raw is None and inner.optional):
         for name, field in inner.fields.items():
-            yield from doc_leaves(field, (raw or {}).get(name), (*path, name), child(key, name))
-    elif isinstance(inner, ListOf | Tuple) and isinstance(raw, list):
+            yield from doc_leaves(field, (raw or {}).get(name), (*path, name), schema.child(key, name))
+    elif isinstance(inner, schema.ListOf | schema.Tuple) and isinstance(raw, list):
         for i, item in enumerate(raw):
-            yield from doc_leaves(inner.item if isinstance(inner, ListOf) else inner.items[i], item, (*path, i),
+            yield from doc_leaves(inner.item if isinstance(inner, schema.ListOf) else inner.items[i], item, (*path, i),
                                   f"{key}[{i}]")
-    elif isinstance(inner, MapOf) and isinstance(raw, dict):
+    elif isinstance(inner, schema.MapOf) and isinstance(raw, dict):
         for name, item in raw.items():
-            yield from doc_leaves(inner.values, item, (*path, name), child(key, name))
+            yield from doc_leaves(inner.values, item, (*path, name), schema.child(key, name))
     elif isinstance(inner, LEAVES):
         yield path, key, inner, nullable
 

@@ -6,31 +6,6 @@ of every file, :mod:`planner.schema.yaml_files` the bounded YAML reading, and
 """
 
 from planner.schema.config_file import ConfigFile
-from planner.schema.nodes import (
-    ID_PATTERN,
-    MAX_STRING,
-    REQUIRED,
-    Choice,
-    ConfigError,
-    Flag,
-    Id,
-    Integer,
-    Kind,
-    Kinds,
-    ListOf,
-    MapOf,
-    Node,
-    Note,
-    Nullable,
-    Number,
-    Section,
-    Serial,
-    Text,
-    Tuple,
-    key_name,
-    show,
-)
+from planner.schema.nodes import ConfigError, Kind, Nullable, Serial, Text, key_name, show
 
-__all__ = ["ID_PATTERN", "MAX_STRING", "REQUIRED", "Choice", "ConfigError", "ConfigFile", "Flag", "Id", "Integer",
-           "Kind", "Kinds", "ListOf", "MapOf", "Node", "Note", "Nullable", "Number", "Section", "Serial", "Text",
-           "Tuple", "key_name", "show"]
+__all__ = ["ConfigError", "ConfigFile", "Kind", "Nullable", "Serial", "Text", "key_name", "show"]

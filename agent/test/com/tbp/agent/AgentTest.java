@@ -113,6 +113,21 @@ public class AgentTest {
         assertAlive();
     }
 
+    @SuppressWarnings("unchecked")
+    private static String message(Map<String, Object> answer) {
+        assertEquals(Boolean.FALSE, answer.get("ok"));
+        return (String) ((Map<String, Object>) answer.get("error")).get("message");
+    }
+
+    @Test
+    public void aCaptureSettingOutsideTheSensorNamesTheSettingAndTheRange() {
+        assertEquals("capture: exposure_s 5.0 outside the sensor's [1.0E-5, 0.5] s",
+                message(only(send("{\"id\": 8, \"op\": \"capture\", \"exposure_s\": 5}\n"))));
+        assertEquals("capture: iso 10 outside the sensor's [50, 3200]",
+                message(only(send("{\"id\": 9, \"op\": \"capture\", \"iso\": 10}\n"))));
+        assertTrue(camera.captures.isEmpty());
+    }
+
     @Test
     public void unknownOpsAndBadFieldsNameTheRequest() {
         Map<String, Object> answer = only(send("{\"id\": 7, \"op\": \"reboot\"}\n"));

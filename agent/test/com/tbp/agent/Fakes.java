@@ -1,5 +1,6 @@
 package com.tbp.agent;
 
+import java.io.Closeable;
 import java.io.File;
 import java.io.IOException;
 import java.nio.ByteBuffer;
@@ -9,8 +10,9 @@ import java.util.ArrayDeque;
 import java.util.ArrayList;
 import java.util.List;
 import java.util.Map;
+import java.util.concurrent.atomic.AtomicInteger;
 
-/** Test doubles: a camera whose calls the test answers by hand, a client that records answers. */
+/** Test doubles: a camera whose calls the test answers by hand, a client that records answers, a platform of fakes. */
 final class Fakes {
 
     private Fakes() {
@@ -136,6 +138,50 @@ final class Fakes {
         @Override
         public void error(String message, Throwable cause) {
             errors.add(message + ": " + cause);
+        }
+    }
+
+    /** A platform of fakes: the given camera (or the failure the test sets in cameraFailure), an image folder in a
+     * temporary directory, a listener that counts its closes. */
+    static class FakePlatform implements Platform {
+        final CameraBackend camera;
+        final AtomicInteger listenerClosed = new AtomicInteger();
+        Exception cameraFailure;
+
+        FakePlatform(CameraBackend camera) {
+            this.camera = camera;
+        }
+
+        @Override
+        public Log log() {
+            return new Recorder();
+        }
+
+        @Override
+        public CameraBackend openCamera(double exposureS, long iso) throws Exception {
+            if (cameraFailure != null) {
+                throw cameraFailure;
+            }
+            return camera;
+        }
+
+        @Override
+        public ImageStore imageStore() {
+            try {
+                return new ImageStore(folder(), new Disk());
+            } catch (IOException e) {
+                throw new AssertionError(e);
+            }
+        }
+
+        @Override
+        public Closeable listen(String name, Agent agent) {
+            return new Closeable() {
+                @Override
+                public void close() {
+                    listenerClosed.incrementAndGet();
+                }
+            };
         }
     }
 

@@ -1,7 +1,5 @@
 package com.tbp.agent;
 
-import java.io.Closeable;
-import java.io.IOException;
 import java.util.concurrent.CountDownLatch;
 
 /** An agent whose camera never finishes closing, run as its own process by {@link ExitDeadlineTest}. */
@@ -11,7 +9,7 @@ public final class HangingCloseAgent {
     }
 
     public static void main(String[] args) throws Exception {
-        final Fakes.Camera camera = new Fakes.Camera() {
+        Fakes.Camera camera = new Fakes.Camera() {
             @Override
             public void close() {
                 try {
@@ -21,35 +19,6 @@ public final class HangingCloseAgent {
                 }
             }
         };
-        Platform platform = new Platform() {
-            @Override
-            public Log log() {
-                return new Fakes.Recorder();
-            }
-
-            @Override
-            public CameraBackend openCamera(double exposureS, long iso) {
-                return camera;
-            }
-
-            @Override
-            public ImageStore imageStore() {
-                try {
-                    return new ImageStore(Fakes.folder(), new Fakes.Disk());
-                } catch (IOException e) {
-                    throw new AssertionError(e);
-                }
-            }
-
-            @Override
-            public Closeable listen(String name, Agent agent) {
-                return new Closeable() {
-                    @Override
-                    public void close() {
-                    }
-                };
-            }
-        };
-        System.exit(Launcher.run(args, platform, System.in, System.out));
+        System.exit(Launcher.run(args, new Fakes.FakePlatform(camera), System.in, System.out));
     }
 }

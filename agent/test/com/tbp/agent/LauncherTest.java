@@ -7,54 +7,17 @@ import static org.junit.Assert.assertTrue;
 import java.io.ByteArrayOutputStream;
 import java.io.Closeable;
 import java.io.File;
-import java.io.IOException;
 import java.io.PipedInputStream;
 import java.io.PipedOutputStream;
 import java.io.PrintStream;
 import java.nio.charset.StandardCharsets;
-import java.util.concurrent.atomic.AtomicInteger;
 import org.junit.Test;
 
 /** The agent's life: READY after the camera and socket, the end when its shell stream closes. */
 public class LauncherTest {
 
     private final Fakes.Camera camera = new Fakes.Camera();
-    private final AtomicInteger listenerClosed = new AtomicInteger();
-    private Exception cameraFailure;
-
-    private final Platform platform = new Platform() {
-        @Override
-        public Log log() {
-            return new Fakes.Recorder();
-        }
-
-        @Override
-        public CameraBackend openCamera(double exposureS, long iso) throws Exception {
-            if (cameraFailure != null) {
-                throw cameraFailure;
-            }
-            return camera;
-        }
-
-        @Override
-        public ImageStore imageStore() {
-            try {
-                return new ImageStore(Fakes.folder(), new Fakes.Disk());
-            } catch (IOException e) {
-                throw new AssertionError(e);
-            }
-        }
-
-        @Override
-        public Closeable listen(String name, Agent agent) {
-            return new Closeable() {
-                @Override
-                public void close() {
-                    listenerClosed.incrementAndGet();
-                }
-            };
-        }
-    };
+    private final Fakes.FakePlatform platform = new Fakes.FakePlatform(camera);
 
     private final ByteArrayOutputStream printed = new ByteArrayOutputStream();
 
@@ -93,7 +56,7 @@ public class LauncherTest {
         assertFalse(agent.isAlive());
         assertEquals(0, status[0]);
         assertTrue(camera.closed);
-        assertEquals(1, listenerClosed.get());
+        assertEquals(1, platform.listenerClosed.get());
         Thread.sleep(Launcher.EXIT_DEADLINE_MS + 200);  // the exit deadline does not fire after a clean end
     }
 
@@ -108,7 +71,7 @@ public class LauncherTest {
 
     @Test
     public void aCameraThatCannotOpenIsQuotedBeforeAnyReadyLine() throws Exception {
-        cameraFailure = new Exception("camera 0: ERROR_CAMERA_DISABLED");
+        platform.cameraFailure = new Exception("camera 0: ERROR_CAMERA_DISABLED");
         assertEquals(1, run(new PipedInputStream(new PipedOutputStream()), "socket=tbp-capture", "version=1"));
         assertTrue(output(), output().contains("cannot open the camera"));
         assertTrue(output(), output().contains("ERROR_CAMERA_DISABLED"));
@@ -119,17 +82,7 @@ public class LauncherTest {
     public void anImageFolderThatCannotBeCreatedFailsTheStart() throws Exception {
         final File blocker = Fakes.folder();
         assertTrue(blocker.createNewFile());  // a file where the folder should be
-        Platform blocked = new Platform() {
-            @Override
-            public Log log() {
-                return platform.log();
-            }
-
-            @Override
-            public CameraBackend openCamera(double exposureS, long iso) {
-                return camera;
-            }
-
+        Platform blocked = new Fakes.FakePlatform(camera) {
             @Override
             public ImageStore imageStore() {
                 return new ImageStore(blocker, new Fakes.Disk());

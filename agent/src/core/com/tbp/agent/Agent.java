@@ -255,24 +255,24 @@ public final class Agent {
         if (!request.has("exposure_s")) {
             return info.exposureS;
         }
-        double exposure = request.number("exposure_s");
-        if (exposure < info.minExposureS || exposure > info.maxExposureS) {
-            throw new AgentError(ErrorCode.BAD_REQUEST, "capture: exposure_s " + exposure + " outside the sensor's ["
-                    + info.minExposureS + ", " + info.maxExposureS + "] s");
-        }
-        return exposure;
+        return withinSensor("exposure_s", request.number("exposure_s"), info.minExposureS, info.maxExposureS, " s");
     }
 
     private long iso(Request request) throws AgentError {
         if (!request.has("iso")) {
             return info.iso;
         }
-        long iso = request.integer("iso");
-        if (iso < info.minIso || iso > info.maxIso) {
-            throw new AgentError(ErrorCode.BAD_REQUEST, "capture: iso " + iso + " outside the sensor's ["
-                    + info.minIso + ", " + info.maxIso + "]");
+        return withinSensor("iso", request.integer("iso"), info.minIso, info.maxIso, "");
+    }
+
+    /** A capture setting the request gives, refused when outside the sensor's [low, high] (unit: after the range). */
+    private static <T extends Number> T withinSensor(String key, T value, T low, T high, String unit)
+            throws AgentError {
+        if (value.doubleValue() < low.doubleValue() || value.doubleValue() > high.doubleValue()) {
+            throw new AgentError(ErrorCode.BAD_REQUEST, "capture: " + key + " " + value + " outside the sensor's ["
+                    + low + ", " + high + "]" + unit);
         }
-        return iso;
+        return value;
     }
 
     // ------------------------------------------------------------------ the camera queue
