@@ -232,6 +232,8 @@ def measure(folder: Path, seed: int) -> None:
     print(f"  lesions >= {LESION_MM} mm held sharp: {held.sum()} of {len(held)}; found within {MATCH_MM} mm: "
           f"{found.sum()} ({100 * found.mean():.1f} %, goal >= {100 * GOAL_LESIONS:.0f} %); within 2 mm "
           f"{100 * (distance <= 2.0).mean():.1f} %; spots detected {len(spots)}; median disc {np.median(disc):.1f} mm")
+    where = nearest[held]
+    lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where])
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
     tri = atlas.vertices[atlas.faces]
@@ -249,6 +251,26 @@ def measure(folder: Path, seed: int) -> None:
     print(f"  resolution: texel {atlas.texel_mm:.2f} mm on the chart, median {np.median(texel_on_skin[ok]):.2f} mm on the "
           f"skin; best image median {np.nanmedian(samples.best_mm_px[ok]):.2f} mm/px; texel / pixel median "
           f"{np.median(ratio[ok]):.2f}, 95th percentile {np.percentile(ratio[ok], 95):.2f} (goal <= {GOAL_RESOLUTION})")
+
+
+def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray) -> None:
+    """Print where the held lesions are lost: per bin of the disc's width in the best image's
+    pixels, of the disc (mm), of the best image's mm/px and of the scan surface's distance from
+    the true skin there, the share found within MATCH_MM, detected but off (the nearest spot
+    MATCH_MM..3 mm away) and not detected (no spot within 3 mm). All (K,) per lesion."""
+    splits = (("disc px", disc / mm_px, (0, 1.5, 2.5, 4, np.inf)), ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
+              ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
+              ("surface off mm", surface_mm, (0, 1, 2, np.inf)))
+    for name, value, edges in splits:
+        cells = []
+        for low, high in zip(edges[:-1], edges[1:]):
+            inside = (value >= low) & (value < high)
+            if not inside.any():
+                continue
+            d = distance[inside]
+            cells.append(f"{low:g}-{high:g}: {inside.sum()} {100 * (d <= MATCH_MM).mean():.0f}/"
+                         f"{100 * ((d > MATCH_MM) & (d <= 3.0)).mean():.0f}/{100 * (d > 3.0).mean():.0f}")
+        print(f"    by {name} (n found/off/undetected %): " + "; ".join(cells))
 
 
 def _subtexel_points(spots: np.ndarray, index: np.ndarray, points: np.ndarray) -> np.ndarray:
