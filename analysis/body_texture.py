@@ -317,7 +317,10 @@ def _moved(nav: Navigator, samples: Samples, points: np.ndarray, image_size: tup
     from planner.navigation import pixel_of
 
     scale = image_size[0] / nav.scan.rig.optics.image_width_px
-    u, v = pixel_of(nav.poses, samples.pose, points[samples.texel], nav.scan.rig)
+    u, v = np.empty(len(samples.pose)), np.empty(len(samples.pose))
+    for start in range(0, len(samples.pose), TEXEL_BLOCK):  # bounds the projection's temporaries
+        part = slice(start, start + TEXEL_BLOCK)
+        u[part], v[part] = pixel_of(nav.poses, samples.pose[part], points[samples.texel[part]], nav.scan.rig)
     return dataclasses.replace(samples, u=u * scale, v=v * scale)
 
 

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 #: Offsets along the surface's outward normal tried, mm (the TSDF surface is within ~3 mm of the skin).
 OFFSETS_MM = np.arange(-3.0, 3.01, 0.5)
 #: The sweep runs on the texels of a grid of about this pitch, mm (the offset changes over millimetres).
-GRID_MM = 1.0
+GRID_MM = 2.0
 #: Colour differences are summed over a Gaussian of this sigma (mm) around each texel.
 WINDOW_MM = 4.0
 #: Offsets are spread over a Gaussian of this sigma (mm), weighted by how clear each one is.
