@@ -113,6 +113,8 @@ def _sweep(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, in
     ends = np.r_[starts[1:], len(order)]
     for p, a, b in zip(poses, starts, ends):
         image = scan.image_at(int(p))
+        if image is None or image.file is None:
+            raise LookupError(f"scan {scan.path}: pose {p} has no image on disk")
         with Image.open(scan.path / image.file) as picture:
             lum = np.asarray(picture.convert("RGB"), dtype=np.float32) @ _LUMINANCE
         mine = order[a:b]
