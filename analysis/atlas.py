@@ -245,5 +245,6 @@ def fill_gutters(image: np.ndarray, filled: np.ndarray) -> np.ndarray:
     its nearest filled texel, so filtering across a chart's edge reads the chart's own colours."""
     if not filled.any():
         return image
-    _, (rows, cols) = ndimage.distance_transform_edt(~filled, return_indices=True)
-    return image[rows, cols]
+    rows, cols = ndimage.distance_transform_edt(~filled, return_distances=False, return_indices=True)
+    result: np.ndarray = image[rows, cols]
+    return result

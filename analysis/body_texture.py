@@ -7,7 +7,10 @@ term, so a sharp image always wins over a blurred one). Images within ``BLEND_MA
 best cost are blended, with weights falling to zero at that margin and towards each image's
 border, so the texture has no seams where the best image changes. Each image's gain (per colour
 channel) and the light's falloff with the incidence are fitted by least squares where images
-share skin (analysis/exposure.py) and divided out before blending.
+share skin (analysis/exposure.py) and divided out before blending. Where the scan's surface is
+off the skin, images seen from different sides disagree about where a spot is on it; each texel
+is sampled at the offset along the surface's normal at which its images agree
+(analysis/parallax.py), so small lesions stay in place and unsmeared.
 
 The file is a glTF binary (metres, as glTF wants; the scan's mm divided by 1000) with one mesh,
 its texture coordinates and a JPEG atlas, written into the scan folder through the store.
@@ -15,6 +18,7 @@ its texture coordinates and a JPEG atlas, written into the scan folder through t
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import time
 from collections.abc import Callable
@@ -28,6 +32,8 @@ from PIL import Image
 from analysis.atlas import Atlas, fill_gutters, unwrap
 from analysis.exposure import Exposure, fit_exposure
 from analysis.navigate import Navigator
+from analysis.parallax import surface_offsets
+from analysis.pixels import bilinear
 from analysis.scan_views import ScanRecord, open_scan
 
 #: Images whose cost is within this of a texel's best image are blended into it (the cost's
@@ -79,12 +85,14 @@ class Samples:
 @dataclass(frozen=True)
 class BodyTexture:
     """The textured body: atlas, texture (H, W, 3) uint8, per-texel samples, the images'
-    exposure and where the time went (seconds per step)."""
+    exposure, each texel's offset (T,) mm along the surface's outward normal where the images
+    were sampled (analysis/parallax.py) and where the time went (seconds per step)."""
 
     atlas: Atlas
     texture: np.ndarray
     samples: Samples
     exposure: Exposure
+    offset_mm: np.ndarray
     seconds: dict[str, float]
 
 
@@ -223,21 +231,6 @@ def sample_images(scan: ScanRecord, samples: Samples) -> np.ndarray:
     return colours
 
 
-def bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(K, C) values of an (H, W, C) image at pixel coordinates u (across), v (down), origin
-    at the image's top-left corner (pixel centres at +0.5); clamped at the edges."""
-    h, w = image.shape[:2]
-    x = np.clip(np.asarray(u, dtype=float) - 0.5, 0.0, w - 1.0)
-    y = np.clip(np.asarray(v, dtype=float) - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros(len(x), np.int64)
-    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros(len(y), np.int64)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
-    return top * (1 - fy) + bottom * fy
-
-
 def blend(samples: Samples, colours: np.ndarray, exposure: Exposure, n_texels: int) -> tuple[np.ndarray, np.ndarray]:
     """Per texel (T, 3) the weighted mean of its samples' colours with their exposure (gain and
     light falloff) taken out, and (T,) whether any image gave it a colour."""
@@ -302,15 +295,33 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     lap("sample")
     exposure = fit_exposure(samples.texel, samples.pose, samples.incidence, colours, samples.weight, scan.rig.n_poses)
     lap("exposure")
+    outward = -smooth[atlas.texel_face]
+    offset = surface_offsets(nav, atlas, samples.texel, samples.pose, samples.weight, samples.incidence, exposure,
+                             outward, size)
+    samples = _moved(nav, samples, atlas.texel_point + offset[:, None] * outward, size)
+    colours = sample_images(scan, samples)
+    lap("parallax")
     colour, seen = blend(samples, colours, exposure, len(atlas.texel_rc))
-    texture = np.zeros((*atlas.shape, 3))
+    texture = np.zeros((*atlas.shape, 3), dtype=np.uint8)
     filled = np.zeros(atlas.shape, dtype=bool)
     rows, cols = atlas.texel_rc[seen, 0], atlas.texel_rc[seen, 1]
-    texture[rows, cols] = colour[seen]
+    texture[rows, cols] = np.clip(np.rint(colour[seen]), 0, 255)
     filled[rows, cols] = True
-    texture = np.clip(np.rint(fill_gutters(texture, filled)), 0, 255).astype(np.uint8)
+    texture = fill_gutters(texture, filled)
     lap("blend")
-    return BodyTexture(atlas, texture, samples, exposure, seconds)
+    return BodyTexture(atlas, texture, samples, exposure, offset, seconds)
+
+
+def _moved(nav: Navigator, samples: Samples, points: np.ndarray, image_size: tuple[int, int]) -> Samples:
+    """The samples with their pixels where each texel's point is ``points`` (T, 3) mm."""
+    from planner.navigation import pixel_of
+
+    scale = image_size[0] / nav.scan.rig.optics.image_width_px
+    u, v = np.empty(len(samples.pose)), np.empty(len(samples.pose))
+    for start in range(0, len(samples.pose), TEXEL_BLOCK):  # bounds the projection's temporaries
+        part = slice(start, start + TEXEL_BLOCK)
+        u[part], v[part] = pixel_of(nav.poses, samples.pose[part], points[samples.texel[part]], nav.scan.rig)
+    return dataclasses.replace(samples, u=u * scale, v=v * scale)
 
 
 def _widen(found: Samples, texels: np.ndarray, n: int) -> Samples:

@@ -31,7 +31,7 @@ from drivers.phone.focus import load_focus_calibration
 from drivers.sim.depth import DEPTH_TWINS, DepthScene
 from drivers.sim.drive import SimulatedDrive
 from drivers.sim.panel import SimulatedPanel
-from drivers.sim.phone import SimulatedPhone
+from drivers.sim.phone import RENDER_SIZE, SimulatedPhone
 from drivers.sim.skin_texture import LesionChanges
 from planner.poses import rgb_poses
 from planner.rig import DepthCameraModel, Rig
@@ -52,6 +52,9 @@ class SimOptions:
     depth_kind: the kind of depth camera simulated (drivers/depth/kinds.py): its twin streams.
     lesion_changes: the subject's grown and new spots at this visit (drivers/sim/skin_texture.py;
         None: the skin as it is).
+    render_scale: the simulated phones' pictures are this many times RENDER_SIZE on each side
+        (drivers/sim/phone.py; 1: 192 x 256 px, about 1.5 mm/px on the skin; the rig's phones
+        hold 32). Rendering time grows with its square.
     """
 
     seed: int = 0
@@ -61,8 +64,12 @@ class SimOptions:
     state_dir: Path | None = None
     depth_kind: str = "realsense"
     lesion_changes: LesionChanges | None = None
+    render_scale: int = 1
 
     def __post_init__(self) -> None:
+        scale = self.render_scale
+        if isinstance(scale, bool) or not isinstance(scale, int) or not 1 <= scale <= 32:
+            raise ValueError(f"render_scale {self.render_scale!r}: not a whole number in 1..32")
         if self.depth_kind not in DEPTH_TWINS:
             raise ValueError(f"no simulated twin of depth camera kind {self.depth_kind!r}; "
                              f"twins: {', '.join(DEPTH_TWINS)}")
@@ -179,6 +186,7 @@ async def _sim_phones(rig: Rig, options: SimOptions, world: SimWorld,
             phone.serial, subject=world.subject, pose=pose,
             seed=options.seed * 100 + i, optics=rig.optics, known_keys=[key.public_blob()],
             lesion_changes=options.lesion_changes,
+            render_size=(RENDER_SIZE[0] * options.render_scale, RENDER_SIZE[1] * options.render_scale),
         )
         if stage is not None:
             sim.picture_source = stage.phone_picture(phone.id)

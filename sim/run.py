@@ -56,16 +56,18 @@ async def sim_scan(*, config: Path | None = None, store: Path, seed: int = 0,
                    qa_report: Callable[..., Path] | None = None,
                    on_ready: Callable[[RigController, Any], None] | None = None,
                    patient: ScanSubject | None = None,
-                   lesion_changes: LesionChanges | None = None) -> ScanReport:
+                   lesion_changes: LesionChanges | None = None, render_scale: int = 1) -> ScanReport:
     """Build the simulated rig, run one scan, close everything; returns the scan's report.
 
     on_ready(controller, world) is called once the rig is up (tests inject faults from it);
     patient: who the scan is for (a synthetic identity), kept in its manifest; lesion_changes:
-    the subject's grown and new spots at this visit.
+    the subject's grown and new spots at this visit; render_scale: the phones' pictures are this
+    many times 192 x 256 px (SimOptions).
     """
     rig = load_rig(config or DEFAULT_RIG_PATH)
     hardware, world = await build_sim_rig(
-        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel, lesion_changes=lesion_changes),
+        rig, SimOptions(seed=seed, depth_decimation=depth_decimation, panel=panel, lesion_changes=lesion_changes,
+                        render_scale=render_scale),
         subject=subject)
     scans = ScanStore(store)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute") as executor:

@@ -224,3 +224,21 @@ def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textur
     cols = np.minimum((centres[:, 0] * picture.shape[1]).astype(int), picture.shape[1] - 1)
     expected = body.texture[rows, cols].astype(float)
     assert np.median(np.abs(picture[rows, cols] - expected)) < 4.0  # JPEG
+
+
+def test_the_images_are_sampled_where_they_agree_on_the_skin_not_where_the_tsdf_surface_is(textured):
+    """The TSDF's surface of the capsule is off its skin by a millimetre or two; the offsets
+    along the normal at which the images agree (analysis/parallax.py) take most of that out."""
+    from planner.visibility import RayScene
+    from tests.daemon_rigs import capsule_subject
+
+    body = texture_scan(open_scan(textured), texel_mm=1.5)
+    atlas, samples = body.atlas, body.samples
+    skin = capsule_subject()
+    closest, face = RayScene(skin).closest_faces(atlas.texel_point)
+    signed = np.einsum("ij,ij->i", atlas.texel_point - closest, skin.face_normals[face])  # + outside
+    sharp = samples.best_sharp & (np.abs(signed) < 5.0)
+    assert sharp.mean() > 0.5
+    moved = signed + body.offset_mm
+    assert np.median(np.abs(moved[sharp])) < 0.9 * np.median(np.abs(signed[sharp]))
+    assert np.abs(np.median(moved[sharp])) < 0.5 * np.abs(np.median(signed[sharp]))

@@ -115,3 +115,58 @@ def test_defocus_blurs_each_level_as_if_over_the_whole_picture() -> None:
             whole = gaussian_filter(rgb, sigma=(levels[i] / 2, levels[i] / 2, 0), truncate=3.0)
             expected[index == i] = whole[index == i]
     assert np.array_equal(PhoneRenderer._defocus(rgb, coc), np.clip(expected, 0, 255).astype(np.uint8))
+
+
+def test_render_scale_gives_the_simulated_rig_s_phones_finer_pictures_of_the_same_view() -> None:
+    from sim.clock import run_virtual
+    from sim.rig import SimOptions, build_sim_rig
+    from tests.daemon_rigs import capsule_subject
+
+    rig = load_rig()
+    subject = capsule_subject()
+
+    async def pictures(scale: int) -> list[tuple[tuple[int, int], np.ndarray]]:
+        _hardware, world = await build_sim_rig(rig, SimOptions(depth_decimation=8, render_scale=scale), subject=subject)
+        try:
+            shot = []
+            for phone in world.phones[2:4]:
+                info = phone.camera_info()
+                jpeg = phone._picture(phone.pose(0.0), 1000.0 / 280.0, 0)  # the capsule's skin ~280 mm off
+                shot.append(((info["image_width"], info["image_height"]),
+                             np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB"), dtype=float)))
+            return shot
+        finally:
+            await world.close()
+
+    coarse, fine = run_virtual(pictures(1)), run_virtual(pictures(2))
+    for (coarse_size, coarse_rgb), (fine_size, fine_rgb) in zip(coarse, fine):
+        assert coarse_size == (192, 256) and coarse_rgb.shape == (256, 192, 3)
+        assert fine_size == (384, 512) and fine_rgb.shape == (512, 384, 3)
+        # the same view: the fine picture averaged over 2 x 2 pixels is the coarse one, up to
+        # where the coarse pixel's single ray meets a freckle's edge
+        binned = fine_rgb.reshape(256, 2, 192, 2, 3).mean(axis=(1, 3))
+        assert np.corrcoef(binned.ravel(), coarse_rgb.ravel())[0, 1] > 0.99
+        assert np.median(np.abs(binned - coarse_rgb)) < 4.0
+
+
+@pytest.mark.parametrize("scale", [0, 33, 2.0, True])
+def test_a_render_scale_that_is_not_a_whole_number_in_range_is_refused_naming_it(scale: object) -> None:
+    from sim.rig import SimOptions
+
+    with pytest.raises(ValueError, match=f"render_scale {scale!r}"):
+        SimOptions(render_scale=scale)  # type: ignore[arg-type]
+
+
+def test_a_simulated_scan_hands_its_render_scale_to_the_simulated_rig(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    import sim.run
+
+    class Built(Exception):
+        pass
+
+    async def build(_rig: object, options: object, **_kwargs: object) -> None:
+        raise Built(options)
+
+    monkeypatch.setattr(sim.run, "build_sim_rig", build)
+    with pytest.raises(Built) as built:
+        sim.run.run_sim_scan(store=tmp_path, render_scale=3)
+    assert built.value.args[0].render_scale == 3

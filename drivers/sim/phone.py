@@ -54,6 +54,9 @@ PictureSource = Callable[[np.ndarray | None, float, np.random.Generator], np.nda
 uint8: what the phone photographs when it is not the subject (the calibration cuboid)."""
 _SCENES: weakref.WeakKeyDictionary[Any, Any] = weakref.WeakKeyDictionary()
 AGENT_RUNTIMES = ("python", "jvm")
+RENDER_SIZE = (192, 256)
+"""(width, height) px of a simulated phone's pictures by default: 1/32 of the rig phone's sensor
+side, about 1.5 mm/px on the skin (cheap; a finer render resolves smaller spots)."""
 
 
 def _scene_for(subject: Any, lesion_changes: LesionChanges | None) -> SubjectScene:
@@ -93,7 +96,7 @@ class SimulatedPhone(SimulatedAdbd):
     def __init__(self, serial: str, *, subject: Any | None = None, pose: PoseSource | None = None,
                  seed: int = 0, optics: Optics | None = None, known_keys: Iterable[bytes | str] = (),
                  accept_new_keys: bool = True, agent_installed: bool = True,
-                 render_size: tuple[int, int] | None = (192, 256), min_focus_diopters: float = 10.0,
+                 render_size: tuple[int, int] | None = RENDER_SIZE, min_focus_diopters: float = 10.0,
                  focus_calibration_quality: int = 1, timestamp_source: str = "realtime",
                  model: str = "TBP Simulated Phone", agent_runtime: str = "python",
                  agent_jar: Path | None = None, lesion_changes: LesionChanges | None = None) -> None:

@@ -1,20 +1,33 @@
 """The photographic body (issue 30 item 1) on simulated people, whose skin is known.
 
-For each body: a default simulated scan (no QA report), then ``tbp texture`` on it in a child
-process (wall time and peak RSS, goals <= 60 s and <= 4 GiB), then against the simulated truth
-(the body mesh, its skin coordinates and the freckles drivers/sim/skin_texture.py paints on it):
+For each body and render scale: a default simulated scan (no QA report) whose phones render at
+the scale times 192 x 256 px (``render_scale``, sim/rig.py SimOptions; 1 is the default scan,
+about 1.6 mm/px on the skin at the best image, 2 about 0.8 mm/px, 4 about 0.4 mm/px; the rig's
+phones hold 32), then ``tbp texture`` on it in a child process (wall time and peak RSS, goals
+<= 60 s and <= 4 GiB), then against the simulated truth (the body mesh, its skin coordinates
+and the freckles drivers/sim/skin_texture.py paints on it):
 
 - colour: mean CIEDE2000 of the texels whose best image holds them sharp, against the skin's
   albedo (the simulated phones light it with a falloff over the incidence, which the texture
   takes out), split by how far the scan's surface is from the true skin there; goal <= 3;
+- the surface off the skin: how far the scan's surface is from the true skin along its normal,
+  and how far the points the images were sampled at are (analysis/parallax.py's offsets);
 - lesions: the freckles of the dark layer whose disc on the skin is >= 1.5 mm across and that
   the images hold sharp; found when a simple spot detector on the atlas (darker than the skin
-  around it, a local maximum) has a spot within 1 mm of it on the true skin; goal >= 95 %;
+  around it, a local maximum) has a spot within 1 mm of it on the true skin; goal >= 95 %. The
+  misses are split by the disc's width in the best image's pixels, the disc, the best image's
+  mm/px and the scan surface's distance from the skin: found / detected 1-3 mm off / not
+  detected. A 1.5 mm disc spans about one pixel at scale 1, two at 2 and four at 4: the goal
+  means something from scale 2 on;
 - the textured surface more than 10 mm off the true skin (the TSDF's webbing between limbs);
 - resolution: the texture's texel on the skin (mm, from each triangle's area on the skin and in
   the atlas) against the best image's mm/px at that texel, median ratio; goal <= 1.5.
 
-    python -m tests.bench texture          (TBP_TEXTURE_SEEDS=0,3 for other bodies)
+A table of every body and scale ends the output.
+
+    python -m tests.bench texture    (TBP_TEXTURE_SEEDS=0,3 for other bodies, TBP_TEXTURE_SCALES=1,2,4
+                                      for other render scales; default bodies 0, scales 1 and 2;
+                                      scale 4 takes about 10 min and 9 GiB a body)
 """
 
 from __future__ import annotations
@@ -22,6 +35,7 @@ from __future__ import annotations
 import logging
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -32,6 +46,7 @@ import numpy as np
 import structlog
 
 SEEDS = tuple(int(s) for s in os.environ.get("TBP_TEXTURE_SEEDS", "0").split(","))
+SCALES = tuple(int(s) for s in os.environ.get("TBP_TEXTURE_SCALES", "1,2").split(","))
 GOAL_S = 60.0
 GOAL_GIB = 4.0
 GOAL_DELTA_E = 3.0
@@ -161,17 +176,27 @@ def detect_spots(texture: np.ndarray, filled: np.ndarray, texel_mm: float) -> np
     return np.stack([(w * r).sum(axis=1) / total, (w * c).sum(axis=1) / total], axis=1) + 0.5  # centres at +0.5
 
 
-def _one(seed: int, root: Path) -> None:
+#: ``tbp texture`` in a child process that says its own peak RSS last on stderr: VmHWM, the
+#: high-water mark of its own memory (ru_maxrss carries the parent's over the fork and exec).
+_TEXTURE_CHILD = ("import sys\nfrom cli import main\ncode = main(sys.argv[1:])\n"
+                  "peak = next(line for line in open('/proc/self/status') if line.startswith('VmHWM:')).split()[1]\n"
+                  "print(f'peak_rss_kib {peak}', file=sys.stderr)\nsys.exit(code)")
+
+
+def _one(seed: int, scale: int, root: Path) -> dict[str, float]:
+    from drivers.sim.phone import RENDER_SIZE
     from sim.run import run_sim_scan
 
     started = time.perf_counter()
-    report = run_sim_scan(store=root / f"s{seed}", seed=seed, panel=False)
-    print(f"body {seed}: simulated scan {report.outcome.value} in {time.perf_counter() - started:.0f} s", flush=True)
-    measure(report.folder, seed)
+    report = run_sim_scan(store=root / f"s{seed}x{scale}", seed=seed, panel=False, render_scale=scale)
+    print(f"body {seed}, phones at {RENDER_SIZE[0] * scale} x {RENDER_SIZE[1] * scale} px (render scale {scale}): "
+          f"simulated scan {report.outcome.value} in {time.perf_counter() - started:.0f} s", flush=True)
+    return measure(report.folder, seed)
 
 
-def measure(folder: Path, seed: int) -> None:
-    """Texture the scan in ``folder`` of the simulated body ``seed`` and print its figures."""
+def measure(folder: Path, seed: int) -> dict[str, float]:
+    """Texture the scan in ``folder`` of the simulated body ``seed``, print its figures and
+    return the headline ones."""
     from scipy.spatial import cKDTree
 
     from analysis.body_texture import texture_scan
@@ -180,19 +205,19 @@ def measure(folder: Path, seed: int) -> None:
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[2]),
                                                         os.environ.get("PYTHONPATH", "")])}
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "cli", "texture", str(folder)], check=False, env=env,
+    done = subprocess.run([sys.executable, "-c", _TEXTURE_CHILD, "texture", str(folder)], check=False, env=env,
                           capture_output=True, text=True)
     texture_s = time.perf_counter() - started
-    peak_gib = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before) / 2**20
+    *lines, last = done.stderr.strip().splitlines() or [""]
+    peak_gib = float(last.removeprefix("peak_rss_kib ")) / 2**20 if last.startswith("peak_rss_kib ") else float("nan")
     if done.returncode != 0:
         print(done.stderr[-2000:])
         raise SystemExit(f"tbp texture failed on body {seed}")
     size_mb = (folder / "body.glb").stat().st_size / 1e6
     print(f"  tbp texture {texture_s:.1f} s (goal <= {GOAL_S:.0f}), peak RSS {peak_gib:.2f} GiB "
           f"(goal <= {GOAL_GIB:.0f}), body.glb {size_mb:.1f} MB")
-    for line in done.stderr.strip().splitlines():
+    for line in lines:
         print(f"    {line}")
 
     # The same texture again in-process, for its per-texel records (deterministic).
@@ -210,6 +235,12 @@ def measure(folder: Path, seed: int) -> None:
           f"the albedo (goal <= {GOAL_DELTA_E:.0f}), median {np.median(de):.2f}, 90th percentile "
           f"{np.percentile(de, 90):.2f}; where the scan's surface is within 2 mm of the skin ({100 * close.mean():.0f} %) "
           f"mean {de[close].mean():.2f}, elsewhere {de[~close].mean():.2f}")
+
+    signed = np.einsum("ij,ij->i", atlas.texel_point - at["point"], at["normal"])[sharp]  # + outside the skin
+    moved = signed + body.offset_mm[sharp]
+    print(f"  surface off the skin on sharp texels: median {np.median(np.abs(signed)):.2f} mm (mean {signed.mean():+.2f}); "
+          f"where the images were sampled (parallax offsets, median {np.median(np.abs(body.offset_mm[sharp])):.2f} mm): "
+          f"median {np.median(np.abs(moved)):.2f} mm (mean {moved.mean():+.2f})")
 
     # lesions
     filled = np.zeros(atlas.shape, dtype=bool)
@@ -232,6 +263,8 @@ def measure(folder: Path, seed: int) -> None:
     print(f"  lesions >= {LESION_MM} mm held sharp: {held.sum()} of {len(held)}; found within {MATCH_MM} mm: "
           f"{found.sum()} ({100 * found.mean():.1f} %, goal >= {100 * GOAL_LESIONS:.0f} %); within 2 mm "
           f"{100 * (distance <= 2.0).mean():.1f} %; spots detected {len(spots)}; median disc {np.median(disc):.1f} mm")
+    where = nearest[held]
+    lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where])
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
     tri = atlas.vertices[atlas.faces]
@@ -249,6 +282,29 @@ def measure(folder: Path, seed: int) -> None:
     print(f"  resolution: texel {atlas.texel_mm:.2f} mm on the chart, median {np.median(texel_on_skin[ok]):.2f} mm on the "
           f"skin; best image median {np.nanmedian(samples.best_mm_px[ok]):.2f} mm/px; texel / pixel median "
           f"{np.median(ratio[ok]):.2f}, 95th percentile {np.percentile(ratio[ok], 95):.2f} (goal <= {GOAL_RESOLUTION})")
+    return {"found": 100 * found.mean(), "found2": 100 * (distance <= 2.0).mean(), "delta_e": de.mean(),
+            "mm_px": float(np.nanmedian(samples.best_mm_px[ok])), "ratio": float(np.median(ratio[ok])),
+            "seconds": texture_s, "gib": peak_gib}
+
+
+def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray) -> None:
+    """Print where the held lesions are lost: per bin of the disc's width in the best image's
+    pixels, of the disc (mm), of the best image's mm/px and of the scan surface's distance from
+    the true skin there, the share found within MATCH_MM, detected but off (the nearest spot
+    MATCH_MM..3 mm away) and not detected (no spot within 3 mm). All (K,) per lesion."""
+    splits = (("disc px", disc / mm_px, (0, 1.5, 2.5, 4, np.inf)), ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
+              ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
+              ("surface off mm", surface_mm, (0, 1, 2, np.inf)))
+    for name, value, edges in splits:
+        cells = []
+        for low, high in zip(edges[:-1], edges[1:]):
+            inside = (value >= low) & (value < high)
+            if not inside.any():
+                continue
+            d = distance[inside]
+            cells.append(f"{low:g}-{high:g}: {inside.sum()} {100 * (d <= MATCH_MM).mean():.0f}/"
+                         f"{100 * ((d > MATCH_MM) & (d <= 3.0)).mean():.0f}/{100 * (d > 3.0).mean():.0f}")
+        print(f"    by {name} (n found/off/undetected %): " + "; ".join(cells))
 
 
 def _subtexel_points(spots: np.ndarray, index: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -273,9 +329,17 @@ def _subtexel_points(spots: np.ndarray, index: np.ndarray, points: np.ndarray) -
 
 def run() -> None:
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
+    rows = []
     with tempfile.TemporaryDirectory(prefix="tbp-texture-bench-") as root:
         for seed in SEEDS:
-            _one(seed, Path(root))
+            for scale in SCALES:
+                rows.append((seed, scale, _one(seed, scale, Path(root))))
+                shutil.rmtree(Path(root) / f"s{seed}x{scale}")
+    print(f"{'body':>4} {'scale':>5} {'mm/px':>6} {'found <= 1 mm':>14} {'<= 2 mm':>8} {'dE00':>5} {'texel/px':>8} "
+          f"{'texture s':>9} {'GiB':>5}")
+    for seed, scale, r in rows:
+        print(f"{seed:>4} {scale:>5} {r['mm_px']:>6.2f} {r['found']:>13.1f}% {r['found2']:>7.1f}% {r['delta_e']:>5.2f} "
+              f"{r['ratio']:>8.2f} {r['seconds']:>9.1f} {r['gib']:>5.2f}")
     print(f"peak memory of this process (max RSS) {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
 

@@ -1,0 +1,127 @@
+"""Where the scan's surface is off the skin, the images disagree about where a spot is on it.
+
+A camera sees a skin point along its ray; a surface ``d`` mm above or below the skin meets that
+ray ``d tan(angle)`` along the surface from the skin point's place on it (the angle between the
+ray and the surface's normal), so images from different sides put one spot in different places
+and a texture sampled where each ray meets the TSDF's surface smears and moves small lesions.
+This module finds, per texel, the offset along the surface's normal at which the images that
+texture it agree (a plane sweep over offsets, the colour differences between images summed over
+the atlas around each texel), and the images are sampled at that offset: each image then puts
+the skin point seen there on the texel that lies over it.
+
+Where the images agree equally at every offset (plain skin, or a texel one image textures) the
+offset is spread from the texels around that have a clear one, else zero.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from PIL import Image
+from scipy import ndimage
+
+from analysis.pixels import bilinear
+
+if TYPE_CHECKING:
+    from analysis.atlas import Atlas
+    from analysis.exposure import Exposure
+    from analysis.navigate import Navigator
+
+#: Offsets along the surface's outward normal tried, mm (the TSDF surface is within ~3 mm of the skin).
+OFFSETS_MM = np.arange(-3.0, 3.01, 0.5)
+#: The sweep runs on the texels of a grid of about this pitch, mm (the offset changes over millimetres).
+GRID_MM = 2.0
+#: Colour differences are summed over a Gaussian of this sigma (mm) around each texel.
+WINDOW_MM = 4.0
+#: Offsets are spread over a Gaussian of this sigma (mm), weighted by how clear each one is.
+SPREAD_MM = 8.0
+#: A texel's offset counts when its best offset's difference is below this share of the mean.
+CLEAR = 0.5
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def surface_offsets(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, weight: np.ndarray,
+                    incidence: np.ndarray, exposure: Exposure, outward: np.ndarray,
+                    image_size: tuple[int, int]) -> np.ndarray:
+    """(T,) offset (mm) along each texel's outward normal ``outward`` (T, 3) at which the images
+    of its samples (texel, pose, weight, incidence: (K,) each, as analysis.body_texture.Samples)
+    agree best; 0 where no texel around has a clear one."""
+    n_texels = len(atlas.texel_point)
+    step = max(int(round(GRID_MM / atlas.texel_mm)), 1)
+    rows, cols = atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]
+    on_grid = (rows % step == 0) & (cols % step == 0)
+    count = np.bincount(texel, minlength=n_texels)
+    swept = np.flatnonzero(on_grid[texel] & (count[texel] >= 2))
+    grid_shape = (atlas.shape[0] // step + 1, atlas.shape[1] // step + 1)
+    if not len(swept):
+        return np.zeros(n_texels)
+    values = _sweep(nav, atlas, texel[swept], pose[swept], incidence[swept], exposure, outward, image_size)
+    # per texel and offset: the weighted variance of its images' luminance
+    w = weight[swept].astype(np.float64)
+    t = texel[swept]
+    total = np.bincount(t, w, minlength=n_texels)
+    cost = np.zeros((len(OFFSETS_MM), *grid_shape), dtype=np.float32)
+    seen = np.zeros(grid_shape, dtype=np.float32)
+    g_rows, g_cols = rows // step, cols // step
+    have = np.flatnonzero(total > 0)
+    seen[g_rows[have], g_cols[have]] = 1.0
+    for level in range(len(OFFSETS_MM)):
+        lum = values[:, level]
+        mean = np.bincount(t, w * lum, minlength=n_texels)[have] / total[have]
+        square = np.bincount(t, w * lum * lum, minlength=n_texels)[have] / total[have]
+        cost[level, g_rows[have], g_cols[have]] = np.maximum(square - mean * mean, 0.0)
+    sigma = WINDOW_MM / (atlas.texel_mm * step)
+    norm = np.maximum(ndimage.gaussian_filter(seen, sigma), 1e-6)
+    for level in range(len(OFFSETS_MM)):
+        cost[level] = ndimage.gaussian_filter(cost[level], sigma) / norm
+    best = np.argmin(cost, axis=0)
+    offset = OFFSETS_MM[best] + _parabola(cost, best) * (OFFSETS_MM[1] - OFFSETS_MM[0])
+    lowest = np.take_along_axis(cost, best[None], axis=0)[0]
+    clear = (seen > 0) & (lowest < CLEAR * cost.mean(axis=0))
+    spread = SPREAD_MM / (atlas.texel_mm * step)
+    confidence = ndimage.gaussian_filter(clear.astype(np.float32), spread)
+    smooth = ndimage.gaussian_filter(np.where(clear, offset, 0.0).astype(np.float32), spread)
+    field = np.where(confidence > 1e-3, smooth / np.maximum(confidence, 1e-6), 0.0)
+    result: np.ndarray = field[g_rows, g_cols].astype(np.float64)
+    return result
+
+
+def _parabola(cost: np.ndarray, best: np.ndarray) -> np.ndarray:
+    """Sub-step position (-0.5..0.5 steps) of the minimum of the parabola through the best
+    offset's cost and its two neighbours' (0 at the ends of the sweep)."""
+    last = len(cost) - 1
+    inner = np.clip(best, 1, last - 1)
+    c0, c1, c2 = (np.take_along_axis(cost, (inner + k)[None], axis=0)[0] for k in (-1, 0, 1))
+    curvature = c0 - 2 * c1 + c2
+    shift = np.where(curvature > 0, 0.5 * (c0 - c2) / np.where(curvature > 0, curvature, 1.0), 0.0)
+    return np.where((best > 0) & (best < last), np.clip(shift, -0.5, 0.5), 0.0)
+
+
+def _sweep(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, incidence: np.ndarray,
+           exposure: Exposure, outward: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """(K, L) exposure-corrected luminance of each sample's image at its texel's point moved by
+    each of OFFSETS_MM along ``outward``; one image in memory at a time."""
+    from planner.navigation import pixel_of
+
+    scan = nav.scan
+    scale = image_size[0] / scan.rig.optics.image_width_px
+    values = np.zeros((len(texel), len(OFFSETS_MM)), dtype=np.float32)
+    factor = (exposure.factor(pose, incidence) @ _LUMINANCE).astype(np.float32)  # luminance gain, roughly
+    order = np.argsort(pose, kind="stable")
+    poses, starts = np.unique(pose[order], return_index=True)
+    ends = np.r_[starts[1:], len(order)]
+    for p, a, b in zip(poses, starts, ends):
+        image = scan.image_at(int(p))
+        if image is None or image.file is None:
+            raise LookupError(f"scan {scan.path}: pose {p} has no image on disk")
+        with Image.open(scan.path / image.file) as picture:
+            lum = np.asarray(picture.convert("RGB"), dtype=np.float32) @ _LUMINANCE
+        mine = order[a:b]
+        points, normal = atlas.texel_point[texel[mine]], outward[texel[mine]]
+        which = np.full(len(mine), p)
+        for level, offset in enumerate(OFFSETS_MM):
+            u, v = pixel_of(nav.poses, which, points + offset * normal, scan.rig)
+            values[mine, level] = bilinear(lum[:, :, None], u * scale, v * scale)[:, 0]
+        values[mine] /= factor[mine, None]
+    return values
