@@ -102,6 +102,13 @@ def textured(web_store, tmp_path_factory) -> Path:
     return root / name
 
 
+@pytest.fixture(scope="module")
+def body(textured):
+    """The textured scan's body with its per-texel records (the texture is deterministic: the
+    same as body.glb's)."""
+    return texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
+
+
 def test_body_glb_is_listed_in_the_manifest_and_loads_back_textured(textured):
     manifest = json.loads((textured / "manifest.json").read_text())
     assert manifest["files"]["body"] == "body.glb"
@@ -142,8 +149,7 @@ def test_every_texel_takes_the_image_navigation_ranks_best(textured):
         assert found.best_sharp[k] == any(v["in_focus"] for v in views)  # a sharp image wins when there is one
 
 
-def test_the_texture_is_blended_from_the_best_images_and_sharp_where_they_are(textured):
-    body = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
+def test_the_texture_is_blended_from_the_best_images_and_sharp_where_they_are(body):
     samples = body.samples
     seen = samples.best_pose >= 0
     assert seen.mean() > 0.9
@@ -201,7 +207,7 @@ def _glb_accessor(data: bytes, index: int) -> np.ndarray:
     return np.frombuffer(binary, kind, accessor["count"] * width, start).reshape(accessor["count"], width)
 
 
-def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textured):
+def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textured, body):
     """glTF's UV origin is the image's top-left corner: a texel's colour in the file's image at
     its triangle's UV is the colour the atlas gave it."""
     from PIL import Image
@@ -216,7 +222,6 @@ def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textur
     binary = data[20 + length + 8:]
     start = image_view.get("byteOffset", 0)
     picture = np.asarray(Image.open(io.BytesIO(binary[start:start + image_view["byteLength"]])).convert("RGB"), dtype=float)
-    body = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
     assert np.array_equal(faces, body.atlas.faces)
     assert uv == pytest.approx(body.atlas.uv, abs=1e-6)
     centres = uv[faces].mean(axis=1)  # inside the triangle: its own chart's colour
@@ -226,13 +231,12 @@ def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textur
     assert np.median(np.abs(picture[rows, cols] - expected)) < 4.0  # JPEG
 
 
-def test_the_images_are_sampled_where_they_agree_on_the_skin_not_where_the_tsdf_surface_is(textured):
+def test_the_images_are_sampled_where_they_agree_on_the_skin_not_where_the_tsdf_surface_is(body):
     """The TSDF's surface of the capsule is off its skin by a millimetre or two; the offsets
     along the normal at which the images agree (analysis/parallax.py) take most of that out."""
     from planner.visibility import RayScene
     from tests.daemon_rigs import capsule_subject
 
-    body = texture_scan(open_scan(textured), texel_mm=1.5)
     atlas, samples = body.atlas, body.samples
     skin = capsule_subject()
     closest, face = RayScene(skin).closest_faces(atlas.texel_point)
