@@ -34,7 +34,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -216,17 +216,19 @@ class LoopbackRig:
             lacks, as on a rig being commissioned: "drive" a socketcand port nobody listens on,
             "phones" no phone simulator, "depth" live RealSense serials (none is plugged in here),
             "panel" a serial device that does not exist. The daemon re-probes them while it runs.
+        daemon_args: more options for the daemon's command line (the unit's, with its rig file).
     """
 
     def __init__(self, root: Path, *, body_seed: int = 0, decimation: int = 2, rig_path: Path = DEFAULT_RIG_PATH,
                  http: bool = False, missing_phones: tuple[int, ...] = (), missing: Iterable[str] = (),
-                 out: IO[str] | None = None) -> None:
+                 daemon_args: Sequence[str] = (), out: IO[str] | None = None) -> None:
         self.root = Path(root)
         self.body_seed = body_seed
         self.decimation = decimation
         self.rig_path = Path(rig_path).resolve()
         self.rig: Rig = load_rig(self.rig_path)
         self.http = http
+        self.daemon_args = list(daemon_args)
         self.missing = frozenset(missing)
         if not self.missing <= DEVICE_KINDS:
             raise LoopbackError(f"missing devices {sorted(self.missing - DEVICE_KINDS)}: not among {sorted(DEVICE_KINDS)}")
@@ -431,7 +433,7 @@ class LoopbackRig:
     def start_daemon(self) -> Proc:
         argv, env = unit_command(UNIT, self.root)
         argv = [str(self.rig_path) if a == f"{self.root}/etc/rig.yaml" else a for a in argv]
-        argv += ["--http", "127.0.0.1:0" if self.http else "off"]
+        argv += ["--http", "127.0.0.1:0" if self.http else "off", *self.daemon_args]
         if self.notify is not None:  # a restart: the earlier daemon's messages are not this one's
             self.notify.close()
         self.notify = Notifications(self.root / "run" / "notify.sock")

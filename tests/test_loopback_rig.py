@@ -21,7 +21,7 @@ from daemon.records.store import ScanStore
 from daemon.server.control import CommandFailed
 from daemon.server.looplag import WARN_S
 from sim.loopback import LoopbackRig, scan_from_panel
-from tests.daemon_rigs import fast_rig_file
+from tests.daemon_rigs import BODY_TEXEL_MM, fast_rig_file
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
@@ -96,8 +96,10 @@ def test_a_scan_started_from_the_panel_completes_on_the_real_code_path(tmp_path:
 def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Path) -> None:
     missing = 2
     # The faults and stops need whole scans, not the default rig's slow sectors: the beam turns
-    # the capture at 18 deg/s (the scan from the panel above is the default rig's).
-    with LoopbackRig(tmp_path, rig_path=fast_rig_file(tmp_path), missing_phones=(missing,)) as rig:
+    # the capture at 18 deg/s (the scan from the panel above is the default rig's), and the body
+    # after each is textured coarsely (the panel scan's is checked).
+    with LoopbackRig(tmp_path, rig_path=fast_rig_file(tmp_path), missing_phones=(missing,),
+                     daemon_args=("--body-texel-mm", BODY_TEXEL_MM)) as rig:
         name = rig.rig.phones[missing].id
         assert rig.notify is not None
         # A phone that is not there keeps the rig NOT READY, named with its address and what to check.
