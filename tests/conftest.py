@@ -19,7 +19,11 @@ settings.register_profile("explore", derandomize=False, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
-LONGEST_FIRST = frozenset({"test_loopback_rig.py"})
+LOOPBACK_RIGS = frozenset({"test_loopback_rig.py", "test_loopback_safety.py"})
+"""Tests of a whole rig on this machine (sim/loopback.py): one xdist group, so one runs at a time,
+started first. A loopback rig's daemon, drive and compute worker get the CPU before other work,
+as the unit gives them on a rig PC, which has one rig: two at once starve each other's daemon
+past its heartbeats (here a drive lost the host's for 0.35 s)."""
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -30,10 +34,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         if "web_store" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.xdist_group("web_store"))
             item.add_marker(pytest.mark.slow)
-    # The longest tests start first, one per worker, so the workers end together: the loopback
-    # rig's take minutes each at the beam's real speeds, and collected in file order both went to
-    # one worker while the other ran out of tests.
-    items.sort(key=lambda item: item.path.name not in LONGEST_FIRST)
+        if item.path.name in LOOPBACK_RIGS:
+            item.add_marker(pytest.mark.xdist_group("loopback_rig"))
+    # The loopback rigs' tests start first: they take minutes at the beam's real speeds, one after
+    # the other on one worker, while the other workers take the rest.
+    items.sort(key=lambda item: item.path.name not in LOOPBACK_RIGS)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
