@@ -54,15 +54,20 @@ async def _scan_until_captured(sock: Path, count: int) -> str:
     raise AssertionError("the scan never reached the capture")
 
 
+def _stat(pid: int) -> list[str] | None:
+    """The fields of /proc/PID/stat after the command's name (state, parent, ...); None once ended."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
 def _descendants(pid: int) -> set[int]:
     """The processes below ``pid`` (children, theirs, ...), from /proc."""
     parents = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # ended meanwhile
-            continue
-        parents[int(stat.parent.name)] = int(fields[1])
+    for entry in Path("/proc").glob("[0-9]*"):
+        if (fields := _stat(int(entry.name))) is not None:
+            parents[int(entry.name)] = int(fields[1])
     below, grew = set(), True
     while grew:
         more = {child for child, parent in parents.items() if parent == pid or parent in below}
@@ -75,13 +80,7 @@ def _still_running(pids: set[int], within_s: float) -> set[int]:
     """Those of ``pids`` still running after ``within_s`` seconds at most (zombies count as ended)."""
     deadline = time.monotonic() + within_s
     while True:
-        left = set()
-        for pid in pids:
-            try:
-                if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
-                    left.add(pid)
-            except OSError:
-                pass
+        left = {pid for pid in pids if (fields := _stat(pid)) is not None and fields[0] != "Z"}
         if not left or time.monotonic() > deadline:
             return left
         time.sleep(0.1)

@@ -161,7 +161,7 @@ def test_a_simulated_scan_hands_its_render_scale_to_the_simulated_rig(monkeypatc
     import sim.run
 
     class Built(Exception):
-        pass
+        """The simulated rig was built (with the options it carries)."""
 
     async def build(_rig: object, options: object, **_kwargs: object) -> None:
         raise Built(options)
