@@ -10,9 +10,8 @@ from pathlib import Path
 import pytest
 import structlog
 from hypothesis import settings
-from threadpoolctl import threadpool_limits
 
-from daemon.offload.worker import THREAD_VARIABLES
+from daemon.offload.worker import one_numeric_thread
 
 # Property tests draw the same examples on every run (a CI run never fails on a draw the last
 # one did not make); HYPOTHESIS_PROFILE=explore draws new ones when hunting for bugs. No deadline:
@@ -23,12 +22,8 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 # One BLAS and OpenMP thread per test process and per process a test starts: the suite runs one
 # pytest-xdist worker per core, and a library splitting its loops over every core on a machine
-# whose cores are all busy waits at each barrier for the half that shares a busy core (an
-# OpenBLAS (N, 3) x (3, 3) product took 130-175 ms instead of 2 ms). The variables reach the
-# libraries loaded from here on and the processes tests start; threadpool_limits reaches the BLAS
-# already loaded (pytest's plugins import NumPy before this file).
-os.environ.update({name: "1" for name in THREAD_VARIABLES})
-threadpool_limits(limits=1)
+# whose cores are all busy waits at each barrier for the half that shares a busy core.
+one_numeric_thread()
 
 
 LOOPBACK_RIGS = frozenset({"test_loopback_rig.py", "test_loopback_safety.py"})

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -165,3 +167,35 @@ def test_the_daemon_process_does_not_load_numba() -> None:
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "False"
+
+
+_THREADS_PROBE = """
+import json, os
+import numpy, scipy.linalg  # their BLAS loaded with every core
+from threadpoolctl import threadpool_info
+before = [p["num_threads"] for p in threadpool_info()]
+from daemon.offload.worker import one_numeric_thread
+one_numeric_thread()
+import cv2, open3d  # loaded after: the variables reach them
+print(json.dumps({"before": before, "after": [p["num_threads"] for p in threadpool_info()],
+                  "environ": [os.environ.get(n) for n in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")]}))
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one core: every library has one thread already")
+def test_one_numeric_thread_reaches_the_libraries_loaded_before_and_after() -> None:
+    """The daemon's process (daemon/server/serve.py) and the tests run their numeric libraries on
+    one thread each, whatever the machine's cores: the ones loaded before the call and after it."""
+    import json
+    import subprocess
+    import sys
+
+    from daemon.offload.worker import THREAD_VARIABLES
+
+    env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
+    out = subprocess.run([sys.executable, "-c", _THREADS_PROBE], env=env, capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    got = json.loads(out.splitlines()[-1])
+    assert max(got["before"]) > 1  # the libraries' default: every core
+    assert got["after"] and set(got["after"]) == {1}
+    assert got["environ"] == ["1", "1"]

@@ -14,7 +14,7 @@ from typing import Any
 from daemon.jobs.controller import RigController
 from daemon.jobs.scan import ScanSettings
 from daemon.logs import follow_machine
-from daemon.offload.worker import compute_pool
+from daemon.offload.worker import compute_pool, one_numeric_thread
 from daemon.records.store import ScanStore
 from daemon.rig.hardware import RigHardware
 from daemon.server.looplag import freeze_startup_heap
@@ -28,7 +28,9 @@ async def serve(rig: Rig, hardware: RigHardware, *, store: Path, settings: ScanS
                 attach: Callable[[Any], None] | None = None) -> int:
     """Serve ``hardware`` until SIGINT/SIGTERM; attach(service) adds servers (the web, the export
     queue). Compute runs in a worker process (daemon/offload/worker.py), so fusing and planning
-    never stall the drive's heartbeat; ``settings.executor`` is that worker's pool."""
+    never stall the drive's heartbeat; ``settings.executor`` is that worker's pool. The daemon's
+    own numeric work runs on one thread (:func:`one_numeric_thread`)."""
+    one_numeric_thread()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
