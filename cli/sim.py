@@ -73,8 +73,13 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from daemon.logs import configure_logging
+    from daemon.offload.worker import one_numeric_thread
 
     configure_logging(level=args.log_level, stream=sys.stderr)
+    # A simulator stands in for a device with its own processor, yet shares the cores of the
+    # machine the daemon runs on: its renders run on one thread and never wait at a barrier for
+    # a core the daemon or its compute worker holds.
+    one_numeric_thread()
     module = importlib.import_module(args.sim_module)
     for sig in (signal.SIGINT, signal.SIGTERM):  # until the simulator installs its own handlers
         signal.signal(sig, _stop_before_ready)
