@@ -44,8 +44,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         if item.path.name in LOOPBACK_RIGS:
             item.add_marker(pytest.mark.xdist_group("loopback_rig"))
     # The loopback rigs' tests start first: they take minutes at the beam's real speeds, one after
-    # the other on one worker, while the other workers take the rest.
-    items.sort(key=lambda item: item.path.name not in LOOPBACK_RIGS)
+    # the other on one worker, while the other workers take the rest. Then the slow tests (whole
+    # scans, rotations, worker processes), so a phase ends on short tests on every worker instead
+    # of one worker starting a minutes-long test while the others run out of work. (pytest-xdist
+    # hands out its groups largest first, then single tests in this order.)
+    items.sort(key=lambda item: (item.path.name not in LOOPBACK_RIGS, item.get_closest_marker("slow") is None))
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
