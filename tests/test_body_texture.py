@@ -14,10 +14,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analysis.atlas import GUTTER, unwrap
-from analysis.body_texture import bilinear, choose_views, report_and_body, stored_image_size, texture_scan, write_body
+from analysis.body_texture import (bilinear, choose_views, report_and_body, smooth_face_normals, stored_image_size,
+                                   texture_scan, write_body)
 from analysis.exposure import FALLOFF_KNOTS, fit_exposure
 from analysis.navigate import Navigator
 from analysis.scan_views import open_scan
+from analysis.texel_views import texel_views
 from cli import main
 from tests.test_web import folder_of
 
@@ -147,6 +149,35 @@ def test_every_texel_takes_the_image_navigation_ranks_best(textured):
         assert found.best_pose[k] == views[0]["pose"]
         assert found.best_sharp[k] == views[0]["in_focus"]
         assert found.best_sharp[k] == any(v["in_focus"] for v in views)  # a sharp image wins when there is one
+
+
+def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textured):
+    """texel_views costs each texel's pairs itself (frustum, facing, occlusion, cost terms) and
+    casts rays only where a pair can matter: with every pose a candidate it picks what
+    choose_views picks through planner.navigation.view_costs, in texel order, heaviest first."""
+    from scipy import sparse
+
+    scan = open_scan(textured)
+    nav = Navigator(scan)
+    size = stored_image_size(scan)
+    vertices, faces = np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces)
+    normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
+    atlas = unwrap(vertices, faces, 6.0)
+    every = sparse.csr_matrix(np.ones((len(faces), scan.rig.n_poses)))
+    got = texel_views(nav, atlas, normals, smooth, every, size)
+    face = atlas.texel_face
+    want = choose_views(nav, atlas.texel_point, normals[face], size, smooth_normals=smooth[face])
+    assert (got.best_pose >= 0).mean() > 0.9
+    assert np.mean(got.best_pose == want.best_pose) > 0.999 and np.mean(got.best_sharp == want.best_sharp) > 0.999
+    key_got = got.texel.astype(np.int64) * 1000 + got.pose
+    key_want = want.texel.astype(np.int64) * 1000 + want.pose
+    assert len(np.setxor1d(key_got, key_want)) < 1e-3 * len(key_want)
+    _, i, j = np.intersect1d(key_got, key_want, return_indices=True)
+    assert got.weight[i] == pytest.approx(want.weight[j], abs=1e-4)
+    assert np.hypot(got.u[i] - want.u[j], got.v[i] - want.v[j]).max() < 1e-3
+    assert np.all(np.diff(got.texel) >= 0)
+    same = np.diff(got.texel) == 0
+    assert np.all(got.weight[1:][same] <= got.weight[:-1][same])
 
 
 def test_the_texture_is_blended_from_the_best_images_and_sharp_where_they_are(body):
