@@ -28,7 +28,7 @@ import numpy as np
 from PIL import Image
 
 from analysis.atlas import Atlas, fill_gutters, unwrap
-from analysis.exposure import Exposure, fit_exposure
+from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
 from analysis.parallax import surface_offsets
 from analysis.pixels import bilinear
@@ -174,10 +174,11 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     samples = texel_views(nav, atlas, normals, smooth, per_face, size)
     lap("views")
     say(f"{len(samples.pose)} image samples from {np.count_nonzero(np.bincount(samples.pose))} images")
-    colours = sample_images(scan, samples)
+    fit = _overlapping(samples, 2 * MAX_EQUATIONS)
+    colours = sample_images(scan, fit)
     lap("sample")
-    exposure = fit_exposure(samples.texel, samples.pose, samples.incidence, colours, samples.weight, scan.rig.n_poses)
-    del colours
+    exposure = fit_exposure(fit.texel, fit.pose, fit.incidence, colours, fit.weight, scan.rig.n_poses)
+    del colours, fit
     lap("exposure")
     outward = -smooth
     offset = surface_offsets(nav, atlas, samples.texel, samples.pose, samples.weight, samples.incidence, exposure,
@@ -186,14 +187,33 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     colours = sample_images(scan, samples)
     lap("parallax")
     colour, seen = blend(samples, colours, exposure, len(atlas.texel_rc))
+    del colours
     texture = np.zeros((*atlas.shape, 3), dtype=np.uint8)
     filled = np.zeros(atlas.shape, dtype=bool)
     rows, cols = atlas.texel_rc[seen, 0], atlas.texel_rc[seen, 1]
     texture[rows, cols] = np.clip(np.rint(colour[seen]), 0, 255)
     filled[rows, cols] = True
+    del colour, rows, cols
     texture = fill_gutters(texture, filled)
     lap("blend")
     return BodyTexture(atlas, texture, samples, exposure, offset, seconds)
+
+
+def _overlapping(samples: Samples, equations: int) -> Samples:
+    """The samples the exposure fit reads: those of a random share (fixed seed) of the texels
+    two or more images texture, holding about ``equations`` overlaps (all when they hold fewer),
+    so the fit reads the colours of a bounded number of samples whatever the atlas' size."""
+    starts = np.flatnonzero(np.r_[True, samples.texel[1:] != samples.texel[:-1]]) if len(samples.texel) else np.zeros(0, int)
+    counts = np.diff(np.r_[starts, len(samples.texel)])
+    shared = np.flatnonzero(counts >= 2)
+    total = int((counts[shared] - 1).sum())
+    if total <= equations:
+        return samples
+    group = shared[np.sort(np.random.default_rng(0).choice(len(shared), len(shared) * equations // total, replace=False))]
+    size = counts[group]
+    index = np.repeat(starts[group] - (np.cumsum(size) - size), size) + np.arange(size.sum())
+    return dataclasses.replace(samples, texel=samples.texel[index], pose=samples.pose[index], u=samples.u[index],
+                               v=samples.v[index], weight=samples.weight[index], incidence=samples.incidence[index])
 
 
 def _moved(nav: Navigator, samples: Samples, atlas: Atlas, offset: np.ndarray, outward: np.ndarray,
