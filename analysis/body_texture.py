@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +40,7 @@ from analysis.texel_views import Samples, candidate_poses, choose_views, texel_v
 TEXEL_PER_PIXEL = 0.7
 #: Rings of neighbouring vertices the normals the light's falloff is measured against are averaged over.
 SMOOTH_RINGS = 4
-#: Samples per pass of the blending and the re-projection (bounds their temporary arrays).
+#: Samples per pass of the blending (bounds its temporary arrays).
 SAMPLE_BLOCK = 1 << 21
 #: Largest atlas side, texels.
 MAX_SIDE = 8192
@@ -97,18 +97,24 @@ def smooth_face_normals(vertices: np.ndarray, faces: np.ndarray, rings: int = SM
 def sample_images(scan: ScanRecord, samples: Samples) -> np.ndarray:
     """(K, 3) float32 RGB of every blended pair, bilinear at its pixel, one image in memory at a time."""
     colours = np.empty((len(samples.pose), 3), dtype=np.float32)
-    order = np.argsort(samples.pose, kind="stable")
-    counts = np.bincount(samples.pose)
-    ends = np.cumsum(counts)
-    for pose in np.flatnonzero(counts):
-        image = scan.image_at(int(pose))
-        if image is None or not scan.image_on_disk(image):
-            raise TextureError(f"scan {scan.path}: pose {pose} has no image on disk")
-        with Image.open(scan.path / image.file) as picture:
-            pixels = np.asarray(picture.convert("RGB"), dtype=np.float32)
-        mine = order[ends[pose] - counts[pose]:ends[pose]]
+    for mine, pixels in _by_image(scan, samples.pose):
         colours[mine] = bilinear(pixels, samples.u[mine], samples.v[mine])
     return colours
+
+
+def _by_image(scan: ScanRecord, pose: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Per image of the poses (K,): the indices of its samples and its pixels (H, W, 3) float32,
+    one image in memory at a time."""
+    order = np.argsort(pose, kind="stable")
+    counts = np.bincount(pose)
+    ends = np.cumsum(counts)
+    for p in np.flatnonzero(counts):
+        image = scan.image_at(int(p))
+        if image is None or not scan.image_on_disk(image):
+            raise TextureError(f"scan {scan.path}: pose {p} has no image on disk")
+        with Image.open(scan.path / image.file) as picture:
+            pixels = np.asarray(picture.convert("RGB"), dtype=np.float32)
+        yield order[ends[p] - counts[p]:ends[p]], pixels
 
 
 def blend(samples: Samples, colours: np.ndarray, exposure: Exposure, n_texels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -183,8 +189,7 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     outward = -smooth
     offset = surface_offsets(nav, atlas, samples.texel, samples.pose, samples.weight, samples.incidence, exposure,
                              outward, size)
-    samples = _moved(nav, samples, atlas, offset, outward, size)
-    colours = sample_images(scan, samples)
+    samples, colours = _sample_moved(scan, nav, samples, atlas, offset, outward, size)
     lap("parallax")
     colour, seen = blend(samples, colours, exposure, len(atlas.texel_rc))
     del colours
@@ -216,21 +221,25 @@ def _overlapping(samples: Samples, equations: int) -> Samples:
                                v=samples.v[index], weight=samples.weight[index], incidence=samples.incidence[index])
 
 
-def _moved(nav: Navigator, samples: Samples, atlas: Atlas, offset: np.ndarray, outward: np.ndarray,
-           image_size: tuple[int, int]) -> Samples:
+def _sample_moved(scan: ScanRecord, nav: Navigator, samples: Samples, atlas: Atlas, offset: np.ndarray,
+                  outward: np.ndarray, image_size: tuple[int, int]) -> tuple[Samples, np.ndarray]:
     """The samples with their pixels where each texel's point is moved by its offset (T,) mm
-    along its triangle's outward normal (F, 3)."""
-    from planner.navigation import pixel_of
-
-    scale = image_size[0] / nav.scan.rig.optics.image_width_px
+    along its triangle's outward normal (F, 3), and their colours (K, 3) float32 there; each
+    image's samples projected at once through its own camera."""
+    optics = nav.scan.rig.optics
+    scale = image_size[0] / optics.image_width_px
     u, v = np.empty_like(samples.u), np.empty_like(samples.v)
-    for start in range(0, len(samples.pose), SAMPLE_BLOCK):  # bounds the projection's temporaries
-        part = slice(start, start + SAMPLE_BLOCK)
-        texel = samples.texel[part]
-        points = atlas.texel_point[texel] + offset[texel, None] * outward[atlas.texel_face[texel]]
-        pu, pv = pixel_of(nav.poses, samples.pose[part], points, nav.scan.rig)
-        u[part], v[part] = pu * scale, pv * scale
-    return dataclasses.replace(samples, u=u, v=v)
+    colours = np.empty((len(samples.pose), 3), dtype=np.float32)
+    poses = nav.poses
+    for mine, pixels in _by_image(scan, samples.pose):
+        p = samples.pose[mine[0]]
+        texel = samples.texel[mine]
+        rel = atlas.texel_point[texel] + offset[texel, None] * outward[atlas.texel_face[texel]] - poses.centres[p]
+        x, y, z = (rel @ np.stack([poses.right[p], poses.down[p], poses.forward[p]], axis=1)).T
+        u[mine] = (optics.focal_length_px * x / z + optics.image_width_px / 2.0) * scale
+        v[mine] = (optics.focal_length_px * y / z + optics.image_height_px / 2.0) * scale
+        colours[mine] = bilinear(pixels, u[mine], v[mine])
+    return dataclasses.replace(samples, u=u, v=v), colours
 
 
 def glb_bytes(body: BodyTexture, *, quality: int = JPEG_QUALITY) -> bytes:
