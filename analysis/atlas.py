@@ -203,31 +203,39 @@ def _pack(sizes: np.ndarray, max_side: int) -> tuple[np.ndarray, tuple[int, int]
 def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
                block: int = 1 << 21) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Texel centres inside each triangle: (T, 2) row, column; (T,) triangle; (T, 3) point mm.
-    texel: (V', 2) column, row of every vertex in texels (a texel's centre is at +0.5)."""
+    texel: (V', 2) column, row of every vertex in texels (a texel's centre is at +0.5).
+
+    Each row of a triangle's bounding box is tested only over the columns its edges bound there
+    (one texel wider each side, against rounding), not over the whole box."""
     corners = texel[faces]  # (F, 3, 2)
     lo = np.floor(corners.min(axis=1) - 0.5).astype(np.int64)
     hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64)
-    span = hi - lo + 1  # (F, 2)
-    counts = span[:, 0] * span[:, 1]
+    a = corners[:, 0]
+    v0, v1 = corners[:, 1] - a, corners[:, 2] - a
+    den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+    rows_of = np.where(den != 0, hi[:, 1] - lo[:, 1] + 1, 0)
     rcs, fs, ps = [], [], []
-    starts = np.concatenate([[0], np.cumsum(counts)])
+    starts = np.concatenate([[0], np.cumsum(rows_of * (hi[:, 0] - lo[:, 0] + 1))])
     f0 = 0
     while f0 < len(faces):
-        f1 = int(np.searchsorted(starts, starts[f0] + block, side="right")) - 1
-        f1 = max(f1, f0 + 1)
-        f = np.repeat(np.arange(f0, f1), counts[f0:f1])
-        k = np.arange(len(f)) - np.repeat(starts[f0:f1] - starts[f0], counts[f0:f1])
-        col = lo[f, 0] + k % span[f, 0]
-        row = lo[f, 1] + k // span[f, 0]
+        f1 = max(int(np.searchsorted(starts, starts[f0] + block, side="right")) - 1, f0 + 1)
+        # every (triangle, row) of the boxes, and the columns the three edges bound on it
+        f = np.repeat(np.arange(f0, f1), rows_of[f0:f1])
+        row = lo[f, 1] + np.arange(len(f)) - np.repeat(np.cumsum(rows_of[f0:f1]) - rows_of[f0:f1], rows_of[f0:f1])
+        first, last = _row_span(row + 0.5, a[f], v0[f], v1[f], den[f])
+        first = np.maximum(first, lo[f, 0])
+        last = np.minimum(last, hi[f, 0])
+        count = np.maximum(last - first + 1, 0)
+        f, row, first = np.repeat(f, count), np.repeat(row, count), np.repeat(first, count)
+        col = first + np.arange(len(f)) - np.repeat(np.cumsum(count) - count, count)
         centre = np.stack([col + 0.5, row + 0.5], axis=1)
-        a, b, c = corners[f, 0], corners[f, 1], corners[f, 2]
-        v0, v1, v2 = b - a, c - a, centre - a
-        den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+        v2 = centre - a[f]
+        d = den[f]
         with np.errstate(divide="ignore", invalid="ignore"):
-            w1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
-            w2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+            w1 = (v2[:, 0] * v1[f, 1] - v1[f, 0] * v2[:, 1]) / d
+            w2 = (v0[f, 0] * v2[:, 1] - v2[:, 0] * v0[f, 1]) / d
             w0 = 1.0 - w1 - w2
-        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9) & (den != 0)
+        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
         f, w0, w1, w2 = f[inside], w0[inside], w1[inside], w2[inside]
         rcs.append(np.stack([row[inside], col[inside]], axis=1))
         fs.append(f)
@@ -236,8 +244,32 @@ def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
         f0 = f1
     rc, face, point = np.concatenate(rcs), np.concatenate(fs), np.concatenate(ps)
     # a texel on an edge shared by two triangles of a chart: kept once
-    _, first = np.unique(rc[:, 0] * (1 << 32) + rc[:, 1], return_index=True)
-    return rc[first], face[first], point[first]
+    _, first_seen = np.unique(rc[:, 0] * (1 << 32) + rc[:, 1], return_index=True)
+    return rc[first_seen], face[first_seen], point[first_seen]
+
+
+def _row_span(y: np.ndarray, a: np.ndarray, v0: np.ndarray, v1: np.ndarray,
+              den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last column (K,) int whose centre may lie in a triangle on the row of centre
+    height y (K,): each barycentric weight is linear along the row, w = p x + q, and w >= 0
+    bounds x on one side (a weight constant along the row bounds nothing; the exact test after
+    decides). Triangles: corner a (K, 2), edges v0, v1 (K, 2) from it, den (K,) non-zero."""
+    dy = y - a[:, 1]
+    low = np.full(len(y), -np.inf)
+    high = np.full(len(y), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # slivers: huge or undefined bounds
+        # w1 = ((x - ax) v1y - v1x dy) / den, w2 = (v0x dy - (x - ax) v0y) / den, w0 = 1 - w1 - w2
+        p1, q1 = v1[:, 1] / den, (-a[:, 0] * v1[:, 1] - v1[:, 0] * dy) / den
+        p2, q2 = -v0[:, 1] / den, (v0[:, 0] * dy + a[:, 0] * v0[:, 1]) / den
+        p0, q0 = -p1 - p2, 1.0 - q1 - q2
+        for p, q in ((p0, q0), (p1, q1), (p2, q2)):
+            bound = -q / p
+            low = np.where(p > 0, np.maximum(low, bound), low)
+            high = np.where(p < 0, np.minimum(high, bound), high)
+    big = float(1 << 40)
+    first = np.floor(np.clip(low, -big, big) - 0.5).astype(np.int64) - 1
+    last = np.ceil(np.clip(high, -big, big) - 0.5).astype(np.int64) + 1
+    return first, last
 
 
 def fill_gutters(image: np.ndarray, filled: np.ndarray) -> np.ndarray:

@@ -63,7 +63,7 @@ def fit_exposure(texel: np.ndarray, pose: np.ndarray, incidence: np.ndarray, col
     knots = len(FALLOFF_KNOTS)
     usable = np.all((colour > VALUE_RANGE[0]) & (colour < VALUE_RANGE[1]), axis=1) & (weight > 0)
     idx = np.flatnonzero(usable)
-    order = idx[np.lexsort((-weight[idx], texel[idx]))]
+    order = idx if _grouped_heaviest_first(texel[idx], weight[idx]) else idx[np.lexsort((-weight[idx], texel[idx]))]
     t = texel[order]
     head = np.r_[True, t[1:] != t[:-1]]
     anchor = order[np.maximum.accumulate(np.where(head, np.arange(len(order)), 0))]
@@ -83,7 +83,7 @@ def fit_exposure(texel: np.ndarray, pose: np.ndarray, incidence: np.ndarray, col
     cols = np.concatenate([pose[a], pose[b], n_poses + la, n_poses + ua, n_poses + lb, n_poses + ub])
     vals = np.concatenate([np.ones(len(a)), -np.ones(len(a)), 1 - fa, fa, -(1 - fb), -fb])
     design = sparse.csr_matrix((vals, (rows, cols)), shape=(len(a), n))
-    diff = np.log(colour[a]) - np.log(colour[b])  # (E, C)
+    diff = np.log(colour[a].astype(float)) - np.log(colour[b].astype(float))  # (E, C)
     keep = np.ones(len(a), dtype=bool)
     for _ in range(2):
         solution = _solve(design[keep], w[keep], diff[keep], n_poses, knots)
@@ -91,6 +91,13 @@ def fit_exposure(texel: np.ndarray, pose: np.ndarray, incidence: np.ndarray, col
         spread = np.median(np.abs(residual - np.median(residual))) + 1e-9
         keep = np.abs(residual - np.median(residual)) <= ROBUST_MADS * spread
     return Exposure(np.exp(solution[:n_poses]), solution[n_poses:].mean(axis=1))
+
+
+def _grouped_heaviest_first(texel: np.ndarray, weight: np.ndarray) -> bool:
+    """Samples (K,) already in texel order, heaviest first within a texel (as
+    analysis.texel_views gives them): sorting them again would change nothing."""
+    rises = texel[1:] > texel[:-1]
+    return bool(np.all(rises | ((texel[1:] == texel[:-1]) & (weight[1:] <= weight[:-1]))))
 
 
 def _solve(design: sparse.csr_matrix, w: np.ndarray, diff: np.ndarray, n_poses: int, knots: int) -> np.ndarray:

@@ -44,9 +44,9 @@ _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 def surface_offsets(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, weight: np.ndarray,
                     incidence: np.ndarray, exposure: Exposure, outward: np.ndarray,
                     image_size: tuple[int, int]) -> np.ndarray:
-    """(T,) offset (mm) along each texel's outward normal ``outward`` (T, 3) at which the images
-    of its samples (texel, pose, weight, incidence: (K,) each, as analysis.body_texture.Samples)
-    agree best; 0 where no texel around has a clear one."""
+    """(T,) offset (mm) along each texel's outward normal (its triangle's, ``outward`` (F, 3)) at
+    which the images of its samples (texel, pose, weight, incidence: (K,) each, as
+    analysis.texel_views.Samples) agree best; 0 where no texel around has a clear one."""
     n_texels = len(atlas.texel_point)
     step = max(int(round(GRID_MM / atlas.texel_mm)), 1)
     rows, cols = atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]
@@ -101,7 +101,7 @@ def _parabola(cost: np.ndarray, best: np.ndarray) -> np.ndarray:
 def _sweep(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, incidence: np.ndarray,
            exposure: Exposure, outward: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """(K, L) exposure-corrected luminance of each sample's image at its texel's point moved by
-    each of OFFSETS_MM along ``outward``; one image in memory at a time."""
+    each of OFFSETS_MM along its triangle's ``outward`` (F, 3); one image in memory at a time."""
     from planner.navigation import pixel_of
 
     scan = nav.scan
@@ -118,7 +118,7 @@ def _sweep(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, in
         with Image.open(scan.path / image.file) as picture:
             lum = np.asarray(picture.convert("RGB"), dtype=np.float32) @ _LUMINANCE
         mine = order[a:b]
-        points, normal = atlas.texel_point[texel[mine]], outward[texel[mine]]
+        points, normal = atlas.texel_point[texel[mine]], outward[atlas.texel_face[texel[mine]]]
         which = np.full(len(mine), p)
         for level, offset in enumerate(OFFSETS_MM):
             u, v = pixel_of(nav.poses, which, points + offset * normal, scan.rig)

@@ -13,11 +13,20 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analysis.atlas import GUTTER, unwrap
-from analysis.body_texture import bilinear, choose_views, report_and_body, stored_image_size, texture_scan, write_body
+from analysis.atlas import GUTTER, _rasterise, unwrap
+from analysis.body_texture import (
+    bilinear,
+    choose_views,
+    report_and_body,
+    smooth_face_normals,
+    stored_image_size,
+    texture_scan,
+    write_body,
+)
 from analysis.exposure import FALLOFF_KNOTS, fit_exposure
 from analysis.navigate import Navigator
 from analysis.scan_views import open_scan
+from analysis.texel_views import texel_views
 from cli import main
 from tests.test_web import folder_of
 
@@ -60,6 +69,36 @@ def test_the_atlas_covers_every_triangle_once_with_texels_on_their_triangle(texe
     assert len(atlas.texel_rc) == pytest.approx(flat_area, rel=0.03)
     # every chart keeps its gutter free: texels stay GUTTER inside the atlas' edges
     assert atlas.texel_rc.min() >= GUTTER - 1 and np.all(atlas.texel_rc.max(axis=0) < np.array(atlas.shape))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 40), st.floats(0, 40)), min_size=3, max_size=30), st.booleans())
+def test_rasterising_row_spans_finds_the_texels_of_testing_every_texel_of_the_box(corners, snap):
+    """The rasteriser tests each row only over the columns the edges bound: the same texels as
+    the barycentric test over the triangle's whole bounding box (thin, flat and snapped ones too)."""
+    texel = np.array(corners[: len(corners) // 3 * 3], dtype=float)
+    if snap:
+        texel = np.round(texel * 2) / 2  # corners on texel centres and edges
+    faces = np.arange(len(texel)).reshape(-1, 3)
+    points = np.c_[texel, np.zeros(len(texel))]
+    rc, face, point = _rasterise(texel, faces, points)
+    want = set()
+    for tri in texel[faces].tolist():
+        tri = np.array(tri)
+        (ax, ay), (bx, by), (cx, cy) = tri
+        den = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
+        if den == 0:
+            continue
+        for row in range(int(np.floor(tri[:, 1].min() - 0.5)), int(np.ceil(tri[:, 1].max() - 0.5)) + 1):
+            for col in range(int(np.floor(tri[:, 0].min() - 0.5)), int(np.ceil(tri[:, 0].max() - 0.5)) + 1):
+                px, py = col + 0.5 - ax, row + 0.5 - ay
+                with np.errstate(over="ignore"):
+                    w1 = np.float64(px * (cy - ay) - (cx - ax) * py) / den
+                    w2 = np.float64((bx - ax) * py - px * (by - ay)) / den
+                if min(1.0 - w1 - w2, w1, w2) >= -1e-9:
+                    want.add((row, col))
+    assert set(map(tuple, rc.tolist())) == want
+    assert np.allclose(point[:, :2], rc[:, ::-1] + 0.5)
 
 
 @settings(max_examples=50, deadline=None)
@@ -147,6 +186,35 @@ def test_every_texel_takes_the_image_navigation_ranks_best(textured):
         assert found.best_pose[k] == views[0]["pose"]
         assert found.best_sharp[k] == views[0]["in_focus"]
         assert found.best_sharp[k] == any(v["in_focus"] for v in views)  # a sharp image wins when there is one
+
+
+def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textured):
+    """texel_views costs each texel's pairs itself (frustum, facing, occlusion, cost terms) and
+    casts rays only where a pair can matter: with every pose a candidate it picks what
+    choose_views picks through planner.navigation.view_costs, in texel order, heaviest first."""
+    from scipy import sparse
+
+    scan = open_scan(textured)
+    nav = Navigator(scan)
+    size = stored_image_size(scan)
+    vertices, faces = np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces)
+    normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
+    atlas = unwrap(vertices, faces, 6.0)
+    every = sparse.csr_matrix(np.ones((len(faces), scan.rig.n_poses)))
+    got = texel_views(nav, atlas, normals, smooth, every, size)
+    face = atlas.texel_face
+    want = choose_views(nav, atlas.texel_point, normals[face], size, smooth_normals=smooth[face])
+    assert (got.best_pose >= 0).mean() > 0.9
+    assert np.mean(got.best_pose == want.best_pose) > 0.999 and np.mean(got.best_sharp == want.best_sharp) > 0.999
+    key_got = got.texel.astype(np.int64) * 1000 + got.pose
+    key_want = want.texel.astype(np.int64) * 1000 + want.pose
+    assert len(np.setxor1d(key_got, key_want)) < 1e-3 * len(key_want)
+    _, i, j = np.intersect1d(key_got, key_want, return_indices=True)
+    assert got.weight[i] == pytest.approx(want.weight[j], abs=1e-4)
+    assert np.hypot(got.u[i] - want.u[j], got.v[i] - want.v[j]).max() < 1e-3
+    assert np.all(np.diff(got.texel) >= 0)
+    same = np.diff(got.texel) == 0
+    assert np.all(got.weight[1:][same] <= got.weight[:-1][same])
 
 
 def test_the_texture_is_blended_from_the_best_images_and_sharp_where_they_are(body):
