@@ -27,7 +27,7 @@ A table of every body and scale ends the output.
 
     python -m tests.bench texture    (TBP_TEXTURE_SEEDS=0,3 for other bodies, TBP_TEXTURE_SCALES=1,2,4
                                       for other render scales; default bodies 0, scales 1 and 2;
-                                      scale 4 takes about 10 min and 9 GiB a body)
+                                      scale 4's scan renders for 3-6 min a body)
 """
 
 from __future__ import annotations
