@@ -45,10 +45,11 @@ def compute_threads() -> int:
 def one_numeric_thread() -> None:
     """Run this process's numeric libraries (the BLAS copies, OpenMP) on one thread each: the
     ones loaded already, and through :data:`THREAD_VARIABLES` the ones loaded later and the
-    processes this one starts. The daemon's own numeric work (the viewer's queries, checks of
-    frames and images) is small and runs on its loop's thread; a BLAS splitting it over every
-    core waits at each barrier for the core the compute worker holds (an (N, 3) x (3, 3) product
-    of a phone's rays: 130-175 ms instead of 2 ms with the other core busy)."""
+    processes this one starts. The daemon's own numeric work is small and runs on its loop's
+    thread (the viewer's query for the best images of a spot: about 4 ms, with one thread or
+    two); a product large enough for a BLAS to split over every core would wait at each barrier
+    for the core the compute worker holds (a (786k, 3) x (3, 3) product of a phone's rays:
+    130-175 ms instead of 2 ms with the other core busy), so none is split."""
     os.environ.update({name: "1" for name in THREAD_VARIABLES})
     threadpool_limits(limits=1)
 
