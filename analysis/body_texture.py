@@ -33,7 +33,7 @@ from analysis.navigate import Navigator
 from analysis.parallax import surface_offsets
 from analysis.pixels import bilinear
 from analysis.scan_views import ScanRecord, open_scan
-from analysis.texel_views import Samples, candidate_poses, choose_views, texel_views
+from analysis.texel_views import Samples, candidate_poses, choose_views, runs, texel_views
 
 #: Texel side as a share of the best image's pixel on the skin (finer than the pixel: the chart's
 #: tilt and the resampling each lose a little).
@@ -208,8 +208,7 @@ def _overlapping(samples: Samples, equations: int) -> Samples:
     """The samples the exposure fit reads: those of a random share (fixed seed) of the texels
     two or more images texture, holding about ``equations`` overlaps (all when they hold fewer),
     so the fit reads the colours of a bounded number of samples whatever the atlas' size."""
-    starts = np.flatnonzero(np.r_[True, samples.texel[1:] != samples.texel[:-1]]) if len(samples.texel) else np.zeros(0, int)
-    counts = np.diff(np.r_[starts, len(samples.texel)])
+    starts, counts = runs(samples.texel)
     shared = np.flatnonzero(counts >= 2)
     total = int((counts[shared] - 1).sum())
     if total <= equations:

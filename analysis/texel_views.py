@@ -135,6 +135,21 @@ def candidate_poses(nav: Navigator, vertices: np.ndarray, faces: np.ndarray, ima
     return per_face
 
 
+def runs(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of equal values of a grouped key (M,): each run's first index and length."""
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else np.zeros(0, dtype=np.int64)
+    return starts, np.diff(np.r_[starts, len(key)])
+
+
+def cheapest(point: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs grouped by point (M,) with their cost (M,): each pair's point's lowest cost (M,) and
+    the index of each point's cheapest pair (the first on ties)."""
+    starts, counts = runs(point)
+    lowest = np.repeat(np.minimum.reduceat(cost, starts), counts)
+    hits = np.flatnonzero(cost == lowest)
+    return lowest, hits[np.r_[True, point[hits][1:] != point[hits][:-1]]]
+
+
 class _Picked:
     """The samples of :func:`choose_views`, gathered block by block."""
 
@@ -157,12 +172,8 @@ class _Picked:
         point, pose, cost = pairs.point, pairs.pose, pairs.cost
         if not len(point):
             return
-        starts = np.flatnonzero(np.r_[True, point[1:] != point[:-1]])
-        counts = np.diff(np.r_[starts, len(point)])
-        lowest = np.repeat(np.minimum.reduceat(cost, starts), counts)
         # each point's best image: its lowest cost, the lowest pose on ties (as navigation orders them)
-        hits = np.flatnonzero(cost == lowest)
-        first = hits[np.r_[True, point[hits][1:] != point[hits][:-1]]]
+        lowest, first = cheapest(point, cost)
         texel = start + (np.arange(pairs.point[-1] + 1) if index is None else index)  # of the block's points
         best = texel[point[first]]
         self.best_pose[best] = pose[first]
@@ -199,8 +210,7 @@ def _heaviest(point: np.ndarray, weight: np.ndarray, cost: np.ndarray, most: int
     a (points, widest) table: far cheaper than sorting the block's pairs as one."""
     if not len(point):
         return np.zeros(0, dtype=np.int64)
-    starts = np.flatnonzero(np.r_[True, point[1:] != point[:-1]])
-    counts = np.diff(np.r_[starts, len(point)])
+    starts, counts = runs(point)
     row = np.repeat(np.arange(len(starts)), counts)
     column = np.arange(len(point)) - starts[row]
     keys = np.full((2, len(starts), counts.max()), np.inf)  # empty cells sort last
@@ -234,7 +244,7 @@ def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, ca
     planner.visibility and the cost of planner.cost, pair by pair. Occlusion rays go first to
     each point's cheapest pair; where that one is seen, pairs ``margin`` or more above it cannot
     be blended and cast none."""
-    from planner.cost import area_term, axis_term
+    from planner.cost import area_term, axis_term, base_cost
     from planner.optics import focus_interval
     from planner.visibility import SURFACE_EPSILON_MM, frustum_tangents
 
@@ -259,7 +269,7 @@ def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, ca
     lo, hi = focus_interval(z, optics.hyperfocal_mm, optics.focal_length_mm)
     focus = nav.focus_mm[pose]
     sharp = (lo <= focus) & (focus <= hi)
-    total = cost.w_area * area_term(z, facing, cost.eps_area) + cost.w_axis * axis_term(np.hypot(x, y), cost.axis_deviation_mm)
+    total = base_cost(cost, area_term(z, facing, cost.eps_area), axis_term(np.hypot(x, y), cost.axis_deviation_mm))
     total += cost.w_focus * ~sharp
     seen = _unoccluded(nav, points, point, pose, total, margin, SURFACE_EPSILON_MM)
     point, pose, total, sharp, x, y, z = (a[seen] for a in (point, pose, total, sharp, x, y, z))
@@ -275,11 +285,7 @@ def _unoccluded(nav: Navigator, points: np.ndarray, point: np.ndarray, pose: np.
     pair of each point is tested first, the rest only where needed."""
     if not len(point):
         return np.zeros(0, dtype=np.int64)
-    starts = np.flatnonzero(np.r_[True, point[1:] != point[:-1]])
-    counts = np.diff(np.r_[starts, len(point)])
-    lowest = np.repeat(np.minimum.reduceat(cost, starts), counts)
-    hits = np.flatnonzero(cost == lowest)
-    first = hits[np.r_[True, point[hits][1:] != point[hits][:-1]]]
+    lowest, first = cheapest(point, cost)
     seen = np.zeros(len(point), dtype=bool)
     seen[first] = ~nav.scene.occluded(nav.poses.centres[pose[first]], points[point[first]], epsilon_mm)
     resolved = np.zeros(point[-1] + 1, dtype=bool)

@@ -187,6 +187,12 @@ def stable_argsort_indices(keys: np.ndarray) -> np.ndarray:
     return order
 
 
+def base_cost(cost: Cost, area: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The focus-independent cost of pairs (M,) from their area and axis terms: w1 area + w2 axis."""
+    base: np.ndarray = cost.w_area * area + cost.w_axis * axis
+    return base
+
+
 def cost_table(vis: Visibility, cost: Cost, optics: Optics, weight: np.ndarray | None = None) -> CostTable:
     """Precompute the focus-independent terms and focus intervals of every visible pair.
 
@@ -199,7 +205,7 @@ def cost_table(vis: Visibility, cost: Cost, optics: Optics, weight: np.ndarray |
     lo, hi = focus_interval(vis.depth, optics.hyperfocal_mm, optics.focal_length_mm)
     order = stable_argsort_indices(vis.point)
     point_ptr = group_pointers(vis.point, vis.n_points)
-    base = cost.w_area * area + cost.w_axis * axis
+    base = base_cost(cost, area, axis)
     return CostTable(
         vis=vis,
         w_focus=cost.w_focus,
