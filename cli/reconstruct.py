@@ -24,8 +24,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "reconstruct",
         help="estimate the subject's surface mesh from depth frames (TSDF)",
         description="Fuse a depth sweep into the subject's surface mesh. The sweep is a recorded "
-        "folder (sweep.json + one .npz per frame) or a simulated sweep of a body mesh. With a known "
-        "true body, reports Chamfer distances both ways and coverage.",
+        "folder (sweep.json + one .npz per frame) or a simulated sweep of a body mesh. The mesh is the "
+        "surface a scan stores as mesh.ply (fused at the rig's tsdf.surface_voxel_mm), or with "
+        "--planner-mesh the one its plan is made on (tsdf.voxel_mm). With a known true body, reports "
+        "Chamfer distances both ways and coverage.",
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--frames", type=Path, help="recorded sweep folder (sweep.json + .npz frames)")
@@ -45,6 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--true-body", type=Path, help="true body mesh for metrics (default: --sim-body)")
     options.rig(parser)
     parser.add_argument("--save-frames", type=Path, help="also write the simulated sweep to this folder")
+    parser.add_argument("--planner-mesh", action="store_true",
+                        help="the planner's mesh (tsdf.voxel_mm) rather than the stored surface")
     parser.add_argument("--out", type=Path, help="write the mesh here (.ply, .obj, .stl, .off, .glb)")
     parser.add_argument("--json", dest="json_out", type=Path, help="write timings and metrics as JSON here")
     parser.set_defaults(func=run)
@@ -83,11 +87,13 @@ def run(args: argparse.Namespace) -> int:
             model = rig.depth_camera_model
             sweep = load_sweep(args.frames, max_frame_px=model.width_px * model.height_px)
             report["timings_s"]["load"] = time.perf_counter() - t0
-        result = fuse(sweep.frames, rig)
+        result = fuse(sweep.frames, rig, surface=not args.planner_mesh)
     except (RigConfigError, ShapeEstimateError, DepthCameraError, OSError, ValueError) as exc:
         print(f"tbp reconstruct: {exc}", file=sys.stderr)
         return 1
     report["timings_s"].update({f"tsdf_{k}": v for k, v in result.timings_s.items()})
+    report["surface"] = "planner's mesh" if args.planner_mesh else "stored surface"
+    report["voxel_mm"] = rig.tsdf.voxel_mm if args.planner_mesh else rig.tsdf.surface_voxel_mm
     report["frames_used"] = result.frames_used
     report["per_camera"] = result.per_camera
     report["vertices"] = len(result.mesh.vertices)

@@ -197,6 +197,7 @@ class Tsdf:
     volume_height_mm: float
     floor_clearance_mm: float
     camera_clearance_mm: float
+    surface_voxel_mm: float
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,14 @@ Steps: pick frames a fixed beam-angle step apart per camera; integrate them on t
 voxel size, truncation and weight threshold from ``rig.tsdf``) as they arrive (:class:`TsdfFusion`;
 the daemon fuses during the sweep); extract the zero-level triangle mesh;
 keep the subject only (inside the scan-volume cylinder, above the floor, largest connected
-component); close its openings; carve away the surface the frames saw through (planner/carve.py); validate that it is a plausible, fully contained person. The result is a trimesh in mm.
+component); close its holes and the soles' openings (the stored surface leaves the soles,
+which no frame sees, open); carve away the surface the frames saw through (planner/carve.py); validate that it is a
+plausible, fully contained person. The result is a trimesh in mm.
+
+Two surfaces come from one sweep: the planner's (``rig.tsdf.voxel_mm``, extracted as soon as the
+sweep ends, on the path to the capture) and the stored one (:meth:`TsdfFusion.surface`: the same
+frames fused again at ``rig.tsdf.surface_voxel_mm``, finer, while the capture runs), which holds
+the skin closer where limbs are near the body.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ import math
 import threading
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -52,10 +59,12 @@ BLOCK_RESOLUTION = 8
 BLOCK_COUNT = 12_000
 #: A surface within this many voxels of the volume's side or top counts as touching it.
 BOUNDARY_MARGIN_VOXELS = 1.5
-#: Open loops reaching this close to the floor clearance, and not above FOOT_TOP_MM, are closed down
-#: to the floor; other loops of at most HOLE_MAX_VERTICES vertices (the occluded crotch, armpits,
-#: under the chin, between hand and thigh: at most ~700 on simulated adults) are filled, which closes
-#: the surface the planner's occlusion test sees (true->estimate Chamfer 1.41 -> 1.24 mm).
+#: Open loops reaching this close to the floor clearance, and not above FOOT_TOP_MM, are the soles'
+#: openings: the planner's mesh closes them down to the floor, the stored surface leaves them open
+#: (no frame measures a sole); other loops of at most HOLE_MAX_VERTICES vertices (the occluded
+#: crotch, armpits, under the chin, between hand and thigh: at most ~700 on simulated adults) are
+#: filled, which closes the surface the planner's occlusion test sees (true->estimate Chamfer
+#: 1.41 -> 1.24 mm).
 FLOOR_BAND_MM = 25.0
 FOOT_TOP_MM = 250.0
 HOLE_MAX_VERTICES = 1500
@@ -175,11 +184,14 @@ class TsdfFusion:
     Frames are chosen as :func:`fuse` chooses them (per camera, :data:`FRAME_SPACING_DEG` of beam
     rotation apart, empty frames skipped), so each camera's frames must come in time order; the
     cameras may interleave. Each fused frame's decimated depth is kept (:class:`FreeSpace`) to carve
-    the extracted surface. One fusion is used from one thread at a time (a lock makes sure).
+    the extracted surface, and, where ``rig.tsdf.surface_voxel_mm`` differs from ``voxel_mm``, the
+    frame itself for :meth:`surface`. One fusion is used from one thread at a time (a lock makes
+    sure).
     """
 
     def __init__(self, rig: Rig) -> None:
         self.rig = rig
+        self._frames: list[PosedDepth] | None = [] if rig.tsdf.surface_voxel_mm != rig.tsdf.voxel_mm else None
         self.offered = 0
         self.per_camera: dict[str, int] = {}
         self.integrated = 0
@@ -201,6 +213,8 @@ class TsdfFusion:
                     continue
                 chosen += 1
                 self.per_camera[f.camera_id] = self.per_camera.get(f.camera_id, 0) + 1
+                if self._frames is not None:
+                    self._frames.append(f)
                 if self._vbg is None:
                     self._vbg = _new_grid(self.rig)
                 self.integrated += _integrate_frame(self._vbg, f, self.rig, self._space)
@@ -221,7 +235,23 @@ class TsdfFusion:
                 self._result = (validate, self._extract(validate))
             return self._result[1]
 
-    def _extract(self, validate: bool) -> TsdfResult:
+    def surface(self, *, validate: bool = True) -> TsdfResult:
+        """The stored surface: the frames fused so far, fused again at ``rig.tsdf.surface_voxel_mm``
+        (the planner's grid itself when that is its voxel), with the soles left open
+        (:func:`close_openings`). Its timings are the second fusion's; it refuses what
+        :meth:`result` refuses."""
+        cfg = self.rig.tsdf
+        if self._frames is None:  # the planner's grid, extracted again with the soles left open
+            with self._lock:
+                return self._extract(validate, close_soles=False)
+        with self._lock:
+            frames = list(self._frames)
+        fine = TsdfFusion(replace(self.rig, tsdf=replace(cfg, voxel_mm=cfg.surface_voxel_mm)))
+        fine.add(frames)
+        with fine._lock:
+            return fine._extract(validate, close_soles=False)
+
+    def _extract(self, validate: bool, *, close_soles: bool = True) -> TsdfResult:
         cfg = self.rig.tsdf
         chosen = sum(self.per_camera.values())
         if chosen < MIN_FRAMES:
@@ -238,7 +268,7 @@ class TsdfFusion:
         t2 = time.perf_counter()
         if len(triangles) == 0:
             raise NoSubject(f"the fused volume holds no surface ({chosen} frames)")
-        vertices, faces = _subject(vertices, triangles, self.rig)
+        vertices, faces = _subject(vertices, triangles, self.rig, close_soles)
         t3 = time.perf_counter()
         subject = trimesh.Trimesh(*carve(vertices, faces, self._space), process=False)
         if validate:
@@ -277,9 +307,10 @@ def _face_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return result
 
 
-def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig, close_soles: bool) -> tuple[np.ndarray, np.ndarray]:
     """Crop (V, 3) vertices / (T, 3) triangles to the scan cylinder above the floor; keep the largest
-    component; close its openings. Returns the canonical (V', 3) vertices and (F', 3) faces."""
+    component; close its openings (:func:`close_openings`). Returns the canonical (V', 3) vertices
+    and (F', 3) faces."""
     cfg = rig.tsdf
     r = np.hypot(v[:, 0], v[:, 1])
     inside = (r <= cfg.volume_radius_mm) & (v[:, 2] >= cfg.floor_clearance_mm) & (v[:, 2] <= cfg.volume_height_mm)
@@ -308,17 +339,21 @@ def _subject(v: np.ndarray, triangles: np.ndarray, rig: Rig) -> tuple[np.ndarray
     keep = remap[keep]
     keep = _lowest_first(keep)
     keep = keep[stable_argsort(_face_keys(keep, len(used)))]
-    return close_openings(v[used], keep, FLOOR_BAND_MM + cfg.floor_clearance_mm)
+    return close_openings(v[used], keep, FLOOR_BAND_MM + cfg.floor_clearance_mm, close_soles=close_soles)
 
 
-def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Close the floor openings around the feet and the holes of the extracted surface.
+def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float, *,
+                   close_soles: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Close the holes of the extracted surface and, with close_soles, the openings at the feet.
 
     Where the subject stands, the cropped TSDF surface ends in open loops around the feet (the soles
-    cannot be seen): a loop reaching below ``floor_band_mm`` and staying below FOOT_TOP_MM gets a
-    vertical strip down to z = 0 and a fan across the floor. Other loops of at most HOLE_MAX_VERTICES
-    vertices (surface no frame saw often enough) get a fan at their centroid. New faces are wound to match
-    the adjacent ones. vertices (V, 3) mm, faces (F, 3) int; returns the extended arrays.
+    cannot be seen): a loop reaching below ``floor_band_mm`` and staying below FOOT_TOP_MM is a
+    sole's. With close_soles it gets a vertical strip down to z = 0 and a fan across the floor (the
+    planner's mesh: a closed foot for its occlusion test); without, it stays open (the stored
+    surface: a flat fan lies up to centimetres off a foot's arch). Other loops of at most
+    HOLE_MAX_VERTICES vertices (surface no frame saw often enough) get a fan at their centroid. New
+    faces are wound to match the adjacent ones. vertices (V, 3) mm, faces (F, 3) int; returns the
+    extended arrays.
     """
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     low, high = directed.min(axis=1), directed.max(axis=1)
@@ -344,8 +379,9 @@ def close_openings(vertices: np.ndarray, faces: np.ndarray, floor_band_mm: float
     z_max = np.full(len(size), -np.inf)
     np.minimum.at(z_min, ring_loop, vertices[ring, 2])
     np.maximum.at(z_max, ring_loop, vertices[ring, 2])
-    floor = (size >= 3) & (z_min < floor_band_mm) & (z_max < FOOT_TOP_MM)
-    hole = (size >= 3) & (size <= HOLE_MAX_VERTICES) & ~floor
+    sole = (size >= 3) & (z_min < floor_band_mm) & (z_max < FOOT_TOP_MM)
+    hole = (size >= 3) & (size <= HOLE_MAX_VERTICES) & ~sole
+    floor = sole if close_soles else np.zeros_like(sole)
     n = len(vertices)
     # one centre per closed loop: on the floor for floor openings, the ring's mean for holes
     closed_loops = np.flatnonzero(floor | hole)
@@ -406,13 +442,14 @@ def _validate(subject: trimesh.Trimesh, rig: Rig) -> None:
         raise ImplausibleSubject("horizontal extent", extent, *EXTENT_RANGE_MM)
 
 
-def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True) -> TsdfResult:
+def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True, surface: bool = False) -> TsdfResult:
     """Fuse a whole depth sweep into the subject's surface mesh (mm): :class:`TsdfFusion` with
-    every frame at once, each camera's in time order.
+    every frame at once, each camera's in time order; the planner's mesh, or with surface=True
+    the stored surface (:meth:`TsdfFusion.surface`).
 
     validate=False skips the person-size and containment checks (analytic test shapes); a missing
     subject and too few frames are refused either way.
     """
     fusion = TsdfFusion(rig)
     fusion.add(sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s)))
-    return fusion.result(validate=validate)
+    return fusion.surface(validate=validate) if surface else fusion.result(validate=validate)

@@ -74,6 +74,37 @@ def test_the_mesh_is_extracted_once_until_another_frame_is_fused():
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
+def test_the_stored_surface_is_the_sweep_fused_again_at_its_finer_voxel():
+    frames = sorted(cylinder_sweep(), key=lambda f: f.timestamp_s)
+    cfg = RIG.tsdf
+    assert cfg.surface_voxel_mm < cfg.voxel_mm
+    fusion = TsdfFusion(RIG)
+    fusion.add(frames[:20])
+    fusion.add(frames[20:])  # kept as they come
+    plan, surface = fusion.result(), fusion.surface()
+    direct = TsdfFusion(dataclasses.replace(RIG, tsdf=dataclasses.replace(cfg, voxel_mm=cfg.surface_voxel_mm)))
+    direct.add(frames)
+    fine = direct.surface()  # its own grid: the stored surface at its voxel
+    assert np.array_equal(surface.mesh.vertices, fine.mesh.vertices)
+    assert np.array_equal(surface.mesh.faces, fine.mesh.faces)
+    assert surface.frames_used == plan.frames_used
+    assert len(surface.mesh.vertices) > 1.3 * len(plan.mesh.vertices)  # (5 / 4)^2 more surface voxels
+    assert fusion.result() is plan  # the planner's mesh is not touched
+    # the planner's mesh closes the base down to the floor, the stored surface leaves it open
+    assert plan.mesh.vertices[:, 2].min() == 0.0
+    assert surface.mesh.vertices[:, 2].min() >= RIG.tsdf.floor_clearance_mm
+    # a rig whose stored surface has the planner's voxel fuses once: the same grid, the base open
+    same = TsdfFusion(dataclasses.replace(RIG, tsdf=dataclasses.replace(cfg, surface_voxel_mm=cfg.voxel_mm)))
+    same.add(frames)
+    open_base, closed = same.surface().mesh, same.result().mesh
+    assert open_base.vertices[:, 2].min() >= RIG.tsdf.floor_clearance_mm
+    above = closed.vertices[:, 2] > 0.0
+    assert len(open_base.vertices) < len(closed.vertices)
+    assert {tuple(p) for p in closed.vertices[above]} >= {tuple(p) for p in open_base.vertices}
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("tsdf-cylinder")  # one worker ray casts the shared sweep
 def test_standing_cylinder_is_recovered_and_passes_validation():
     truth = cylinder(150.0, 1700.0)
     result = fuse(cylinder_sweep(), RIG)
@@ -107,6 +138,16 @@ def test_floor_opening_and_small_holes_are_closed_with_consistent_winding():
     # a surface with no opening is left alone
     again, again_faces = close_openings(closed.vertices, closed.faces, floor_band_mm=30.0)
     assert len(again) == len(vertices) and len(again_faces) == len(closed_faces)
+    # the stored surface leaves the sole's opening open and closes the hole
+    vertices, open_faces = close_openings(open_mesh.vertices, open_mesh.faces, floor_band_mm=30.0, close_soles=False)
+    assert len(open_faces) == len(faces) + 3  # a fan of three across the hole
+    rim = vertices[np.unique(open_edges(trimesh.Trimesh(vertices, open_faces, process=False)))]
+    assert rim[:, 2].max() == pytest.approx(10.0) and vertices[:, 2].min() == pytest.approx(10.0)
+
+
+def open_edges(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(E, 2) the edges of ``mesh`` used by one face only."""
+    return mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
 
 
 def test_too_few_frames_are_refused():

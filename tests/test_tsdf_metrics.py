@@ -137,6 +137,13 @@ def test_cli_reconstructs_a_simulated_body_and_a_recorded_sweep(tmp_path, capsys
     printed = capsys.readouterr().out
     again = json.loads(printed[0 if printed.startswith("{") else printed.index("\n{") + 1 :])
     assert again["vertices"] == result["vertices"]
+    # the scan's mesh.ply is the stored surface, finer than the mesh the plan is made on
+    assert result["surface"] == "stored surface" and result["voxel_mm"] == 4.0
+    assert tbp(["reconstruct", "--frames", str(frames), "--planner-mesh", "--rig", str(small_rig_file)]) == 0
+    printed = capsys.readouterr().out
+    planners = json.loads(printed[0 if printed.startswith("{") else printed.index("\n{") + 1 :])
+    assert planners["surface"] == "planner's mesh" and planners["voxel_mm"] == 5.0
+    assert planners["vertices"] < result["vertices"]
 
 
 def test_cli_reports_a_refusal_with_exit_code_1(tmp_path, capsys, small_rig_file):

@@ -130,6 +130,9 @@ _TSDF = Section({
     "floor_clearance_mm": Number(0.0, 200.0),
     "camera_clearance_mm": Number(0.0, 400.0, default=50.0,
                                   doc="skin closer than this to the phones' ring is refused before capture"),
+    "surface_voxel_mm": Number(0.5, 50.0, default=4.0,
+                               doc="the stored surface (mesh.ply): the sweep fused again at this voxel "
+                                   "while the capture runs"),
 })
 _MOTOR = Section({
     "node_id": Integer(1, 127),
