@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import trimesh
 
 from daemon.errors import ScanBusy
 from daemon.faults import AbortSource, FaultSource
@@ -90,7 +91,11 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
     # planned before the capture: the capture's plans; while the beam turned: the QA baselines
     assert list(plan["methods"]) == ["average", "shape-aware", "robust", "robust-angles"]
     assert set(manifest["plan_summary"]["methods"]) == set(plan["methods"])
-    assert {"tsdf_during_sweep", "tsdf", "planning", "baselines"} <= set(report.compute_s)
+    assert {"tsdf_during_sweep", "tsdf", "planning", "baselines", "surface"} <= set(report.compute_s)
+    # mesh.ply holds the stored surface, fused again finer than the planner's mesh while the beam turned
+    planners = next(e.data["vertices"] for e in controller.machine.history if e.cause == "subject mesh ready")
+    stored = trimesh.load(report.folder / "mesh.ply", process=False)
+    assert len(stored.vertices) > 1.3 * planners
     planned = {image["angle_index"]: image["planned_angle_deg"] for image in manifest["images"]}
     assert [planned[k] for k in range(RIG.n_angles)] == pytest.approx(plan["capture_angles_deg"])
     assert plan["capture_angles_deg"] != RIG.capture.angles_deg.tolist()

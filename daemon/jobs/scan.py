@@ -231,12 +231,13 @@ class Scan(RigJob):
         and a manifest that cannot be rewritten stays at its last valid version.
         """
         folder, report, steps = self.folder, self.report, self.steps
+        stopping = self._abort_cause is not None and self._abort_cause.source is AbortSource.DAEMON_STOPPING
         await steps.settle_baselines(report.outcome, self.PULL_TIMEOUT_S)
+        await steps.settle_surface(self.STOPPING_PULL_TIMEOUT_S if stopping else self.PULL_TIMEOUT_S)
         if steps.fusion is not None and steps.fusion.closed is not None:  # asked for long ago: done
             await asyncio.wait([steps.fusion.closed], timeout=self.PULL_TIMEOUT_S)
         pulls = steps.pulls
         if pulls is not None:
-            stopping = self._abort_cause is not None and self._abort_cause.source is AbortSource.DAEMON_STOPPING
             wait_s = self.STOPPING_PULL_TIMEOUT_S if stopping else self.PULL_TIMEOUT_S
             try:
                 async with asyncio.timeout(wait_s):

@@ -4,7 +4,8 @@ by the scan's body (:meth:`daemon.jobs.scan.Scan.body`).
 Each step does the work of its state and says why the scan moves on to the next (:class:`Next`),
 or that the next state has nothing to do (None: no missed capture to retake). Some work runs
 on across states, as the rig needs it to: the beam repositions to the capture run-up during
-RECONSTRUCTING and PLANNING, mesh.ply is written during PLANNING, the phones' clocks are kept in
+RECONSTRUCTING and PLANNING, mesh.ply is written during PLANNING (the planner's mesh) and again
+during CAPTURING (the finer stored surface, computed meanwhile), the phones' clocks are kept in
 sync and the encoder trace saved from PREPARING to the end. :meth:`ScanSteps.settle` ends what is
 still in flight when the steps end, however they end.
 
@@ -35,7 +36,7 @@ from daemon.records.atomic import StoreError
 from daemon.records.manifest import ImageStatus
 from daemon.rig.beam import rebase_angle
 from daemon.rig.states import ScanOutcome, ScanState
-from daemon.tasks import settle, stop_tasks
+from daemon.tasks import despite_cancel, settle, stop_tasks
 from planner.schedule import CaptureSchedule, MotionProfile, PhoneTiming, compile_plan, rig_profile
 
 if TYPE_CHECKING:
@@ -75,6 +76,7 @@ class ScanSteps:
         self.pulls: PullQueue | None = None
         self.images: ScanImages | None = None
         self.baselines: asyncio.Task[None] | None = None
+        self.surface: asyncio.Task[None] | None = None
         self.trace_mark = 0
         # work that runs on into later states
         self._keeper: asyncio.Task[None] | None = None
@@ -169,7 +171,10 @@ class ScanSteps:
             plan, report.compute_s["planning"] = await self._planning
         finally:
             await self._writing  # the mesh lands whole, whatever happened to the plan
-        await self._fusion_open.aclose()  # the worker drops the TSDF; nothing waits for it (the store step does)
+        if rig.tsdf.surface_voxel_mm != rig.tsdf.voxel_mm:
+            assert self.fusion is not None
+            self.surface = asyncio.create_task(self._store_surface(self.fusion.surface()), name="store-surface")
+        await self._fusion_open.aclose()  # the worker drops the TSDF once the surface is out (the store step waits)
         try:
             plan_json = plan.json
             focus = self._reachable(plan.focus_mm)
@@ -275,6 +280,36 @@ class ScanSteps:
             await scan.folder.write_plan(both, plan_summary(both))
         except Exception as exc:  # the QA report then compares what it has
             log.error("plan_baselines_failed", error=f"{type(exc).__name__}: {exc}")
+
+    async def _store_surface(self, job: asyncio.Future[Any]) -> None:
+        """mesh.ply replaced by the stored surface: the sweep fused again at the rig's
+        ``tsdf.surface_voxel_mm`` in the worker while the beam turns (``TsdfFusion.surface``).
+        A failure is logged and mesh.ply stays the planner's mesh, whole (each write is atomic);
+        a write once begun ends before a cancel is raised."""
+        scan = self.scan
+        try:
+            surface, scan.report.compute_s["surface"] = await job
+        except Exception as exc:
+            log.error("surface_failed", error=f"{type(exc).__name__}: {exc}")
+            return
+        try:
+            await despite_cancel(scan.folder.write_mesh(surface.mesh), self.SETTLE_TIMEOUT_S)
+        except Exception as exc:
+            log.error("surface_not_stored", error=f"{type(exc).__name__}: {exc}")
+            return
+        log.info("surface_stored", vertices=len(surface.mesh.vertices), voxel_mm=scan.rig.tsdf.surface_voxel_mm)
+
+    async def settle_surface(self, timeout_s: float) -> None:
+        """Wait for the stored surface (done seconds after the plan, long before a capture ends),
+        whatever the outcome, so the folder closes with the mesh it lists; past ``timeout_s`` it
+        is dropped and mesh.ply stays the planner's."""
+        task = self.surface
+        if task is None or task.done():
+            return
+        if await settle([task], timeout_s):
+            task.cancel()
+            log.warning("surface_dropped", timeout_s=timeout_s)
+            await settle([task], self.SETTLE_TIMEOUT_S)
 
     async def settle_baselines(self, outcome: ScanOutcome, timeout_s: float) -> None:
         """A completed scan waits for its baselines (done long before the capture ends); a scan that

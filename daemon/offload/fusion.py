@@ -6,9 +6,9 @@ loop), so when the beam stops only the last frames, the mesh extraction and the 
 left before planning. The fusion lives in the process that fuses: the worker keeps it in
 :data:`_OPEN` under the scan's key between jobs (the pool has one worker; a thread executor keeps
 it in this process). Jobs of one session are awaited one after the other, never concurrently;
-the exceptions, :meth:`FusionSession.result_then` and :meth:`FusionSession.on_mesh`, only read
-the extracted mesh, which the fusion keeps (and extracts once) until the session closes; the
-session closes once they are done. Work on the mesh is asked for this way so the mesh never
+the exceptions, :meth:`FusionSession.result_then`, :meth:`FusionSession.on_mesh` and
+:meth:`FusionSession.surface`, only read the extracted mesh or the kept frames, which the fusion
+keeps (and extracts once) until the session closes; the session closes once they are done. Work on the mesh is asked for this way so the mesh never
 crosses back to the worker: pickling it holds this process's interpreter lock, which the event
 loop needs, for tens of milliseconds.
 """
@@ -41,6 +41,12 @@ def fused_mesh(key: str) -> TsdfResult:
     """In the executor: the subject mesh of the session ``key`` (vertices and faces in the TSDF's
     canonical order, so a seeded scan plans the same)."""
     return _OPEN[key].result()
+
+
+def surface_mesh(key: str) -> TsdfResult:
+    """In the executor: the session's stored surface (the frames fused again at the rig's
+    ``tsdf.surface_voxel_mm``, :meth:`planner.tsdf.TsdfFusion.surface`)."""
+    return _OPEN[key].surface()
 
 
 def on_fused_mesh(key: str, func: Callable[..., Any], *args: Any) -> Any:
@@ -130,7 +136,16 @@ class FusionSession:
         """``func(mesh, *args)`` on the extracted mesh where it was made, asked for now; the
         future of (its result, its compute seconds). Closing the session waits for it; cancel the
         future if nothing will await it."""
-        job = asyncio.get_running_loop().run_in_executor(self.executor, timed, on_fused_mesh, self.key, func, *args)
+        return self._asked(on_fused_mesh, self.key, func, *args)
+
+    def surface(self) -> asyncio.Future[Any]:
+        """The stored surface (a :class:`TsdfResult`, from every frame added), asked for now; the
+        future of (it, its compute seconds). Closing the session waits for it, as for
+        :meth:`on_mesh`."""
+        return self._asked(surface_mesh, self.key)
+
+    def _asked(self, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        job = asyncio.get_running_loop().run_in_executor(self.executor, timed, func, *args)
         job.add_done_callback(_ignore)  # its awaiter gets the error; a job nobody awaits is not news
         self._on_mesh.append(job)
         return job
