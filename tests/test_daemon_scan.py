@@ -23,6 +23,8 @@ from daemon.records.atomic import AtomicWriter
 from daemon.records.store import ScanStore
 from daemon.rig.states import ScanOutcome, ScanState
 from drivers.motor.errors import StateTransitionTimeout
+from planner.shape_errors import NoSubject
+from planner.tsdf import TsdfFusion
 from tests.daemon_rigs import RIG, run_scan, wait_captured
 
 pytestmark = pytest.mark.slow
@@ -104,6 +106,19 @@ def test_complete_scan_lands_every_image_on_its_angle(tmp_path: Path) -> None:
     assert states[:7] == [ScanState.PREPARING, ScanState.DEPTH_SWEEP, ScanState.RECONSTRUCTING,
                           ScanState.PLANNING, ScanState.CAPTURING, ScanState.STORING, ScanState.IDLE]
     assert report.phase_s["total"] <= 100.0
+
+
+def test_a_stored_surface_that_cannot_be_made_leaves_the_planners_mesh(tmp_path: Path, monkeypatch) -> None:
+    def refused(self, *, validate: bool = True):
+        raise NoSubject("the finer grid holds no surface")
+
+    monkeypatch.setattr(TsdfFusion, "surface", refused)
+    report, controller, _ = run_scan(tmp_path)
+    assert report.outcome is ScanOutcome.COMPLETED, report.reason
+    assert "surface" not in report.compute_s
+    planners = next(e.data["vertices"] for e in controller.machine.history if e.cause == "subject mesh ready")
+    assert len(trimesh.load(report.folder / "mesh.ply", process=False).vertices) == planners
+    assert _manifest(report)["files"]["mesh"] == "mesh.ply"
 
 
 def test_a_scan_with_images_missing_ends_partial_naming_each_phone_and_why(tmp_path: Path) -> None:
