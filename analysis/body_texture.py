@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -44,6 +45,10 @@ SMOOTH_RINGS = 4
 SAMPLE_BLOCK = 1 << 21
 #: Largest atlas side, texels.
 MAX_SIDE = 8192
+#: Most texels on the skin: the texel grows until the skin's area holds no more. The texture's
+#: peak memory is about 250 bytes a texel (the samples, the atlas and their indices), so this keeps
+#: it near 3.3 GiB whatever the mesh's tessellation and however well its charts pack.
+MAX_TEXELS = 13_000_000
 JPEG_QUALITY = 92
 
 
@@ -170,6 +175,10 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
             raise TextureError(f"scan {scan.path}: no image sees the mesh")
         texel_mm = TEXEL_PER_PIXEL * float(np.nanmedian(best))
         lap("resolution")
+    budget_mm = math.sqrt(float(mesh.area) / MAX_TEXELS)
+    if budget_mm > texel_mm:
+        say(f"{texel_mm:.2f} mm per texel would need more than {MAX_TEXELS / 1e6:g} M texels: {budget_mm:.2f} mm")
+        texel_mm = budget_mm
     say(f"unwrapping {len(faces)} triangles at {texel_mm:.2f} mm per texel")
     atlas = unwrap(vertices, faces, texel_mm, max_side=max_side)
     lap("atlas")

@@ -247,6 +247,20 @@ def test_tbp_texture_writes_the_body_and_names_what_is_wrong(textured, tmp_path,
     assert "--texel-mm 0" in capsys.readouterr().err
 
 
+def test_the_texel_grows_until_the_skin_holds_no_more_than_the_texel_budget(textured, monkeypatch):
+    import analysis.body_texture as body_texture
+
+    scan = open_scan(textured)
+    area = float(trimesh.load(textured / "mesh.ply", process=False).area)
+    budget = int(area / (2.0 * TEST_TEXEL_MM) ** 2)  # a quarter of what the test's texel needs
+    monkeypatch.setattr(body_texture, "MAX_TEXELS", budget)
+    said: list[str] = []
+    capped = texture_scan(scan, texel_mm=TEST_TEXEL_MM, progress=said.append)
+    assert capped.atlas.texel_mm >= 2.0 * TEST_TEXEL_MM * 0.999
+    assert len(capped.atlas.texel_rc) <= 1.05 * budget
+    assert any(f"more than {budget / 1e6:g} M texels" in line for line in said)
+
+
 def test_after_a_scan_the_report_is_written_and_the_body_only_where_there_is_a_mesh(textured, tmp_path):
     copy = tmp_path / textured.name
     shutil.copytree(textured, copy)
