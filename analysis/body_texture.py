@@ -45,10 +45,11 @@ SMOOTH_RINGS = 4
 SAMPLE_BLOCK = 1 << 21
 #: Largest atlas side, texels.
 MAX_SIDE = 8192
-#: Most texels on the skin: the texel grows until the skin's area holds no more. The texture's
-#: peak memory is about 250 bytes a texel (the samples, the atlas and their indices), so this keeps
-#: it near 3.3 GiB whatever the mesh's tessellation and however well its charts pack.
-MAX_TEXELS = 13_000_000
+#: The texel grows until the mesh's area is at most this many texels (the atlas holds about 7/8 of
+#: that: its charts are projected). The texture's time and memory follow its texels (about 250
+#: bytes a texel at the peak): at the bound about 3.3 GiB and a minute on two cores, whatever the
+#: mesh's tessellation and however well its charts pack.
+MAX_TEXELS = 15_000_000
 JPEG_QUALITY = 92
 
 

@@ -22,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("scan_dir", type=Path, help="a scan folder")
     parser.add_argument("--texel-mm", type=float, default=None, metavar="MM",
                         help="texel side on the skin (default: 0.7 of the best images' mm per pixel there); coarser "
-                        "where the skin would need more than 13 M texels")
+                        "where the mesh's area would need more than 15 M texels")
     options.rig(parser, "the rig file the scan was taken with (default: calibration_data/rig.yaml)")
     parser.set_defaults(func=run)
 
