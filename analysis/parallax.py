@@ -9,6 +9,10 @@ texture it agree (a plane sweep over offsets, the colour differences between ima
 the atlas around each texel), and the images are sampled at that offset: each image then puts
 the skin point seen there on the texel that lies over it.
 
+The offset is estimated twice: broadly (differences summed over centimetres, clear on almost
+any skin) and locally (over a couple of millimetres, clear where the skin has texture of its
+own, such as a lesion). The surface's distance from the skin changes by a millimetre over a few,
+so a texel takes the local offset where the texels around have a clear one, else the broad one.
 Where the images agree equally at every offset (plain skin, or a texel one image textures) the
 offset is spread from the texels around that have a clear one, else zero.
 """
@@ -38,6 +42,17 @@ WINDOW_MM = 4.0
 SPREAD_MM = 8.0
 #: A texel's offset counts when its best offset's difference is below this share of the mean.
 CLEAR = 0.5
+#: The local estimate: differences summed over a Gaussian of this sigma (mm) and clear offsets
+#: spread over one of this sigma (mm). The TSDF surface's distance from the skin changes by a
+#: millimetre over a few (averaging it over 8 mm is off by about 0.4 mm at half the skin),
+#: and a lesion's own texture fixes the offset under it.
+LOCAL_WINDOW_MM = 1.5
+LOCAL_SPREAD_MM = 1.5
+#: A local offset counts when its best offset's difference is below this share of the mean
+#: (stricter than CLEAR: a couple of millimetres of plain skin agree nearly as well at every offset).
+LOCAL_CLEAR = 0.3
+#: The broad offset's weight against the share of clear local offsets around a texel (0..1).
+LOCAL_TRUST = 0.05
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
 
@@ -71,20 +86,43 @@ def surface_offsets(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.nd
         mean = np.bincount(t, w * lum, minlength=n_texels)[have] / total[have]
         square = np.bincount(t, w * lum * lum, minlength=n_texels)[have] / total[have]
         cost[level, g_rows[have], g_cols[have]] = np.maximum(square - mean * mean, 0.0)
-    sigma = WINDOW_MM / (atlas.texel_mm * step)
-    norm = np.maximum(ndimage.gaussian_filter(seen, sigma), 1e-6)
-    for level in range(len(OFFSETS_MM)):
-        cost[level] = ndimage.gaussian_filter(cost[level], sigma) / norm
-    best = np.argmin(cost, axis=0)
-    offset = OFFSETS_MM[best] + _parabola(cost, best) * (OFFSETS_MM[1] - OFFSETS_MM[0])
-    lowest = np.take_along_axis(cost, best[None], axis=0)[0]
-    clear = (seen > 0) & (lowest < CLEAR * cost.mean(axis=0))
-    spread = SPREAD_MM / (atlas.texel_mm * step)
-    confidence = ndimage.gaussian_filter(clear.astype(np.float32), spread)
-    smooth = ndimage.gaussian_filter(np.where(clear, offset, 0.0).astype(np.float32), spread)
-    field = np.where(confidence > 1e-3, smooth / np.maximum(confidence, 1e-6), 0.0)
+    field = offset_field(cost, seen, atlas.texel_mm * step)
     result: np.ndarray = field[g_rows, g_cols].astype(np.float64)
     return result
+
+
+def offset_field(cost: np.ndarray, seen: np.ndarray, cell_mm: float) -> np.ndarray:
+    """(H, W) offset (mm) of every cell of a grid of pitch ``cell_mm`` from its cost (L, H, W)
+    at each of OFFSETS_MM (the images' disagreement; cells no texel holds, ``seen`` (H, W) 0,
+    are not counted). The local estimate (differences summed over LOCAL_WINDOW_MM, its offsets
+    clear by LOCAL_CLEAR spread over LOCAL_SPREAD_MM) where it is clear near the cell, else the
+    broad one (WINDOW_MM, CLEAR, SPREAD_MM); the two are weighted by the local estimate's clear
+    share around the cell against LOCAL_TRUST. 0 where neither has a clear offset around."""
+    broad, confidence = _spread(*_best_offsets(cost, seen, WINDOW_MM / cell_mm), SPREAD_MM / cell_mm)
+    broad = np.where(confidence > 1e-3, broad, 0.0)
+    local, near = _spread(*_best_offsets(cost, seen, LOCAL_WINDOW_MM / cell_mm, LOCAL_CLEAR), LOCAL_SPREAD_MM / cell_mm)
+    field: np.ndarray = np.where(near > 1e-3, (near * local + LOCAL_TRUST * broad) / (near + LOCAL_TRUST), broad)
+    return field
+
+
+def _best_offsets(cost: np.ndarray, seen: np.ndarray, sigma: float,
+                  clear: float = CLEAR) -> tuple[np.ndarray, np.ndarray]:
+    """Each cell's offset (H, W) mm at the lowest of its cost (L, H, W) summed over a Gaussian
+    of ``sigma`` cells, and whether that offset is clear (its cost below ``clear`` of the mean)."""
+    norm = np.maximum(ndimage.gaussian_filter(seen, sigma), 1e-6)
+    summed = np.stack([ndimage.gaussian_filter(level, sigma) / norm for level in cost])
+    best = np.argmin(summed, axis=0)
+    offset = OFFSETS_MM[best] + _parabola(summed, best) * (OFFSETS_MM[1] - OFFSETS_MM[0])
+    lowest = np.take_along_axis(summed, best[None], axis=0)[0]
+    return offset, (seen > 0) & (lowest < clear * summed.mean(axis=0))
+
+
+def _spread(offset: np.ndarray, clear: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The clear offsets (H, W) averaged over a Gaussian of ``sigma`` cells, and the clear share
+    around each cell (the Gaussian's weight of clear cells; near 0: no clear offset around)."""
+    share = ndimage.gaussian_filter(clear.astype(np.float32), sigma)
+    total = ndimage.gaussian_filter(np.where(clear, offset, 0.0).astype(np.float32), sigma)
+    return total / np.maximum(share, 1e-6), share
 
 
 def _parabola(cost: np.ndarray, best: np.ndarray) -> np.ndarray:

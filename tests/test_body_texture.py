@@ -344,3 +344,25 @@ def test_the_images_are_sampled_where_they_agree_on_the_skin_not_where_the_tsdf_
     moved = signed + body.offset_mm
     assert np.median(np.abs(moved[sharp])) < 0.5 * np.median(np.abs(signed[sharp]))
     assert np.abs(np.median(moved[sharp])) < 0.25 * np.abs(np.median(signed[sharp]))
+
+
+def test_the_offset_follows_a_lesion_whose_skin_is_off_the_surface_by_more_than_the_skin_around(monkeypatch):
+    """The TSDF surface's distance from the skin changes over millimetres: where a lesion's own
+    texture says it lies 1.5 mm out while the faint texture around says 1 mm in, its offset is
+    the lesion's (the broad estimate alone, averaged over centimetres, is near the skin around's)."""
+    from analysis import parallax
+
+    cell_mm = 2.0
+    shape = (40, 40)
+    offsets = parallax.OFFSETS_MM[:, None, None]
+    true = np.full(shape, -1.0)
+    weight = np.full(shape, 0.02)  # faint pigment: a shallow cost curve
+    true[19:22, 19:22] = 1.5  # a 6 mm lesion
+    weight[19:22, 19:22] = 1.0
+    cost = (weight * (offsets - true) ** 2).astype(np.float32)
+    seen = np.ones(shape, dtype=np.float32)
+    field = parallax.offset_field(cost, seen, cell_mm)
+    assert field[20, 20] == pytest.approx(1.5, abs=0.25)
+    assert field[5, 5] == pytest.approx(-1.0, abs=0.1)
+    monkeypatch.setattr(parallax, "LOCAL_TRUST", 1e9)
+    assert abs(parallax.offset_field(cost, seen, cell_mm)[20, 20] - 1.5) > 0.75
