@@ -4,9 +4,9 @@ Steps: pick frames a fixed beam-angle step apart per camera; integrate them on t
 voxel size, truncation and weight threshold from ``rig.tsdf``) as they arrive (:class:`TsdfFusion`;
 the daemon fuses during the sweep); extract the zero-level triangle mesh;
 keep the subject only (inside the scan-volume cylinder, above the floor, largest connected
-component); close its holes and the soles' openings (the stored surface leaves the soles,
-which no frame sees, open); carve away the surface the frames saw through (planner/carve.py); validate that it is a
-plausible, fully contained person. The result is a trimesh in mm.
+component); close its holes and the soles' openings (the stored surface leaves the soles, which
+no frame sees, open); carve away the surface the frames saw through (planner/carve.py); validate
+that it is a plausible, fully contained person. The result is a trimesh in mm.
 
 Two surfaces come from one sweep: the planner's (``rig.tsdf.voxel_mm``, extracted as soon as the
 sweep ends, on the path to the capture) and the stored one (:meth:`TsdfFusion.surface`: the same
@@ -240,16 +240,14 @@ class TsdfFusion:
         (the planner's grid itself when that is its voxel), with the soles left open
         (:func:`close_openings`). Its timings are the second fusion's; it refuses what
         :meth:`result` refuses."""
-        cfg = self.rig.tsdf
-        if self._frames is None:  # the planner's grid, extracted again with the soles left open
+        if self._frames is None:  # this grid, extracted again with the soles left open
             with self._lock:
                 return self._extract(validate, close_soles=False)
         with self._lock:
             frames = list(self._frames)
-        fine = TsdfFusion(replace(self.rig, tsdf=replace(cfg, voxel_mm=cfg.surface_voxel_mm)))
+        fine = TsdfFusion(surface_rig(self.rig))
         fine.add(frames)
-        with fine._lock:
-            return fine._extract(validate, close_soles=False)
+        return fine.surface(validate=validate)
 
     def _extract(self, validate: bool, *, close_soles: bool = True) -> TsdfResult:
         cfg = self.rig.tsdf
@@ -442,6 +440,11 @@ def _validate(subject: trimesh.Trimesh, rig: Rig) -> None:
         raise ImplausibleSubject("horizontal extent", extent, *EXTENT_RANGE_MM)
 
 
+def surface_rig(rig: Rig) -> Rig:
+    """``rig`` whose TSDF voxel is its stored surface's (``tsdf.surface_voxel_mm``)."""
+    return replace(rig, tsdf=replace(rig.tsdf, voxel_mm=rig.tsdf.surface_voxel_mm))
+
+
 def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True, surface: bool = False) -> TsdfResult:
     """Fuse a whole depth sweep into the subject's surface mesh (mm): :class:`TsdfFusion` with
     every frame at once, each camera's in time order; the planner's mesh, or with surface=True
@@ -450,6 +453,6 @@ def fuse(frames: Sequence[PosedDepth], rig: Rig, *, validate: bool = True, surfa
     validate=False skips the person-size and containment checks (analytic test shapes); a missing
     subject and too few frames are refused either way.
     """
-    fusion = TsdfFusion(rig)
+    fusion = TsdfFusion(surface_rig(rig) if surface else rig)  # the stored surface: its voxel at once
     fusion.add(sorted(frames, key=lambda f: (f.camera_id, f.timestamp_s)))
     return fusion.surface(validate=validate) if surface else fusion.result(validate=validate)

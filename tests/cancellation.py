@@ -60,7 +60,8 @@ PLAN_POINTS = 300
 
 
 def short_rig(rig: Rig = RIG) -> Rig:
-    """``rig`` with a 123 deg depth sweep and five capture angles over 45 deg (two speeds)."""
+    """``rig`` with a 123 deg depth sweep, five capture angles over 45 deg (two speeds) and a coarse
+    TSDF (20 mm voxels, the stored surface's too)."""
     sectors = (
         Sector("front", -45.0, -15.0, 9.0, -40.0, 10.0, 3),
         Sector("left", -15.0, 0.0, 3.0, -12.0, 6.0, 2),
@@ -69,7 +70,7 @@ def short_rig(rig: Rig = RIG) -> Rig:
         rig,
         capture=dataclasses.replace(rig.capture, sectors=sectors),
         depth_sweep=dataclasses.replace(rig.depth_sweep, start_deg=-170.0),
-        tsdf=dataclasses.replace(rig.tsdf, voxel_mm=20.0),
+        tsdf=dataclasses.replace(rig.tsdf, voxel_mm=20.0, surface_voxel_mm=20.0),
     )
 
 

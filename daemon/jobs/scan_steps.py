@@ -171,9 +171,8 @@ class ScanSteps:
             plan, report.compute_s["planning"] = await self._planning
         finally:
             await self._writing  # the mesh lands whole, whatever happened to the plan
-        if rig.tsdf.surface_voxel_mm != rig.tsdf.voxel_mm:
-            assert self.fusion is not None
-            self.surface = asyncio.create_task(self._store_surface(self.fusion.surface()), name="store-surface")
+        assert self.fusion is not None
+        self.surface = asyncio.create_task(self._store_surface(self.fusion.surface()), name="store-surface")
         await self._fusion_open.aclose()  # the worker drops the TSDF once the surface is out (the store step waits)
         try:
             plan_json = plan.json
