@@ -15,6 +15,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import structlog
+import structlog.testing
 import trimesh
 
 from daemon.errors import ScanBusy
@@ -113,8 +115,11 @@ def test_a_stored_surface_that_cannot_be_made_leaves_the_planners_mesh(tmp_path:
         raise NoSubject("the finer grid holds no surface")
 
     monkeypatch.setattr(TsdfFusion, "surface", refused)
-    report, controller, _ = run_scan(tmp_path)
+    with structlog.testing.capture_logs() as logs:
+        report, controller, _ = run_scan(tmp_path)
     assert report.outcome is ScanOutcome.COMPLETED, report.reason
+    failed = [e for e in logs if e["event"] == "surface_failed"]
+    assert len(failed) == 1 and failed[0]["error"].startswith("NoSubject") and "finer grid" in failed[0]["error"]
     assert "surface" not in report.compute_s
     planners = next(e.data["vertices"] for e in controller.machine.history if e.cause == "subject mesh ready")
     assert len(trimesh.load(report.folder / "mesh.ply", process=False).vertices) == planners
