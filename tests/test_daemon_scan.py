@@ -4,6 +4,7 @@ plan, disk full. Phones lost and determinism are tested on the complete simulate
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import errno
 import hashlib
@@ -124,6 +125,36 @@ def test_a_stored_surface_that_cannot_be_made_leaves_the_planners_mesh(tmp_path:
     planners = next(e.data["vertices"] for e in controller.machine.history if e.cause == "subject mesh ready")
     assert len(trimesh.load(report.folder / "mesh.ply", process=False).vertices) == planners
     assert _manifest(report)["files"]["mesh"] == "mesh.ply"
+
+
+def test_a_stored_surface_that_never_comes_is_dropped_at_the_pull_bound(tmp_path: Path, monkeypatch) -> None:
+    """A worker that never answers for the stored surface: the store step waits PULL_TIMEOUT_S of
+    rig time, drops it (logged), and the folder closes COMPLETED with the planner's mesh."""
+    from daemon.jobs.scan import Scan
+    from daemon.offload.fusion import FusionSession
+
+    asked: list[asyncio.Future[Any]] = []
+
+    def stalled(self) -> asyncio.Future[Any]:
+        asked.append(asyncio.get_running_loop().create_future())
+        return asked[-1]
+
+    monkeypatch.setattr(FusionSession, "surface", stalled)
+    with structlog.testing.capture_logs() as logs:
+        report, controller, _ = run_scan(tmp_path)
+    assert report.outcome is ScanOutcome.COMPLETED, report.reason
+    dropped = [e for e in logs if e["event"] == "surface_dropped"]
+    assert len(dropped) == 1 and dropped[0]["timeout_s"] == Scan.PULL_TIMEOUT_S
+    assert len(asked) == 1 and asked[0].cancelled()  # never answered: dropped at the bound
+    moves = [e for e in controller.machine.history if e.kind == "transition"]
+    storing = next(e.time_s for e in moves if e.state is ScanState.STORING)
+    stored = next(e.time_s for e in moves if e.state is ScanState.IDLE and e.time_s > storing)
+    assert stored - storing >= Scan.PULL_TIMEOUT_S - 1e-6
+    assert "surface" not in report.compute_s
+    planners = next(e.data["vertices"] for e in controller.machine.history if e.cause == "subject mesh ready")
+    assert len(trimesh.load(report.folder / "mesh.ply", process=False).vertices) == planners
+    manifest = _manifest(report)
+    assert manifest["files"]["mesh"] == "mesh.ply" and manifest["in_progress"] is False
 
 
 def test_a_scan_with_images_missing_ends_partial_naming_each_phone_and_why(tmp_path: Path) -> None:
