@@ -6,8 +6,10 @@ to its normal averaged over a few rings of neighbours (a TSDF surface's normals 
 edge-connected triangles of one direction form a chart, projected orthographically along it, and
 charts too small to be worth their gutter join a neighbour their triangles face within 70 deg.
 A texel spans 1 / cos(angle to the chart's direction) texel sizes on the skin. Charts are
-packed on shelves with a gutter that the texture's colours are spread into
-(:func:`fill_gutters`), so filtering at a chart's edge never reads another chart. Open3D's
+packed on shelves with a gutter; the gutter texels next to a chart hold the skin that continues
+over its edge, taken from the chart beyond, and the rest the colour of the nearest texel
+(:func:`seam_gutters`), so filtering at a chart's edge never reads an
+unrelated chart and a spot cut by a seam is whole on both sides. Open3D's
 UVAtlas would cut fewer seams but needs a manifold mesh and is an order of magnitude slower on
 a TSDF body.
 
@@ -18,13 +20,14 @@ v = (row + 0.5) / H, origin at the image's top-left.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-#: Texels of empty border round every chart (colours are spread into it).
+#: Texels of border round every chart (the skin over the chart's edge is continued into it).
 GUTTER = 2
 #: The 26 chart directions: every non-zero (x, y, z) in {-1, 0, 1}^3, unit length.
 DIRECTIONS = np.array([d for d in itertools.product((-1, 0, 1), repeat=3) if any(d)], dtype=float)
@@ -272,11 +275,70 @@ def _row_span(y: np.ndarray, a: np.ndarray, v0: np.ndarray, v1: np.ndarray,
     return first, last
 
 
-def fill_gutters(image: np.ndarray, filled: np.ndarray) -> np.ndarray:
-    """(H, W, C) image with every unfilled texel (filled (H, W) bool False) given the colour of
-    its nearest filled texel, so filtering across a chart's edge reads the chart's own colours."""
+def seam_gutters(atlas: Atlas, image: np.ndarray, filled: np.ndarray,
+                 closest_faces: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+                 width: int = GUTTER) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gutter texels within ``width`` of a chart given the skin that continues over the
+    chart's edge: each such texel's place on its nearest chart texel's triangle plane, extended
+    past the edge, is moved to the closest point of the mesh (``closest_faces``: (Q, 3) points
+    -> closest points (Q, 3), triangles (Q,)), and where that point lies in another chart (or
+    far across this one) the texel takes that chart's texel there, so a spot cut by a seam is
+    whole on both sides and filtering at the edge reads the skin beyond it.
+
+    image: (H, W, C) with the charts' texels filled (filled (H, W) bool); returns the image with
+    those gutter texels set and every other unfilled texel given the colour of its nearest
+    filled one, and the seam texels' (G, 2) row, column and (G, 3)
+    mm surface points."""
     if not filled.any():
-        return image
-    rows, cols = ndimage.distance_transform_edt(~filled, return_distances=False, return_indices=True)
-    result: np.ndarray = image[rows, cols]
-    return result
+        return image, np.zeros((0, 2), dtype=np.int64), np.zeros((0, 3))
+    near_rows, near_cols = ndimage.distance_transform_edt(~filled, return_distances=False, return_indices=True)
+    reach = ndimage.maximum_filter(filled.view(np.uint8), size=2 * width + 1).view(bool) & ~filled
+    g_rows, g_cols = np.nonzero(reach)
+    del reach
+    # the nearest filled texel's index among the atlas' texels (sorted by row, then column)
+    keys = atlas.texel_rc[:, 0] * atlas.shape[1] + atlas.texel_rc[:, 1]
+    near = near_rows[g_rows, g_cols] * atlas.shape[1] + near_cols[g_rows, g_cols]
+    source = np.minimum(np.searchsorted(keys, near), len(keys) - 1)
+    keep = keys[source] == near
+    g_rows, g_cols, source = g_rows[keep], g_cols[keep], source[keep]
+    size = np.array([atlas.shape[1], atlas.shape[0]], dtype=float)
+    # the nearest texel's triangle, affine from texel (column, row) to the surface, extended
+    corners = atlas.faces[atlas.texel_face[source]]
+    tex = atlas.uv[corners] * size  # (G, 3, 2) column, row
+    weights = _barycentric_2d(np.stack([g_cols + 0.5, g_rows + 0.5], axis=1), tex)
+    planar = np.einsum("gk,gkj->gj", weights, atlas.vertices[corners])
+    point, face = closest_faces(planar)
+    # the closest point's place in the atlas: its triangle's texel coordinates
+    there = atlas.uv[atlas.faces[face]] * size
+    w = _barycentric_3d(point, atlas.vertices[atlas.faces[face]])
+    at = np.einsum("gk,gkj->gj", w, there)  # column, row
+    r = np.clip(np.floor(at[:, 1]).astype(np.int64), 0, atlas.shape[0] - 1)
+    c = np.clip(np.floor(at[:, 0]).astype(np.int64), 0, atlas.shape[1] - 1)
+    elsewhere = filled[r, c] & (np.hypot(r - g_rows, c - g_cols) > width + 1.5)
+    g_rows, g_cols, r, c, point = g_rows[elsewhere], g_cols[elsewhere], r[elsewhere], c[elsewhere], point[elsewhere]
+    result: np.ndarray = image[near_rows, near_cols]
+    del near_rows, near_cols
+    result[g_rows, g_cols] = image[r, c]
+    return result, np.stack([g_rows, g_cols], axis=1), point
+
+
+def _barycentric_2d(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric weights of points (N, 2) in triangles (N, 3, 2), also outside them."""
+    a = tri[:, 0]
+    v0, v1, v2 = tri[:, 1] - a, tri[:, 2] - a, p - a
+    den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+    den = np.where(den == 0, 1.0, den)
+    w1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
+    w2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)
+
+
+def _barycentric_3d(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric weights of points (N, 3) in the planes of triangles (N, 3, 3)."""
+    v0, v1, v2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(den == 0, 1.0, den)
+    w1, w2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from analysis.atlas import Atlas, fill_gutters, unwrap
+from analysis.atlas import Atlas, seam_gutters, unwrap
 from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
 from analysis.parallax import surface_offsets
@@ -61,7 +61,9 @@ class TextureError(ValueError):
 class BodyTexture:
     """The textured body: atlas, texture (H, W, 3) uint8, per-texel samples, the images'
     exposure, each texel's offset (T,) mm along the surface's outward normal where the images
-    were sampled (analysis/parallax.py) and where the time went (seconds per step)."""
+    were sampled (analysis/parallax.py), where the time went (seconds per step), and the gutter
+    texels that hold the skin continuing over their chart's edge (analysis/atlas.py
+    seam_gutters): (G, 2) row, column and (G, 3) mm the surface point each was taken from."""
 
     atlas: Atlas
     texture: np.ndarray
@@ -69,6 +71,8 @@ class BodyTexture:
     exposure: Exposure
     offset_mm: np.ndarray
     seconds: dict[str, float]
+    gutter_rc: np.ndarray
+    gutter_point: np.ndarray
 
 
 def stored_image_size(scan: ScanRecord) -> tuple[int, int]:
@@ -209,9 +213,10 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     texture[rows, cols] = np.clip(np.rint(colour[seen]), 0, 255)
     filled[rows, cols] = True
     del colour, rows, cols
-    texture = fill_gutters(texture, filled)
     lap("blend")
-    return BodyTexture(atlas, texture, samples, exposure, offset, seconds)
+    texture, gutter_rc, gutter_point = seam_gutters(atlas, texture, filled, nav.scene.closest_faces)
+    lap("gutters")
+    return BodyTexture(atlas, texture, samples, exposure, offset, seconds, gutter_rc, gutter_point)
 
 
 def _overlapping(samples: Samples, equations: int) -> Samples:

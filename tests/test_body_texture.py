@@ -12,8 +12,9 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import ndimage
 
-from analysis.atlas import GUTTER, _rasterise, unwrap
+from analysis.atlas import GUTTER, _rasterise, seam_gutters, unwrap
 from analysis.body_texture import (
     bilinear,
     choose_views,
@@ -71,6 +72,54 @@ def test_the_atlas_covers_every_triangle_once_with_texels_on_their_triangle(texe
     assert len(atlas.texel_rc) == pytest.approx(flat_area, rel=0.03)
     # every chart keeps its gutter free: texels stay GUTTER inside the atlas' edges
     assert atlas.texel_rc.min() >= GUTTER - 1 and np.all(atlas.texel_rc.max(axis=0) < np.array(atlas.shape))
+
+
+def _fold(spacing_mm: float = 2.0) -> trimesh.Trimesh:
+    """Two 30 x 30 mm squares meeting at a right-angled edge along y (x = z = 0): two charts."""
+    s, y = np.meshgrid(np.arange(-30.0, 30.1, spacing_mm), np.arange(0.0, 30.1, spacing_mm), indexing="ij")
+    s, y = s.ravel(), y.ravel()
+    vertices = np.stack([np.minimum(s, 0.0), y, -np.maximum(s, 0.0)], axis=1)
+    n_s, n_y = len(np.unique(s)), len(np.unique(y))
+    i, j = np.meshgrid(np.arange(n_s - 1), np.arange(n_y - 1), indexing="ij")
+    a = (i * n_y + j).ravel()
+    faces = np.concatenate([np.stack([a, a + n_y, a + 1], axis=1), np.stack([a + 1, a + n_y, a + n_y + 1], axis=1)])
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+def test_the_gutters_at_a_seam_hold_the_skin_that_continues_over_it_so_a_cut_spot_is_whole():
+    from planner.visibility import RayScene
+
+    mesh = _fold()
+    atlas = unwrap(mesh.vertices, mesh.faces, 0.5)
+    assert atlas.charts == 2
+
+    def skin(points: np.ndarray) -> np.ndarray:  # a dark spot of 3 mm sigma on the seam
+        geodesic = np.stack([points[:, 0] - points[:, 2], points[:, 1]], axis=1)  # the fold flattened
+        return 200.0 - 150.0 * np.exp(-np.sum((geodesic - [0.0, 15.0]) ** 2, axis=1) / 18.0)
+
+    image = np.zeros((*atlas.shape, 1), dtype=np.float64)
+    filled = np.zeros(atlas.shape, dtype=bool)
+    image[atlas.texel_rc[:, 0], atlas.texel_rc[:, 1], 0] = skin(atlas.texel_point)
+    filled[atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]] = True
+    scene = RayScene(mesh)
+    continued, rc, point = seam_gutters(atlas, image, filled, scene.closest_faces)
+    # the gutter texels along the seam (both charts' sides, GUTTER deep) and only unfilled ones
+    seam_length = 30.0 / atlas.texel_mm
+    assert 2 * GUTTER * seam_length * 0.8 < len(rc) < 2 * GUTTER * seam_length * 1.3
+    assert not filled[rc[:, 0], rc[:, 1]].any()
+    # each holds the skin at its point, which lies on the other square, past the seam by less than GUTTER + 1 texels
+    assert np.linalg.norm(scene.closest_faces(point)[0] - point, axis=1).max() < 1e-3
+    past = np.abs(point[:, 0] - point[:, 2])
+    assert past.max() < (GUTTER + 1) * atlas.texel_mm * 1.5
+    assert np.all((point[:, 0] > -1e-6) & (point[:, 2] > -1e-6) | (point[:, 0] < 1e-6) & (point[:, 2] < 1e-6))
+    got = continued[rc[:, 0], rc[:, 1], 0]
+    assert np.abs(got - skin(point)).max() < 150.0 * atlas.texel_mm / 3.0
+    # the spot is whole: at the seam the gutter continues darker towards its centre, where the
+    # chart's own colour spread into the gutter would stay as dark as the edge
+    near_centre = np.abs(point[:, 1] - 15.0) < 1.0
+    rows, cols = ndimage.distance_transform_edt(~filled, return_distances=False, return_indices=True)
+    spread = image[rows, cols][rc[:, 0], rc[:, 1], 0]  # the nearest chart texel's colour
+    assert np.abs(got - skin(point))[near_centre].mean() < 0.3 * np.abs(spread - skin(point))[near_centre].mean()
 
 
 @settings(max_examples=60, deadline=None)
