@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
+from trimesh.triangles import points_to_barycentric
 
 #: Texels of border round every chart (the skin over the chart's edge is continued into it).
 GUTTER = 2
@@ -305,40 +306,21 @@ def seam_gutters(atlas: Atlas, image: np.ndarray, filled: np.ndarray,
     # the nearest texel's triangle, affine from texel (column, row) to the surface, extended
     corners = atlas.faces[atlas.texel_face[source]]
     tex = atlas.uv[corners] * size  # (G, 3, 2) column, row
-    weights = _barycentric_2d(np.stack([g_cols + 0.5, g_rows + 0.5], axis=1), tex)
+    weights = points_to_barycentric(tex, np.stack([g_cols + 0.5, g_rows + 0.5], axis=1))
     planar = np.einsum("gk,gkj->gj", weights, atlas.vertices[corners])
     point, face = closest_faces(planar)
-    # the closest point's place in the atlas: its triangle's texel coordinates
+    # the closest point's place in the atlas: its triangle's texel coordinates (none on a
+    # triangle of no area)
     there = atlas.uv[atlas.faces[face]] * size
-    w = _barycentric_3d(point, atlas.vertices[atlas.faces[face]])
-    at = np.einsum("gk,gkj->gj", w, there)  # column, row
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at = np.einsum("gk,gkj->gj", points_to_barycentric(atlas.vertices[atlas.faces[face]], point), there)
+    placed = np.isfinite(at).all(axis=1)
+    at = np.where(placed[:, None], at, 0.0)  # column, row
     r = np.clip(np.floor(at[:, 1]).astype(np.int64), 0, atlas.shape[0] - 1)
     c = np.clip(np.floor(at[:, 0]).astype(np.int64), 0, atlas.shape[1] - 1)
-    elsewhere = filled[r, c] & (np.hypot(r - g_rows, c - g_cols) > width + 1.5)
+    elsewhere = placed & filled[r, c] & (np.hypot(r - g_rows, c - g_cols) > width + 1.5)
     g_rows, g_cols, r, c, point = g_rows[elsewhere], g_cols[elsewhere], r[elsewhere], c[elsewhere], point[elsewhere]
     result: np.ndarray = image[near_rows, near_cols]
     del near_rows, near_cols
     result[g_rows, g_cols] = image[r, c]
     return result, np.stack([g_rows, g_cols], axis=1), point
-
-
-def _barycentric_2d(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(N, 3) barycentric weights of points (N, 2) in triangles (N, 3, 2), also outside them."""
-    a = tri[:, 0]
-    v0, v1, v2 = tri[:, 1] - a, tri[:, 2] - a, p - a
-    den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
-    den = np.where(den == 0, 1.0, den)
-    w1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
-    w2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
-    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)
-
-
-def _barycentric_3d(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(N, 3) barycentric weights of points (N, 3) in the planes of triangles (N, 3, 3)."""
-    v0, v1, v2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
-    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(den == 0, 1.0, den)
-    w1, w2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)

@@ -161,6 +161,5 @@ def _sweep(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, in
         moved = (points[None] + OFFSETS_MM[:, None, None] * normal[None]).reshape(-1, 3)
         u, v = pixel_of(nav.poses, np.full(len(moved), p), moved, scan.rig)
         sampled = bilinear(lum[:, :, None], u * scale, v * scale)[:, 0].reshape(len(OFFSETS_MM), len(mine))
-        values[mine] = sampled.T
-        values[mine] /= factor[mine, None]
+        values[mine] = sampled.T / factor[mine, None]
     return values
