@@ -9,8 +9,8 @@ it in this process). Jobs of one session are awaited one after the other, never 
 the exceptions, :meth:`FusionSession.result_then`, :meth:`FusionSession.on_mesh` and
 :meth:`FusionSession.surface`, only read the extracted mesh or the kept frames, which the fusion
 keeps (and extracts once) until the session closes; the session closes once they are done. Work
-on the mesh is asked for this way so the mesh never crosses back to the worker: pickling it holds this process's interpreter lock, which the event
-loop needs, for tens of milliseconds.
+on the mesh is asked for this way so the mesh never crosses back to the worker: pickling it holds
+this process's interpreter lock, which the event loop needs, for tens of milliseconds.
 """
 
 from __future__ import annotations
