@@ -28,6 +28,8 @@ from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 from trimesh.triangles import points_to_barycentric
 
+from planner.cores import each
+
 #: Texels of border round every chart (the skin over the chart's edge is continued into it).
 GUTTER = 2
 #: The 26 chart directions: every non-zero (x, y, z) in {-1, 0, 1}^3, unit length.
@@ -40,6 +42,8 @@ MIN_CHART = 40
 #: ... if their triangles are within 70 deg of its direction (cos 70 deg).
 MERGE_COS = 0.342
 MERGE_PASSES = 6
+#: Texel tests per block of the rasterisation (bounds its temporary arrays: about 200 bytes a test).
+RASTER_BLOCK = 1 << 21
 
 
 class AtlasError(ValueError):
@@ -177,7 +181,7 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, texel_mm: float, *, max_side
     offsets, shape = placed
     texel = (flat - low[chart_of_vertex]) / texel_mm + GUTTER + offsets[chart_of_vertex]  # (column, row), texels
     uv = np.stack([texel[:, 0] / shape[1], texel[:, 1] / shape[0]], axis=1)
-    rc, face, point = _rasterise(texel, new_faces, vertices[source_vertex])
+    rc, face, point = _rasterise(texel, new_faces, vertices[source_vertex], RASTER_BLOCK)
     return Atlas(vertices[source_vertex], new_faces, source_vertex, uv, float(texel_mm), shape, n_charts, rc, face, point)
 
 
@@ -205,12 +209,13 @@ def _pack(sizes: np.ndarray, max_side: int) -> tuple[np.ndarray, tuple[int, int]
 
 
 def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
-               block: int = 1 << 21) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               block: int = RASTER_BLOCK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Texel centres inside each triangle: (T, 2) row, column; (T,) triangle; (T, 3) point mm.
     texel: (V', 2) column, row of every vertex in texels (a texel's centre is at +0.5).
 
     Each row of a triangle's bounding box is tested only over the columns its edges bound there
-    (one texel wider each side, against rounding), not over the whole box."""
+    (one texel wider each side, against rounding), not over the whole box; triangles in blocks
+    of about ``block`` tests, two blocks at once where a core is spare."""
     corners = texel[faces]  # (F, 3, 2)
     lo = np.floor(corners.min(axis=1) - 0.5).astype(np.int64)
     hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64)
@@ -218,11 +223,13 @@ def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
     v0, v1 = corners[:, 1] - a, corners[:, 2] - a
     den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
     rows_of = np.where(den != 0, hi[:, 1] - lo[:, 1] + 1, 0)
-    rcs, fs, ps = [], [], []
     starts = np.concatenate([[0], np.cumsum(rows_of * (hi[:, 0] - lo[:, 0] + 1))])
-    f0 = 0
-    while f0 < len(faces):
-        f1 = max(int(np.searchsorted(starts, starts[f0] + block, side="right")) - 1, f0 + 1)
+    bounds = [0]
+    while bounds[-1] < len(faces):
+        f0 = bounds[-1]
+        bounds.append(max(int(np.searchsorted(starts, starts[f0] + block, side="right")) - 1, f0 + 1))
+
+    def texels_of(f0: int, f1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # every (triangle, row) of the boxes, and the columns the three edges bound on it
         f = np.repeat(np.arange(f0, f1), rows_of[f0:f1])
         row = lo[f, 1] + np.arange(len(f)) - np.repeat(np.cumsum(rows_of[f0:f1]) - rows_of[f0:f1], rows_of[f0:f1])
@@ -241,12 +248,12 @@ def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,
             w0 = 1.0 - w1 - w2
         inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (w2 >= -1e-9)
         f, w0, w1, w2 = f[inside], w0[inside], w1[inside], w2[inside]
-        rcs.append(np.stack([row[inside], col[inside]], axis=1))
-        fs.append(f)
         tri = points[faces[f]]
-        ps.append(w0[:, None] * tri[:, 0] + w1[:, None] * tri[:, 1] + w2[:, None] * tri[:, 2])
-        f0 = f1
-    rc, face, point = np.concatenate(rcs), np.concatenate(fs), np.concatenate(ps)
+        return (np.stack([row[inside], col[inside]], axis=1), f,
+                w0[:, None] * tri[:, 0] + w1[:, None] * tri[:, 1] + w2[:, None] * tri[:, 2])
+
+    parts = each(lambda span: texels_of(*span), zip(bounds[:-1], bounds[1:]), name="rasterise")
+    rc, face, point = (np.concatenate(column) for column in zip(*parts))
     # a texel on an edge shared by two triangles of a chart: kept once
     _, first_seen = np.unique(rc[:, 0] * (1 << 32) + rc[:, 1], return_index=True)
     return rc[first_seen], face[first_seen], point[first_seen]

@@ -7,8 +7,11 @@ share skin (analysis/exposure.py) and divided out before blending. Where the sca
 off the skin, images seen from different sides disagree about where a spot is on it; each texel
 is sampled at the offset along the surface's normal at which its images agree
 (analysis/parallax.py), so small lesions stay in place and unsmeared. Images are read one at a
-time and samples blended in bounded blocks, so memory grows with the samples (about 22 bytes
-each, 32-bit) and not with copies of them.
+time on each thread and samples blended in bounded blocks, so memory grows with the samples
+(about 22 bytes each, 32-bit) and not with copies of them. Where a core is spare (a command run
+by hand; not the daemon's compute worker, which leaves the daemon its core) the atlas, the view
+choice and the image sampling run two blocks or images at once (planner/cores.py), with the
+same result as one.
 
 The file is a glTF binary (metres, as glTF wants; the scan's mm divided by 1000) with one mesh,
 its texture coordinates and a JPEG atlas, written into the scan folder through the store.
@@ -20,7 +23,7 @@ import dataclasses
 import io
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,9 +35,10 @@ from analysis.atlas import Atlas, seam_gutters, unwrap
 from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
 from analysis.parallax import surface_offsets
-from analysis.pixels import bilinear
+from analysis.pixels import bilinear, by_image
 from analysis.scan_views import ScanRecord, open_scan
 from analysis.texel_views import Samples, candidate_poses, choose_views, runs, texel_views
+from planner.cores import each
 
 #: Texel side as a share of the best image's pixel on the skin (finer than the pixel: the chart's
 #: tilt and the resampling each lose a little).
@@ -105,44 +109,40 @@ def smooth_face_normals(vertices: np.ndarray, faces: np.ndarray, rings: int = SM
 
 
 def sample_images(scan: ScanRecord, samples: Samples) -> np.ndarray:
-    """(K, 3) float32 RGB of every blended pair, bilinear at its pixel, one image in memory at a time."""
+    """(K, 3) float32 RGB of every blended pair, bilinear at its pixel; images read one at a
+    time on each thread (:func:`planner.cores.each`)."""
     colours = np.empty((len(samples.pose), 3), dtype=np.float32)
-    for mine, pixels in _by_image(scan, samples.pose):
-        colours[mine] = bilinear(pixels, samples.u[mine], samples.v[mine])
+
+    def sample(group: tuple[int, np.ndarray]) -> None:
+        pose, mine = group
+        colours[mine] = bilinear(scan.pixels_at(pose), samples.u[mine], samples.v[mine])
+
+    each(sample, by_image(samples.pose), name="sample")
     return colours
-
-
-def _by_image(scan: ScanRecord, pose: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Per image of the poses (K,): the indices of its samples and its pixels (H, W, 3) float32,
-    one image in memory at a time."""
-    order = np.argsort(pose, kind="stable")
-    counts = np.bincount(pose)
-    ends = np.cumsum(counts)
-    for p in np.flatnonzero(counts):
-        image = scan.image_at(int(p))
-        if image is None or not scan.image_on_disk(image):
-            raise TextureError(f"scan {scan.path}: pose {p} has no image on disk")
-        with Image.open(scan.path / image.file) as picture:
-            pixels = np.asarray(picture.convert("RGB"), dtype=np.float32)
-        yield order[ends[p] - counts[p]:ends[p]], pixels
 
 
 def blend(samples: Samples, colours: np.ndarray, exposure: Exposure, n_texels: int) -> tuple[np.ndarray, np.ndarray]:
     """Per texel (T, 3) the weighted mean of its samples' colours (K, 3) with their exposure
     (gain and light falloff) taken out, and (T,) whether any image gave it a colour; samples in
-    blocks of SAMPLE_BLOCK, each summed over the texels it spans (samples grouped by texel: a
-    short range)."""
+    blocks of about SAMPLE_BLOCK that end where a texel's samples end (samples grouped by
+    texel), each summed over the texels it spans: a short range no other block writes, so
+    blocks run two at once where a core is spare."""
     total = np.zeros(n_texels)
     out = np.zeros((n_texels, 3))
-    for start in range(0, len(samples.pose), SAMPLE_BLOCK):
-        part = slice(start, start + SAMPLE_BLOCK)
-        texel, weight = samples.texel[part], samples.weight[part].astype(np.float64)
+    texels = samples.texel
+    cuts = np.unique(np.r_[0, np.searchsorted(texels, texels[SAMPLE_BLOCK::SAMPLE_BLOCK]), len(texels)])
+
+    def add(block: tuple[int, int]) -> None:
+        part = slice(*block)
+        texel, weight = texels[part], samples.weight[part].astype(np.float64)
         low = int(texel.min())
         span = int(texel.max()) - low + 1
         corrected = colours[part] / exposure.factor(samples.pose[part], samples.incidence[part])
         total[low:low + span] += np.bincount(texel - low, weight, minlength=span)
         for c in range(3):
             out[low:low + span, c] += np.bincount(texel - low, weight * corrected[:, c], minlength=span)
+
+    each(add, zip(cuts[:-1].tolist(), cuts[1:].tolist()), name="blend")
     seen = total > 0
     out[seen] /= total[seen, None]
     return out, seen
@@ -239,20 +239,24 @@ def _sample_moved(scan: ScanRecord, nav: Navigator, samples: Samples, atlas: Atl
                   outward: np.ndarray, image_size: tuple[int, int]) -> tuple[Samples, np.ndarray]:
     """The samples with their pixels where each texel's point is moved by its offset (T,) mm
     along its triangle's outward normal (F, 3), and their colours (K, 3) float32 there; each
-    image's samples projected at once through its own camera."""
+    image's samples projected at once through its own camera, images two at a time where a core
+    is spare."""
     optics = nav.scan.rig.optics
     scale = image_size[0] / optics.image_width_px
     u, v = np.empty_like(samples.u), np.empty_like(samples.v)
     colours = np.empty((len(samples.pose), 3), dtype=np.float32)
     poses = nav.poses
-    for mine, pixels in _by_image(scan, samples.pose):
-        p = samples.pose[mine[0]]
+
+    def move(group: tuple[int, np.ndarray]) -> None:
+        p, mine = group
         texel = samples.texel[mine]
         rel = atlas.texel_point[texel] + offset[texel, None] * outward[atlas.texel_face[texel]] - poses.centres[p]
         x, y, z = (rel @ np.stack([poses.right[p], poses.down[p], poses.forward[p]], axis=1)).T
         u[mine] = (optics.focal_length_px * x / z + optics.image_width_px / 2.0) * scale
         v[mine] = (optics.focal_length_px * y / z + optics.image_height_px / 2.0) * scale
-        colours[mine] = bilinear(pixels, u[mine], v[mine])
+        colours[mine] = bilinear(scan.pixels_at(p), u[mine], v[mine])
+
+    each(move, by_image(samples.pose), name="sample-moved")
     return dataclasses.replace(samples, u=u, v=v), colours
 
 

@@ -22,10 +22,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from PIL import Image
 from scipy import ndimage
 
-from analysis.pixels import bilinear
+from analysis.pixels import bilinear, by_image
+from planner.cores import each
 
 if TYPE_CHECKING:
     from analysis.atlas import Atlas
@@ -139,27 +139,24 @@ def _parabola(cost: np.ndarray, best: np.ndarray) -> np.ndarray:
 def _sweep(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.ndarray, incidence: np.ndarray,
            exposure: Exposure, outward: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """(K, L) exposure-corrected luminance of each sample's image at its texel's point moved by
-    each of OFFSETS_MM along its triangle's ``outward`` (F, 3); one image in memory at a time."""
+    each of OFFSETS_MM along its triangle's ``outward`` (F, 3); one image in memory at a time on
+    each thread (two where a core is spare)."""
     from planner.navigation import pixel_of
 
     scan = nav.scan
     scale = image_size[0] / scan.rig.optics.image_width_px
     values = np.zeros((len(texel), len(OFFSETS_MM)), dtype=np.float32)
     factor = (exposure.factor(pose, incidence) @ _LUMINANCE).astype(np.float32)  # luminance gain, roughly
-    order = np.argsort(pose, kind="stable")
-    poses, starts = np.unique(pose[order], return_index=True)
-    ends = np.r_[starts[1:], len(order)]
-    for p, a, b in zip(poses, starts, ends):
-        image = scan.image_at(int(p))
-        if image is None or image.file is None:
-            raise LookupError(f"scan {scan.path}: pose {p} has no image on disk")
-        with Image.open(scan.path / image.file) as picture:
-            lum = np.asarray(picture.convert("RGB"), dtype=np.float32) @ _LUMINANCE
-        mine = order[a:b]
+
+    def sweep(group: tuple[int, np.ndarray]) -> None:
+        p, mine = group
+        lum = scan.pixels_at(p) @ _LUMINANCE
         points, normal = atlas.texel_point[texel[mine]], outward[atlas.texel_face[texel[mine]]]
         # every offset in one call (level-major, as (L, n)): fewer, larger array operations
         moved = (points[None] + OFFSETS_MM[:, None, None] * normal[None]).reshape(-1, 3)
         u, v = pixel_of(nav.poses, np.full(len(moved), p), moved, scan.rig)
         sampled = bilinear(lum[:, :, None], u * scale, v * scale)[:, 0].reshape(len(OFFSETS_MM), len(mine))
         values[mine] = sampled.T / factor[mine, None]
+
+    each(sweep, by_image(pose), name="parallax")
     return values

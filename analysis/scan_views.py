@@ -79,6 +79,16 @@ class ScanRecord:
         """A verified image whose file is still in the folder (a deleted one shows nothing)."""
         return image.status is ImageStatus.VERIFIED and bool(image.file) and (self.path / image.file).is_file()
 
+    def pixels_at(self, pose: int) -> np.ndarray:
+        """The pixels (H, W, 3) float32 of the verified image at a pose (ScanFileError: none on disk)."""
+        from PIL import Image
+
+        image = self.image_at(pose)
+        if image is None or image.file is None or not self.image_on_disk(image):
+            raise ScanFileError(self.path, f"pose {pose} has no verified image on disk")
+        with Image.open(self.path / image.file) as picture:
+            return np.asarray(picture.convert("RGB"), dtype=np.float32)
+
 
 def open_scan(folder: Path | str, rig_path: Path | str | None = None) -> ScanRecord:
     """Load a scan folder; the rig file defaults to the installed one (its digest is checked).

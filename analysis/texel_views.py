@@ -9,7 +9,8 @@ best image changes.
 
 An atlas has millions of texels; each triangle's texels test only the few poses worth testing
 (:func:`candidate_poses`), and :func:`texel_views` costs those pairs directly from the cost's
-own terms (planner.cost area_term, axis_term and the focus interval), texels in bounded blocks.
+own terms (planner.cost area_term, axis_term and the focus interval), texels in bounded blocks,
+two blocks at once where a core is spare (planner/cores.py).
 Samples are stored compactly (32-bit floats: plenty for pixel positions and 8-bit colour).
 """
 
@@ -19,6 +20,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from planner.cores import each
 
 if TYPE_CHECKING:
     from analysis.atlas import Atlas
@@ -100,12 +103,15 @@ def texel_views(nav: Navigator, atlas: Atlas, normals: np.ndarray, smooth_normal
         candidates = candidates.sorted_indices()
     picked = _Picked(nav, len(atlas.texel_point), image_size)
     facing = np.linalg.norm(normals, axis=1) > 0
-    for start in range(0, len(atlas.texel_point), TEXEL_BLOCK):
+
+    def block(start: int) -> None:
         face = atlas.texel_face[start:start + TEXEL_BLOCK]
         on = np.flatnonzero(facing[face])
         points = atlas.texel_point[start:start + TEXEL_BLOCK][on]
         pairs = _candidate_pairs(nav, points, normals[face[on]], candidates, face[on], BLEND_MARGIN)
         picked.add(start, pairs, points, smooth_normals[face[on]], BLEND_MARGIN, MAX_BLEND, on)
+
+    each(block, range(0, len(atlas.texel_point), TEXEL_BLOCK), name="texel-views")
     return picked.samples()
 
 
@@ -161,12 +167,13 @@ class _Picked:
         self.best_pose = np.full(n, -1, dtype=np.int32)
         self.best_sharp = np.zeros(n, dtype=bool)
         self.best_mm_px = np.full(n, np.nan, dtype=np.float32)
-        self.parts: list[tuple[np.ndarray, ...]] = []
+        self.parts: dict[int, tuple[np.ndarray, ...]] = {}
 
     def add(self, start: int, pairs: _Pairs, points: np.ndarray, smooth_normals: np.ndarray, margin: float,
             most: int, index: np.ndarray | None = None) -> None:
         """Pick among the block's pairs; point i of the block is texel start + index[i]
-        (index None: start + i)."""
+        (index None: start + i). Blocks may be added in any order, from any thread (each writes
+        its own texels): the samples are gathered in the order of their blocks' starts."""
         from planner.optics import resolution_mm_per_px
 
         point, pose, cost = pairs.point, pairs.pose, pairs.cost
@@ -192,12 +199,12 @@ class _Picked:
         incidence = np.einsum("ij,ij->i", ray, towards) / np.maximum(
             np.sqrt(np.einsum("ij,ij->i", ray, ray) * np.einsum("ij,ij->i", towards, towards)), 1e-12)
         f32 = np.float32
-        self.parts.append((texel[point].astype(np.int32), pose.astype(self.pose_type), (u * self.scale).astype(f32),
+        self.parts[start] = ((texel[point].astype(np.int32), pose.astype(self.pose_type), (u * self.scale).astype(f32),
                            (v * self.scale).astype(f32), weight.astype(f32), incidence.astype(f32)))
 
     def samples(self) -> Samples:
         if self.parts:
-            columns = [np.concatenate(c) for c in zip(*self.parts)]
+            columns = [np.concatenate(c) for c in zip(*(self.parts[k] for k in sorted(self.parts)))]
             self.parts.clear()
         else:
             columns = [np.zeros(0, np.int32), np.zeros(0, self.pose_type), *(np.zeros(0, np.float32),) * 4]

@@ -9,7 +9,6 @@ judge on the true body and poses.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -23,6 +22,7 @@ import structlog
 import trimesh
 
 from planner.baselines import autofocus, average_focus, closest_focus, fixed_focus
+from planner.cores import spare_core
 from planner.cost import CostTable, cost_table
 from planner.em import expectation_minimisation
 from planner.focus_errors import (
@@ -295,18 +295,6 @@ def rig_importance(rig: Rig) -> Importance:
 def rig_redundancy(rig: Rig) -> Redundancy:
     """The robust plan's redundancy term from the rig file's planner section."""
     return Redundancy(rig.planner.redundancy_weight, rig.planner.view_miss_probability)
-
-
-def spare_core() -> bool:
-    """True when this process may run two threads at once: more than one core in its affinity,
-    and ``OMP_NUM_THREADS`` (the daemon's compute worker is given the cores it may use there,
-    one on a two-core rig PC) unset or above one."""
-    cores = len(os.sched_getaffinity(0))
-    try:
-        cores = min(cores, int(os.environ.get("OMP_NUM_THREADS", "").split(",")[0]))
-    except ValueError:
-        pass  # unset or not a number: OpenMP's own default, every core
-    return cores > 1
 
 
 def plan_focus(

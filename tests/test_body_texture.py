@@ -310,6 +310,39 @@ def test_the_texel_grows_until_the_skin_holds_no_more_than_the_texel_budget(text
     assert any(f"more than {budget / 1e6:g} M texels" in line for line in said)
 
 
+def test_two_threads_texture_the_same_body_as_one_in_many_blocks(textured, body, monkeypatch):
+    """With a spare core the atlas, the view choice and the image sampling run two blocks or
+    images at once (planner.cores.each); the body is the one a single thread makes."""
+    import analysis.atlas as atlas_module
+    import analysis.body_texture as body_texture_module
+    import analysis.texel_views as texel_views_module
+    from planner import cores
+
+    assert not cores.spare_core()  # the suite's processes run one numeric thread: `body` was made on one
+    monkeypatch.setattr(cores, "spare_core", lambda: True)
+    monkeypatch.setattr(atlas_module, "RASTER_BLOCK", 5_000)
+    monkeypatch.setattr(texel_views_module, "TEXEL_BLOCK", 3_000)
+    monkeypatch.setattr(body_texture_module, "SAMPLE_BLOCK", 4_000)
+    threaded: list[str] = []
+    real_each = cores.each
+
+    def counted(work, items, *, name="each"):
+        threaded.append(name)
+        return real_each(work, items, name=name)
+
+    for module in ("analysis.atlas", "analysis.texel_views", "analysis.body_texture", "analysis.parallax"):
+        monkeypatch.setattr(f"{module}.each", counted)
+    twin = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
+    assert {"rasterise", "texel-views", "sample", "parallax", "sample-moved", "blend"} <= set(threaded)
+    assert len(twin.atlas.texel_rc) > 10 * 3_000
+    assert np.array_equal(twin.atlas.texel_rc, body.atlas.texel_rc)
+    assert np.array_equal(twin.atlas.texel_point, body.atlas.texel_point)
+    for name in ("texel", "pose", "u", "v", "weight", "incidence", "best_pose"):
+        assert np.array_equal(getattr(twin.samples, name), getattr(body.samples, name)), name
+    assert np.array_equal(twin.offset_mm, body.offset_mm)
+    assert np.array_equal(twin.texture, body.texture)
+
+
 def test_after_a_scan_the_report_is_written_and_the_body_only_where_there_is_a_mesh(textured, tmp_path):
     copy = tmp_path / textured.name
     shutil.copytree(textured, copy)

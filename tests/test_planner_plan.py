@@ -13,7 +13,7 @@ import trimesh
 from cli import main as tbp
 from planner import plan as plan_module
 from planner.focus_errors import BadFocusPlan, EmptyMesh, MeshLoadError, NothingVisible
-from planner.plan import METHODS, evaluate, load_subject_mesh, plan_focus, spare_core
+from planner.plan import METHODS, evaluate, load_subject_mesh, plan_focus
 from planner.poses import rgb_poses
 from planner.rig import load_rig
 from tests.planner_standin import standin_body
@@ -105,19 +105,6 @@ def test_sorting_the_ends_beside_em_changes_no_plan(body, monkeypatch) -> None:
     assert threads and threads[0].startswith("presort")
     for name in methods:
         assert np.array_equal(alone.methods[name].focus_mm, beside.methods[name].focus_mm)
-
-
-@pytest.mark.parametrize(("variable", "cores", "spare"), [
-    (None, {0, 1}, True), ("1", {0, 1}, False), ("3", {0, 1, 2, 3}, True), ("4", {0}, False),
-    ("2,1", {0, 1}, True), ("many", {0, 1}, True),
-])
-def test_a_spare_core_needs_two_cores_and_openmp_allowing_two(monkeypatch, variable, cores, spare) -> None:
-    monkeypatch.setattr(plan_module.os, "sched_getaffinity", lambda pid: cores)
-    if variable is None:
-        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    else:
-        monkeypatch.setenv("OMP_NUM_THREADS", variable)
-    assert spare_core() is spare
 
 
 def test_empty_mesh_is_refused() -> None:

@@ -1,0 +1,38 @@
+import threading
+
+import pytest
+
+from planner import cores
+from planner.cores import each, spare_core
+
+
+@pytest.mark.parametrize(("variable", "affinity", "spare"), [
+    (None, {0, 1}, True), ("1", {0, 1}, False), ("3", {0, 1, 2, 3}, True), ("4", {0}, False),
+    ("2,1", {0, 1}, True), ("many", {0, 1}, True),
+])
+def test_a_spare_core_needs_two_cores_and_openmp_allowing_two(monkeypatch, variable, affinity, spare) -> None:
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: affinity)
+    if variable is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", variable)
+    assert spare_core() is spare
+
+
+@pytest.mark.parametrize("spare", [True, False])
+def test_each_keeps_the_items_order_and_uses_a_second_thread_only_with_a_spare_core(monkeypatch, spare) -> None:
+    monkeypatch.setattr(cores, "spare_core", lambda: spare)
+    both = threading.Barrier(2, timeout=5)  # passes only when two items run at once
+    seen: set[str] = set()
+
+    def work(item: int) -> int:
+        seen.add(threading.current_thread().name)
+        if spare and item < 2:
+            both.wait()
+        return item * item
+
+    assert each(work, range(7), name="squares") == [i * i for i in range(7)]
+    if spare:
+        assert all(name.startswith("squares") for name in seen)
+    else:
+        assert seen == {threading.current_thread().name}
