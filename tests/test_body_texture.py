@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from analysis.atlas import GUTTER, _rasterise, seam_gutters, unwrap
+from analysis.atlas import BACKGROUND_BLOCK, GUTTER, _background, _nearest_filled, _rasterise, seam_gutters, unwrap
 from analysis.body_texture import (
     bilinear,
     choose_views,
@@ -120,6 +120,34 @@ def test_the_gutters_at_a_seam_hold_the_skin_that_continues_over_it_so_a_cut_spo
     rows, cols = ndimage.distance_transform_edt(~filled, return_distances=False, return_indices=True)
     spread = image[rows, cols][rc[:, 0], rc[:, 1], 0]  # the nearest chart texel's colour
     assert np.abs(got - skin(point))[near_centre].mean() < 0.3 * np.abs(spread - skin(point))[near_centre].mean()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4), st.floats(0.02, 0.6))
+def test_a_gutter_texel_takes_a_nearest_filled_texel_and_the_rest_a_block_s_colour(seed, width, share):
+    rng = np.random.default_rng(seed)
+    filled = rng.random((37, 53)) < share
+    filled[rng.integers(37), rng.integers(53)] = True
+    image = np.where(filled[..., None], rng.integers(0, 256, (37, 53, 3)), 0).astype(np.uint8)
+    reach = ndimage.maximum_filter(filled.view(np.uint8), size=2 * width + 1).view(bool) & ~filled
+    rows, cols = np.nonzero(reach)
+    near_r, near_c = _nearest_filled(filled, rows, cols, width)
+    assert filled[near_r, near_c].all()
+    distance = ndimage.distance_transform_edt(~filled)[rows, cols]  # to the nearest filled texel
+    assert np.allclose(np.hypot(near_r - rows, near_c - cols), distance)
+    background = _background(image, filled)
+    assert np.array_equal(background[filled], image[filled])
+    # an unfilled texel's colour is the mean of the filled texels of some block: within their range
+    block = BACKGROUND_BLOCK
+    lo, hi = image[filled].min(axis=0), image[filled].max(axis=0)
+    assert ((background[~filled] >= lo) & (background[~filled] <= hi)).all()
+    r, c = np.nonzero(filled)
+    cell = (r[0] // block, c[0] // block)  # a block that holds skin: its unfilled texels take its mean
+    mine = (r // block == cell[0]) & (c // block == cell[1])
+    inside = ~filled[cell[0] * block:(cell[0] + 1) * block, cell[1] * block:(cell[1] + 1) * block]
+    if inside.any():
+        got = background[cell[0] * block:(cell[0] + 1) * block, cell[1] * block:(cell[1] + 1) * block][inside]
+        assert np.abs(got.astype(float) - image[r[mine], c[mine]].mean(axis=0)).max() <= 0.5 + 1e-9
 
 
 @settings(max_examples=60, deadline=None)
@@ -289,6 +317,8 @@ def test_tbp_texture_writes_the_body_and_names_what_is_wrong(textured, tmp_path,
     assert main(["texture", str(copy), "--texel-mm", str(TEST_TEXEL_MM)]) == 0
     out, err = capsys.readouterr()
     assert out.strip() == str(copy / "body.glb") and "atlas" in err
+    steps = next(line for line in err.splitlines() if "steps: " in line)  # where the time went, step by step
+    assert all(f"{name} " in steps for name in ("atlas", "views", "parallax", "blend", "gutters"))
     assert trimesh.load(io.BytesIO((copy / "body.glb").read_bytes()), file_type="glb").geometry
     assert main(["texture", str(tmp_path / "nothing")]) == 2
     assert "nothing" in capsys.readouterr().err
