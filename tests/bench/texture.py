@@ -47,6 +47,9 @@ from pathlib import Path
 import numpy as np
 import structlog
 
+#: The environment ``tbp texture`` runs in, as the bench was started: a simulated scan sets this
+#: process' numeric libraries to one thread, as the daemon does, and a command run by hand has both cores.
+_ENVIRONMENT = dict(os.environ)
 SEEDS = tuple(int(s) for s in os.environ.get("TBP_TEXTURE_SEEDS", "0").split(","))
 SCALES = tuple(int(s) for s in os.environ.get("TBP_TEXTURE_SCALES", "1,2").split(","))
 GOAL_S = 60.0
@@ -205,8 +208,8 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     from analysis.scan_views import open_scan
     from sim.rig import default_subject
 
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[2]),
-                                                        os.environ.get("PYTHONPATH", "")])}
+    env = {**_ENVIRONMENT, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[2]),
+                                                          _ENVIRONMENT.get("PYTHONPATH", "")])}
     started = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", _TEXTURE_CHILD, "texture", str(folder)], check=False, env=env,
                           capture_output=True, text=True)
@@ -225,7 +228,6 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     # The same texture again in-process, for its per-texel records (deterministic).
     body = texture_scan(open_scan(folder))
     atlas, samples = body.atlas, body.samples
-    print("  steps: " + ", ".join(f"{k} {v:.1f} s" for k, v in body.seconds.items()))
     truth = Truth(default_subject(seed))
     at = truth.at(atlas.texel_point)
     rows, cols = atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]
