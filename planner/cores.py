@@ -2,7 +2,8 @@
 that uses it.
 
 The daemon's compute worker is given one core of a two-core rig PC (``OMP_NUM_THREADS``: the
-other stays the daemon's); a command run by hand has both. Work split over two threads helps
+other stays the daemon's) and every core for a step run while the beam is still
+(:func:`every_core`); a command run by hand has every core. Work split over two threads helps
 where most of each item's time is spent in NumPy, Pillow or Open3D calls that let the other
 thread run meanwhile."""
 
@@ -10,8 +11,10 @@ from __future__ import annotations
 
 import ctypes
 import os
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import TypeVar
 
 from threadpoolctl import threadpool_limits
@@ -19,12 +22,28 @@ from threadpoolctl import threadpool_limits
 Item = TypeVar("Item")
 Result = TypeVar("Result")
 
+_EVERY_CORE: ContextVar[bool] = ContextVar("every_core", default=False)
+
+
+@contextmanager
+def every_core() -> Iterator[None]:
+    """Within: :func:`spare_core` counts every core in this process' affinity, whatever
+    ``OMP_NUM_THREADS`` says (the daemon's compute worker, held to one core while the beam
+    moves, runs the step after a scan this way: daemon/offload/worker.py on_every_core)."""
+    token = _EVERY_CORE.set(True)
+    try:
+        yield
+    finally:
+        _EVERY_CORE.reset(token)
+
 
 def spare_core() -> bool:
     """True when this process may run two threads at once: more than one core in its affinity,
     and ``OMP_NUM_THREADS`` (the daemon's compute worker is given the cores it may use there,
-    one on a two-core rig PC) unset or above one."""
+    one on a two-core rig PC) unset or above one, or the caller inside :func:`every_core`."""
     cores = len(os.sched_getaffinity(0))
+    if _EVERY_CORE.get():
+        return cores > 1
     try:
         cores = min(cores, int(os.environ.get("OMP_NUM_THREADS", "").split(",")[0]))
     except ValueError:

@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.offload.compute import SHM_DIR, release, share_frames, unshare_frames
-from daemon.offload.worker import compute_pool, compute_threads
+from daemon.offload.worker import compute_pool, compute_threads, on_every_core
+from planner.cores import spare_core
 from planner.sweep import PosedDepth
 
 
@@ -72,6 +73,8 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
             threads = pool.submit(_omp_threads).result(timeout=30)
             imported = pool.submit(_imported, "daemon.offload.fusion", "daemon.offload.planning",
                                    "daemon.jobs.scan").result(timeout=30)
+            spare = pool.submit(spare_core).result(timeout=30)
+            spare_storing = pool.submit(on_every_core, spare_core).result(timeout=30)
     finally:
         release(block)
     assert [(c, s) for c, s, _ in got] == [(f.camera_id, int(f.depth.astype(np.int64).sum())) for f in frames]
@@ -79,6 +82,8 @@ def test_the_worker_process_reads_the_sweep_from_shared_memory() -> None:
     assert policy == os.SCHED_BATCH  # never preempts the daemon on wake-up
     assert threads == str(compute_threads()) and int(threads) < max(2, len(os.sched_getaffinity(0)))
     assert os.environ.get("OMP_NUM_THREADS") == ours  # this process's environment is left as it was
+    # one core for its loops while the beam moves, every core for the step after a scan
+    assert not spare and spare_storing is (len(os.sched_getaffinity(0)) > 1)
     # the jobs' modules are loaded before the first scan, and not the daemon's
     assert imported == {"daemon.offload.fusion": True, "daemon.offload.planning": True, "daemon.jobs.scan": False}
 

@@ -3,7 +3,7 @@ import threading
 import pytest
 
 from planner import cores
-from planner.cores import each, spare_core
+from planner.cores import each, every_core, spare_core
 
 
 @pytest.mark.parametrize(("variable", "affinity", "spare"), [
@@ -17,6 +17,16 @@ def test_a_spare_core_needs_two_cores_and_openmp_allowing_two(monkeypatch, varia
     else:
         monkeypatch.setenv("OMP_NUM_THREADS", variable)
     assert spare_core() is spare
+
+
+@pytest.mark.parametrize(("affinity", "spare"), [({0, 1}, True), ({0}, False), ({0, 1, 2, 3}, True)])
+def test_every_core_counts_the_affinity_whatever_openmp_is_given(monkeypatch, affinity, spare) -> None:
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: affinity)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # the daemon's compute worker, held to one core
+    assert not spare_core()
+    with every_core():
+        assert spare_core() is spare
+    assert not spare_core()  # only within
 
 
 @pytest.mark.parametrize("spare", [True, False])

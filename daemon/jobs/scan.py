@@ -44,7 +44,8 @@ class ScanSettings:
     plan_points: surface samples for planning (None: the rig file's ``planner.points``).
     executor: where the compute steps run (None: the loop's default thread pool).
     qa_report: ``(scan folder, rig_path=rig file) -> page`` writes the scan's QA report once the folder
-        is closed (None: no report; ``tbp report`` can write it later).
+        is closed, in STORING with the beam's moves ended (None: no report; ``tbp report`` can
+        write it later).
     calibration_target: the ChArUco cuboid's file for calibration rotations (None: the default,
         calibration_data/target/cuboid.yaml).
     """

@@ -18,13 +18,17 @@ import multiprocessing
 import os
 import select
 import threading
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from typing import Any
+from typing import Any, TypeVar
 
 import structlog
 from threadpoolctl import threadpool_limits
 
 from daemon.logs import configure_logging, log_settings
+from planner.cores import every_core
+
+Result = TypeVar("Result")
 
 WORKER_POLICY = os.SCHED_BATCH
 """The worker's scheduling policy: a batch job keeps its fair share of a core but never preempts
@@ -73,6 +77,17 @@ def compute_pool() -> ProcessPoolExecutor:
             else:
                 os.environ[name] = value
     return pool
+
+
+def on_every_core(work: Callable[..., Result], /, *args: Any, **kwargs: Any) -> Result:
+    """``work(*args, **kwargs)`` with the worker's loops split over every core it may use
+    (planner/cores.py :func:`~planner.cores.every_core`), not the one it is given: for the step
+    after a scan (its QA report and textured body), which runs in STORING with the beam still
+    and no other job started until it ends. The worker stays a batch job, so the daemon's loop
+    takes a core from either of its threads whenever it wakes (the loopback rig's scan checks
+    the loop's lag and the drive's heartbeat in STORING)."""
+    with every_core():
+        return work(*args, **kwargs)
 
 
 def _started() -> None:

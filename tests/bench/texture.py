@@ -4,7 +4,8 @@ For each body and render scale: a default simulated scan (no QA report) whose ph
 the scale times 192 x 256 px (``render_scale``, sim/rig.py SimOptions; 1 is the default scan,
 about 1.6 mm/px on the skin at the best image, 2 about 0.8 mm/px, 4 about 0.4 mm/px; the rig's
 phones hold 32), then ``tbp texture`` on it in a child process (wall time and peak RSS, goals
-<= 60 s and <= 4 GiB), then against the simulated truth (the body mesh, its skin coordinates
+<= 60 s and <= 4 GiB), the step after a scan as the daemon runs it (QA report and body in its
+compute worker, wall time, goal <= 60 s), then against the simulated truth (the body mesh, its skin coordinates
 and the freckles drivers/sim/skin_texture.py paints on it):
 
 - colour: mean CIEDE2000 of the texels whose best image holds them sharp, against the skin's
@@ -224,6 +225,9 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
           f"(goal <= {GOAL_GIB:.0f}), body.glb {size_mb:.1f} MB")
     for line in lines:
         print(f"    {line}")
+    daemon_s = _after_scan_in_worker(folder)
+    print(f"  the daemon's step after the scan (its QA report, then its body) in its compute worker: "
+          f"{daemon_s:.1f} s (goal <= {GOAL_S:.0f})")
 
     # The same texture again in-process, for its per-texel records (deterministic).
     body = texture_scan(open_scan(folder))
@@ -292,7 +296,22 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
           f"{np.median(ratio[ok]):.2f}, 95th percentile {np.percentile(ratio[ok], 95):.2f} (goal <= {GOAL_RESOLUTION})")
     return {"found": 100 * found.mean(), "found2": 100 * (distance <= 2.0).mean(), "delta_e": de.mean(),
             "mm_px": float(np.nanmedian(samples.best_mm_px[ok])), "ratio": float(np.median(ratio[ok])),
-            "seconds": texture_s, "gib": peak_gib}
+            "seconds": texture_s, "daemon_s": daemon_s, "gib": peak_gib}
+
+
+def _after_scan_in_worker(folder: Path) -> float:
+    """Seconds of the step after a scan as the daemon runs it in STORING (daemon/server/serve.py):
+    analysis/body_texture.py report_and_body in a compute worker of its own (a batch job, one
+    numeric thread, its loops on every core: daemon/offload/worker.py on_every_core), started
+    and warmed up first."""
+    from analysis.body_texture import report_and_body
+    from daemon.offload.worker import compute_pool, on_every_core
+
+    with compute_pool() as pool:
+        pool.submit(int).result()
+        started = time.perf_counter()
+        pool.submit(on_every_core, report_and_body, folder).result()
+        return time.perf_counter() - started
 
 
 def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray) -> None:
@@ -344,10 +363,10 @@ def run() -> None:
                 rows.append((seed, scale, _one(seed, scale, Path(root))))
                 shutil.rmtree(Path(root) / f"s{seed}x{scale}")
     print(f"{'body':>4} {'scale':>5} {'mm/px':>6} {'found <= 1 mm':>14} {'<= 2 mm':>8} {'dE00':>5} {'texel/px':>8} "
-          f"{'texture s':>9} {'GiB':>5}")
+          f"{'texture s':>9} {'daemon s':>8} {'GiB':>5}")
     for seed, scale, r in rows:
         print(f"{seed:>4} {scale:>5} {r['mm_px']:>6.2f} {r['found']:>13.1f}% {r['found2']:>7.1f}% {r['delta_e']:>5.2f} "
-              f"{r['ratio']:>8.2f} {r['seconds']:>9.1f} {r['gib']:>5.2f}")
+              f"{r['ratio']:>8.2f} {r['seconds']:>9.1f} {r['daemon_s']:>8.1f} {r['gib']:>5.2f}")
     print(f"peak memory of this process (max RSS) {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
 
