@@ -9,9 +9,9 @@ is sampled at the offset along the surface's normal at which its images agree
 (analysis/parallax.py), so small lesions stay in place and unsmeared. Images are read one at a
 time on each thread and samples blended in bounded blocks, so memory grows with the samples
 (about 22 bytes each, 32-bit) and not with copies of them. Where a core is spare (a command run
-by hand; not the daemon's compute worker, which leaves the daemon its core) the atlas, the view
-choice, the image sampling, the parallax sweep and the blend run two blocks or images at once
-(planner/cores.py), with the same result as one.
+by hand, or the daemon's compute worker after a scan, in STORING: daemon/offload/worker.py
+on_every_core) the atlas, the view choice, the image sampling, the parallax sweep and the blend
+run two blocks or images at once (planner/cores.py), with the same result as one.
 
 The file is a glTF binary (metres, as glTF wants; the scan's mm divided by 1000) with one mesh,
 its texture coordinates and a JPEG atlas, written into the scan folder through the store.

@@ -5,8 +5,8 @@ the scale times 192 x 256 px (``render_scale``, sim/rig.py SimOptions; 1 is the 
 about 1.6 mm/px on the skin at the best image, 2 about 0.8 mm/px, 4 about 0.4 mm/px; the rig's
 phones hold 32), then ``tbp texture`` on it in a child process (wall time and peak RSS, goals
 <= 60 s and <= 4 GiB), the step after a scan as the daemon runs it (QA report and body in its
-compute worker, wall time, goal <= 60 s), then against the simulated truth (the body mesh, its skin coordinates
-and the freckles drivers/sim/skin_texture.py paints on it):
+compute worker, wall time, goal <= 60 s), then against the simulated truth (the body mesh, its
+skin coordinates and the freckles drivers/sim/skin_texture.py paints on it):
 
 - colour: mean CIEDE2000 of the texels whose best image holds them sharp, against the skin's
   albedo (the simulated phones light it with a falloff over the incidence, which the texture
