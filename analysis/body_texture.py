@@ -34,10 +34,10 @@ from PIL import Image
 from analysis.atlas import Atlas, seam_gutters, unwrap
 from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
-from analysis.parallax import surface_offsets
+from analysis.parallax import surface_offsets, sweep_grid
 from analysis.pixels import bilinear, by_image
 from analysis.scan_views import ScanRecord, open_scan
-from analysis.texel_views import Samples, candidate_poses, choose_views, runs, texel_views
+from analysis.texel_views import Samples, candidate_poses, choose_views, runs, squarely, texel_views
 from planner.cores import each
 
 #: Texel side as a share of the best image's pixel on the skin (finer than the pixel: the chart's
@@ -123,7 +123,8 @@ def sample_images(scan: ScanRecord, samples: Samples) -> np.ndarray:
 
 def blend(samples: Samples, colours: np.ndarray, exposure: Exposure, n_texels: int) -> tuple[np.ndarray, np.ndarray]:
     """Per texel (T, 3) the weighted mean of its samples' colours (K, 3) with their exposure
-    (gain and light falloff) taken out, and (T,) whether any image gave it a colour; samples in
+    (gain and light falloff) taken out, weighted by :func:`analysis.texel_views.squarely`, and
+    (T,) whether any image gave it a colour; samples in
     blocks of about SAMPLE_BLOCK that end where a texel's samples end (samples grouped by
     texel), each summed over the texels it spans: a short range no other block writes, so
     blocks run two at once where a core is spare."""
@@ -134,7 +135,8 @@ def blend(samples: Samples, colours: np.ndarray, exposure: Exposure, n_texels: i
 
     def add(block: tuple[int, int]) -> None:
         part = slice(*block)
-        texel, weight = texels[part], samples.weight[part].astype(np.float64)
+        texel = texels[part]
+        weight = squarely(samples.weight[part], samples.incidence[part])
         low = int(texel.min())
         span = int(texel.max()) - low + 1
         corrected = colours[part] / exposure.factor(samples.pose[part], samples.incidence[part])
@@ -191,7 +193,7 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     per_face = candidate_poses(nav, vertices, faces, size)
     lap("candidates")
     smooth = smooth_face_normals(vertices, faces)
-    samples = texel_views(nav, atlas, normals, smooth, per_face, size)
+    samples, swept = texel_views(nav, atlas, normals, smooth, per_face, size, sweep=sweep_grid(atlas))
     lap("views")
     say(f"{len(samples.pose)} image samples from {np.count_nonzero(np.bincount(samples.pose))} images")
     fit = _overlapping(samples, 2 * MAX_EQUATIONS)
@@ -201,8 +203,8 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     del colours, fit
     lap("exposure")
     outward = -smooth
-    offset = surface_offsets(nav, atlas, samples.texel, samples.pose, samples.weight, samples.incidence, exposure,
-                             outward, size)
+    offset = surface_offsets(nav, atlas, swept.texel, swept.pose, swept.weight, swept.incidence, exposure, outward, size)
+    del swept
     samples, colours = _sample_moved(scan, nav, samples, atlas, offset, outward, size)
     lap("parallax")
     colour, seen = blend(samples, colours, exposure, len(atlas.texel_rc))

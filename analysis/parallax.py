@@ -4,10 +4,12 @@ A camera sees a skin point along its ray; a surface ``d`` mm above or below the 
 ray ``d tan(angle)`` along the surface from the skin point's place on it (the angle between the
 ray and the surface's normal), so images from different sides put one spot in different places
 and a texture sampled where each ray meets the TSDF's surface smears and moves small lesions.
-This module finds, per texel, the offset along the surface's normal at which the images that
-texture it agree (a plane sweep over offsets, the colour differences between images summed over
-the atlas around each texel), and the images are sampled at that offset: each image then puts
-the skin point seen there on the texel that lies over it.
+This module finds, per texel, the offset along the surface's normal at which the images agree
+(a plane sweep over offsets, the colour differences between images summed over the atlas around
+each texel), and the images are sampled at that offset: each image then puts the skin point seen
+there on the texel that lies over it. The sweep compares more images than a texel blends (every
+candidate image near its best, analysis/texel_views.py SWEEP_MARGIN), so skin one image textures
+has its offset measured too; images seeing the skin squarely weigh most.
 
 The offset is estimated twice: broadly (differences summed over centimetres, clear on almost
 any skin) and locally (over a couple of millimetres, clear where the skin has texture of its
@@ -25,6 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from analysis.pixels import bilinear, by_image
+from analysis.texel_views import squarely
 from planner.cores import each
 
 if TYPE_CHECKING:
@@ -61,19 +64,19 @@ def surface_offsets(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.nd
                     image_size: tuple[int, int]) -> np.ndarray:
     """(T,) offset (mm) along each texel's outward normal (its triangle's, ``outward`` (F, 3)) at
     which the images of its samples (texel, pose, weight, incidence: (K,) each, as
-    analysis.texel_views.Samples) agree best; 0 where no texel around has a clear one."""
+    analysis.texel_views.Samples, weighted :func:`analysis.texel_views.squarely`) agree best;
+    0 where no texel around has a clear one."""
     n_texels = len(atlas.texel_point)
-    step = max(int(round(GRID_MM / atlas.texel_mm)), 1)
+    step = _grid_step(atlas)
     rows, cols = atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]
-    on_grid = (rows % step == 0) & (cols % step == 0)
     count = np.bincount(texel, minlength=n_texels)
-    swept = np.flatnonzero(on_grid[texel] & (count[texel] >= 2))
+    swept = np.flatnonzero(sweep_grid(atlas)[texel] & (count[texel] >= 2))
     grid_shape = (atlas.shape[0] // step + 1, atlas.shape[1] // step + 1)
     if not len(swept):
         return np.zeros(n_texels)
     values = _sweep(nav, atlas, texel[swept], pose[swept], incidence[swept], exposure, outward, image_size)
     # per texel and offset: the weighted variance of its images' luminance
-    w = weight[swept].astype(np.float64)
+    w = squarely(weight[swept], incidence[swept])
     t = texel[swept]
     total = np.bincount(t, w, minlength=n_texels)
     cost = np.zeros((len(OFFSETS_MM), *grid_shape), dtype=np.float32)
@@ -89,6 +92,18 @@ def surface_offsets(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.nd
     field = offset_field(cost, seen, atlas.texel_mm * step)
     result: np.ndarray = field[g_rows, g_cols].astype(np.float64)
     return result
+
+
+def sweep_grid(atlas: Atlas) -> np.ndarray:
+    """(T,) bool: the texels the sweep runs on, one every GRID_MM across the atlas' rows and
+    columns."""
+    step = _grid_step(atlas)
+    on: np.ndarray = (atlas.texel_rc[:, 0] % step == 0) & (atlas.texel_rc[:, 1] % step == 0)
+    return on
+
+
+def _grid_step(atlas: Atlas) -> int:
+    return max(int(round(GRID_MM / atlas.texel_mm)), 1)
 
 
 def offset_field(cost: np.ndarray, seen: np.ndarray, cell_mm: float) -> np.ndarray:

@@ -280,7 +280,7 @@ def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textur
     normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
     atlas = unwrap(vertices, faces, 6.0)
     every = sparse.csr_matrix(np.ones((len(faces), scan.rig.n_poses)))
-    got = texel_views(nav, atlas, normals, smooth, every, size)
+    got, _ = texel_views(nav, atlas, normals, smooth, every, size)
     face = atlas.texel_face
     want = choose_views(nav, atlas.texel_point, normals[face], size, smooth_normals=smooth[face])
     assert (got.best_pose >= 0).mean() > 0.9
@@ -294,6 +294,50 @@ def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textur
     assert np.all(np.diff(got.texel) >= 0)
     same = np.diff(got.texel) == 0
     assert np.all(got.weight[1:][same] <= got.weight[:-1][same])
+
+
+def test_the_parallax_sweep_compares_more_images_than_a_texel_blends(textured, monkeypatch):
+    """The sweep's texels (a grid, analysis/parallax.py sweep_grid) keep every candidate image
+    within SWEEP_MARGIN of their best: the blended images and more, weights falling to zero over
+    that margin; the blend itself is the same as without a sweep, and no other texel is swept."""
+    from analysis import parallax
+    from analysis import texel_views as views
+    from analysis.parallax import sweep_grid
+
+    monkeypatch.setattr(parallax, "GRID_MM", 8.0)  # every other texel of a 4 mm atlas
+    scan = open_scan(textured)
+    nav = Navigator(scan)
+    size = stored_image_size(scan)
+    vertices, faces = np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces)
+    normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
+    atlas = unwrap(vertices, faces, 4.0)
+    grid = sweep_grid(atlas)
+    assert 0 < grid.mean() < 0.5
+    candidates = views.candidate_poses(nav, vertices, faces, size)
+    plain, _ = texel_views(nav, atlas, normals, smooth, candidates, size)
+    blend, swept = texel_views(nav, atlas, normals, smooth, candidates, size, sweep=grid)
+    assert np.array_equal(plain.texel, blend.texel) and np.array_equal(plain.pose, blend.pose)
+    assert np.array_equal(plain.weight, blend.weight)
+    assert len(swept.texel) and grid[swept.texel].all()
+    on_grid = grid[blend.texel]
+    key_blend = set(zip(blend.texel[on_grid].tolist(), blend.pose[on_grid].tolist()))
+    key_swept = set(zip(swept.texel.tolist(), swept.pose.tolist()))
+    # each ranks its images by its own weights (falling over its own margin): nearly the same first ones
+    assert len(key_blend - key_swept) < 1e-3 * len(key_blend) and len(key_swept) > 1.2 * len(key_blend)
+    per_texel = np.bincount(swept.texel)
+    assert per_texel.max() <= views.SWEEP_MOST
+    assert np.mean(per_texel[per_texel > 0] >= 2) > np.mean(np.bincount(blend.texel[on_grid])[per_texel > 0] >= 2)
+    assert 0 < swept.weight.min() and swept.weight.max() <= 1.0
+
+
+def test_images_seeing_the_skin_squarely_lead_the_blend():
+    from analysis.texel_views import squarely
+
+    weight = np.array([1.0, 1.0, 0.5, 0.0], dtype=np.float32)
+    incidence = np.array([1.0, 0.5, 1.0, 1.0], dtype=np.float32)
+    got = squarely(weight, incidence)
+    assert got[0] == 1.0 and got[1] < 0.1 and got[2] == 0.5 and got[3] == 0.0
+    assert squarely(np.ones(1, np.float32), np.zeros(1, np.float32))[0] > 0
 
 
 def test_the_texture_is_blended_from_the_best_images_and_sharp_where_they_are(body):
