@@ -45,6 +45,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import structlog
@@ -301,7 +302,7 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     print(f"  the detector on the skin's own albedo there: {100 * (ideal <= MATCH_MM).mean():.1f} % found within "
           f"{MATCH_MM} mm, {ideal_spots} spots")
     where = nearest[held]
-    lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where])
+    lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where], _squarest_angle(samples, where))
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
     tri = atlas.vertices[atlas.faces]
@@ -339,14 +340,17 @@ def _after_scan_in_worker(folder: Path) -> float:
         return time.perf_counter() - started
 
 
-def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray) -> None:
+def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray,
+                     angle_deg: np.ndarray) -> None:
     """Print where the held lesions are lost: per bin of the disc's width in the best image's
-    pixels, of the disc (mm), of the best image's mm/px and of the scan surface's distance from
-    the true skin there, the share found within MATCH_MM, detected but off (the nearest spot
-    MATCH_MM..3 mm away) and not detected (no spot within 3 mm). All (K,) per lesion."""
+    pixels, of the disc (mm), of the best image's mm/px, of the scan surface's distance from
+    the true skin there and of the angle between the heaviest blended image's ray and the skin's
+    normal (a surface d off the skin moves a spot d tan(angle)), the share found within
+    MATCH_MM, detected but off (the nearest spot MATCH_MM..3 mm away) and not detected (no spot
+    within 3 mm). All (K,) per lesion."""
     splits = (("disc px", disc / mm_px, (0, 1.5, 2.5, 4, np.inf)), ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
               ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
-              ("surface off mm", surface_mm, (0, 1, 2, np.inf)))
+              ("surface off mm", surface_mm, (0, 1, 2, np.inf)), ("angle deg", angle_deg, (0, 20, 35, 50, 65, 90.01)))
     for name, value, edges in splits:
         cells = []
         for low, high in zip(edges[:-1], edges[1:]):
@@ -357,6 +361,17 @@ def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, 
             cells.append(f"{low:g}-{high:g}: {inside.sum()} {100 * (d <= MATCH_MM).mean():.0f}/"
                          f"{100 * ((d > MATCH_MM) & (d <= 3.0)).mean():.0f}/{100 * (d > 3.0).mean():.0f}")
         print(f"    by {name} (n found/off/undetected %): " + "; ".join(cells))
+
+
+def _squarest_angle(samples: Any, texels: np.ndarray) -> np.ndarray:
+    """(K,) angle (deg) between the heaviest blended image's ray and the skin's normal at texels
+    (K,) (samples are grouped by texel, heaviest first); NaN where no image textures one."""
+    first = np.searchsorted(samples.texel, texels)
+    has = first < len(samples.texel)
+    has[has] = samples.texel[first[has]] == texels[has]
+    angle = np.full(len(texels), np.nan)
+    angle[has] = np.degrees(np.arccos(np.clip(np.abs(samples.incidence[first[has]]), 0.0, 1.0)))
+    return angle
 
 
 def _subtexel_points(spots: np.ndarray, index: np.ndarray, points: np.ndarray) -> np.ndarray:
