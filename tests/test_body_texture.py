@@ -6,6 +6,7 @@ import io
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -267,19 +268,23 @@ def test_every_texel_takes_the_image_navigation_ranks_best(textured):
         assert found.best_sharp[k] == any(v["in_focus"] for v in views)  # a sharp image wins when there is one
 
 
+def _unwrapped(scan_dir: Path, texel_mm: float) -> tuple[Navigator, tuple[int, int], np.ndarray, np.ndarray, Any]:
+    """A scan's navigator, stored image size, inward and smoothed triangle normals and atlas."""
+    scan = open_scan(scan_dir)
+    nav = Navigator(scan)
+    vertices, faces = np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces)
+    normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
+    return nav, stored_image_size(scan), normals, smooth, unwrap(vertices, faces, texel_mm)
+
+
 def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textured):
     """texel_views costs each texel's pairs itself (frustum, facing, occlusion, cost terms) and
     casts rays only where a pair can matter: with every pose a candidate it picks what
     choose_views picks through planner.navigation.view_costs, in texel order, heaviest first."""
     from scipy import sparse
 
-    scan = open_scan(textured)
-    nav = Navigator(scan)
-    size = stored_image_size(scan)
-    vertices, faces = np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces)
-    normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
-    atlas = unwrap(vertices, faces, 6.0)
-    every = sparse.csr_matrix(np.ones((len(faces), scan.rig.n_poses)))
+    nav, size, normals, smooth, atlas = _unwrapped(textured, 6.0)
+    every = sparse.csr_matrix(np.ones((len(nav.mesh.faces), nav.scan.rig.n_poses)))
     got, _ = texel_views(nav, atlas, normals, smooth, every, size)
     face = atlas.texel_face
     want = choose_views(nav, atlas.texel_point, normals[face], size, smooth_normals=smooth[face])
@@ -305,15 +310,10 @@ def test_the_parallax_sweep_compares_more_images_than_a_texel_blends(textured, m
     from analysis.parallax import sweep_grid
 
     monkeypatch.setattr(parallax, "GRID_MM", 8.0)  # every other texel of a 4 mm atlas
-    scan = open_scan(textured)
-    nav = Navigator(scan)
-    size = stored_image_size(scan)
-    vertices, faces = np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces)
-    normals, smooth = -np.asarray(nav.scene.face_normals), smooth_face_normals(vertices, faces)
-    atlas = unwrap(vertices, faces, 4.0)
+    nav, size, normals, smooth, atlas = _unwrapped(textured, 4.0)
     grid = sweep_grid(atlas)
     assert 0 < grid.mean() < 0.5
-    candidates = views.candidate_poses(nav, vertices, faces, size)
+    candidates = views.candidate_poses(nav, np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces), size)
     plain, _ = texel_views(nav, atlas, normals, smooth, candidates, size)
     blend, swept = texel_views(nav, atlas, normals, smooth, candidates, size, sweep=grid)
     assert np.array_equal(plain.texel, blend.texel) and np.array_equal(plain.pose, blend.pose)
