@@ -49,7 +49,8 @@ UNIT = ROOT / "systemd" / "tbp-rig.service"
 RECORDINGS_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "tbp" / "recordings"
 WATCHDOG_USEC = 10_000_000
 PHONE_NICENESS = 10
-DRIVE_NICENESS = -5
+#: The drive's and the panel's simulators: devices with their own processors on a rig.
+DEVICE_NICENESS = -5
 DEVICE_KINDS = frozenset({"drive", "phones", "depth", "panel"})
 
 
@@ -298,7 +299,7 @@ class LoopbackRig:
             # The drive is hardware of its own on a rig; here it shares the PC, so its session gets
             # the share the daemon's has rather than wait behind the daemon's depth playback and
             # fusion (a drive starved for 400 ms misses the host's heartbeats and faults).
-            self._renice(motor, DRIVE_NICENESS, share=self.daemon_share)
+            self._renice(motor, DEVICE_NICENESS, share=self.daemon_share)
             self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
         for index in range(len(self.rig.phones)):
             if index not in self.missing_phones:
@@ -307,6 +308,12 @@ class LoopbackRig:
             self.panel_tty = str(self.root / "dev" / "ttyACM-panel")
         else:
             panel = self._spawn("panel", _tbp("sim", "panel"), stdin=subprocess.PIPE)
+            # The panel is a microcontroller of its own on a rig, as the drive is hardware of its
+            # own: its session gets the daemon's share too. At the default share it waited 0.6 s
+            # behind the daemon's compute worker texturing the body in STORING (both cores, in the
+            # daemon's session) and another loopback rig's, so both ends missed three heartbeats
+            # and the daemon latched FAULT (e-stop state unknown), as it must for a real panel.
+            self._renice(panel, DEVICE_NICENESS, share=self.daemon_share)
             self.panel_tty = self._first_line(panel, r"simulated panel on (\S+)")[1]
         self.write_hardware(recordings)
         self.say(f"simulators up: drive on socketcand 127.0.0.1:{self.bridge_port}, "
