@@ -63,14 +63,14 @@ def surface_offsets(nav: Navigator, atlas: Atlas, texel: np.ndarray, pose: np.nd
                     incidence: np.ndarray, exposure: Exposure, outward: np.ndarray,
                     image_size: tuple[int, int]) -> np.ndarray:
     """(T,) offset (mm) along each texel's outward normal (its triangle's, ``outward`` (F, 3)) at
-    which the images of its samples (texel, pose, weight, incidence: (K,) each, as
-    analysis.texel_views.Samples, weighted :func:`analysis.texel_views.squarely`) agree best;
-    0 where no texel around has a clear one."""
+    which the images of the sweep's samples agree best: texel, pose, weight, incidence, (K,)
+    each as analysis.texel_views.Samples, of texels of :func:`sweep_grid` (texel_views' sweep),
+    weighted :func:`analysis.texel_views.squarely`; 0 where no texel around has a clear one."""
     n_texels = len(atlas.texel_point)
     step = _grid_step(atlas)
     rows, cols = atlas.texel_rc[:, 0], atlas.texel_rc[:, 1]
     count = np.bincount(texel, minlength=n_texels)
-    swept = np.flatnonzero(sweep_grid(atlas)[texel] & (count[texel] >= 2))
+    swept = np.flatnonzero(count[texel] >= 2)
     grid_shape = (atlas.shape[0] // step + 1, atlas.shape[1] // step + 1)
     if not len(swept):
         return np.zeros(n_texels)

@@ -86,6 +86,10 @@ class _Pairs:
     u: np.ndarray
     v: np.ndarray
 
+    def take(self, index: np.ndarray) -> _Pairs:
+        """The pairs at ``index`` (grouped as they were)."""
+        return _Pairs(*(getattr(self, f.name)[index] for f in fields(self)))
+
 
 def choose_views(nav: Navigator, points: np.ndarray, normals: np.ndarray, image_size: tuple[int, int], *,
                  margin: float = BLEND_MARGIN, most: int = MAX_BLEND,
@@ -131,8 +135,7 @@ def texel_views(nav: Navigator, atlas: Atlas, normals: np.ndarray, smooth_normal
         picked.add(start, pairs, points, smooth_normals[face[on]], BLEND_MARGIN, MAX_BLEND, on)
         if mine.any():
             keep = np.flatnonzero(mine[pairs.point])
-            swept.add(start, _Pairs(*(getattr(pairs, f.name)[keep] for f in fields(_Pairs))), points,
-                      smooth_normals[face[on]], SWEEP_MARGIN, SWEEP_MOST, on)
+            swept.add(start, pairs.take(keep), points, smooth_normals[face[on]], SWEEP_MARGIN, SWEEP_MOST, on)
 
     each(block, range(0, len(atlas.texel_point), TEXEL_BLOCK), name="texel-views")
     return picked.samples(), swept.samples()
@@ -277,8 +280,9 @@ def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, ca
                      face: np.ndarray, margin: float | np.ndarray) -> _Pairs:
     """The visible pairs of points (Q, 3) mm, inward normals (Q, 3), with the available
     candidate poses of their triangles face (Q,) (candidates: (F, P) CSR, sorted indices) that
-    cost less than ``margin`` (one for all, or (Q,) one per point) above the point's best: the frustum, facing and occlusion tests of
-    planner.visibility and the cost of planner.cost, pair by pair. Occlusion rays go first to
+    cost less than ``margin`` (one for all, or (Q,) one per point) above the point's best: the
+    frustum, facing and occlusion tests of planner.visibility and the cost of planner.cost, pair
+    by pair. Occlusion rays go first to
     each point's cheapest pair; where that one is seen, pairs ``margin`` or more above it cannot
     be blended and cast none."""
     from planner.cost import area_term, axis_term, base_cost
@@ -318,8 +322,8 @@ def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, ca
 def _unoccluded(nav: Navigator, points: np.ndarray, point: np.ndarray, pose: np.ndarray, cost: np.ndarray,
                 margin: float | np.ndarray, epsilon_mm: float) -> np.ndarray:
     """Indices of the pairs (M,) (grouped by point) that nothing hides and that cost less than
-    ``margin`` (or (Q,) its point's) above their point's cheapest seen pair, the only ones a texel can use; the cheapest
-    pair of each point is tested first, the rest only where needed."""
+    ``margin`` (or (Q,) its point's) above their point's cheapest seen pair, the only ones a
+    texel can use; the cheapest pair of each point is tested first, the rest only where needed."""
     if not len(point):
         return np.zeros(0, dtype=np.int64)
     lowest, first = cheapest(point, cost)

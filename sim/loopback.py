@@ -308,11 +308,10 @@ class LoopbackRig:
             self.panel_tty = str(self.root / "dev" / "ttyACM-panel")
         else:
             panel = self._spawn("panel", _tbp("sim", "panel"), stdin=subprocess.PIPE)
-            # The panel is a microcontroller of its own on a rig, as the drive is hardware of its
-            # own: its session gets the daemon's share too. At the default share it waited 0.6 s
-            # behind the daemon's compute worker texturing the body in STORING (both cores, in the
-            # daemon's session) and another loopback rig's, so both ends missed three heartbeats
-            # and the daemon latched FAULT (e-stop state unknown), as it must for a real panel.
+            # The panel is a microcontroller of its own on a rig: its session gets the daemon's
+            # share too, so the daemon's compute worker (both cores while it textures the body in
+            # STORING) cannot hold it past the link's 0.6 s heartbeat timeout, which the daemon
+            # would rightly latch as FAULT (e-stop state unknown).
             self._renice(panel, DEVICE_NICENESS, share=self.daemon_share)
             self.panel_tty = self._first_line(panel, r"simulated panel on (\S+)")[1]
         self.write_hardware(recordings)
