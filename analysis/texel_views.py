@@ -9,8 +9,9 @@ best image changes.
 
 An atlas has millions of texels; each triangle's texels test only the few poses worth testing
 (:func:`candidate_poses`), and :func:`texel_views` costs those pairs directly from the cost's
-own terms (planner.cost area_term, axis_term and the focus interval), texels in bounded blocks,
-two blocks at once where a core is spare (planner/cores.py).
+own terms (planner.cost area_term, axis_term and the focus interval) in one compiled pass
+(planner/candidate_costs.py), texels in bounded blocks, two blocks at once where a core is
+spare (planner/cores.py).
 Samples are stored compactly (32-bit floats: plenty for pixel positions and 8-bit colour).
 """
 
@@ -285,33 +286,12 @@ def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, ca
     by pair. Occlusion rays go first to
     each point's cheapest pair; where that one is seen, pairs ``margin`` or more above it cannot
     be blended and cast none."""
-    from planner.cost import area_term, axis_term, base_cost
-    from planner.optics import focus_interval
-    from planner.visibility import SURFACE_EPSILON_MM, frustum_tangents
+    from planner.candidate_costs import candidate_costs
+    from planner.visibility import SURFACE_EPSILON_MM
 
-    rig, poses = nav.scan.rig, nav.poses
-    optics = rig.optics
-    begin = candidates.indptr[face]
-    counts = candidates.indptr[face + 1] - begin
-    point = np.repeat(np.arange(len(face)), counts)
-    pose = candidates.indices[np.repeat(begin - (np.cumsum(counts) - counts), counts) + np.arange(len(point))]
-    keep = np.isfinite(nav.focus_mm)[pose]
-    point, pose = point[keep], pose[keep]
-    rel = points[point] - poses.centres[pose]
-    x = np.einsum("ij,ij->i", rel, poses.right[pose])
-    y = np.einsum("ij,ij->i", rel, poses.down[pose])
-    z = np.einsum("ij,ij->i", rel, poses.forward[pose])
-    tan_w, tan_h = frustum_tangents(optics)
-    inside = (np.abs(x) <= tan_w * z) & (np.abs(y) <= tan_h * z) & (np.einsum("ij,ij->i", rel, normals[point]) > 0)
-    keep = np.flatnonzero(inside)
-    point, pose, x, y, z = point[keep], pose[keep], x[keep], y[keep], z[keep]
-    facing = np.einsum("ij,ij->i", poses.forward[pose], normals[point])
-    cost = rig.cost
-    lo, hi = focus_interval(z, optics.hyperfocal_mm, optics.focal_length_mm)
-    focus = nav.focus_mm[pose]
-    sharp = (lo <= focus) & (focus <= hi)
-    total = base_cost(cost, area_term(z, facing, cost.eps_area), axis_term(np.hypot(x, y), cost.axis_deviation_mm))
-    total += cost.w_focus * ~sharp
+    optics = nav.scan.rig.optics
+    point, pose, total, sharp, x, y, z = candidate_costs(nav.scan.rig, nav.poses, nav.focus_mm, points, normals,
+                                                         candidates, face)
     seen = _unoccluded(nav, points, point, pose, total, margin, SURFACE_EPSILON_MM)
     point, pose, total, sharp, x, y, z = (a[seen] for a in (point, pose, total, sharp, x, y, z))
     f = optics.focal_length_px
