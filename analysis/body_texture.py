@@ -38,7 +38,7 @@ from analysis.parallax import surface_offsets, sweep_grid
 from analysis.pixels import bilinear, by_image
 from analysis.scan_views import ScanRecord, open_scan
 from analysis.texel_views import Samples, candidate_poses, choose_views, runs, squarely, texel_views
-from planner.cores import each
+from planner.cores import each, heap_for_large_arrays
 
 #: Texel side as a share of the best image's pixel on the skin (finer than the pixel: the chart's
 #: tilt and the resampling each lose a little).
@@ -155,6 +155,7 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     """Texture a scan's mesh from its images (see the module docstring). texel_mm None: from the
     images' resolution on the skin (TEXEL_PER_PIXEL of the median best image's mm/px)."""
     say = progress or (lambda _text: None)
+    heap_for_large_arrays()
     seconds: dict[str, float] = {}
     clock = time.perf_counter()
 

@@ -1,3 +1,6 @@
+import ctypes
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -46,3 +49,35 @@ def test_each_keeps_the_items_order_and_uses_a_second_thread_only_with_a_spare_c
         assert all(name.startswith("squares") for name in seen)
     else:
         assert seen == {threading.current_thread().name}
+
+
+
+_HEAP_CHECK = """
+import ctypes, numpy as np
+from planner.cores import heap_for_large_arrays
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                               "fsmblks", "uordblks", "fordblks", "keepcost")]
+info = ctypes.CDLL(None).mallinfo2
+info.restype = MallInfo2
+def mapped(mib):  # chunks given a mapping of their own for an array of mib MiB
+    before = info().hblks
+    array = np.ones(mib << 17)
+    count = info().hblks - before
+    del array
+    return count
+if {set_up}:
+    heap_for_large_arrays()
+    heap_for_large_arrays()  # settings: twice is once
+print(mapped(16))
+"""
+
+
+@pytest.mark.skipif(not hasattr(ctypes.CDLL(None), "mallinfo2"), reason="glibc's malloc only")
+@pytest.mark.parametrize(("set_up", "mapped"), [(False, "1"), (True, "0")])
+def test_a_blocks_arrays_come_from_the_heap(set_up: bool, mapped: str) -> None:
+    """In a fresh process: glibc maps a 16 MiB array of its own (and unmaps it when freed, the
+    kernel zeroing its pages again at the next); after heap_for_large_arrays the heap holds it."""
+    done = subprocess.run([sys.executable, "-c", _HEAP_CHECK.format(set_up=set_up)], capture_output=True,
+                          text=True, timeout=60, check=True)
+    assert done.stdout.split() == mapped.split()
