@@ -2,10 +2,11 @@
 
 For every point and every available candidate pose of its triangle: the frustum and facing tests
 of planner.visibility and the cost of planner.cost (area term, off-axis term, focus term), the
-same formulas in the same order as their NumPy forms, so the pairs and their costs are the same
-to the bit. One pass over the pairs with no temporary arrays: the texture's view choice tests
-about 50 M pairs at its largest, and NumPy's form spent most of its time writing and reading
-the pairs' intermediate arrays (a block's two threads then wait on memory, not on arithmetic).
+same formulas (tests/test_candidate_costs.py holds the two equal), with each three-term dot
+product summed in the order NumPy's einsum sums it. One pass over the pairs with no temporary
+arrays: the texture's view choice tests about 50 M pairs at its largest, and in NumPy it spent
+most of its time writing and reading the pairs' intermediate arrays (a block's two threads then
+wait on memory, not on arithmetic).
 Occlusion is not tested here (analysis/texel_views.py, which textures the body, casts its rays)."""
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ def candidate_costs(rig: Rig, poses: Poses, focus_mm: np.ndarray, points: np.nda
     out = np.empty((4, len(out_point)), dtype=np.float64)  # cost, x, y, z
     sharp = np.empty(len(out_point), dtype=np.bool_)
     n = _kernel()(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(normals, dtype=np.float64),
-                  begin, end, candidates.indices.astype(np.int64, copy=False), focus, frames, settings,
+                  begin, end, candidates.indices, focus, frames, settings,
                   out_point, out_pose, out, sharp)
     return out_point[:n], out_pose[:n], out[0, :n], sharp[:n], out[1, :n], out[2, :n], out[3, :n]
 
@@ -98,8 +99,9 @@ def _kernel():  # type: ignore[no-untyped-def]
 
 
 def warm_up() -> None:
-    """Compile the pass (or load it from numba's cache) now rather than in the first texture."""
+    """Compile the pass (or load it from numba's cache) now rather than in the first texture, for
+    the CSR's 32-bit pose indices SciPy gives a texture's candidates."""
     one = np.zeros((1, 3))
-    _kernel()(one, one, np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0),
+    _kernel()(one, one, np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0),
               np.zeros((0, 4, 3)), np.zeros(9), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((4, 0)),
               np.zeros(0, np.bool_))

@@ -3,8 +3,6 @@ and facing tests of planner.visibility and the terms of planner.cost, pair by pa
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
@@ -21,20 +19,18 @@ RIG = load_rig()
 POSES = rgb_poses(RIG)
 
 
-def _planner_pairs(nav, points, normals, candidates, face):  # noqa: ANN001, ANN202
+def _planner_pairs(focus, points, normals, candidates, face):  # noqa: ANN001, ANN202
     """The same pairs from the planner's NumPy terms, grouped by point, poses ascending."""
-    rig, poses, optics = nav.scan.rig, nav.poses, nav.scan.rig.optics
-    dense = candidates.toarray()[face] > 0
-    point, pose = np.nonzero(dense & np.isfinite(nav.focus_mm)[None, :])
-    rel = points[point] - poses.centres[pose]
-    x, y, z = ((rel * axis[pose]).sum(axis=1) for axis in (poses.right, poses.down, poses.forward))
+    optics, cost = RIG.optics, RIG.cost
+    point, pose = np.nonzero((candidates.toarray()[face] > 0) & np.isfinite(focus)[None, :])
+    rel = points[point] - POSES.centres[pose]
+    x, y, z = ((rel * axis[pose]).sum(axis=1) for axis in (POSES.right, POSES.down, POSES.forward))
     tan_w, tan_h = frustum_tangents(optics)
     keep = (np.abs(x) <= tan_w * z) & (np.abs(y) <= tan_h * z) & ((rel * normals[point]).sum(axis=1) > 0)
     point, pose, x, y, z = point[keep], pose[keep], x[keep], y[keep], z[keep]
-    facing = (poses.forward[pose] * normals[point]).sum(axis=1)
+    facing = (POSES.forward[pose] * normals[point]).sum(axis=1)
     lo, hi = focus_interval(z, optics.hyperfocal_mm, optics.focal_length_mm)
-    sharp = (lo <= nav.focus_mm[pose]) & (nav.focus_mm[pose] <= hi)
-    cost = rig.cost
+    sharp = (lo <= focus[pose]) & (focus[pose] <= hi)
     total = base_cost(cost, area_term(z, facing, cost.eps_area), axis_term(np.hypot(x, y), cost.axis_deviation_mm))
     return point, pose, total + cost.w_focus * ~sharp, sharp, z
 
@@ -45,7 +41,6 @@ def test_the_compiled_costs_are_the_planners(seed: int, n: int, missing: int) ->
     n_poses = RIG.n_poses
     focus = rng.uniform(300.0, 900.0, n_poses)
     focus[rng.choice(n_poses, missing, replace=False)] = np.nan  # images not on disk
-    nav = SimpleNamespace(scan=SimpleNamespace(rig=RIG), poses=POSES, focus_mm=focus)
     # points on and around a body-sized cylinder, normals inward with a random tilt
     angle, height = rng.uniform(0, 2 * np.pi, n), rng.uniform(100.0, 1800.0, n)
     radius = rng.uniform(80.0, 250.0, n)
@@ -58,7 +53,7 @@ def test_the_compiled_costs_are_the_planners(seed: int, n: int, missing: int) ->
     face = rng.integers(0, n_faces, n)
 
     point, pose, cost, sharp, x, y, z = candidate_costs(RIG, POSES, focus, points, normals, candidates, face)
-    want = _planner_pairs(nav, points, normals, candidates, face)
+    want = _planner_pairs(focus, points, normals, candidates, face)
     assert np.array_equal(point, want[0]) and np.array_equal(pose, want[1])
     np.testing.assert_allclose(cost, want[2], rtol=0, atol=1e-12)
     assert np.array_equal(sharp, want[3])

@@ -51,7 +51,6 @@ def test_each_keeps_the_items_order_and_uses_a_second_thread_only_with_a_spare_c
         assert seen == {threading.current_thread().name}
 
 
-
 _HEAP_CHECK = """
 import ctypes, numpy as np
 from planner.cores import heap_for_large_arrays
