@@ -7,6 +7,8 @@ import json
 import os
 import shutil
 from pathlib import Path
+from urllib.error import HTTPError
+from urllib.request import urlopen
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from cli import main
 from tests.test_web import folder_of
 from tests.test_web_browser import front_vertex
 from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
+from web.glb import PREVIEW_PX, texture_image
 
 pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
 SHOTS = Path(os.environ.get("TBP_SCREENSHOTS", "/tmp/tbp-web-screenshots"))
@@ -70,6 +73,46 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
         capsys.readouterr()
         assert main(["navigate", str(scan_dir), "--point", ",".join(map(repr, point)), "--json"]) == 0
         assert best.get_attribute("data-file") == json.loads(capsys.readouterr().out)["views"][0]["file"]
+
+        # the preview atlas came first; the full atlas replaced it, texel for texel the stored one
+        wait_for(driver, "window.tbpViewer.textureLevel === 'full' || window.tbpViewer.error")
+        assert driver.execute_script("return window.tbpViewer.error") is None
         timing = driver.execute_script("return window.tbpViewer.timing")
+        assert timing["bodyBuiltMs"] < timing["fullTextureMs"]
+        stored = Image.open(io.BytesIO(texture_image((scan_dir / "body.glb").read_bytes())[0]))
+        size = driver.execute_script("return window.tbpViewer.textureSize")
+        assert (size["width"], size["height"]) == stored.size
+        driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        assert _green_share(canvas.screenshot_as_png) < 0.05
         print(f"first paint {driver.execute_script('return window.tbpViewer.firstPaintMs'):.0f} ms, "
-              f"textured body built {timing['bodyBuiltMs']:.0f} ms")
+              f"textured body built {timing['bodyBuiltMs']:.0f} ms, full texture {timing['fullTextureMs']:.0f} ms")
+
+        # the two levels over HTTP: a smaller atlas in the same glTF, and the stored atlas itself
+        glb = urlopen(f"{url}/api/scans/{name}/body?texture=preview").read()
+        coarse = Image.open(io.BytesIO(texture_image(glb)[0]))
+        assert max(coarse.size) == min(PREVIEW_PX, max(stored.size))
+        full = urlopen(f"{url}/api/scans/{name}/body/texture")
+        assert full.headers["Content-Type"] == "image/jpeg"
+        assert full.read() == texture_image((scan_dir / "body.glb").read_bytes())[0]
+        with pytest.raises(HTTPError) as refused:
+            urlopen(f"{url}/api/scans/{name}/body?texture=huge")
+        assert refused.value.code == 400 and "full or preview" in json.loads(refused.value.read())["error"]["message"]
+
+
+def test_a_body_glb_that_is_not_a_textured_gltf_is_named_on_the_page(web_store, tmp_path):
+    """The viewer keeps the QA map and says what is wrong with the body; the server names the file."""
+    name = folder_of(web_store)
+    store = tmp_path / "store"
+    shutil.copytree(web_store / name, store / name)
+    write_body(store / name, texel_mm=6.0)
+    (store / name / "body.glb").write_bytes(b"PK\x03\x04 a zip file, not glTF")
+    with serve_in_thread(store) as url, chromium() as driver:
+        for path in ("body?texture=preview", "body/texture"):
+            with pytest.raises(HTTPError) as refused:
+                urlopen(f"{url}/api/scans/{name}/{path}")
+            message = json.loads(refused.value.read())["error"]["message"]
+            assert refused.value.code == 422 and message.startswith("body.glb: not a glTF binary"), message
+        driver.get(f"{url}/scans/{name}")
+        wait_for(driver, "window.tbpViewer && window.tbpViewer.ready && window.tbpViewer.error")
+        assert "not a glTF binary" in driver.find_element("id", "stage-msg").text
+        assert driver.execute_script("return window.tbpViewer.shown") == "sharpness"

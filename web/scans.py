@@ -33,7 +33,7 @@ from daemon.clinic.patient import Patient
 from daemon.records.atomic import StoreError
 from daemon.records.manifest import ImageStatus, Manifest, ManifestError
 from daemon.records.store import ScanStore
-from web import images, keys
+from web import glb, images, keys
 
 
 def json_error(status: type[web.HTTPException], error: Exception | str) -> web.HTTPException:
@@ -55,7 +55,8 @@ class OpenScan:
         self.mesh: Any = None
         self.mesh_bytes: bytes | None = None
         self.shares: dict[str, float] | None = None
-        self.previews: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
+        self.previews: OrderedDict[tuple[Any, ...], Any] = OrderedDict()
+        """Scaled images and crops (bytes), the body's preview and atlas (bytes, content type)."""
         self.lock = asyncio.Lock()
         self.warming: asyncio.Task[Any] | None = None
 
@@ -247,16 +248,53 @@ async def scan_mesh(request: web.Request) -> web.Response:
                         headers={"Cache-Control": "private, max-age=60"})
 
 
-async def scan_body(request: web.Request) -> web.StreamResponse:
-    """The scan's textured body (body.glb, glTF binary in metres: analysis/body_texture.py)."""
-    scan = await _library(request).opened(request.match_info["folder"])
+def _body_path(scan: OpenScan) -> Path:
     try:
         path = scan.record.folder.listed("body")
     except StoreError as exc:  # listed, but gone from the disk
         raise json_error(web.HTTPNotFound, exc) from exc
     if path is None:
         raise json_error(web.HTTPNotFound, "this scan has no textured body (tbp texture SCAN_DIR makes one)")
-    return web.FileResponse(path, headers={"Content-Type": "model/gltf-binary", "Cache-Control": "private, max-age=60"})
+    return path
+
+
+async def _from_body(request: web.Request, scan: OpenScan, level: str,
+                     make: Callable[[bytes], tuple[bytes, str]]) -> web.Response:
+    """What ``make`` builds from body.glb's bytes (its bytes and content type), off the loop,
+    kept with the scan's previews while the file is the same; 422 naming what is wrong when
+    body.glb is not a textured glTF binary."""
+    path = _body_path(scan)
+    stat = path.stat()
+    key = ("body", level, stat.st_mtime_ns, stat.st_size)
+    kept = scan.previews.get(key)
+    if kept is None:
+        try:
+            kept = await _off_loop(lambda: make(path.read_bytes()))
+        except glb.GlbError as exc:
+            raise json_error(web.HTTPUnprocessableEntity, f"{path.name}: {exc}") from exc
+        _keep(_library(request), scan, key, kept)
+    data, content_type = kept
+    return web.Response(body=data, content_type=content_type, headers={"Cache-Control": "private, max-age=60"})
+
+
+async def scan_body(request: web.Request) -> web.StreamResponse:
+    """The scan's textured body (body.glb, glTF binary in metres: analysis/body_texture.py);
+    ``?texture=preview``: the same with its atlas scaled down (web/glb.py), what the viewer shows
+    while the full atlas comes from ``body/texture``."""
+    scan = await _library(request).opened(request.match_info["folder"])
+    level = request.query.get("texture", "full")
+    if level == "full":
+        return web.FileResponse(_body_path(scan), headers={"Content-Type": "model/gltf-binary",
+                                                           "Cache-Control": "private, max-age=60"})
+    if level != "preview":
+        raise json_error(web.HTTPBadRequest, f"texture={level[:20]!r}: full or preview")
+    return await _from_body(request, scan, level, lambda data: (glb.preview(data), "model/gltf-binary"))
+
+
+async def scan_body_texture(request: web.Request) -> web.Response:
+    """The textured body's full atlas: body.glb's base colour image as stored (JPEG)."""
+    scan = await _library(request).opened(request.match_info["folder"])
+    return await _from_body(request, scan, "texture", glb.texture_image)
 
 
 async def scan_skin(request: web.Request) -> web.Response:
@@ -264,6 +302,13 @@ async def scan_skin(request: web.Request) -> web.Response:
     shares of its area."""
     scan = await _library(request).opened(request.match_info["folder"])
     return web.json_response(await _from_mesh(scan, scan.skin_shares))
+
+
+def _keep(library: ScanLibrary, scan: OpenScan, key: tuple[Any, ...], value: Any) -> None:
+    """Keep what was built for the scan, the oldest dropped beyond the library's bound."""
+    scan.previews[key] = value
+    while len(scan.previews) > library.PREVIEWS:
+        scan.previews.popitem(last=False)
 
 
 def _value(reason: Any) -> str | None:
@@ -337,9 +382,7 @@ async def image(request: web.Request) -> web.StreamResponse:
             data = await _off_loop(make)
         except images.ImageRequestError as exc:
             raise json_error(web.HTTPBadRequest, exc) from exc
-        scan.previews[key] = data
-        while len(scan.previews) > library.PREVIEWS:
-            scan.previews.popitem(last=False)
+        _keep(library, scan, key, data)
     return web.Response(body=data, content_type="image/jpeg", headers={"Cache-Control": "private, max-age=3600"})
 
 
@@ -360,6 +403,7 @@ def routes(app: web.Application) -> None:
     app.router.add_get("/api/scans/{folder}/mesh", scan_mesh)
     app.router.add_get("/api/scans/{folder}/skin", scan_skin)
     app.router.add_get("/api/scans/{folder}/body", scan_body)
+    app.router.add_get("/api/scans/{folder}/body/texture", scan_body_texture)
     app.router.add_get("/api/scans/{folder}/navigate", navigate)
     app.router.add_get("/api/scans/{folder}/images/{name}", image)
     app.router.add_get("/scans/{folder}/report/", report_file)

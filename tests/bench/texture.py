@@ -5,8 +5,10 @@ the scale times 192 x 256 px (``render_scale``, sim/rig.py SimOptions; 1 is the 
 about 1.6 mm/px on the skin at the best image, 2 about 0.8 mm/px, 4 about 0.4 mm/px; the rig's
 phones hold 32), then ``tbp texture`` on it in a child process (wall time and peak RSS, goals
 <= 60 s and <= 4 GiB), the step after a scan as the daemon runs it (QA report and body in its
-compute worker, wall time, goal <= 60 s), then against the simulated truth (the body mesh, its
-skin coordinates and the freckles drivers/sim/skin_texture.py paints on it):
+compute worker, wall time, goal <= 60 s), the scan in the viewer (headless Chromium on loopback,
+fresh server each time: first paint of the QA map's mesh, goal <= 1.5 s; the skin with the
+preview atlas; the full atlas on the screen, goal <= 5 s), then against the simulated truth (the
+body mesh, its skin coordinates and the freckles drivers/sim/skin_texture.py paints on it):
 
 - colour: mean CIEDE2000 of the texels whose best image holds them sharp, against the skin's
   albedo (the simulated phones light it with a falloff over the incidence, which the texture
@@ -58,6 +60,9 @@ SCALES = tuple(int(s) for s in os.environ.get("TBP_TEXTURE_SCALES", "1,2").split
 GOAL_S = 60.0
 GOAL_GIB = 4.0
 GOAL_DELTA_E = 3.0
+GOAL_PAINT_MS = 1500
+GOAL_FULL_MS = 5000
+VIEWER_LOADS = 3
 GOAL_LESIONS = 0.95
 GOAL_RESOLUTION = 1.5
 LESION_MM = 1.5
@@ -238,6 +243,12 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     daemon_s = _after_scan_in_worker(folder)
     print(f"  the daemon's step after the scan (its QA report, then its body) in its compute worker: "
           f"{daemon_s:.1f} s (goal <= {GOAL_S:.0f})")
+    viewer = _viewer_times(folder)
+    if viewer:
+        print(f"  the viewer on loopback (headless Chromium, software WebGL; median of {VIEWER_LOADS} fresh servers): "
+              f"first paint {viewer['first']:.0f} ms (goal <= {GOAL_PAINT_MS}), the skin (preview atlas) "
+              f"{viewer['preview']:.0f} ms, the full atlas ({viewer['size']}) {viewer['full']:.0f} ms "
+              f"(goal <= {GOAL_FULL_MS}), max {viewer['full_max']:.0f} ms")
 
     # The same texture again in-process, for its per-texel records (deterministic).
     body = texture_scan(open_scan(folder))
@@ -320,9 +331,33 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     print(f"  resolution: texel {atlas.texel_mm:.2f} mm on the chart, median {np.median(texel_on_skin[ok]):.2f} mm on the "
           f"skin; best image median {np.nanmedian(samples.best_mm_px[ok]):.2f} mm/px; texel / pixel median "
           f"{np.median(ratio[ok]):.2f}, 95th percentile {np.percentile(ratio[ok], 95):.2f} (goal <= {GOAL_RESOLUTION})")
-    return {"found": 100 * found.mean(), "found2": 100 * (distance <= 2.0).mean(), "delta_e": de.mean(),
+    return {"full_ms": viewer["full"] if viewer else float("nan"), "found": 100 * found.mean(), "found2": 100 * (distance <= 2.0).mean(), "delta_e": de.mean(),
             "mm_px": float(np.nanmedian(samples.best_mm_px[ok])), "ratio": float(np.median(ratio[ok])),
             "ideal": 100 * (ideal <= MATCH_MM).mean(), "seconds": texture_s, "daemon_s": daemon_s, "gib": peak_gib}
+
+
+def _viewer_times(folder: Path) -> dict[str, Any] | None:
+    """The scan in the viewer, each time from a fresh server and browser: ms from navigation to
+    the first paint (the QA map's mesh), to the skin (the textured body with its preview atlas)
+    and to the full atlas on the screen; None (said) without Chromium."""
+    from tests.web_browser import chromium, chromium_missing, serve_in_thread, wait_for
+
+    reason = chromium_missing()
+    if reason:
+        print(f"  the viewer: skipped ({reason})")
+        return None
+    loads = []
+    for _ in range(VIEWER_LOADS):
+        with serve_in_thread(folder.parent) as url, chromium() as driver:
+            driver.get(f"{url}/scans/{folder.name}")
+            wait_for(driver, "window.tbpViewer && (window.tbpViewer.textureLevel === 'full' || window.tbpViewer.error)", 120.0)
+            loads.append(driver.execute_script("const v = window.tbpViewer; return {error: v.error, first: v.firstPaintMs, "
+                                               "preview: v.timing.bodyBuiltMs, full: v.timing.fullTextureMs, size: v.textureSize}"))
+    if loads[0]["error"]:
+        raise SystemExit(f"the viewer failed on {folder.name}: {loads[0]['error']}")
+    size = loads[0]["size"]
+    return {**{k: float(np.median([x[k] for x in loads])) for k in ("first", "preview", "full")},
+            "full_max": max(x["full"] for x in loads), "size": f"{size['width']} x {size['height']} texels"}
 
 
 def _after_scan_in_worker(folder: Path) -> float:
@@ -403,10 +438,10 @@ def run() -> None:
                 rows.append((seed, scale, _one(seed, scale, Path(root))))
                 shutil.rmtree(Path(root) / f"s{seed}x{scale}")
     print(f"{'body':>4} {'scale':>5} {'mm/px':>6} {'found <= 1 mm':>14} {'<= 2 mm':>8} {'on albedo':>9} {'dE00':>5} {'texel/px':>8} "
-          f"{'texture s':>9} {'daemon s':>8} {'GiB':>5}")
+          f"{'texture s':>9} {'daemon s':>8} {'GiB':>5} {'full atlas ms':>13}")
     for seed, scale, r in rows:
         print(f"{seed:>4} {scale:>5} {r['mm_px']:>6.2f} {r['found']:>13.1f}% {r['found2']:>7.1f}% {r['ideal']:>8.1f}% {r['delta_e']:>5.2f} "
-              f"{r['ratio']:>8.2f} {r['seconds']:>9.1f} {r['daemon_s']:>8.1f} {r['gib']:>5.2f}")
+              f"{r['ratio']:>8.2f} {r['seconds']:>9.1f} {r['daemon_s']:>8.1f} {r['gib']:>5.2f} {r['full_ms']:>13.0f}")
     print(f"peak memory of this process (max RSS) {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
 

@@ -1,5 +1,7 @@
 // The textured body (body.glb from `tbp texture`: glTF binary in metres, the scan's mesh with
-// a texture atlas) as a three.js mesh in the viewer's millimetres.
+// a texture atlas) as a three.js mesh in the viewer's millimetres. The viewer loads the preview
+// first (the same glTF with its atlas scaled down, /body?texture=preview) and then swaps in the
+// full atlas (/body/texture), decoded off the main thread.
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 
@@ -23,4 +25,35 @@ export async function loadBody(response) {
   mesh.geometry.computeBoundingSphere();
   mesh.material.side = THREE.FrontSide;
   return mesh;
+}
+
+// response: a promise of the fetch() Response for /api/scans/<folder>/body/texture (the full
+// atlas). Resolves to it decoded (an ImageBitmap: Chromium decodes it off the main thread).
+export async function decodeAtlas(response) {
+  const answer = await response;
+  if (!answer.ok) {
+    const body = await answer.json().catch(() => ({}));
+    throw new Error(body.error ? body.error.message : `full texture: ${answer.statusText}`);
+  }
+  return createImageBitmap(await answer.blob(), { premultiplyAlpha: "none" });
+}
+
+// Replaces the mesh's texture with the decoded full atlas, as GLTFLoader makes a glTF texture
+// (an ImageBitmap, not flipped, the same colour space, filters and wrapping).
+export function swapInAtlas(mesh, bitmap) {
+  const old = mesh.material.map;
+  const texture = new THREE.Texture(bitmap);
+  if (old) {
+    for (const key of ["flipY", "colorSpace", "magFilter", "minFilter", "wrapS", "wrapT", "generateMipmaps", "anisotropy"]) texture[key] = old[key];
+  } else {
+    texture.flipY = false;
+    texture.colorSpace = THREE.SRGBColorSpace;
+  }
+  texture.needsUpdate = true;
+  mesh.material.map = texture;
+  mesh.material.needsUpdate = true;
+  if (old) {
+    old.dispose();
+    if (old.image && old.image.close) old.image.close();
+  }
 }

@@ -4,7 +4,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { getJSON, el, fmt, ending, personName } from "/static/common.js";
-import { loadBody } from "/static/body.js";
+import { decodeAtlas, loadBody, swapInAtlas } from "/static/body.js";
 import { MarksPane } from "/static/marks.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
@@ -97,17 +97,29 @@ async function loadMesh() {
 }
 
 // The textured body, shown instead of the QA map when the scan has one; the toggle swaps them.
+// Its preview atlas first, then the full atlas in its place (hooks.textureLevel says which).
 async function loadTexturedBody() {
-  const body = await loadBody(await (window.tbpBody || fetch(`${api}/body`)));
+  const body = await loadBody(await (window.tbpBody || fetch(`${api}/body?texture=preview`)));
   hooks.timing.bodyBuiltMs = performance.now();
   hooks.hasBody = Boolean(body);
   if (!body) return;
   state.body = body;
   scene.add(body);
+  hooks.textureLevel = "preview";
   const toggle = document.getElementById("body-toggle");
   toggle.hidden = false;
   toggle.addEventListener("click", () => showTexture(!state.body.visible));
   showTexture(true);
+  // then the full atlas, fetched once the preview shows (decoding it beside the preview's parsing delays the preview)
+  const bitmap = await decodeAtlas(fetch(`${api}/body/texture`));
+  swapInAtlas(body, bitmap);
+  dirty = true;
+  // the next frame draws (and uploads) it; the one after that is when it is on the screen
+  requestAnimationFrame(() => requestAnimationFrame(() => {
+    hooks.timing.fullTextureMs = performance.now();
+    hooks.textureSize = { width: bitmap.width, height: bitmap.height };
+    hooks.textureLevel = "full";
+  }));
 }
 
 function showTexture(on) {

@@ -1,0 +1,131 @@
+"""The textured body's two levels for the viewer: a coarse copy of body.glb first, then its full atlas.
+
+body.glb (analysis/body_texture.py) is one glTF binary: the mesh (a few MB) and a JPEG atlas of
+up to 15 M texels. The viewer shows the mesh with a small atlas first (:func:`preview`: the same
+glTF with its base colour image scaled down) and then swaps in the full atlas
+(:func:`texture_image`: the image's bytes as stored), so the skin shows long before the
+atlas has arrived and been decoded. Both read the GLB container (glTF 2.0: a 12-byte header, a
+JSON chunk and a BIN chunk, every chunk and buffer view 4-byte aligned) and touch nothing but the
+image's buffer view; the accessors of the geometry keep their bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any
+
+import cv2
+import numpy as np
+
+MAGIC = b"glTF"
+JSON_CHUNK = 0x4E4F534A
+BIN_CHUNK = 0x004E4942
+PREVIEW_PX = 1024
+"""The preview atlas' longer side, px (the full one has up to about 6,900)."""
+PREVIEW_QUALITY = 85
+
+
+class GlbError(ValueError):
+    """A body.glb that is not the glTF binary the viewer needs, naming what is wrong."""
+
+
+def read_glb(data: bytes) -> tuple[dict[str, Any], bytes]:
+    """The JSON document and the BIN chunk of a glTF binary."""
+    if len(data) < 20 or data[:4] != MAGIC:
+        raise GlbError(f"not a glTF binary (starts {bytes(data[:4])!r}, {len(data)} bytes)")
+    version, length = struct.unpack_from("<II", data, 4)
+    if version != 2 or length != len(data):
+        raise GlbError(f"glTF binary version {version}, length {length} in its header for {len(data)} bytes")
+    chunks: dict[int, bytes] = {}
+    at = 12
+    while at + 8 <= len(data):
+        size, kind = struct.unpack_from("<II", data, at)
+        if at + 8 + size > len(data):
+            raise GlbError(f"chunk 0x{kind:08x} of {size} bytes at byte {at} runs past the end")
+        chunks.setdefault(kind, data[at + 8: at + 8 + size])
+        at += 8 + size
+    if JSON_CHUNK not in chunks or BIN_CHUNK not in chunks:
+        raise GlbError("a glTF binary with a JSON and a BIN chunk is needed; "
+                       f"found chunks {[f'0x{k:08x}' for k in chunks]}")
+    try:
+        document = json.loads(chunks[JSON_CHUNK])
+    except ValueError as exc:
+        raise GlbError(f"the JSON chunk does not parse: {exc}") from None
+    return document, chunks[BIN_CHUNK]
+
+
+def _image_index(document: dict[str, Any]) -> int:
+    """The image of the first material's base colour texture."""
+    try:
+        texture = document["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"]
+        image = document["textures"][texture]["source"]
+        view = document["images"][image]["bufferView"]
+        document["bufferViews"][view]
+    except (KeyError, IndexError, TypeError):
+        raise GlbError("no base colour texture stored in the binary (materials[0] -> textures -> images -> "
+                       "bufferView)") from None
+    return int(image)
+
+
+def texture_image(data: bytes) -> tuple[bytes, str]:
+    """The base colour image's bytes as stored, and its MIME type."""
+    document, blob = read_glb(data)
+    index = _image_index(document)
+    image = document["images"][index]
+    view = document["bufferViews"][image["bufferView"]]
+    start = int(view.get("byteOffset", 0))
+    end = start + int(view["byteLength"])
+    if end > len(blob):
+        raise GlbError(f"the image's buffer view ends at byte {end} of a {len(blob)}-byte BIN chunk")
+    return blob[start:end], str(image.get("mimeType", "image/jpeg"))
+
+
+def with_image(data: bytes, image_bytes: bytes, mime: str) -> bytes:
+    """The glTF binary with its base colour image replaced; every other buffer view's bytes unchanged."""
+    document, blob = read_glb(data)
+    index = _image_index(document)
+    target = document["images"][index]["bufferView"]
+    views = document["bufferViews"]
+    out = bytearray()
+    for i in sorted(range(len(views)), key=lambda i: int(views[i].get("byteOffset", 0))):
+        view = views[i]
+        start = int(view.get("byteOffset", 0))
+        part = image_bytes if i == target else blob[start: start + int(view["byteLength"])]
+        out += b"\0" * (-len(out) % 4)
+        view["byteOffset"] = len(out)
+        view["byteLength"] = len(part)
+        out += part
+    out += b"\0" * (-len(out) % 4)
+    document["images"][index]["mimeType"] = mime
+    document["buffers"][0]["byteLength"] = len(out)
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), JSON_CHUNK) + text + struct.pack("<II", len(out), BIN_CHUNK) + bytes(out)
+    return MAGIC + struct.pack("<II", 2, 12 + len(body)) + body
+
+
+def preview(data: bytes, longest_px: int = PREVIEW_PX) -> bytes:
+    """The glTF binary with its atlas scaled to at most ``longest_px`` a side (JPEG), the same
+    texture coordinates: what the viewer shows while the full atlas comes."""
+    image, _mime = texture_image(data)
+    atlas = _decoded(image, cv2.IMREAD_REDUCED_COLOR_8)
+    # decode at the largest JPEG scale (1/2, 1/4, 1/8) that leaves at least longest_px to scale down from
+    reduce = max([1] + [f for f in (2, 4, 8) if max(atlas.shape[:2]) * 8 // f >= longest_px])
+    if reduce != 8:
+        atlas = _decoded(image, {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}[reduce])
+    scale = longest_px / max(atlas.shape[:2])
+    if scale < 1.0:
+        size = (max(1, round(atlas.shape[1] * scale)), max(1, round(atlas.shape[0] * scale)))
+        atlas = cv2.resize(atlas, size, interpolation=cv2.INTER_AREA)
+    ok, jpeg = cv2.imencode(".jpg", atlas, [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_QUALITY])
+    if not ok:
+        raise GlbError(f"the preview atlas {atlas.shape[1]} x {atlas.shape[0]} px could not be encoded")
+    return with_image(data, jpeg.tobytes(), "image/jpeg")
+
+
+def _decoded(image: bytes, flags: int) -> np.ndarray:
+    atlas = cv2.imdecode(np.frombuffer(image, np.uint8), flags)
+    if atlas is None:
+        raise GlbError(f"the base colour image ({len(image)} bytes) does not decode")
+    return atlas
