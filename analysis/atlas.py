@@ -6,7 +6,9 @@ to its normal averaged over a few rings of neighbours (a TSDF surface's normals 
 edge-connected triangles of one direction form a chart, projected orthographically along it, and
 charts too small to be worth their gutter join a neighbour their triangles face within 70 deg.
 A texel spans 1 / cos(angle to the chart's direction) texel sizes on the skin. Charts are
-packed on shelves with a gutter; the gutter texels next to a chart hold the skin that continues
+packed by their footprints (the PACK_BLOCK-texel blocks their texels and gutters reach), tallest
+first, each dropped into the skyline of those placed where it rests highest, so charts
+interlock instead of each taking its bounding box; the gutter texels next to a chart hold the skin that continues
 over its edge, taken from the chart beyond, and the rest the colour of the nearest texel
 (:func:`seam_gutters`), so filtering at a chart's edge never reads an
 unrelated chart and a spot cut by a seam is whole on both sides. Open3D's
@@ -32,6 +34,12 @@ from planner.cores import each
 
 #: Texels of border round every chart (the skin over the chart's edge is continued into it).
 GUTTER = 2
+#: Texels between a chart's box and its texels (a texel within GUTTER of its triangles stays in the box).
+MARGIN = GUTTER + 1
+#: Side of the blocks charts are packed in, texels (a chart's footprint is its blocks with skin or gutter).
+PACK_BLOCK = 8
+#: Atlas widths tried, as multiples of the footprints' area under the square root.
+PACK_WIDTHS = (1.0, 1.15, 1.3)
 #: Side of the texel blocks whose mean colour fills the atlas beyond the gutters.
 BACKGROUND_BLOCK = 8
 #: The 26 chart directions: every non-zero (x, y, z) in {-1, 0, 1}^3, unit length.
@@ -175,39 +183,83 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, texel_mm: float, *, max_side
     np.minimum.at(low, chart_of_vertex, flat)
     np.maximum.at(high, chart_of_vertex, flat)
     while True:
-        sizes = np.ceil((high - low) / texel_mm).astype(np.int64) + 1 + 2 * GUTTER  # (C, 2) columns, rows
-        placed = _pack(sizes, max_side)
+        local = (flat - low[chart_of_vertex]) / texel_mm + MARGIN  # (column, row) texels in the chart's box
+        sizes = np.ceil((high - low) / texel_mm).astype(np.int64) + 1 + 2 * MARGIN  # (C, 2) columns, rows
+        placed = _pack(_footprints(local[new_faces], labels, sizes), max_side)
         if placed is not None:
             break
         texel_mm *= 1.15
     offsets, shape = placed
-    texel = (flat - low[chart_of_vertex]) / texel_mm + GUTTER + offsets[chart_of_vertex]  # (column, row), texels
+    texel = local + offsets[chart_of_vertex]  # (column, row), texels
     uv = np.stack([texel[:, 0] / shape[1], texel[:, 1] / shape[0]], axis=1)
     rc, face, point = _rasterise(texel, new_faces, vertices[source_vertex], RASTER_BLOCK)
     return Atlas(vertices[source_vertex], new_faces, source_vertex, uv, float(texel_mm), shape, n_charts, rc, face, point)
 
 
-def _pack(sizes: np.ndarray, max_side: int) -> tuple[np.ndarray, tuple[int, int]] | None:
-    """Shelf packing of rectangles (C, 2) (width, height) in texels: offsets (C, 2) and the
-    atlas (H, W), width a multiple of 64 near the square root of the area; None if it exceeds max_side."""
-    area = float(np.prod(sizes, axis=1).sum())
-    width = int(np.ceil(max(np.sqrt(area * 1.15), sizes[:, 0].max()) / 64.0) * 64)
-    if width > max_side:
-        return None
-    order = np.argsort(-sizes[:, 1], kind="stable")
-    offsets = np.zeros_like(sizes)
-    x = y = shelf = 0
-    for c in order:
-        w, h = sizes[c]
-        if x + w > width:
-            x, y, shelf = 0, y + shelf, 0
-        offsets[c] = (x, y)
-        x += w
-        shelf = max(shelf, h)
-    height = int(np.ceil((y + shelf) / 64.0) * 64)
-    if height > max_side:
-        return None
-    return offsets, (height, width)
+def _footprints(corners: np.ndarray, labels: np.ndarray, sizes: np.ndarray) -> list[np.ndarray]:
+    """Each chart's footprint on the packing grid: (rows, columns) bool of PACK_BLOCK-texel blocks,
+    set where a texel within GUTTER of one its triangles covers may lie (each triangle's bounding
+    box, GUTTER + 1 texels wider). corners: (F, 3, 2) column, row of every triangle's corners in
+    its chart's box (labels (F,)); sizes (C, 2): the boxes' columns, rows."""
+    b = PACK_BLOCK
+    lo = (np.floor(corners.min(axis=1) - 0.5).astype(np.int64) - GUTTER - 1) // b  # (F, 2) column, row
+    hi = (np.ceil(corners.max(axis=1) - 0.5).astype(np.int64) + GUTTER + 1) // b
+    blocks = -(-sizes // b)  # (C, 2)
+    lo = np.clip(lo, 0, blocks[labels] - 1)
+    hi = np.clip(hi, 0, blocks[labels] - 1)
+    # each box added to its chart's difference array (one more row and column), then summed up
+    rows, cols = blocks[:, 1] + 1, blocks[:, 0] + 1
+    start = np.concatenate([[0], np.cumsum(rows * cols)])
+    diff = np.zeros(int(start[-1]), dtype=np.int32)
+    base, width = start[labels], cols[labels]
+    for r, c, sign in ((lo[:, 1], lo[:, 0], 1), (lo[:, 1], hi[:, 0] + 1, -1),
+                       (hi[:, 1] + 1, lo[:, 0], -1), (hi[:, 1] + 1, hi[:, 0] + 1, 1)):
+        np.add.at(diff, base + r * width + c, sign)
+    return [diff[start[k]:start[k + 1]].reshape(rows[k], cols[k]).cumsum(0).cumsum(1)[:-1, :-1] > 0
+            for k in range(len(sizes))]
+
+
+def _pack(footprints: list[np.ndarray], max_side: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """The charts' footprints (rows, columns of PACK_BLOCK-texel blocks) packed into one image:
+    offsets (C, 2) texels (column, row) and the atlas (H, W), both multiples of 64 texels; None if
+    no width tried fits max_side on both sides. Each width tried is near the square root of the
+    footprints' area (PACK_WIDTHS); the smallest atlas wins."""
+    b = PACK_BLOCK
+    step = 64 // b
+    area = sum(int(f.sum()) for f in footprints)
+    widest = max(f.shape[1] for f in footprints)
+    best: tuple[np.ndarray, tuple[int, int]] | None = None
+    for factor in PACK_WIDTHS:
+        width = -(-max(int(np.ceil(np.sqrt(area * factor))), widest) // step) * step
+        if width * b > max_side:
+            continue
+        offsets, height = _skyline(footprints, width)
+        shape = (-(-height // step) * step * b, width * b)
+        if shape[0] <= max_side and (best is None or shape[0] * shape[1] < best[1][0] * best[1][1]):
+            best = offsets * b, shape
+    return best
+
+
+def _skyline(footprints: list[np.ndarray], width: int) -> tuple[np.ndarray, int]:
+    """Skyline packing of footprints into ``width`` columns of blocks, tallest first: each drops
+    from the top at the column where it comes to rest highest (then leaves the least space above
+    it); a column's skyline is the first row below every block placed in it. Block offsets (C, 2)
+    column, row, and the rows used."""
+    sky = np.zeros(width, dtype=np.int64)
+    offsets = np.zeros((len(footprints), 2), dtype=np.int64)
+    for k in sorted(range(len(footprints)), key=lambda k: (-footprints[k].shape[0], -int(footprints[k].sum()), k)):
+        f = footprints[k]
+        h, w = f.shape
+        used = f.any(axis=0)
+        top = np.where(used, f.argmax(axis=0), 0)
+        bottom = np.where(used, h - f[::-1].argmax(axis=0), 0)  # one past the last block
+        window = np.lib.stride_tricks.sliding_window_view(sky, w)  # (width - w + 1, w)
+        rest = np.where(used, window - top, 0).max(axis=1).clip(min=0)  # the row it comes to rest at
+        gap = np.where(used, rest[:, None] + top - window, 0).sum(axis=1)
+        x = int(np.lexsort((gap, rest))[0])
+        offsets[k] = (x, rest[x])
+        sky[x:x + w] = np.where(used, np.maximum(sky[x:x + w], rest[x] + bottom), sky[x:x + w])
+    return offsets, int(sky.max())
 
 
 def _rasterise(texel: np.ndarray, faces: np.ndarray, points: np.ndarray,

@@ -14,8 +14,21 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
-from analysis.atlas import BACKGROUND_BLOCK, GUTTER, _background, _nearest_filled, _rasterise, seam_gutters, unwrap
+from analysis.atlas import (
+    BACKGROUND_BLOCK,
+    GUTTER,
+    MARGIN,
+    PACK_BLOCK,
+    _background,
+    _footprints,
+    _nearest_filled,
+    _pack,
+    _rasterise,
+    seam_gutters,
+    unwrap,
+)
 from analysis.body_texture import (
     bilinear,
     choose_views,
@@ -71,8 +84,51 @@ def test_the_atlas_covers_every_triangle_once_with_texels_on_their_triangle(texe
     e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     flat_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()
     assert len(atlas.texel_rc) == pytest.approx(flat_area, rel=0.03)
-    # every chart keeps its gutter free: texels stay GUTTER inside the atlas' edges
-    assert atlas.texel_rc.min() >= GUTTER - 1 and np.all(atlas.texel_rc.max(axis=0) < np.array(atlas.shape))
+    # every chart keeps its gutter free: texels stay GUTTER inside the atlas' edges, and a texel of
+    # another chart is further than two gutters away (charts are edge-connected: one component each)
+    assert atlas.texel_rc.min() >= GUTTER and np.all(atlas.texel_rc.max(axis=0) < np.array(atlas.shape) - GUTTER)
+    chart = trimesh.graph.connected_component_labels(trimesh.graph.face_adjacency(atlas.faces), len(atlas.faces))
+    assert chart.max() + 1 == atlas.charts
+    pairs = cKDTree(atlas.texel_rc).query_pairs(2 * GUTTER, p=np.inf, output_type="ndarray")
+    label = chart[atlas.texel_face]
+    assert np.array_equal(label[pairs[:, 0]], label[pairs[:, 1]])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 30), st.integers(1, 30), st.floats(0.2, 1.0), st.integers(0, 2**16)),
+                min_size=1, max_size=25))
+def test_packed_footprints_never_overlap_and_stay_inside_the_atlas(charts) -> None:
+    footprints = []
+    for rows, cols, share, seed in charts:
+        f = np.random.default_rng(seed).random((rows, cols)) < share
+        f[seed % rows, seed % cols] = True  # at least one block
+        footprints.append(f)
+    placed = _pack(footprints, max_side=1 << 20)
+    assert placed is not None
+    offsets, (height, width) = placed
+    assert height % 64 == 0 and width % 64 == 0 and np.all(offsets % PACK_BLOCK == 0)
+    grid = np.zeros((height // PACK_BLOCK, width // PACK_BLOCK), dtype=np.int64)
+    for f, (x, y) in zip(footprints, offsets // PACK_BLOCK):
+        rows, cols = np.nonzero(f)  # a footprint's empty rows may reach past the atlas' end
+        assert x >= 0 and y >= 0 and np.all(x + cols < grid.shape[1]) and np.all(y + rows < grid.shape[0])
+        grid[y + rows, x + cols] += 1
+    assert grid.max() == 1
+    assert _pack(footprints, max_side=32) is None  # narrower than any atlas (64 texels)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**16), st.floats(2.0, 40.0), st.integers(1, 4))
+def test_a_charts_footprint_holds_its_texels_and_their_gutters(seed, scale, triangles) -> None:
+    rng = np.random.default_rng(seed)
+    corners = rng.uniform(0.0, scale, (triangles, 3, 2)) + MARGIN  # (F, 3, 2) column, row in the chart's box
+    sizes = np.ceil(corners.max(axis=(0, 1))).astype(np.int64)[None] + 1 + MARGIN
+    footprint = _footprints(corners, np.zeros(len(corners), dtype=np.int64), sizes)[0]
+    texels = np.zeros((footprint.shape[0] * PACK_BLOCK, footprint.shape[1] * PACK_BLOCK), dtype=bool)
+    rc, _, _ = _rasterise(corners.reshape(-1, 2), np.arange(len(corners) * 3).reshape(-1, 3), np.zeros((len(corners) * 3, 3)))
+    texels[rc[:, 0], rc[:, 1]] = True
+    reach = ndimage.maximum_filter(texels.view(np.uint8), size=2 * GUTTER + 1).view(bool)
+    blocks = reach.reshape(footprint.shape[0], PACK_BLOCK, footprint.shape[1], PACK_BLOCK).any(axis=(1, 3))
+    assert not (blocks & ~footprint).any()
 
 
 def _fold(spacing_mm: float = 2.0) -> trimesh.Trimesh:
