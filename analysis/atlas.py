@@ -7,11 +7,11 @@ edge-connected triangles of one direction form a chart, projected orthographical
 charts too small to be worth their gutter join a neighbour their triangles face within 70 deg.
 A texel spans 1 / cos(angle to the chart's direction) texel sizes on the skin. Charts are
 packed by their footprints (the PACK_BLOCK-texel blocks their texels and gutters reach), tallest
-first, each dropped into the skyline of those placed where it rests highest, so charts
-interlock instead of each taking its bounding box; the gutter texels next to a chart hold the skin that continues
-over its edge, taken from the chart beyond, and the rest the colour of the nearest texel
-(:func:`seam_gutters`), so filtering at a chart's edge never reads an
-unrelated chart and a spot cut by a seam is whole on both sides. Open3D's
+first, each dropped into the skyline of those placed where it rests highest, so charts interlock
+instead of each taking its bounding box. The gutter texels next to a chart hold the skin that
+continues over its edge, taken from the chart beyond, and the rest the colour of the nearest
+texel (:func:`seam_gutters`), so filtering at a chart's edge never reads an unrelated chart and
+a spot cut by a seam is whole on both sides. Open3D's
 UVAtlas would cut fewer seams but needs a manifold mesh and is an order of magnitude slower on
 a TSDF body.
 
@@ -198,8 +198,8 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, texel_mm: float, *, max_side
 
 def _footprints(corners: np.ndarray, labels: np.ndarray, sizes: np.ndarray) -> list[np.ndarray]:
     """Each chart's footprint on the packing grid: (rows, columns) bool of PACK_BLOCK-texel blocks,
-    set where a texel within GUTTER of one its triangles covers may lie (each triangle's bounding
-    box, GUTTER + 1 texels wider). corners: (F, 3, 2) column, row of every triangle's corners in
+    set where a texel within GUTTER of a texel one of its triangles covers may lie (each
+    triangle's bounding box, GUTTER + 1 texels wider). corners: (F, 3, 2) column, row of every triangle's corners in
     its chart's box (labels (F,)); sizes (C, 2): the boxes' columns, rows."""
     b = PACK_BLOCK
     lo = (np.floor(corners.min(axis=1) - 0.5).astype(np.int64) - GUTTER - 1) // b  # (F, 2) column, row

@@ -1,7 +1,7 @@
 """The textured body's two levels for the viewer: a coarse copy of body.glb first, then its full atlas.
 
 body.glb (analysis/body_texture.py) is one glTF binary: the mesh (a few MB) and a JPEG atlas of
-up to 15 M texels. The viewer shows the mesh with a small atlas first (:func:`preview`: the same
+up to 8,192 texels a side (15 M of them skin at most). The viewer shows the mesh with a small atlas first (:func:`preview`: the same
 glTF with its base colour image scaled down) and then swaps in the full atlas
 (:func:`texture_image`: the image's bytes as stored), so the skin shows long before the
 atlas has arrived and been decoded. Both read the GLB container (glTF 2.0: a 12-byte header, a
@@ -22,7 +22,7 @@ MAGIC = b"glTF"
 JSON_CHUNK = 0x4E4F534A
 BIN_CHUNK = 0x004E4942
 PREVIEW_PX = 1024
-"""The preview atlas' longer side, px (the full one has up to about 6,900)."""
+"""The preview atlas' longer side, px (the full one's is up to 8,192)."""
 PREVIEW_QUALITY = 85
 
 

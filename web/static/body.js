@@ -38,22 +38,15 @@ export async function decodeAtlas(response) {
   return createImageBitmap(await answer.blob(), { premultiplyAlpha: "none" });
 }
 
-// Replaces the mesh's texture with the decoded full atlas, as GLTFLoader makes a glTF texture
-// (an ImageBitmap, not flipped, the same colour space, filters and wrapping).
+// Replaces the preview's texture of the mesh with the decoded full atlas, made as GLTFLoader
+// made the preview's (an ImageBitmap, not flipped; the same colour space, filters and wrapping).
 export function swapInAtlas(mesh, bitmap) {
-  const old = mesh.material.map;
+  const preview = mesh.material.map;
   const texture = new THREE.Texture(bitmap);
-  if (old) {
-    for (const key of ["flipY", "colorSpace", "magFilter", "minFilter", "wrapS", "wrapT", "generateMipmaps", "anisotropy"]) texture[key] = old[key];
-  } else {
-    texture.flipY = false;
-    texture.colorSpace = THREE.SRGBColorSpace;
-  }
+  for (const key of ["flipY", "colorSpace", "magFilter", "minFilter", "wrapS", "wrapT", "generateMipmaps", "anisotropy"]) texture[key] = preview[key];
   texture.needsUpdate = true;
   mesh.material.map = texture;
   mesh.material.needsUpdate = true;
-  if (old) {
-    old.dispose();
-    if (old.image && old.image.close) old.image.close();
-  }
+  preview.dispose();
+  if (preview.image.close) preview.image.close();
 }
