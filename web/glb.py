@@ -1,8 +1,9 @@
 """The textured body's two levels for the viewer: a coarse copy of body.glb first, then its full atlas.
 
 body.glb (analysis/body_texture.py) is one glTF binary: the mesh (a few MB) and a JPEG atlas of
-up to 8,192 texels a side (15 M of them skin at most). The viewer shows the mesh with a small atlas first (:func:`preview`: the same
-glTF with its base colour image scaled down) and then swaps in the full atlas
+up to 8,192 texels a side (15 M of them skin at most). The viewer shows the mesh with a small
+atlas first (:func:`preview`: the same glTF with its base colour image scaled down) and then
+swaps in the full atlas
 (:func:`texture_image`: the image's bytes as stored), so the skin shows long before the
 atlas has arrived and been decoded. Both read the GLB container (glTF 2.0: a 12-byte header, a
 JSON chunk and a BIN chunk, every chunk and buffer view 4-byte aligned) and touch nothing but the
@@ -11,19 +12,20 @@ image's buffer view; the accessors of the geometry keep their bytes.
 
 from __future__ import annotations
 
+import io
 import json
 import struct
 from typing import Any
 
-import cv2
-import numpy as np
+from PIL import Image
+
+from web import images
 
 MAGIC = b"glTF"
 JSON_CHUNK = 0x4E4F534A
 BIN_CHUNK = 0x004E4942
 PREVIEW_PX = 1024
 """The preview atlas' longer side, px (the full one's is up to 8,192)."""
-PREVIEW_QUALITY = 85
 
 
 class GlbError(ValueError):
@@ -71,7 +73,30 @@ def _image_index(document: dict[str, Any]) -> int:
 def texture_image(data: bytes) -> tuple[bytes, str]:
     """The base colour image's bytes as stored, and its MIME type."""
     document, blob = read_glb(data)
+    return _stored_image(document, blob, _image_index(document))
+
+
+def with_image(data: bytes, image_bytes: bytes, mime: str) -> bytes:
+    """The glTF binary with its base colour image replaced; every other buffer view's bytes unchanged."""
+    document, blob = read_glb(data)
+    return _replaced(document, blob, _image_index(document), image_bytes, mime)
+
+
+def preview(data: bytes, longest_px: int = PREVIEW_PX) -> bytes:
+    """The glTF binary with its atlas scaled to at most ``longest_px`` a side (JPEG, decoded at
+    the JPEG scale that still holds it: web/images.py), the same texture coordinates: what the
+    viewer shows while the full atlas comes."""
+    document, blob = read_glb(data)
     index = _image_index(document)
+    image, _mime = _stored_image(document, blob, index)
+    try:
+        small = images.scaled(io.BytesIO(image), longest_px)
+    except (OSError, Image.DecompressionBombError) as exc:
+        raise GlbError(f"the base colour image ({len(image)} bytes) does not decode: {exc}") from None
+    return _replaced(document, blob, index, small, "image/jpeg")
+
+
+def _stored_image(document: dict[str, Any], blob: bytes, index: int) -> tuple[bytes, str]:
     image = document["images"][index]
     view = document["bufferViews"][image["bufferView"]]
     start = int(view.get("byteOffset", 0))
@@ -81,10 +106,9 @@ def texture_image(data: bytes) -> tuple[bytes, str]:
     return blob[start:end], str(image.get("mimeType", "image/jpeg"))
 
 
-def with_image(data: bytes, image_bytes: bytes, mime: str) -> bytes:
-    """The glTF binary with its base colour image replaced; every other buffer view's bytes unchanged."""
-    document, blob = read_glb(data)
-    index = _image_index(document)
+def _replaced(document: dict[str, Any], blob: bytes, index: int, image_bytes: bytes, mime: str) -> bytes:
+    """The GLB of ``document`` and ``blob`` with image ``index``'s bytes replaced, the buffer views
+    laid out again in their order, each 4-byte aligned."""
     target = document["images"][index]["bufferView"]
     views = document["bufferViews"]
     out = bytearray()
@@ -103,29 +127,3 @@ def with_image(data: bytes, image_bytes: bytes, mime: str) -> bytes:
     text += b" " * (-len(text) % 4)
     body = struct.pack("<II", len(text), JSON_CHUNK) + text + struct.pack("<II", len(out), BIN_CHUNK) + bytes(out)
     return MAGIC + struct.pack("<II", 2, 12 + len(body)) + body
-
-
-def preview(data: bytes, longest_px: int = PREVIEW_PX) -> bytes:
-    """The glTF binary with its atlas scaled to at most ``longest_px`` a side (JPEG), the same
-    texture coordinates: what the viewer shows while the full atlas comes."""
-    image, _mime = texture_image(data)
-    atlas = _decoded(image, cv2.IMREAD_REDUCED_COLOR_8)
-    # decode at the largest JPEG scale (1/2, 1/4, 1/8) that leaves at least longest_px to scale down from
-    reduce = max([1] + [f for f in (2, 4, 8) if max(atlas.shape[:2]) * 8 // f >= longest_px])
-    if reduce != 8:
-        atlas = _decoded(image, {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}[reduce])
-    scale = longest_px / max(atlas.shape[:2])
-    if scale < 1.0:
-        size = (max(1, round(atlas.shape[1] * scale)), max(1, round(atlas.shape[0] * scale)))
-        atlas = cv2.resize(atlas, size, interpolation=cv2.INTER_AREA)
-    ok, jpeg = cv2.imencode(".jpg", atlas, [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_QUALITY])
-    if not ok:
-        raise GlbError(f"the preview atlas {atlas.shape[1]} x {atlas.shape[0]} px could not be encoded")
-    return with_image(data, jpeg.tobytes(), "image/jpeg")
-
-
-def _decoded(image: bytes, flags: int) -> np.ndarray:
-    atlas = cv2.imdecode(np.frombuffer(image, np.uint8), flags)
-    if atlas is None:
-        raise GlbError(f"the base colour image ({len(image)} bytes) does not decode")
-    return atlas

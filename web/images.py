@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import IO
 
 from PIL import Image, ImageDraw
 
@@ -27,9 +28,10 @@ def _encode(image: Image.Image) -> bytes:
     return out.getvalue()
 
 
-def scaled(path: Path, max_px: int) -> bytes:
-    """JPEG of the image fitted into max_px x max_px (never enlarged)."""
-    with Image.open(path) as image:
+def scaled(source: Path | IO[bytes], max_px: int) -> bytes:
+    """JPEG of the image (a file, or its bytes in a file object) fitted into max_px x max_px
+    (never enlarged)."""
+    with Image.open(source) as image:
         image.draft("RGB", (max_px, max_px))
         image = image.convert("RGB")
         image.thumbnail((max_px, max_px))

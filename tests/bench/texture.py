@@ -331,9 +331,10 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     print(f"  resolution: texel {atlas.texel_mm:.2f} mm on the chart, median {np.median(texel_on_skin[ok]):.2f} mm on the "
           f"skin; best image median {np.nanmedian(samples.best_mm_px[ok]):.2f} mm/px; texel / pixel median "
           f"{np.median(ratio[ok]):.2f}, 95th percentile {np.percentile(ratio[ok], 95):.2f} (goal <= {GOAL_RESOLUTION})")
-    return {"full_ms": viewer["full"] if viewer else float("nan"), "found": 100 * found.mean(), "found2": 100 * (distance <= 2.0).mean(), "delta_e": de.mean(),
+    return {"found": 100 * found.mean(), "found2": 100 * (distance <= 2.0).mean(), "delta_e": de.mean(),
             "mm_px": float(np.nanmedian(samples.best_mm_px[ok])), "ratio": float(np.median(ratio[ok])),
-            "ideal": 100 * (ideal <= MATCH_MM).mean(), "seconds": texture_s, "daemon_s": daemon_s, "gib": peak_gib}
+            "ideal": 100 * (ideal <= MATCH_MM).mean(), "seconds": texture_s, "daemon_s": daemon_s, "gib": peak_gib,
+            "full_ms": viewer["full"] if viewer else float("nan")}
 
 
 def _viewer_times(folder: Path) -> dict[str, Any] | None:
@@ -353,8 +354,9 @@ def _viewer_times(folder: Path) -> dict[str, Any] | None:
             wait_for(driver, "window.tbpViewer && (window.tbpViewer.textureLevel === 'full' || window.tbpViewer.error)", 120.0)
             loads.append(driver.execute_script("const v = window.tbpViewer; return {error: v.error, first: v.firstPaintMs, "
                                                "preview: v.timing.bodyBuiltMs, full: v.timing.fullTextureMs, size: v.textureSize}"))
-    if loads[0]["error"]:
-        raise SystemExit(f"the viewer failed on {folder.name}: {loads[0]['error']}")
+    failed = next((x["error"] for x in loads if x["error"]), None)
+    if failed:
+        raise SystemExit(f"the viewer failed on {folder.name}: {failed}")
     size = loads[0]["size"]
     return {**{k: float(np.median([x[k] for x in loads])) for k in ("first", "preview", "full")},
             "full_max": max(x["full"] for x in loads), "size": f"{size['width']} x {size['height']} texels"}
