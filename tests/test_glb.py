@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from analysis.body_texture import glb_bytes
-from web.glb import GlbError, preview, read_glb, texture_image, with_image
+from web.glb import MIP_ALIGN, GlbError, mip_layout, mip_sizes, mipmaps, preview, read_glb, texture_image, with_image
 
 
 def _body(width: int, height: int, seed: int = 0) -> bytes:
@@ -87,3 +87,46 @@ def test_a_body_that_is_not_a_textured_gltf_binary_is_named() -> None:
         preview(bare)
     with pytest.raises(GlbError, match="does not decode"):
         preview(with_image(data, b"not a jpeg", "image/jpeg"))
+
+
+@given(st.integers(1, 20_000), st.integers(1, 20_000))
+def test_the_mipmap_chain_halves_each_side_down_to_one_texel(width: int, height: int) -> None:
+    sizes = mip_sizes(width, height)
+    assert len(sizes) == max(width, height).bit_length() - 1  # WebGL's floor(log2(max side)) levels after 0
+    previous = (width, height)
+    for size in sizes:
+        assert size == (max(1, previous[0] // 2), max(1, previous[1] // 2))
+        previous = size
+    assert not sizes or sizes[-1] == (1, 1)
+
+
+@given(st.integers(1, 20_000), st.integers(1, 20_000))
+def test_the_mipmap_levels_lie_apart_on_the_sheet_each_on_the_jpeg_block_grid(width: int, height: int) -> None:
+    (sheet_w, sheet_h), levels = mip_layout(width, height)
+    assert [(w, h) for _, _, w, h in levels] == mip_sizes(width, height)
+    for i, (x, y, w, h) in enumerate(levels):
+        assert x % MIP_ALIGN == 0 and y % MIP_ALIGN == 0 and x + w <= sheet_w and y + h <= sheet_h
+        for x2, y2, w2, h2 in levels[:i]:  # blocks apart: a 16 x 16 JPEG block holds one level at most
+            rounded = (-(-w // MIP_ALIGN) * MIP_ALIGN, -(-h // MIP_ALIGN) * MIP_ALIGN)
+            rounded2 = (-(-w2 // MIP_ALIGN) * MIP_ALIGN, -(-h2 // MIP_ALIGN) * MIP_ALIGN)
+            assert x + rounded[0] <= x2 or x2 + rounded2[0] <= x or y + rounded[1] <= y2 or y2 + rounded2[1] <= y
+    # about three eighths of the atlas' area: level 1 and a column a quarter of the atlas wide
+    assert sheet_w < width // 2 + max(1, width // 4) + MIP_ALIGN and sheet_h <= height // 2 + MIP_ALIGN * len(levels)
+
+
+@pytest.mark.parametrize("size", [(1200, 800), (333, 1025)])
+def test_the_mipmap_levels_are_the_atlas_box_filtered(size) -> None:
+    data = _body(*size)
+    sheet, levels = mipmaps(data)
+    assert levels == mip_layout(*size)[1]
+    picture = Image.open(io.BytesIO(sheet)).convert("RGB")
+    assert picture.size == mip_layout(*size)[0]
+    expected = Image.open(io.BytesIO(texture_image(data)[0])).convert("RGB")
+    for x, y, w, h in levels:  # each the one before box-filtered, as a GPU builds the chain
+        expected = expected.resize((w, h), Image.BOX)
+        error = np.abs(np.asarray(picture.crop((x, y, x + w, y + h)), float) - np.asarray(expected, float)).mean()
+        # a few grey levels of JPEG error; more in levels smaller than a block, where this atlas'
+        # random colours (far busier than skin) change every texel or two
+        assert error < (3.0 if min(w, h) >= MIP_ALIGN else 8.0), (w, h, error)
+    with pytest.raises(GlbError, match="does not decode"):
+        mipmaps(with_image(data, b"not a jpeg", "image/jpeg"))

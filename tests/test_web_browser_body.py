@@ -13,6 +13,8 @@ from urllib.request import urlopen
 import numpy as np
 import pytest
 from PIL import Image
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.actions.wheel_input import ScrollOrigin
 
 from analysis.body_texture import write_body
 from analysis.scan_views import open_scan
@@ -20,7 +22,7 @@ from cli import main
 from tests.test_web import folder_of
 from tests.test_web_browser import front_vertex
 from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
-from web.glb import PREVIEW_PX, texture_image
+from web.glb import PREVIEW_PX, mip_layout, mip_sizes, texture_image
 
 pytestmark = pytest.mark.skipif(chromium_missing() is not None, reason=str(chromium_missing()))
 SHOTS = Path(os.environ.get("TBP_SCREENSHOTS", "/tmp/tbp-web-screenshots"))
@@ -32,6 +34,19 @@ def _green_share(png: bytes) -> float:
     drawn = pixels[np.abs(pixels - [28, 36, 49]).max(axis=1) > 12]  # not the stage's background
     green = (drawn[:, 1] > drawn[:, 0] + 20) & (drawn[:, 1] > drawn[:, 2] + 10)
     return float(green.mean()) if len(drawn) else 0.0
+
+
+def _skin_colour(png: bytes) -> np.ndarray:
+    """Median RGB of the drawn pixels (the body's outline, blended with the background, is a minority)."""
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float).reshape(-1, 3)
+    return np.median(pixels[np.abs(pixels - [28, 36, 49]).max(axis=1) > 12], axis=0)
+
+
+def _zoomed_out(driver) -> bytes:  # noqa: ANN001
+    canvas = driver.find_element("css selector", "canvas")
+    ActionChains(driver).scroll_from_origin(ScrollOrigin.from_element(canvas), 0, 2000).perform()
+    driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    return canvas.screenshot_as_png
 
 
 def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_store, tmp_path, capsys):
@@ -82,8 +97,22 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
         stored = Image.open(io.BytesIO(texture_image((scan_dir / "body.glb").read_bytes())[0]))
         size = driver.execute_script("return window.tbpViewer.textureSize")
         assert (size["width"], size["height"]) == stored.size
+        # uploaded with its whole mipmap chain, which the browser did not have to build
+        assert driver.execute_script("return window.tbpViewer.textureMipmaps") == [list(stored.size)] + [
+            list(s) for s in mip_sizes(*stored.size)]
         driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
-        assert _green_share(canvas.screenshot_as_png) < 0.05
+        detailed = canvas.screenshot_as_png
+        assert _green_share(detailed) < 0.05
+        # zoomed out, the body samples the atlas' smaller mipmap levels: the skin the browser's own
+        # chain of the preview atlas shows there (a page whose full atlas never comes)
+        far = _zoomed_out(driver)
+        driver.execute_cdp_cmd("Network.enable", {})
+        driver.execute_cdp_cmd("Network.setBlockedURLs", {"urls": ["*/body/texture*"]})
+        driver.get(f"{url}/scans/{name}")
+        wait_for(driver, "window.tbpViewer && window.tbpViewer.textureLevel === 'preview' && window.tbpViewer.error")
+        reference = _zoomed_out(driver)
+        driver.execute_cdp_cmd("Network.setBlockedURLs", {"urls": []})
+        assert np.abs(_skin_colour(far) - _skin_colour(reference)).max() < 6.0, (_skin_colour(far), _skin_colour(reference))
         print(f"first paint {driver.execute_script('return window.tbpViewer.firstPaintMs'):.0f} ms, "
               f"textured body built {timing['bodyBuiltMs']:.0f} ms, full texture {timing['fullTextureMs']:.0f} ms")
 
@@ -94,6 +123,10 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
         full = urlopen(f"{url}/api/scans/{name}/body/texture")
         assert full.headers["Content-Type"] == "image/jpeg"
         assert full.read() == texture_image((scan_dir / "body.glb").read_bytes())[0]
+        mips = urlopen(f"{url}/api/scans/{name}/body/texture/mipmaps")
+        levels = json.loads(mips.headers["Tbp-Mipmap-Levels"])
+        assert mips.headers["Content-Type"] == "image/jpeg" and levels == [list(x) for x in mip_layout(*stored.size)[1]]
+        assert Image.open(io.BytesIO(mips.read())).size == mip_layout(*stored.size)[0]
         with pytest.raises(HTTPError) as refused:
             urlopen(f"{url}/api/scans/{name}/body?texture=huge")
         assert refused.value.code == 400 and "full or preview" in json.loads(refused.value.read())["error"]["message"]
@@ -107,7 +140,7 @@ def test_a_body_glb_that_is_not_a_textured_gltf_is_named_on_the_page(web_store, 
     write_body(store / name, texel_mm=6.0)
     (store / name / "body.glb").write_bytes(b"PK\x03\x04 a zip file, not glTF")
     with serve_in_thread(store) as url, chromium() as driver:
-        for path in ("body?texture=preview", "body/texture"):
+        for path in ("body?texture=preview", "body/texture", "body/texture/mipmaps"):
             with pytest.raises(HTTPError) as refused:
                 urlopen(f"{url}/api/scans/{name}/{path}")
             message = json.loads(refused.value.read())["error"]["message"]

@@ -4,8 +4,9 @@ body.glb (analysis/body_texture.py) is one glTF binary: the mesh (a few MB) and 
 up to 8,192 texels a side (15 M of them skin at most). The viewer shows the mesh with a small
 atlas first (:func:`preview`: the same glTF with its base colour image scaled down) and then
 swaps in the full atlas
-(:func:`texture_image`: the image's bytes as stored), so the skin shows long before the
-atlas has arrived and been decoded. Both read the GLB container (glTF 2.0: a 12-byte header, a
+(:func:`texture_image`: the image's bytes as stored) with its mipmap chain (:func:`mipmaps`), so
+the skin shows long before the atlas has arrived and been decoded, and the browser does not
+build the chain itself. Both read the GLB container (glTF 2.0: a 12-byte header, a
 JSON chunk and a BIN chunk, every chunk and buffer view 4-byte aligned) and touch nothing but the
 image's buffer view; the accessors of the geometry keep their bytes.
 """
@@ -17,6 +18,7 @@ import json
 import struct
 from typing import Any
 
+import numpy as np
 from PIL import Image
 
 from web import images
@@ -26,6 +28,10 @@ JSON_CHUNK = 0x4E4F534A
 BIN_CHUNK = 0x004E4942
 PREVIEW_PX = 1024
 """The preview atlas' longer side, px (the full one's is up to 8,192)."""
+MIP_QUALITY = 90
+"""JPEG quality of the mipmap sheet (levels seen from further away than the atlas' own 92)."""
+MIP_ALIGN = 16
+"""Levels start on this grid of the mipmap sheet: a JPEG's 16 x 16 blocks never mix two levels."""
 
 
 class GlbError(ValueError):
@@ -94,6 +100,68 @@ def preview(data: bytes, longest_px: int = PREVIEW_PX) -> bytes:
     except (OSError, Image.DecompressionBombError) as exc:
         raise GlbError(f"the base colour image ({len(image)} bytes) does not decode: {exc}") from None
     return _replaced(document, blob, index, small, "image/jpeg")
+
+
+def mip_sizes(width: int, height: int) -> list[tuple[int, int]]:
+    """(width, height) of mipmap levels 1, 2, ... of a width x height image, down to 1 x 1: each
+    side halved and rounded down, never below 1 (OpenGL ES 3.0's chain, which WebGL 2 samples)."""
+    sizes = []
+    while width > 1 or height > 1:
+        width, height = max(1, width // 2), max(1, height // 2)
+        sizes.append((width, height))
+    return sizes
+
+
+def mip_layout(width: int, height: int) -> tuple[tuple[int, int], list[tuple[int, int, int, int]]]:
+    """The mipmap sheet of a width x height atlas: its (width, height) and where each level lies
+    in it, (x, y, width, height) from level 1 on. Level 1 fills the left; the smaller levels stand
+    in a column beside it, each starting on the MIP_ALIGN grid."""
+    sizes = mip_sizes(width, height)
+    if not sizes:
+        return (0, 0), []
+    first_w, first_h = sizes[0]
+    column = _aligned(first_w)
+    levels = [(0, 0, first_w, first_h)]
+    y = 0
+    for w, h in sizes[1:]:
+        levels.append((column, y, w, h))
+        y += _aligned(h)
+    sheet_w = column + (sizes[1][0] if len(sizes) > 1 else 0)
+    return (max(first_w, sheet_w), max(first_h, y)), levels
+
+
+def _aligned(px: int) -> int:
+    return -(-px // MIP_ALIGN) * MIP_ALIGN
+
+
+def mipmaps(data: bytes) -> tuple[bytes, list[tuple[int, int, int, int]]]:
+    """The atlas' mipmap levels 1, 2, ... down to 1 x 1 on one JPEG sheet (:func:`mip_layout`),
+    and where each level lies on it. Level 1 is the atlas decoded at half its JPEG scale (the
+    DCT's own low-pass), each further level a box filter of the one before, as a GPU builds its
+    chain; the filtering is on the stored sRGB values, which on skin's low contrasts is within a
+    JPEG's error of filtering in linear light."""
+    document, blob = read_glb(data)
+    image_bytes, _mime = _stored_image(document, blob, _image_index(document))
+    try:
+        with Image.open(io.BytesIO(image_bytes)) as stored:
+            width, height = stored.size
+            (sheet_w, sheet_h), levels = mip_layout(width, height)
+            if not levels:
+                raise GlbError(f"a {width} x {height} atlas has no mipmap levels")
+            stored.draft("RGB", levels[0][2:])
+            level = stored.convert("RGB")
+    except (OSError, Image.DecompressionBombError) as exc:
+        raise GlbError(f"the base colour image ({len(image_bytes)} bytes) does not decode: {exc}") from None
+    sheet = Image.new("RGB", (sheet_w, sheet_h))
+    for x, y, w, h in levels:
+        if level.size != (w, h):
+            level = level.resize((w, h), Image.Resampling.BOX)
+        # its edges repeated to the block grid: a JPEG block holds the level and no black beside it
+        pad = ((0, min(_aligned(h), sheet_h - y) - h), (0, min(_aligned(w), sheet_w - x) - w), (0, 0))
+        sheet.paste(Image.fromarray(np.pad(np.asarray(level), pad, mode="edge")), (x, y))
+    out = io.BytesIO()
+    sheet.save(out, format="JPEG", quality=MIP_QUALITY, subsampling=0)
+    return out.getvalue(), levels
 
 
 def _stored_image(document: dict[str, Any], blob: bytes, index: int) -> tuple[bytes, str]:

@@ -35,6 +35,9 @@ from daemon.records.manifest import ImageStatus, Manifest, ManifestError
 from daemon.records.store import ScanStore
 from web import glb, images, keys
 
+MIPMAP_LEVELS_HEADER = "Tbp-Mipmap-Levels"
+"""Where each mipmap level lies on /body/texture/mipmaps' sheet: JSON [[x, y, width, height], ...]."""
+
 
 def json_error(status: type[web.HTTPException], error: Exception | str) -> web.HTTPException:
     """An HTTP error whose body is {"error": {"type", "message"}}."""
@@ -56,7 +59,8 @@ class OpenScan:
         self.mesh_bytes: bytes | None = None
         self.shares: dict[str, float] | None = None
         self.previews: OrderedDict[tuple[Any, ...], Any] = OrderedDict()
-        """Scaled images and crops (bytes), the body's preview and atlas (bytes, content type)."""
+        """Scaled images and crops (bytes), the body's preview, atlas and mipmaps (bytes, content
+        type, headers)."""
         self.lock = asyncio.Lock()
         self.warming: asyncio.Task[Any] | None = None
 
@@ -259,10 +263,10 @@ def _body_path(scan: OpenScan) -> Path:
 
 
 async def _from_body(request: web.Request, scan: OpenScan, level: str,
-                     make: Callable[[bytes], tuple[bytes, str]]) -> web.Response:
-    """What ``make`` builds from body.glb's bytes (its bytes and content type), off the loop,
-    kept with the scan's previews while the file is the same; 422 naming what is wrong when
-    body.glb is not a textured glTF binary."""
+                     make: Callable[[bytes], tuple[bytes, str] | tuple[bytes, str, dict[str, str]]]) -> web.Response:
+    """What ``make`` builds from body.glb's bytes (its bytes, content type and any headers), off
+    the loop, kept with the scan's previews while the file is the same; 422 naming what is wrong
+    when body.glb is not a textured glTF binary."""
     path = _body_path(scan)
     stat = path.stat()
     key = ("body", level, stat.st_mtime_ns, stat.st_size)
@@ -273,8 +277,9 @@ async def _from_body(request: web.Request, scan: OpenScan, level: str,
         except glb.GlbError as exc:
             raise json_error(web.HTTPUnprocessableEntity, f"{path.name}: {exc}") from exc
         _keep(_library(request), scan, key, kept)
-    data, content_type = kept
-    return web.Response(body=data, content_type=content_type, headers={"Cache-Control": "private, max-age=60"})
+    data, content_type, *headers = kept
+    return web.Response(body=data, content_type=content_type,
+                        headers={"Cache-Control": "private, max-age=60", **(headers[0] if headers else {})})
 
 
 async def scan_body(request: web.Request) -> web.StreamResponse:
@@ -295,6 +300,19 @@ async def scan_body_texture(request: web.Request) -> web.Response:
     """The textured body's full atlas: body.glb's base colour image as stored (JPEG)."""
     scan = await _library(request).opened(request.match_info["folder"])
     return await _from_body(request, scan, "texture", glb.texture_image)
+
+
+async def scan_body_mipmaps(request: web.Request) -> web.Response:
+    """The full atlas' mipmap levels 1, 2, ... down to 1 x 1 on one JPEG sheet (web/glb.py
+    mipmaps); the ``Tbp-Mipmap-Levels`` header lists where each lies on it, [x, y, width,
+    height] from level 1 on. The viewer uploads them with the atlas instead of building them."""
+    scan = await _library(request).opened(request.match_info["folder"])
+
+    def sheet(data: bytes) -> tuple[bytes, str, dict[str, str]]:
+        image, levels = glb.mipmaps(data)
+        return image, "image/jpeg", {MIPMAP_LEVELS_HEADER: json.dumps(levels, separators=(",", ":"))}
+
+    return await _from_body(request, scan, "mipmaps", sheet)
 
 
 async def scan_skin(request: web.Request) -> web.Response:
@@ -404,6 +422,7 @@ def routes(app: web.Application) -> None:
     app.router.add_get("/api/scans/{folder}/skin", scan_skin)
     app.router.add_get("/api/scans/{folder}/body", scan_body)
     app.router.add_get("/api/scans/{folder}/body/texture", scan_body_texture)
+    app.router.add_get("/api/scans/{folder}/body/texture/mipmaps", scan_body_mipmaps)
     app.router.add_get("/api/scans/{folder}/navigate", navigate)
     app.router.add_get("/api/scans/{folder}/images/{name}", image)
     app.router.add_get("/scans/{folder}/report/", report_file)

@@ -1,7 +1,7 @@
 // The textured body (body.glb from `tbp texture`: glTF binary in metres, the scan's mesh with
 // a texture atlas) as a three.js mesh in the viewer's millimetres. The viewer loads the preview
 // first (the same glTF with its atlas scaled down, /body?texture=preview) and then swaps in the
-// full atlas (/body/texture), decoded off the main thread.
+// full atlas (/body/texture) with its mipmaps (/body/texture/mipmaps), decoded off the main thread.
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 
@@ -38,12 +38,32 @@ export async function decodeAtlas(response) {
   return createImageBitmap(await answer.blob(), { premultiplyAlpha: "none" });
 }
 
+// response: a promise of the fetch() Response for /api/scans/<folder>/body/texture/mipmaps (the
+// full atlas' mipmap levels 1, 2, ... on one JPEG sheet, where each lies in its Tbp-Mipmap-Levels
+// header). Resolves to the levels, each an ImageBitmap cut from the decoded sheet.
+export async function decodeMipmaps(response) {
+  const answer = await response;
+  if (!answer.ok) {
+    const body = await answer.json().catch(() => ({}));
+    throw new Error(body.error ? body.error.message : `texture mipmaps: ${answer.statusText}`);
+  }
+  const levels = JSON.parse(answer.headers.get("Tbp-Mipmap-Levels"));
+  const sheet = await createImageBitmap(await answer.blob(), { premultiplyAlpha: "none" });
+  const cut = await Promise.all(levels.map(([x, y, w, h]) => createImageBitmap(sheet, x, y, w, h, { premultiplyAlpha: "none" })));
+  sheet.close();
+  return cut;
+}
+
 // Replaces the preview's texture of the mesh with the decoded full atlas, made as GLTFLoader
 // made the preview's (an ImageBitmap, not flipped; the same colour space, filters and wrapping).
-export function swapInAtlas(mesh, bitmap) {
+// mipmaps: the atlas' levels 1, 2, ... (decodeMipmaps), uploaded with it: building the chain
+// from a 30 M-texel atlas holds a software renderer's frame for about 1.5 s.
+export function swapInAtlas(mesh, bitmap, mipmaps) {
   const preview = mesh.material.map;
   const texture = new THREE.Texture(bitmap);
-  for (const key of ["flipY", "colorSpace", "magFilter", "minFilter", "wrapS", "wrapT", "generateMipmaps", "anisotropy"]) texture[key] = preview[key];
+  for (const key of ["flipY", "colorSpace", "magFilter", "minFilter", "wrapS", "wrapT", "anisotropy"]) texture[key] = preview[key];
+  texture.mipmaps = [bitmap, ...mipmaps];
+  texture.generateMipmaps = false;
   texture.needsUpdate = true;
   mesh.material.map = texture;
   mesh.material.needsUpdate = true;

@@ -4,7 +4,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { getJSON, el, fmt, ending, personName } from "/static/common.js";
-import { decodeAtlas, loadBody, swapInAtlas } from "/static/body.js";
+import { decodeAtlas, decodeMipmaps, loadBody, swapInAtlas } from "/static/body.js";
 import { MarksPane } from "/static/marks.js";
 
 const folder = decodeURIComponent(location.pathname.split("/")[2]);
@@ -111,13 +111,15 @@ async function loadTexturedBody() {
   toggle.addEventListener("click", () => showTexture(!state.body.visible));
   showTexture(true);
   // then the full atlas, fetched once the preview shows (decoding it beside the preview's parsing delays the preview)
-  const bitmap = await decodeAtlas(fetch(`${api}/body/texture`));
-  swapInAtlas(body, bitmap);
+  const [bitmap, mipmaps] = await Promise.all([decodeAtlas(fetch(`${api}/body/texture`)),
+    decodeMipmaps(fetch(`${api}/body/texture/mipmaps`))]);
+  swapInAtlas(body, bitmap, mipmaps);
   dirty = true;
   // the next frame draws (and uploads) it; the one after that is when it is on the screen
   requestAnimationFrame(() => requestAnimationFrame(() => {
     hooks.timing.fullTextureMs = performance.now();
     hooks.textureSize = { width: bitmap.width, height: bitmap.height };
+    hooks.textureMipmaps = body.material.map.mipmaps.map((level) => [level.width, level.height]);
     hooks.textureLevel = "full";
   }));
 }
