@@ -117,8 +117,8 @@ def mip_layout(width: int, height: int) -> tuple[tuple[int, int], list[tuple[int
     in it, (x, y, width, height) from level 1 on. Level 1 fills the left; the smaller levels stand
     in a column beside it, each starting on the MIP_ALIGN grid."""
     sizes = mip_sizes(width, height)
-    if not sizes:
-        return (0, 0), []
+    if not sizes:  # a 1 x 1 atlas: no level, an empty 1 x 1 sheet (a JPEG has a pixel at least)
+        return (1, 1), []
     first_w, first_h = sizes[0]
     column = _aligned(first_w)
     levels = [(0, 0, first_w, first_h)]
@@ -146,9 +146,7 @@ def mipmaps(data: bytes) -> tuple[bytes, list[tuple[int, int, int, int]]]:
         with Image.open(io.BytesIO(image_bytes)) as stored:
             width, height = stored.size
             (sheet_w, sheet_h), levels = mip_layout(width, height)
-            if not levels:
-                raise GlbError(f"a {width} x {height} atlas has no mipmap levels")
-            stored.draft("RGB", levels[0][2:])
+            stored.draft("RGB", levels[0][2:] if levels else (1, 1))
             level = stored.convert("RGB")
     except (OSError, Image.DecompressionBombError) as exc:
         raise GlbError(f"the base colour image ({len(image_bytes)} bytes) does not decode: {exc}") from None
