@@ -301,9 +301,12 @@ class LoopbackRig:
             # fusion (a drive starved for 400 ms misses the host's heartbeats and faults).
             self._renice(motor, DEVICE_NICENESS, share=self.daemon_share)
             self.bridge_port = int(self._first_line(motor, r"127\.0\.0\.1:(\d+)")[1])
-        for index in range(len(self.rig.phones)):
-            if index not in self.missing_phones:
-                self.start_phone(index)
+        # The phones boot side by side (each a second or two of imports and loading its body),
+        # then each is waited for.
+        booting = [(index, self._boot_phone(index)) for index in range(len(self.rig.phones))
+                   if index not in self.missing_phones]
+        for index, proc in booting:
+            self._phone_up(index, proc)
         if "panel" in self.missing:
             self.panel_tty = str(self.root / "dev" / "ttyACM-panel")
         else:
@@ -320,8 +323,11 @@ class LoopbackRig:
 
     def start_phone(self, index: int) -> None:
         """Start (or restart, on the port it had) phone ``index``'s simulator: a phone plugged in."""
+        self._phone_up(index, self._boot_phone(index))
+
+    def _boot_phone(self, index: int) -> Proc:
         phone = self.rig.phones[index]
-        port = self.phone_ports.get(index) or free_port()
+        port = self.phone_ports.get(index, 0)  # a restart keeps its port; a first boot takes one the kernel gives
         # Without a drive there is no beam to follow (and python-can retries a refused bridge
         # in a tight loop for 10 s at a time, which would take the cores from the daemon).
         follow = () if "drive" in self.missing else ("--follow-beam", f"127.0.0.1:{self.bridge_port}")
@@ -334,8 +340,11 @@ class LoopbackRig:
         # scheduler serves first, but not starved by other work (a starved phone misses captures
         # a real one would not).
         self._renice(proc, PHONE_NICENESS, share=0)
-        self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")
-        self.phone_ports[index] = port
+        return proc
+
+    def _phone_up(self, index: int, proc: Proc) -> None:
+        """Wait for a booting phone's adbd to listen; keep its port."""
+        self.phone_ports[index] = int(self._first_line(proc, r"adbd\) on 127\.0\.0\.1:(\d+)")[1])
 
     def _renice(self, proc: Proc, niceness: int, *, share: int | None = None) -> None:
         """Give ``proc`` the priority its counterpart has on a rig PC: ``niceness`` among its own
