@@ -29,7 +29,8 @@ BIN_CHUNK = 0x004E4942
 PREVIEW_PX = 1024
 """The preview atlas' longer side, px (the full one's is up to 8,192)."""
 MIP_QUALITY = 90
-"""JPEG quality of the mipmap sheet (levels seen from further away than the atlas' own 92)."""
+"""JPEG quality of the mipmap sheet, stored without chroma subsampling: its small levels hold
+the whole body in a few hundred texels, where halving the colour's resolution shows."""
 MIP_ALIGN = 16
 """Levels start on this grid of the mipmap sheet: a JPEG's 16 x 16 blocks never mix two levels."""
 

@@ -56,8 +56,8 @@ export async function decodeMipmaps(response) {
 
 // Replaces the preview's texture of the mesh with the decoded full atlas, made as GLTFLoader
 // made the preview's (an ImageBitmap, not flipped; the same colour space, filters and wrapping).
-// mipmaps: the atlas' levels 1, 2, ... (decodeMipmaps), uploaded with it: building the chain
-// from a 30 M-texel atlas holds a software renderer's frame for about 1.5 s.
+// mipmaps: the atlas' levels 1, 2, ... (decodeMipmaps), uploaded with it, so the browser does not
+// build the chain (a software renderer builds it in the frame that uploads the atlas).
 export function swapInAtlas(mesh, bitmap, mipmaps) {
   const preview = mesh.material.map;
   const texture = new THREE.Texture(bitmap);
