@@ -103,6 +103,8 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
         driver.execute_script("return new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
         detailed = canvas.screenshot_as_png
         assert _green_share(detailed) < 0.05
+        print(f"first paint {driver.execute_script('return window.tbpViewer.firstPaintMs'):.0f} ms, "
+              f"textured body built {timing['bodyBuiltMs']:.0f} ms, full texture {timing['fullTextureMs']:.0f} ms")
         # zoomed out, the body samples the atlas' smaller mipmap levels: the skin the browser's own
         # chain of the preview atlas shows there (a page whose full atlas never comes)
         far = _zoomed_out(driver)
@@ -113,8 +115,6 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
         reference = _zoomed_out(driver)
         driver.execute_cdp_cmd("Network.setBlockedURLs", {"urls": []})
         assert np.abs(_skin_colour(far) - _skin_colour(reference)).max() < 6.0, (_skin_colour(far), _skin_colour(reference))
-        print(f"first paint {driver.execute_script('return window.tbpViewer.firstPaintMs'):.0f} ms, "
-              f"textured body built {timing['bodyBuiltMs']:.0f} ms, full texture {timing['fullTextureMs']:.0f} ms")
 
         # the two levels over HTTP: a smaller atlas in the same glTF, and the stored atlas itself
         glb = urlopen(f"{url}/api/scans/{name}/body?texture=preview").read()
