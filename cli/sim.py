@@ -72,10 +72,13 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import sys
 
-    from daemon.logs import configure_logging
+    from daemon.logs import close_logging, configure_logging
     from daemon.offload.worker import one_numeric_thread
 
-    configure_logging(level=args.log_level, stream=sys.stderr)
+    # A simulator holds its device's heartbeats on its event loop, as the daemon does its own: its
+    # log lines go out from a writer thread, never from the loop (a write to a log file can wait
+    # hundreds of ms for a disk busy with a scan's images).
+    configure_logging(level=args.log_level, stream=sys.stderr, queued=True)
     # A simulator stands in for a device with its own processor, yet shares the cores of the
     # machine the daemon runs on: its renders run on one thread and never wait at a barrier for
     # a core the daemon or its compute worker holds.
@@ -83,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(args.sim_module)
     for sig in (signal.SIGINT, signal.SIGTERM):  # until the simulator installs its own handlers
         signal.signal(sig, _stop_before_ready)
-    return int(asyncio.run(module.serve(args)) or 0)
+    try:
+        return int(asyncio.run(module.serve(args)) or 0)
+    finally:
+        close_logging()
 
 
 def _stop_before_ready(signum: int, frame: object) -> None:

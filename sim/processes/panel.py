@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import sys
 
+from daemon.log_sink import LineSink
 from drivers.panel import protocol
 from drivers.sim.panel import SimulatedPanel
 from sim.processes.keys import stop_signals
@@ -34,9 +36,10 @@ async def serve(args: argparse.Namespace) -> int:
     if args.no_heartbeat:
         panel.stop_heartbeats()
     print(f"simulated panel on {path}", flush=True)
-    panel.on_change = lambda p: print(
-        f"LED {p.led.value}, light {'on' if p.light else 'off'}"
-        + (", host lost" if p.host_lost else ""), flush=True)
+    # Written by a thread: the heartbeats never wait for the write (see cli/sim.py).
+    shown = LineSink(sys.stdout, lambda n: f"({n} panel lines dropped)")
+    panel.on_change = lambda p: shown.put(
+        f"LED {p.led.value}, light {'on' if p.light else 'off'}" + (", host lost" if p.host_lost else ""))
     keys = {"s": ("start pressed", panel.press_start), "x": ("stop pressed", panel.press_stop),
             "e": ("e-stop pressed", panel.press_estop), "r": ("e-stop released", panel.release_estop),
             "h": ("heartbeats stopped", panel.stop_heartbeats), "H": ("heartbeats resumed", panel.resume_heartbeats)}
@@ -48,4 +51,5 @@ async def serve(args: argparse.Namespace) -> int:
         runner.cancel()
         await asyncio.gather(runner, return_exceptions=True)
         panel.close()
+        shown.close()
     return 0
