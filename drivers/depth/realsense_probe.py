@@ -39,6 +39,7 @@ class RealSenseProbe:
     The ``realsense`` kind's finder (:meth:`find`)."""
 
     ANSWER_TIMEOUT_S = 5.0
+    EXIT_WAIT_S = 1.0  # after a broken pipe, how long the process gets to be seen ending
     CLOSE_TIMEOUT_S = 2.0
 
     def __init__(self, command: list[str] | None = None) -> None:
@@ -79,7 +80,16 @@ class RealSenseProbe:
         except TimeoutError:
             await self._stop()
             raise ProbeFailed("realsense-probe", f"no answer within {self.ANSWER_TIMEOUT_S:g} s") from None
-        except (ConnectionError, ValueError) as exc:  # the pipe broke, or an endless line
+        except ConnectionError as exc:  # the pipe broke: most often the process has ended
+            try:
+                code: int | None = await asyncio.wait_for(process.wait(), self.EXIT_WAIT_S)
+            except TimeoutError:
+                code = None
+            await self._stop()
+            if code is not None:
+                raise ProbeFailed("realsense-probe", f"probe process exited (code {code})") from exc
+            raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
+        except ValueError as exc:  # an endless line
             await self._stop()
             raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
         if not line:
