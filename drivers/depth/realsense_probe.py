@@ -17,6 +17,7 @@ imported, ``{"missing": "<the import error>"}``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import sys
@@ -81,14 +82,12 @@ class RealSenseProbe:
             await self._stop()
             raise ProbeFailed("realsense-probe", f"no answer within {self.ANSWER_TIMEOUT_S:g} s") from None
         except ConnectionError as exc:  # the pipe broke: most often the process has ended
-            try:
-                code: int | None = await asyncio.wait_for(process.wait(), self.EXIT_WAIT_S)
-            except TimeoutError:
-                code = None
-            await self._stop()
-            if code is not None:
-                raise ProbeFailed("realsense-probe", f"probe process exited (code {code})") from exc
-            raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(process.wait(), self.EXIT_WAIT_S)
+            if process.returncode is None:
+                await self._stop()
+                raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
+            line = b""  # ended: named below as an exit, like one that closed its output
         except ValueError as exc:  # an endless line
             await self._stop()
             raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
