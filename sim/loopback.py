@@ -608,7 +608,7 @@ def scan_from_panel(rig: LoopbackRig, *, ready_timeout_s: float = 180.0, scan_ti
     rig.notify.wait("READY", "1", ready_timeout_s, alive=rig.procs["daemon"].alive)
     rig.say("daemon READY; pressing START on the panel")
     rig.press("s")
-    status = rig.wait_status(lambda s: s.get("state") != "idle" and bool(s.get("scan_id")), "scan start", 30.0)
+    status = rig.wait_status(lambda s: s.get("state") != "IDLE" and bool(s.get("scan_id")), "scan start", 30.0)
     scan_id = status["scan_id"]
     rig.say(f"scan {scan_id} running ({status.get('state')})")
     status = rig.wait_status(lambda s: (s.get("last_scan") or {}).get("scan_id") == scan_id,
