@@ -199,18 +199,31 @@ async def test_the_guard_thread_quick_stops_a_loop_that_blocks_and_tells_the_loo
     timing = GuardTiming(heartbeat_period_s=0.02, drive_timeout_s=30.0, host_stall_s=0.5)
     trips: list[GuardTrip] = []
     guard = ThreadedGuard(port, 5, 0x7F, timing, trips.append, loop=asyncio.get_running_loop())
+    beats = nmt.heartbeat_cob_id(0x7F)
+    stop_id = quick_stop_message(5).arbitration_id
     try:
-        for _ in range(10):
+        fed = 0
+        fed_until = time.monotonic() + 10.0  # a deadline, not a duration: a descheduled thread beats late
+        while (fed < 10 or not port.frames(beats)) and time.monotonic() < fed_until:
             guard.feed()
+            fed += 1
             await asyncio.sleep(0.02)
-        assert trips == [] and port.frames(nmt.heartbeat_cob_id(0x7F))
-        time.sleep(1.5)  # the loop is stuck; the guard's thread is not
-        stops = port.frames(quick_stop_message(5).arbitration_id)
+        assert trips == [] and port.frames(beats)
+        # The loop is stuck from here (time.sleep holds it); the guard's thread is not. It stays
+        # stuck until the quick stop is sent, then long enough past it for a repeat to show.
+        stuck_until = time.monotonic() + 10.0
+        while not port.frames(stop_id) and time.monotonic() < stuck_until:
+            time.sleep(0.01)
+        time.sleep(timing.host_stall_s)
+        stops = port.frames(stop_id)
         assert len(stops) == 1
-        assert all(at < stops[0] for at in port.frames(nmt.heartbeat_cob_id(0x7F)))
+        assert all(at < stops[0] for at in port.frames(beats))
+        heard_until = time.monotonic() + 10.0
+        while not trips and time.monotonic() < heard_until:  # the loop runs again: the trip reaches it
+            await asyncio.sleep(0.01)
         await asyncio.sleep(0.05)
         assert [t.kind for t in trips] == [GuardTripKind.HOST_STALLED] and trips[0].silent_s > 0.5
-        assert port.sent[-1][1].arbitration_id == quick_stop_message(5).arbitration_id
+        assert port.sent[-1][1].arbitration_id == stop_id
         assert quick_stop_message(5).data == bytes([0x02, 0x00])
     finally:
         await guard.stop()

@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import AsyncIterator, Iterator
 
 import can
@@ -204,7 +205,7 @@ async def test_handshake_survives_a_busy_bus(bridge: tuple[SocketcandServer, Sim
     try:
         for _ in range(3):
             port = await _client_port(server)
-            msg = await asyncio.wait_for(port.recv(), 2.0)
+            msg = await asyncio.wait_for(port.recv(), 30.0)  # a frame every 0.5 ms: a deadline for a loaded machine
             assert msg.arbitration_id == 0x77F
             port.close()
     finally:
@@ -277,11 +278,11 @@ def test_serve_runs_the_drive_behind_the_bridge_until_sigterm() -> None:
             request = bytes.fromhex("4041600000000000")
             bus.send(can.Message(arbitration_id=0x600 + MOTOR.node_id, data=request, is_extended_id=False))
             reply = None
-            for _ in range(100):
+            deadline = time.monotonic() + 30.0  # the reply, or a generous deadline for a loaded machine
+            while reply is None and time.monotonic() < deadline:
                 msg = bus.recv(timeout=0.1)
                 if msg is not None and msg.arbitration_id == 0x580 + MOTOR.node_id:
                     reply = bytes(msg.data)
-                    break
             assert reply is not None and reply[:4] == bytes.fromhex("4B416000")
         finally:
             bus.shutdown()
@@ -330,9 +331,8 @@ async def test_a_simulated_phone_follows_the_angle_the_daemon_drives(
         await drive.connect()
         await drive.enable()
         await drive.move_to(3.0, 30.0, 60.0)
-        for _ in range(500):  # until the follower has read a sample at the end of the move
-            if abs(follower.angle_at(loop.time()) - 3.0) < 0.01:
-                break
+        deadline = loop.time() + 30.0  # until the follower has read a sample at the end of the move
+        while abs(follower.angle_at(loop.time()) - 3.0) >= 0.01 and loop.time() < deadline:
             await asyncio.sleep(0.01)
         assert follower.angle_at(loop.time()) == pytest.approx(3.0, abs=0.01)
         await drive.disable()
