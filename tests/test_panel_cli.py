@@ -100,7 +100,9 @@ async def test_tbp_panel_commissions_a_panel_on_a_serial_port() -> None:
         assert proc.returncode == 0, err.decode()
         assert f"panel {path}: connected, e-stop PRESSED, LED OFF, light off" in out.decode()
 
-        proc = await _tbp("panel", "--port", path, "led", "SCANNING", "--seconds", "1")
+        # The CLI holds the LED for --seconds after its line: long enough for a test process a
+        # loaded machine delays to see it lit before BYE puts it out.
+        proc = await _tbp("panel", "--port", path, "led", "SCANNING", "--seconds", "5")
         assert proc.stdout is not None
         assert (await asyncio.wait_for(proc.stdout.readline(), 60)).startswith(b"LED SCANNING")
         assert sim.led is StatusLed.SCANNING
@@ -108,7 +110,7 @@ async def test_tbp_panel_commissions_a_panel_on_a_serial_port() -> None:
         assert proc.returncode == 0 and sim.led is StatusLed.OFF  # BYE at the end
 
         sim.release_estop()
-        proc = await _tbp("panel", "--port", path, "watch", "--seconds", "2")
+        proc = await _tbp("panel", "--port", path, "watch", "--seconds", "6")  # START comes within it
         assert proc.stdout is not None
         assert b"e-stop released" in await asyncio.wait_for(proc.stdout.readline(), 60)
         sim.press_start()
