@@ -503,7 +503,7 @@ def test_drive_stops_by_itself_when_host_heartbeat_stops() -> None:
 
 def test_pulled_cable_gives_heartbeat_loss_and_sdo_timeout() -> None:
     async def scenario(drive: BeamDrive, sim: SimulatedDrive) -> None:
-        drive.sdo.RESPONSE_TIMEOUT_S = 0.05
+        drive.sdo.response_timeout_s = 0.05
         sim.disconnect()
         with pytest.raises(HeartbeatLost):
             await drive.wait_speed(10.0, timeout_s=5.0)

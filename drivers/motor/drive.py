@@ -124,8 +124,8 @@ class BeamDrive:
         self.samples_received = 0
         self.guard: DriveGuard | None = None
         self.guard_timing = GuardTiming.of(config)
-        self.sdo = SdoClient(self._send, self.node_id, device=name, state=lambda: self.state.value)
-        self.sdo.RESPONSE_TIMEOUT_S = self.SDO_TIMEOUT_S
+        self.sdo = SdoClient(self._send, self.node_id, device=name, state=lambda: self.state.value,
+                             response_timeout_s=self.SDO_TIMEOUT_S)
         self._speed_counts = 0
         self._controlword = 0
         self._command = (0, "")  # (serial, name) of the latest motion command

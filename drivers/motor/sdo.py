@@ -113,12 +113,15 @@ class SdoClient:
         node_id: the server's node id.
         device: name used in errors.
         state: callable giving the device's current state text for errors.
+        response_timeout_s: how long a transfer waits for the server's reply.
     """
 
     RESPONSE_TIMEOUT_S = 0.5
 
-    def __init__(self, send: SendFrame, node_id: int, *, device: str, state: Callable[[], str]) -> None:
+    def __init__(self, send: SendFrame, node_id: int, *, device: str, state: Callable[[], str],
+                 response_timeout_s: float = RESPONSE_TIMEOUT_S) -> None:
         self._send = send
+        self.response_timeout_s = response_timeout_s
         self.node_id = node_id
         self.device = device
         self._state = state
@@ -149,11 +152,11 @@ class SdoClient:
             try:
                 await self._send(0x600 + self.node_id, request)
                 try:
-                    async with asyncio.timeout(self.RESPONSE_TIMEOUT_S):
+                    async with asyncio.timeout(self.response_timeout_s):
                         data = await self._reply
                 except TimeoutError:
                     raise SdoTimeout(
-                        self.device, self._state(), index, subindex, self.RESPONSE_TIMEOUT_S
+                        self.device, self._state(), index, subindex, self.response_timeout_s
                     ) from None
             finally:
                 self._reply = None
