@@ -4,7 +4,8 @@ signals that stop a simulator process.
 A harness (the loopback rig, ``./dev bench safety``) writes one character to a simulator's stdin
 to press a button or inject a fault; the simulator acts on it and prints ``<action> mono_s=<t>``
 (``time.monotonic()``, the machine-wide clock every process on it shares), so the harness can time
-how long the daemon took to react.
+how long the daemon took to react. Those lines, and every other line a simulator prints while its
+device runs, go out through :func:`say`.
 """
 
 from __future__ import annotations
@@ -19,8 +20,24 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from daemon.log_sink import LineSink
+
 Keys = dict[str, tuple[str, Callable[[], None]]]
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+_out: LineSink | None = None
+
+
+def say(line: str) -> None:
+    """Print ``line`` on stdout from a writer thread (daemon/log_sink.py), never from the event
+    loop: the loop holds the device's heartbeats, as a device with its own processor would, and a
+    write can wait hundreds of ms for a reader or a disk busy with a scan. Lines queued when the
+    process ends are written out at exit."""
+    global _out
+    if _out is None:
+        _out = LineSink(sys.stdout, lambda n: f"({n} simulator lines dropped)")
+    _out.put(line)
 
 
 def is_stream(file: Any) -> bool:
@@ -50,7 +67,7 @@ def watch_keys(keys: Keys) -> Callable[[], None]:
                 # run first) between the action's write and a stamp taken after it.
                 at = time.monotonic()
                 action()
-                print(f"{name} mono_s={at:.6f}", flush=True)
+                say(f"{name} mono_s={at:.6f}")
 
     loop.add_reader(fd, on_stdin)
     return lambda: loop.remove_reader(fd)

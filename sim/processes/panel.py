@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import sys
 
-from daemon.log_sink import LineSink
 from drivers.panel import protocol
 from drivers.sim.panel import SimulatedPanel
-from sim.processes.keys import stop_signals
+from sim.processes.keys import say, stop_signals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,9 +34,7 @@ async def serve(args: argparse.Namespace) -> int:
     if args.no_heartbeat:
         panel.stop_heartbeats()
     print(f"simulated panel on {path}", flush=True)
-    # Written by a thread: the heartbeats never wait for the write (see cli/sim.py).
-    shown = LineSink(sys.stdout, lambda n: f"({n} panel lines dropped)")
-    panel.on_change = lambda p: shown.put(
+    panel.on_change = lambda p: say(
         f"LED {p.led.value}, light {'on' if p.light else 'off'}" + (", host lost" if p.host_lost else ""))
     keys = {"s": ("start pressed", panel.press_start), "x": ("stop pressed", panel.press_stop),
             "e": ("e-stop pressed", panel.press_estop), "r": ("e-stop released", panel.release_estop),
@@ -51,5 +47,4 @@ async def serve(args: argparse.Namespace) -> int:
         runner.cancel()
         await asyncio.gather(runner, return_exceptions=True)
         panel.close()
-        shown.close()
     return 0
