@@ -81,20 +81,21 @@ class RealSenseProbe:
         except TimeoutError:
             await self._stop()
             raise ProbeFailed("realsense-probe", f"no answer within {self.ANSWER_TIMEOUT_S:g} s") from None
-        except ConnectionError as exc:  # the pipe broke: most often the process has ended
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(process.wait(), self.EXIT_WAIT_S)
-            if process.returncode is None:
+        except (ConnectionError, ValueError) as exc:  # the pipe broke, or an endless line
+            if not (isinstance(exc, ConnectionError) and await self._ended(process)):
                 await self._stop()
                 raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
-            line = b""  # ended: named below as an exit, like one that closed its output
-        except ValueError as exc:  # an endless line
-            await self._stop()
-            raise ProbeFailed("realsense-probe", f"probe process link: {exc}") from exc
+            line = b""  # the pipe of a process that ended: named below as an exit
         if not line:
             code = await self._stop()
             raise ProbeFailed("realsense-probe", f"probe process exited (code {code})")
         return _answer(line)
+
+    async def _ended(self, process: asyncio.subprocess.Process) -> bool:
+        """Whether ``process`` is seen ending within EXIT_WAIT_S (a broken pipe most often means it has)."""
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(process.wait(), self.EXIT_WAIT_S)
+        return process.returncode is not None
 
     async def _running(self) -> asyncio.subprocess.Process:
         if self._process is None or self._process.returncode is not None:
