@@ -195,12 +195,25 @@ def machine_caused(stall: dict[str, Any]) -> bool:
     half the stall for a CPU (``runqueue_ms``; other processes kept the cores, e.g. parallel test
     runs), or it was blocked, not running, while for at least half the stall tasks on the machine
     waited for a CPU or the hypervisor ran another guest (``pressure_ms`` + ``steal_ms``: a thread
-    holding the interpreter lock, itself waiting for a CPU, holds the loop too). A stall the loop
-    thread spent running its own code is its own whatever the machine."""
+    holding the interpreter lock, itself waiting for a CPU, holds the loop too), or the stall's
+    stack dump, taken once the loop was ``warn_s`` late, found the loop thread still in its
+    selector's wait (``loop_frame``) while neither it nor the daemon's other threads ran for half
+    the stall (``cpu_ms``, ``process_cpu_ms``): then no code of the daemon's held the loop, and no
+    system call of its own did. A stall the loop thread spent running its own code is its own
+    whatever the machine."""
     half = stall["lag_ms"] / 2
     ran = stall.get("cpu_ms") or 0.0
     machine = (stall.get("pressure_ms") or 0.0) + (stall.get("steal_ms") or 0.0)
-    return (stall.get("runqueue_ms") or 0.0) >= half or (ran < half and machine >= half)
+    if (stall.get("runqueue_ms") or 0.0) >= half or (ran < half and machine >= half):
+        return True
+    others = (stall.get("process_cpu_ms") or 0.0) - ran
+    return ran < half and others < half and in_selector_wait(stall.get("loop_frame"))
+
+
+def in_selector_wait(frame: str | None) -> bool:
+    """Whether a ``loop_frame`` is the event loop's wait for its sockets and timers (the
+    standard library's selectors module)."""
+    return frame is not None and frame.startswith("selectors.py:") and frame.endswith((" in select", " in poll"))
 
 
 class LoopbackRig:

@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 
 from daemon.jobs.scan import ScanReport
 from daemon.rig.states import ScanOutcome
-from daemon.server.looplag import LoopLagMonitor, MachineTimes
-from sim.loopback import UNIT, set_autogroup_nice, unit_cpu_weight, weight_nice
+from daemon.server.looplag import LoopLagMonitor, MachineTimes, loop_frame
+from sim.loopback import UNIT, machine_caused, set_autogroup_nice, unit_cpu_weight, weight_nice
 
 
 def test_a_blocked_loop_is_measured_and_logged_under_the_state_it_blocked_in() -> None:
@@ -72,6 +72,24 @@ def test_a_stall_leaves_every_threads_stack_taken_while_it_lasted(tmp_path: Path
     assert "in _hold_the_loop" in text and "in scenario" in text  # taken during the stall, not after
     stalls = [e for e in logs if e["event"] == "loop_lag"]
     assert stalls and all(e["tracebacks"] == str(stacks) for e in stalls)
+    # the loop thread's place in this stall's own dump: the code that held it, not its selector
+    assert stalls[0]["loop_frame"].startswith("test_looplag.py:") and stalls[0]["loop_frame"].endswith(" in _hold_the_loop")
+    assert stalls[0]["process_cpu_ms"] >= 0.0
+
+
+def test_the_loop_threads_frame_is_read_from_its_own_thread_in_the_dump() -> None:
+    dump = ("Timeout (0:00:00.060000)!\n"
+            "Thread 0x00007f0000000002 (most recent call first):\n"
+            '  File "/usr/lib/python3.11/threading.py", line 324 in wait\n\n'
+            "Thread 0x00007f0000000001 (most recent call first):\n"
+            '  File "/usr/lib/python3.11/selectors.py", line 468 in select\n'
+            '  File "/usr/lib/python3.11/asyncio/base_events.py", line 1898 in _run_once\n')
+    assert loop_frame(dump, 0x7F0000000001) == "selectors.py:468 in select"
+    assert loop_frame(dump, 0x7F0000000002) == "threading.py:324 in wait"
+    assert loop_frame(dump.replace("Thread 0x00007f0000000001", "Current thread 0x00007f0000000001"),
+                      0x7F0000000001) == "selectors.py:468 in select"
+    assert loop_frame(dump, 0x7F0000000003) is None
+    assert loop_frame("", 1) is None
 
 
 def test_no_stack_is_taken_while_the_loop_keeps_time(tmp_path: Path) -> None:
@@ -126,9 +144,9 @@ def test_the_machines_contention_only_grows() -> None:
 
 
 def _stall(lag: float, cpu: float | None, runqueue: float | None, pressure: float | None = None,
-           steal: float | None = None) -> dict:
+           steal: float | None = None, **more: object) -> dict:
     return {"event": "loop_lag", "lag_state": "CAPTURING", "lag_ms": lag, "cpu_ms": cpu, "runqueue_ms": runqueue,
-            "pressure_ms": pressure, "steal_ms": steal}
+            "pressure_ms": pressure, "steal_ms": steal, **more}
 
 
 def test_a_stall_is_the_machines_only_when_the_machine_was_contended_and_the_loop_not_running() -> None:
@@ -147,6 +165,30 @@ def test_a_stall_is_the_machines_only_when_the_machine_was_contended_and_the_loo
     own, starved = rig.loop_stalls()
     assert own == [lines[0], lines[4], lines[5]]
     assert starved == [lines[1], lines[2], lines[3]]
+
+
+def _ci5(**fields: object) -> dict:
+    """A stall seen on a loaded CI machine: 140 ms late, the loop thread ran 3.5 ms and waited
+    57 ms for a CPU; tasks waited for CPUs 68.9 ms of it (just short of half)."""
+    return {**_stall(140.0, 3.5, 57.0, pressure=68.9, steal=0.0), **fields}
+
+
+def test_a_stall_is_the_machines_only_with_evidence_that_no_code_of_the_daemons_held_the_loop() -> None:
+    # contention short of half the stall, and nothing else known: the daemon's own
+    assert not machine_caused(_ci5())
+    # the dump found the loop still in its selector's wait, and the daemon's threads idle: the machine's
+    assert machine_caused(_ci5(loop_frame="selectors.py:468 in select", process_cpu_ms=9.0))
+    # ... but not when another thread of the daemon ran most of the stall (holding the interpreter lock)
+    assert not machine_caused(_ci5(loop_frame="selectors.py:468 in select", process_cpu_ms=90.0))
+    # ... nor when the loop thread was in the daemon's own code or a system call of its own
+    assert not machine_caused(_ci5(loop_frame="store.py:120 in write_manifest", process_cpu_ms=9.0))
+    assert not machine_caused(_ci5(loop_frame=None, process_cpu_ms=9.0))
+    # the loop's own code running is its own, whatever the machine and the dump
+    assert not machine_caused(_ci5(cpu_ms=100.0, runqueue_ms=10.0, pressure_ms=140.0,
+                                   loop_frame="selectors.py:468 in select", process_cpu_ms=100.0))
+    # a CPU waited for, or contention over half the stall while blocked: the machine's
+    assert machine_caused(_ci5(runqueue_ms=75.0))
+    assert machine_caused(_ci5(pressure_ms=60.0, steal_ms=15.0))
 
 
 @given(st.lists(st.tuples(st.sampled_from(["IDLE", "DEPTH_SWEEP", "PLANNING"]),

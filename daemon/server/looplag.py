@@ -8,17 +8,21 @@ logged as ``loop_lag`` with the state it happened in; leaving a state logs that 
 ``loop_lag`` line says why the loop was late: ``cpu_ms`` the loop thread ran meanwhile (code
 on the loop), ``runqueue_ms`` it waited for a CPU (the machine was busy: the process was not
 scheduled), neither (it was blocked: a system call, or waiting for the interpreter lock a thread
-held). For a blocked loop the machine's side is given too: ``pressure_ms``, how long some task on
-the machine waited for a CPU meanwhile (the kernel's CPU pressure; a thread holding the
-interpreter lock may have been one), and ``steal_ms``, CPU time the hypervisor gave elsewhere
-(summed over the CPUs). A garbage collection that long is logged as ``gc_pause``.
+held), and ``process_cpu_ms`` the daemon's threads ran together (a thread computing while holding
+the interpreter lock holds the loop too). For a blocked loop the machine's side is given too:
+``pressure_ms``, how long some task on the machine waited for a CPU meanwhile (the kernel's CPU
+pressure; a thread holding the interpreter lock may have been one), and ``steal_ms``, CPU time
+the hypervisor gave elsewhere (summed over the CPUs). A garbage collection that long is logged
+as ``gc_pause``.
 
 Where the time went is only visible during the stall. With ``TBP_LOOP_STALL_TRACEBACKS=FILE`` in
 the daemon's environment (a diagnostic for engineers: it starts a timer thread at every sample),
 a stall past ``warn_s`` appends every thread's stack, taken by the interpreter's fault handler
 while the loop is still held (it needs no interpreter lock), to FILE; the ``loop_lag`` line names
-the file. The thread holding the loop shows there: the loop's own code, or another thread
-holding the interpreter lock, or a system call.
+the file, and says as ``loop_frame`` where the loop thread was in that dump (``selectors.py:468 in
+select``: still in its selector's wait, its timer due ``warn_s`` before). The thread holding the
+loop shows there: the loop's own code, or another thread holding the interpreter lock, or a
+system call.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ import faulthandler
 import gc
 import math
 import os
+import re
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -118,6 +124,23 @@ class MachineTimes:
         self._pressure = self._stat = None
 
 
+def loop_frame(dump: str, thread_id: int) -> str | None:
+    """The most recent frame of thread ``thread_id`` in a fault handler's dump of every thread,
+    as ``file:line in function`` (the file's name without its folder); None where the dump does
+    not hold that thread."""
+    header = f"hread 0x{thread_id:016x} (most recent call first):"  # "Thread" or "Current thread"
+    lines = dump.splitlines()
+    for number, line in enumerate(lines[:-1]):
+        if line.endswith(header):
+            frame = lines[number + 1].strip()
+            match = _FRAME.fullmatch(frame)
+            return f"{Path(match['file']).name}:{match['line']} in {match['function']}" if match else frame
+    return None
+
+
+_FRAME = re.compile(r'File "(?P<file>.*)", line (?P<line>\d+) in (?P<function>.*)')
+
+
 def _ms_between(before: float | None, after: float | None) -> float | None:
     return None if before is None or after is None else round((after - before) * 1000, 1)
 
@@ -179,6 +202,7 @@ class LoopLagMonitor:
         loop = asyncio.get_running_loop()
         gc.callbacks.append(self._collection)
         times, machine = ThreadTimes(), MachineTimes()
+        me = threading.get_ident()
         stacks = None
         if self.tracebacks is not None:
             try:
@@ -188,16 +212,22 @@ class LoopLagMonitor:
         try:
             while True:
                 before, (cpu0, wait0), (pressure0, steal0) = loop.time(), times.read(), machine.read()
+                process0 = time.process_time()
                 if stacks is not None:
+                    dumped = os.fstat(stacks.fileno()).st_size  # this sample's dump, if any, follows
                     faulthandler.dump_traceback_later(self.period_s + self.warn_s, file=stacks)
                 await asyncio.sleep(self.period_s)
                 lag_s = max(loop.time() - before - self.period_s, 0.0)
                 if lag_s > self.warn_s:
                     (cpu1, wait1), (pressure1, steal1) = times.read(), machine.read()
-                    where = {} if stacks is None else {"tracebacks": str(self.tracebacks)}
+                    process1 = time.process_time()
+                    where: dict[str, str | None] = {}
+                    if stacks is not None:
+                        where = {"tracebacks": str(self.tracebacks), "loop_frame": self._frame(dumped, me)}
                     self.record(self.state(), lag_s, cpu_ms=_ms_between(cpu0, cpu1),
-                                runqueue_ms=_ms_between(wait0, wait1), pressure_ms=_ms_between(pressure0, pressure1),
-                                steal_ms=_ms_between(steal0, steal1), **where)
+                                runqueue_ms=_ms_between(wait0, wait1), process_cpu_ms=_ms_between(process0, process1),
+                                pressure_ms=_ms_between(pressure0, pressure1), steal_ms=_ms_between(steal0, steal1),
+                                **where)
                 else:
                     self.record(self.state(), lag_s)
         finally:
@@ -207,6 +237,18 @@ class LoopLagMonitor:
             times.close()
             machine.close()
             gc.callbacks.remove(self._collection)
+
+    def _frame(self, offset: int, thread_id: int) -> str | None:
+        """Where the loop thread was in the dump written past ``offset`` of the tracebacks file
+        (:func:`loop_frame`); None without one (the dump's timer thread, itself waiting for a
+        CPU, had not written it yet)."""
+        assert self.tracebacks is not None
+        try:
+            with self.tracebacks.open("rb") as written:
+                written.seek(offset)
+                return loop_frame(written.read().decode(errors="replace"), thread_id)
+        except OSError:
+            return None
 
     def _collection(self, phase: str, info: dict[str, int]) -> None:
         """gc callback: a collection that holds the loop longer than ``warn_s`` is logged as

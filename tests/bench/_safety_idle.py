@@ -95,8 +95,9 @@ def run() -> None:
               f"(machine load average up to {r['load']:.1f} on {os.cpu_count()} cores)")
         for x in r["stalls"][:10]:
             print(f"    {x['timestamp'][11:23]} {x['lag_state']:<10} {x['lag_ms']:7.1f} ms  "
-                  f"cpu {x.get('cpu_ms')} ms  waiting for a CPU {x.get('runqueue_ms')} ms  machine: tasks "
-                  f"waiting {x.get('pressure_ms')} ms, stolen {x.get('steal_ms')} ms")
+                  f"cpu {x.get('cpu_ms')} ms  waiting for a CPU {x.get('runqueue_ms')} ms  the daemon's threads "
+                  f"{x.get('process_cpu_ms')} ms  machine: tasks waiting {x.get('pressure_ms')} ms, stolen "
+                  f"{x.get('steal_ms')} ms  loop at {x.get('loop_frame')}")
         probes = r["probes"]
         print(f"  probes made: {sum(p or 0 for p in probes.values())} "
               f"({', '.join(f'{k} {v}' for k, v in sorted(probes.items()))})")
