@@ -69,9 +69,11 @@ def _rows(status: dict[str, Any]) -> list[tuple[str, list[str]]]:
     s = dict(status)
     rows: list[tuple[str, list[str]]] = []
     state = str(s.pop("state", "?"))
-    scan_id, time = s.pop("scan_id", None), s.pop("job_time", None)
+    scan_id, time, counts = s.pop("scan_id", None), s.pop("job_time", None), s.pop("counts", None)
     extra = [f"scan {scan_id}"] if scan_id else []
     extra += [job_time(time)] if time else []
+    if time and counts:  # a job running: its images so far
+        extra.append(", ".join(f"{n} images {cause}" for cause, n in sorted(counts.items())))
     rows.append(("State", [state + (f" ({'; '.join(extra)})" if extra else "")]))
     s.pop("states", None)  # the console's state groups
     if "healthy" in s:

@@ -254,6 +254,7 @@ def test_cli_status_is_a_table_a_person_reads():
 
     status = {"state": "CAPTURING", "scan_id": "abc123",
               "job_time": {"elapsed_s": 65.2, "state_s": 10.0, "remaining_s": 130.4},
+              "counts": {"captured": 120, "verified": 98},
               "states": {"active": [], "job": []}, "healthy": True, "health_problems": [], "ready": True,
               "beam_angle_deg": 123.44, "beam_speed_deg_s": 12.0,
               "fault_causes": [FaultCause(FaultSource.ESTOP, "panel", "e-stop pressed").as_dict(),
@@ -267,7 +268,8 @@ def test_cli_status_is_a_table_a_person_reads():
               "recovered_scans": [], "loop_lag": {"IDLE": {"samples": 9, "p50_ms": 0.1, "p99_ms": 1.5, "max_ms": 2.0}},
               "something_new": {"a": 1}}
     assert status_table(status).splitlines() == [
-        "State        CAPTURING (scan abc123; elapsed 1 min 05 s, about 2 min 10 s of the beam's schedule left)",
+        "State        CAPTURING (scan abc123; elapsed 1 min 05 s, about 2 min 10 s of the beam's schedule left; "
+        "120 images captured, 98 images verified)",
         "Daemon       healthy",
         "Rig          ready",
         "Beam         123.4 deg at 12.0 deg/s",

@@ -11,7 +11,6 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -118,8 +117,9 @@ def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Pa
 
         # A phone that vanishes mid-capture fails its own images; every other phone completes.
         scan_id = rig.control("scan")["scan_id"]
-        rig.wait_status(lambda s: s["state"] == "CAPTURING", "capture", 120.0)
-        time.sleep(5.0)
+        phones = len(rig.rig.phones)
+        rig.wait_status(lambda s: s["state"] == "CAPTURING" and s["counts"].get("captured", 0) >= phones,
+                        "the first angle's captures", 120.0)
         vanished = rig.rig.phones[4].id
         rig.stop_phone(4)
         status = rig.wait_status(lambda s: (s.get("last_scan") or {}).get("scan_id") == scan_id,
@@ -134,8 +134,8 @@ def test_devices_missing_faults_and_stops_are_handled_by_the_daemon(tmp_path: Pa
 
         # The e-stop mid-rotation: FAULT, the beam stops, the images taken so far are kept.
         scan_id = rig.control("scan")["scan_id"]
-        rig.wait_status(lambda s: s["state"] == "CAPTURING", "capture", 120.0)
-        time.sleep(3.0)
+        rig.wait_status(lambda s: s["state"] == "CAPTURING" and s["counts"].get("verified", 0) >= 1,
+                        "an image verified in the folder", 120.0)
         rig.press("e")
         status = rig.wait_status(lambda s: s["state"] == "FAULT" and (s.get("last_scan") or {}).get("scan_id")
                                  == scan_id, "FAULT after the e-stop", 60.0)

@@ -49,3 +49,19 @@ def test_the_machine_keeps_recent_events_without_per_image_counts_each_stamped_a
     for n in range(machine.RECENT_SIZE + 5):
         machine.progress("capture_missed", pose=n)
     assert len(machine.recent) == machine.RECENT_SIZE and machine.recent[-1].data == {"pose": machine.RECENT_SIZE + 4}
+
+
+def test_the_machine_holds_the_jobs_image_counts_until_the_next_job_leaves_idle():
+    machine = ScanStateMachine()
+    assert machine.counts == {}
+    machine.transition(S.PREPARING, "scan requested")
+    for n in range(1, 40):
+        machine.progress("captured", captured=n)
+    machine.progress("verified", verified=7)
+    machine.progress("capture_missed", pose=3, captured=99)  # not a count of its own
+    assert machine.counts == {"captured": 39, "verified": 7}
+    machine.transition(S.ABORTING, "abort")
+    machine.transition(S.IDLE, "stopped")
+    assert machine.counts == {"captured": 39, "verified": 7}  # the last job's, after it
+    machine.transition(S.PREPARING, "scan requested")
+    assert machine.counts == {}

@@ -349,6 +349,7 @@ class RigController:
             "states": state_groups(),
             "scan_id": self.machine.scan_id,
             "job_time": self.job_time(),
+            "counts": dict(self.machine.counts),
             "fault_causes": [cause.as_dict() for cause in self.safety.causes],
             "beam_angle_deg": None if latest is None else latest.angle_deg,
             "beam_speed_deg_s": None if latest is None else latest.speed_deg_s,

@@ -165,6 +165,9 @@ class ScanStateMachine:
         """Event-loop time of the last transition (when the current state began)."""
         self.started_s = 0.0
         """Event-loop time the machine last left IDLE (when the current job began)."""
+        self.counts: dict[str, int] = {}
+        """The latest per-image count of each of :data:`COUNTER_CAUSES` since the machine last
+        left IDLE (the running or last job's images captured and verified so far)."""
         self._seq = 0
         self._subscribers: set[asyncio.Queue[StatusEvent]] = set()
         self._changed = asyncio.Event()
@@ -249,6 +252,9 @@ class ScanStateMachine:
             self.entered_s = now
             if event.previous is ScanState.IDLE:
                 self.started_s = now
+                self.counts = {}
+        elif str(cause) in self.COUNTER_CAUSES and isinstance(data.get(str(cause)), int):
+            self.counts[str(cause)] = data[str(cause)]
         self.history.append(event)
         if kind == "transition" or str(cause) not in self.COUNTER_CAUSES:
             self.recent.append(event)
