@@ -9,10 +9,12 @@ moved a few degrees still carries its marks. The carried point is snapped onto t
 then, given both scans' pictures, moved along the skin to where the skin looks the same
 (analysis/mark_match.py).
 
-How far the snap moved it is kept (``surface_gap_mm``): where the later scan's surface is
-further than SURFACE_DOUBT_MM from where the fit puts the skin, the later scan did not hold that
-skin (an occluded gap, between a wrist and a thigh, reconstructed a centimetre inside the true
-skin), and no place on its surface can be the same skin point: the viewer says so.
+How far the snap moved it is kept (``surface_gap_mm``), with the local fit's rms residual: where
+the later scan's surface is further from where the fit puts the skin than the two surfaces are
+from each other around the mark (the residual, at least SURFACE_NOISE_MM), or further than
+SURFACE_DOUBT_MM in any case, the later scan did not hold that skin as it held the skin around
+(an occluded gap, between a wrist and a thigh, reconstructed inside the true skin), and the place
+on its surface may not be the same skin point: the mark is in doubt and the viewer says so.
 """
 
 from __future__ import annotations
@@ -106,9 +108,9 @@ class MarkCarrier:
     MIN_FITNESS = 0.5
     SURFACE_DOUBT_MM = 3.0
     """A carried mark whose later surface is further than this from where the fit puts the skin
-    is in doubt (one simulated visit pair's gaps: median 0.6 mm, 99th percentile 3.1 mm; on six
-    pairs it flagged 20 of 600 marks, among them all 10 carried further than 5 mm from the
-    true skin point: docs/web.md)."""
+    is in doubt whatever the fit's residual (``./dev bench marks``, docs/web.md)."""
+    SURFACE_NOISE_MM = 1.0
+    """A gap under this is within any scan's surface noise: never doubt on its own."""
     MAX_SWAY_MM = 80.0
     """A mark never moves further than this from where the whole-body fit puts it."""
     STAGES = ((300.0, 60.0), (200.0, 20.0), (150.0, 8.0))
@@ -209,5 +211,9 @@ class Carried:
 
     @property
     def in_doubt(self) -> np.ndarray:
-        """(K,) bool: the later scan's surface is too far from the carried skin to hold it."""
-        return self.surface_gap_mm > MarkCarrier.SURFACE_DOUBT_MM
+        """(K,) bool: the later scan's surface is further from the carried skin than the two
+        surfaces are from each other around it (the local fit's rms residual, at least
+        SURFACE_NOISE_MM, at most SURFACE_DOUBT_MM): it may not hold that skin."""
+        limit = np.clip(self.fit_rmse_mm, MarkCarrier.SURFACE_NOISE_MM, MarkCarrier.SURFACE_DOUBT_MM)
+        doubt: np.ndarray = self.surface_gap_mm > limit
+        return doubt

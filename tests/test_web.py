@@ -410,6 +410,11 @@ def test_a_mark_on_skin_the_later_scan_reconstructed_inside_is_in_doubt():
     carried = MarkCarrier(earlier, dented(earlier, marks[0], 40.0, 10.0)).carry(marks)
     assert carried.in_doubt.tolist() == [True, False, False], carried.surface_gap_mm
     assert carried.surface_gap_mm[0] > 5.0 and np.all(carried.surface_gap_mm[1:] < 1.0), carried.surface_gap_mm
+    # a shallower dent, under SURFACE_DOUBT_MM: still in doubt, the skin around matching closer than that
+    shallow = MarkCarrier(earlier, dented(earlier, marks[0], 40.0, 2.5)).carry(marks)
+    assert 1.5 < shallow.surface_gap_mm[0] < MarkCarrier.SURFACE_DOUBT_MM, shallow.surface_gap_mm
+    assert shallow.surface_gap_mm[0] > shallow.fit_rmse_mm[0], (shallow.surface_gap_mm, shallow.fit_rmse_mm)
+    assert shallow.in_doubt.tolist() == [True, False, False], (shallow.surface_gap_mm, shallow.fit_rmse_mm)
 
 
 def test_token_file_is_checked(tmp_path):

@@ -103,7 +103,7 @@ def carry_errors(visits: Visits, count: int = 100, seed: int = 0) -> dict[str, A
             "shape_error_mm": np.linalg.norm(by_shape.points_mm - target, axis=1),
             "later_surface_mm": np.linalg.norm(target - truth_b[chosen], axis=1),
             "skin_error_mm": np.linalg.norm(carried.points_mm - truth_b[chosen], axis=1),
-            "surface_gap_mm": carried.surface_gap_mm, "in_doubt": carried.in_doubt,
+            "surface_gap_mm": carried.surface_gap_mm, "in_doubt": carried.in_doubt, "fit_rmse_mm": carried.fit_rmse_mm,
             "picture_score": carried.picture_score, "points": on_a[chosen], "fitness": carrier.whole.fitness,
             "rmse_mm": carrier.whole.rmse_mm}
 

@@ -223,7 +223,8 @@ def run() -> None:
               f"{error[sound].max() if sound.any() else float('nan'):.2f} mm")
         skin, doubt = carried["skin_error_mm"], carried["in_doubt"]
         print(f"  from the true skin point: median {np.median(skin):.2f} mm, max {skin.max():.2f} mm, "
-              f"{int(np.sum(skin > 5))} beyond 5 mm; in doubt (the later surface over "
-              f"{MarkCarrier.SURFACE_DOUBT_MM:.0f} mm from the fit, the viewer says so): {doubt.sum()} marks, "
+              f"{int(np.sum(skin > 5))} beyond 5 mm; in doubt (the later surface's gap from the fit above the "
+              f"local fit's rms residual, at least {MarkCarrier.SURFACE_NOISE_MM:g} mm, at most "
+              f"{MarkCarrier.SURFACE_DOUBT_MM:g} mm; the viewer says so): {doubt.sum()} marks, "
               f"{int(np.sum(doubt & (skin > 5)))} of them beyond 5 mm; not in doubt: max {skin[~doubt].max():.2f} mm "
               f"{_mark(float(skin[~doubt].max()), 5.0)}")

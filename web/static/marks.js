@@ -151,7 +151,7 @@ export class MarksPane {
     for (const [region, list] of this.byRegion(m.carried)) {
       root.append(el("h3", { class: "region" }, region));
       for (const mark of list) {
-        const doubt = mark.in_doubt ? el("p", { class: "doubt" }, `This scan's surface is ${fmt(mark.surface_gap_mm, 1)} mm from where the body's fit puts this skin: it may not hold this spot. Check the images before keeping it.`) : null;
+        const doubt = mark.in_doubt ? el("p", { class: "doubt" }, `This scan's surface is ${fmt(mark.surface_gap_mm, 1)} mm from where the body's fit puts this skin (around it, ${fmt(mark.fit_rmse_mm, 1)} mm): it may not hold this spot. Check the images before keeping it.`) : null;
         root.append(this.row(mark, "E", mark.placed_by === "pictures"
           ? `from the earlier scan, placed on the pictures (match ${fmt(mark.picture_score, 2)})` : "from the earlier scan, placed by the body's shape",
         button("Compare", () => this.compare(mark)), " ",
