@@ -380,12 +380,16 @@ def _after_scan_in_worker(folder: Path) -> float:
 def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray,
                      angle_deg: np.ndarray) -> None:
     """Print where the held lesions are lost: per bin of the disc's width in the best image's
-    pixels, of the disc (mm), of the best image's mm/px, of the scan surface's distance from
+    pixels, of its width across in the heaviest blended image (the disc foreshortened by that
+    image's angle to the skin, in the best image's pixels), of the disc (mm), of the best image's mm/px, of the scan surface's distance from
     the true skin there and of the angle between the heaviest blended image's ray and the skin's
     normal (a surface d off the skin moves a spot d tan(angle)), the share found within
     MATCH_MM, detected but off (the nearest spot MATCH_MM..3 mm away) and not detected (no spot
     within 3 mm). All (K,) per lesion."""
-    splits = (("disc px", disc / mm_px, (0, 1.5, 2.5, 4, np.inf)), ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
+    across = disc * np.cos(np.radians(np.nan_to_num(angle_deg, nan=90.0))) / mm_px  # foreshortened
+    splits = (("disc px", disc / mm_px, (0, 1.5, 2.5, 4, np.inf)),
+              ("disc px across (foreshortened by the angle)", across, (0, 1, 2, 3, np.inf)),
+              ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
               ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
               ("surface off mm", surface_mm, (0, 1, 2, np.inf)), ("angle deg", angle_deg, (0, 20, 35, 50, 65, 90.01)))
     for name, value, edges in splits:
