@@ -211,9 +211,9 @@ def machine_caused(stall: dict[str, Any]) -> bool:
 
 
 def in_selector_wait(frame: str | None) -> bool:
-    """Whether a ``loop_frame`` is the event loop's wait for its sockets and timers (the
-    standard library's selectors module)."""
-    return frame is not None and frame.startswith("selectors.py:") and frame.endswith((" in select", " in poll"))
+    """Whether a ``loop_frame`` is the event loop's wait for its sockets and timers (a selector's
+    ``select`` in the standard library's selectors module)."""
+    return frame is not None and frame.startswith("selectors.py:") and frame.endswith(" in select")
 
 
 class LoopbackRig:
