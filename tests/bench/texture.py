@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 import structlog
+from scipy import ndimage
 
 #: The environment ``tbp texture`` runs in, as the bench was started: a simulated scan sets this
 #: process' numeric libraries to one thread, as the daemon does, and a command run by hand has both cores.
@@ -313,7 +314,14 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     print(f"  the detector on the skin's own albedo there: {100 * (ideal <= MATCH_MM).mean():.1f} % found within "
           f"{MATCH_MM} mm, {ideal_spots} spots")
     where = nearest[held]
-    lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where], _squarest_angle(samples, where))
+    textured = np.zeros(atlas.shape, dtype=bool)
+    textured[rows, cols] = True
+    from_edge = ndimage.distance_transform_edt(textured)[rows[where], cols[where]] * atlas.texel_mm
+    lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where], _squarest_angle(samples, where),
+                     from_edge)
+    near_edge = ", ".join(f"{low:g}-{high:g}: {100 * (ideal[(from_edge >= low) & (from_edge < high)] <= MATCH_MM).mean():.0f} %"
+                          for low, high in ((0, 2), (2, 4), (4, 8), (8, np.inf)) if ((from_edge >= low) & (from_edge < high)).any())
+    print(f"    the detector on the albedo, by mm from the chart's edge (found): {near_edge}")
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
     tri = atlas.vertices[atlas.faces]
@@ -378,12 +386,13 @@ def _after_scan_in_worker(folder: Path) -> float:
 
 
 def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray,
-                     angle_deg: np.ndarray) -> None:
+                     angle_deg: np.ndarray, from_edge_mm: np.ndarray) -> None:
     """Print where the held lesions are lost: per bin of the disc's width in the best image's
     pixels, of its width across in the heaviest blended image (the disc foreshortened by that
-    image's angle to the skin, in the best image's pixels), of the disc (mm), of the best image's mm/px, of the scan surface's distance from
-    the true skin there and of the angle between the heaviest blended image's ray and the skin's
-    normal (a surface d off the skin moves a spot d tan(angle)), the share found within
+    image's angle to the skin, in the best image's pixels), of the disc (mm), of the best image's
+    mm/px, of the scan surface's distance from the true skin there, of the angle between the
+    heaviest blended image's ray and the skin's normal (a surface d off the skin moves a spot
+    d tan(angle)) and of the distance from the atlas chart's edge (mm), the share found within
     MATCH_MM, detected but off (the nearest spot MATCH_MM..3 mm away) and not detected (no spot
     within 3 mm). All (K,) per lesion."""
     across = disc * np.cos(np.radians(np.nan_to_num(angle_deg, nan=90.0))) / mm_px  # foreshortened
@@ -391,7 +400,8 @@ def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, 
               ("disc px across (foreshortened by the angle)", across, (0, 1, 2, 3, np.inf)),
               ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
               ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
-              ("surface off mm", surface_mm, (0, 1, 2, np.inf)), ("angle deg", angle_deg, (0, 20, 35, 50, 65, 90.01)))
+              ("surface off mm", surface_mm, (0, 1, 2, np.inf)), ("angle deg", angle_deg, (0, 20, 35, 50, 65, 90.01)),
+              ("mm from the chart's edge", from_edge_mm, (0, 2, 4, 8, np.inf)))
     for name, value, edges in splits:
         cells = []
         for low, high in zip(edges[:-1], edges[1:]):
