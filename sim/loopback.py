@@ -203,11 +203,13 @@ def machine_caused(stall: dict[str, Any]) -> bool:
     whatever the machine."""
     half = stall["lag_ms"] / 2
     ran = stall.get("cpu_ms") or 0.0
-    machine = (stall.get("pressure_ms") or 0.0) + (stall.get("steal_ms") or 0.0)
-    if (stall.get("runqueue_ms") or 0.0) >= half or (ran < half and machine >= half):
+    if (stall.get("runqueue_ms") or 0.0) >= half:
         return True
+    if ran >= half:
+        return False
+    machine = (stall.get("pressure_ms") or 0.0) + (stall.get("steal_ms") or 0.0)
     others = (stall.get("process_cpu_ms") or 0.0) - ran
-    return ran < half and others < half and in_selector_wait(stall.get("loop_frame"))
+    return machine >= half or (others < half and in_selector_wait(stall.get("loop_frame")))
 
 
 def in_selector_wait(frame: str | None) -> bool:

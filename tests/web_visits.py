@@ -3,6 +3,7 @@ person standing a little elsewhere. Ground truth for carrying lesion marks betwe
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,19 @@ def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, 
     out = mesh.copy()
     out.vertices = vertices - depth_mm * near[:, None] * np.asarray(mesh.vertex_normals)
     return out
+
+
+def kept_visits(root: Path, name: str, *, person_seed: int = 3, lesion_changes: Any = None) -> Visits:
+    """:func:`two_visits` into ``root / name``, kept between runs in ``root / (name + ".pickle")``:
+    scanned again only when the kept scans are gone or their lesion changes differ."""
+    cache = root / f"{name}.pickle"
+    if cache.exists():
+        visits: Visits = pickle.loads(cache.read_bytes())
+        if visits.earlier.exists() and visits.later.exists() and visits.lesion_changes == lesion_changes:
+            return visits
+    visits = two_visits(root / name, person_seed=person_seed, lesion_changes=lesion_changes)
+    cache.write_bytes(pickle.dumps(visits))
+    return visits
 
 
 def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2,

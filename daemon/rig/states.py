@@ -241,22 +241,24 @@ class ScanStateMachine:
         except RuntimeError:
             now = 0.0
         self._seq += 1
+        name = str(cause)
+        counter = name in self.COUNTER_CAUSES
         event = StatusEvent(kind, to, self.state, cause, now, self.scan_id, data, utc=utc_stamp(), seq=self._seq)
         if kind == "transition":
             log.info("scan_transition", rig=self.name, previous=self.state.value,
-                     state=to.value, cause=str(cause), scan_id=self.scan_id, **data)
+                     state=to.value, cause=name, scan_id=self.scan_id, **data)
         else:
-            log.debug("scan_progress", rig=self.name, state=to.value, cause=str(cause), **data)
+            log.debug("scan_progress", rig=self.name, state=to.value, cause=name, **data)
         self.state = to
         if kind == "transition":
             self.entered_s = now
             if event.previous is ScanState.IDLE:
                 self.started_s = now
                 self.counts = {}
-        elif str(cause) in self.COUNTER_CAUSES and isinstance(data.get(str(cause)), int):
-            self.counts[str(cause)] = data[str(cause)]
+        elif counter and isinstance(data.get(name), int):
+            self.counts[name] = data[name]
         self.history.append(event)
-        if kind == "transition" or str(cause) not in self.COUNTER_CAUSES:
+        if kind == "transition" or not counter:
             self.recent.append(event)
         if len(self.history) > 4 * self.QUEUE_SIZE:
             del self.history[: self.QUEUE_SIZE]

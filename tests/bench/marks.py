@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 import tempfile
 import time
 from pathlib import Path
@@ -28,25 +27,13 @@ import numpy as np
 import structlog
 
 from analysis.registration import MarkCarrier
-from tests.web_visits import Visits, carry_errors, two_visits
+from tests.bench.web import LESION_CHANGES
+from tests.web_visits import carry_errors, kept_visits
 
 PERSONS = tuple(int(s) for s in os.environ.get("TBP_MARKS_PERSONS", "3,5,8,11,13,17").split(","))
 COUNT = int(os.environ.get("TBP_MARKS_COUNT", "200"))
 GOAL_MM = 5.0
 GOAL_SHARE = 0.99
-
-
-def _visits(root: Path, person: int) -> Visits:
-    from tests.bench.web import LESION_CHANGES
-
-    cache = root / f"visits-{person}.pickle"
-    if cache.exists():
-        visits = pickle.loads(cache.read_bytes())
-        if visits.earlier.exists() and visits.later.exists() and visits.lesion_changes == LESION_CHANGES:
-            return visits
-    visits = two_visits(root / f"scans-{person}", person_seed=person, lesion_changes=LESION_CHANGES)
-    cache.write_bytes(pickle.dumps(visits))
-    return visits
 
 
 def _summary(label: str, error: np.ndarray, skin: np.ndarray, doubt: np.ndarray) -> str:
@@ -68,7 +55,7 @@ def run() -> None:
         every: list[tuple[np.ndarray, ...]] = []
         for person in PERSONS:
             started = time.perf_counter()
-            visits = _visits(root, person)
+            visits = kept_visits(root, f"scans-{person}", person_seed=person, lesion_changes=LESION_CHANGES)
             ready = time.perf_counter() - started
             carried = carry_errors(visits, count=COUNT)
             error, skin, doubt = carried["error_mm"], carried["skin_error_mm"], carried["in_doubt"]

@@ -74,6 +74,8 @@ SPOT_DARKNESS = 0.06
 BACKGROUND_MM = 4.0
 #: A spot's scale: Gaussian of this sigma (mm), half the smallest lesion counted.
 SPOT_MM = LESION_MM / 2
+#: Bands of distance from an atlas chart's edge (mm) the lesions are split by.
+EDGE_BANDS_MM = (0, 2, 4, 8, np.inf)
 
 
 def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -320,7 +322,8 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where], _squarest_angle(samples, where),
                      from_edge)
     near_edge = ", ".join(f"{low:g}-{high:g}: {100 * (ideal[(from_edge >= low) & (from_edge < high)] <= MATCH_MM).mean():.0f} %"
-                          for low, high in ((0, 2), (2, 4), (4, 8), (8, np.inf)) if ((from_edge >= low) & (from_edge < high)).any())
+                          for low, high in zip(EDGE_BANDS_MM[:-1], EDGE_BANDS_MM[1:])
+                          if ((from_edge >= low) & (from_edge < high)).any())
     print(f"    the detector on the albedo, by mm from the chart's edge (found): {near_edge}")
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
@@ -401,7 +404,7 @@ def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, 
               ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
               ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
               ("surface off mm", surface_mm, (0, 1, 2, np.inf)), ("angle deg", angle_deg, (0, 20, 35, 50, 65, 90.01)),
-              ("mm from the chart's edge", from_edge_mm, (0, 2, 4, 8, np.inf)))
+              ("mm from the chart's edge", from_edge_mm, EDGE_BANDS_MM))
     for name, value, edges in splits:
         cells = []
         for low, high in zip(edges[:-1], edges[1:]):

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import pickle
 import statistics
 import tempfile
 import threading
@@ -28,7 +27,7 @@ from analysis.registration import MarkCarrier
 from drivers.sim.skin_texture import LesionChanges
 from sim.lesions import changed_lesions
 from tests.web_browser import chromium, chromium_missing, serve_in_thread, wait_for
-from tests.web_visits import Visits, carry_errors, two_visits
+from tests.web_visits import carry_errors, kept_visits
 
 PAINTS = 5
 CLICKS = 40
@@ -36,17 +35,6 @@ CLICKS = 40
 
 LESION_CHANGES = LesionChanges(seed=5)
 """The second visit's grown and new spots (tbp scan --sim --lesion-changes 5)."""
-
-
-def _visits(root: Path) -> Visits:
-    cache = root / "visits-changed.pickle"
-    if cache.exists():
-        visits = pickle.loads(cache.read_bytes())
-        if visits.earlier.exists() and visits.later.exists() and visits.lesion_changes == LESION_CHANGES:
-            return visits
-    visits = two_visits(root / "scans", lesion_changes=LESION_CHANGES)
-    cache.write_bytes(pickle.dumps(visits))
-    return visits
 
 
 def _first_paint(store: Path, folder: str) -> tuple[list[float], list[float], list[dict]]:
@@ -163,7 +151,7 @@ def run() -> None:
         root = Path(keep) / "web" if keep else Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         started = time.perf_counter()
-        visits = _visits(root)
+        visits = kept_visits(root, "scans", lesion_changes=LESION_CHANGES)
         print(f"two simulated adult scans ready in {time.perf_counter() - started:.0f} s")
         changed = changed_lesions(visits.subject_later, LESION_CHANGES)
         print(f"the second visit's skin (--lesion-changes {LESION_CHANGES.seed}): {int((~changed.appeared).sum())} "
