@@ -22,8 +22,9 @@ body mesh, its skin coordinates and the freckles drivers/sim/skin_texture.py pai
   its colour was taken from) has a spot within 1 mm of it on the true skin; goal >= 95 %. The
   detector is checked on the skin's own albedo at the same texels, where it finds nearly all. The
   misses are split by the disc's width in the best image's pixels, the disc, the best image's
-  mm/px and the scan surface's distance from the skin: found / detected 1-3 mm off / not
-  detected. A 1.5 mm disc spans about one pixel at scale 1, two at 2 and four at 4: the goal
+  mm/px, the scan surface's distance from the skin, the heaviest image's angle to the skin, and
+  the distance from an atlas chart's edge and from a hole in the scan's mesh: found / detected
+  1-3 mm off / not detected. A 1.5 mm disc spans about one pixel at scale 1, two at 2 and four at 4: the goal
   means something from scale 2 on;
 - the textured surface more than 10 mm off the true skin (the TSDF's webbing between limbs);
 - resolution: the texture's texel on the skin (mm, from each triangle's area on the skin and in
@@ -76,6 +77,9 @@ BACKGROUND_MM = 4.0
 SPOT_MM = LESION_MM / 2
 #: Bands of distance from an atlas chart's edge (mm) the lesions are split by.
 EDGE_BANDS_MM = (0, 2, 4, 8, np.inf)
+#: Bands of distance from an open edge of the scan's mesh (mm): a hole, where the webbing between
+#: an arm and the torso was carved away or no depth frame saw the skin, and the soles.
+HOLE_BANDS_MM = (0, 3, 6, 10, 20, np.inf)
 
 
 def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -319,12 +323,13 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     textured = np.zeros(atlas.shape, dtype=bool)
     textured[rows, cols] = True
     from_edge = ndimage.distance_transform_edt(textured)[rows[where], cols[where]] * atlas.texel_mm
+    from_hole = _from_open_edge(atlas, atlas.texel_point[where])
     lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where], _squarest_angle(samples, where),
-                     from_edge)
-    near_edge = ", ".join(f"{low:g}-{high:g}: {100 * (ideal[(from_edge >= low) & (from_edge < high)] <= MATCH_MM).mean():.0f} %"
-                          for low, high in zip(EDGE_BANDS_MM[:-1], EDGE_BANDS_MM[1:])
-                          if ((from_edge >= low) & (from_edge < high)).any())
-    print(f"    the detector on the albedo, by mm from the chart's edge (found): {near_edge}")
+                     from_edge, from_hole)
+    for name, value, bands in (("the chart's edge", from_edge, EDGE_BANDS_MM), ("the mesh's open edge", from_hole, HOLE_BANDS_MM)):
+        cells = ", ".join(f"{low:g}-{high:g}: {100 * (ideal[(value >= low) & (value < high)] <= MATCH_MM).mean():.0f} %"
+                          for low, high in zip(bands[:-1], bands[1:]) if ((value >= low) & (value < high)).any())
+        print(f"    the detector on the albedo, by mm from {name} (found): {cells}")
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
     tri = atlas.vertices[atlas.faces]
@@ -389,13 +394,14 @@ def _after_scan_in_worker(folder: Path) -> float:
 
 
 def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, surface_mm: np.ndarray,
-                     angle_deg: np.ndarray, from_edge_mm: np.ndarray) -> None:
+                     angle_deg: np.ndarray, from_edge_mm: np.ndarray, from_hole_mm: np.ndarray) -> None:
     """Print where the held lesions are lost: per bin of the disc's width in the best image's
     pixels, of its width across in the heaviest blended image (the disc foreshortened by that
     image's angle to the skin, in the best image's pixels), of the disc (mm), of the best image's
     mm/px, of the scan surface's distance from the true skin there, of the angle between the
     heaviest blended image's ray and the skin's normal (a surface d off the skin moves a spot
-    d tan(angle)) and of the distance from the atlas chart's edge (mm), the share found within
+    d tan(angle)), of the distance from the atlas chart's edge (mm) and of the distance from an
+    open edge of the scan's mesh (mm, a hole), the share found within
     MATCH_MM, detected but off (the nearest spot MATCH_MM..3 mm away) and not detected (no spot
     within 3 mm). All (K,) per lesion."""
     across = disc * np.cos(np.radians(np.nan_to_num(angle_deg, nan=90.0))) / mm_px  # foreshortened
@@ -404,7 +410,8 @@ def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, 
               ("disc mm", disc, (1.5, 2.5, 3.5, 4.5, np.inf)),
               ("mm/px", mm_px, (0, *np.round(np.nanpercentile(mm_px, [33, 67]), 2), np.inf)),
               ("surface off mm", surface_mm, (0, 1, 2, np.inf)), ("angle deg", angle_deg, (0, 20, 35, 50, 65, 90.01)),
-              ("mm from the chart's edge", from_edge_mm, EDGE_BANDS_MM))
+              ("mm from the chart's edge", from_edge_mm, EDGE_BANDS_MM),
+              ("mm from the mesh's open edge (a hole)", from_hole_mm, HOLE_BANDS_MM))
     for name, value, edges in splits:
         cells = []
         for low, high in zip(edges[:-1], edges[1:]):
@@ -415,6 +422,23 @@ def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, 
             cells.append(f"{low:g}-{high:g}: {inside.sum()} {100 * (d <= MATCH_MM).mean():.0f}/"
                          f"{100 * ((d > MATCH_MM) & (d <= 3.0)).mean():.0f}/{100 * (d > 3.0).mean():.0f}")
         print(f"    by {name} (n found/off/undetected %): " + "; ".join(cells))
+
+
+def _from_open_edge(atlas: Any, points: np.ndarray) -> np.ndarray:
+    """(K,) mm from points (K, 3) to the nearest vertex on an open edge of the atlas' source mesh
+    (an edge of one triangle: a hole, or the mesh's rim); inf where the mesh is closed."""
+    from scipy.spatial import cKDTree
+
+    faces = atlas.source_vertex[atlas.faces]
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, count = np.unique(edges, axis=0, return_counts=True)
+    rim = np.unique(unique[count == 1])
+    if not len(rim):
+        return np.full(len(points), np.inf)
+    source = np.zeros((int(atlas.source_vertex.max()) + 1, 3))
+    source[atlas.source_vertex] = atlas.vertices
+    distance: np.ndarray = cKDTree(source[rim]).query(points)[0]
+    return distance
 
 
 def _squarest_angle(samples: Any, texels: np.ndarray) -> np.ndarray:
