@@ -80,14 +80,27 @@ class ScanRecord:
         return image.status is ImageStatus.VERIFIED and bool(image.file) and (self.path / image.file).is_file()
 
     def pixels_at(self, pose: int) -> np.ndarray:
-        """The pixels (H, W, 3) float32 of the verified image at a pose (ScanFileError: none on disk)."""
-        from PIL import Image
-
+        """The pixels (H, W, 3) float32 of the verified image at a pose (ScanFileError: none on
+        disk, or its file no longer decodes)."""
         image = self.image_at(pose)
         if image is None or image.file is None or not self.image_on_disk(image):
             raise ScanFileError(self.path, f"pose {pose} has no verified image on disk")
-        with Image.open(self.path / image.file) as picture:
-            return np.asarray(picture.convert("RGB"), dtype=np.float32)
+        return np.asarray(decoded(self.path / image.file), dtype=np.float32)
+
+
+def decoded(path: Path, *, header_only: bool = False) -> Any:
+    """The picture at ``path`` decoded to RGB (a PIL image; with ``header_only``, opened and
+    closed again, its size read from the header); ScanFileError naming the file and the
+    decoder's reason when it does not decode (cut short, damaged on disk: ``tbp scans --check``
+    compares it with its recorded SHA-256)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as picture:
+            return picture if header_only else picture.convert("RGB")
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise ScanFileError(path, f"the image does not decode ({exc}); tbp scans --check compares it with its "
+                            "recorded size and SHA-256") from exc
 
 
 def open_scan(folder: Path | str, rig_path: Path | str | None = None) -> ScanRecord:

@@ -426,6 +426,26 @@ def test_tbp_texture_writes_the_body_and_names_what_is_wrong(textured, tmp_path,
     assert "--texel-mm 0" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("damage", ["cut short", "not a picture"])
+def test_tbp_texture_names_an_image_that_no_longer_decodes_and_leaves_the_folder_as_it_was(textured, tmp_path,
+                                                                                          capsys, damage):
+    copy = tmp_path / textured.name
+    shutil.copytree(textured, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    # the column's middle phone half way round: it holds the torso, which every texture samples
+    verified = [i for i in manifest["images"] if i["status"] == "verified"]
+    middle = max(i["angle_index"] for i in verified) // 2
+    name = next(i["file"] for i in verified if i["camera_index"] == 3 and i["angle_index"] == middle)
+    picture = copy / name
+    picture.write_bytes(picture.read_bytes()[:2000] if damage == "cut short" else b"bit rot")
+    before = {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    assert main(["texture", str(copy), "--texel-mm", str(TEST_TEXEL_MM)]) == 2
+    err = capsys.readouterr().err
+    assert f"{picture}: the image does not decode" in err and "tbp scans --check" in err
+    assert "Traceback" not in err
+    assert {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()} == before
+
+
 def test_the_texel_grows_until_the_skin_holds_no_more_than_the_texel_budget(textured, monkeypatch):
     import analysis.body_texture as body_texture
 

@@ -176,6 +176,23 @@ async def test_marks_are_saved_beside_the_scan_and_never_touch_its_record(scan_s
     assert {p: p.read_bytes() for p in before} == before
 
 
+async def test_an_image_damaged_in_the_store_gets_a_json_error_naming_it(scan_store):
+    name = folder_of(scan_store)
+    picture = scan_store / name / "images" / "cam0-a00.jpg"
+    picture.write_bytes(picture.read_bytes()[:300])
+    client = await client_for(scan_store)
+    try:
+        for query in ("size=thumb", "size=preview", "u=100&v=100"):
+            reply = await client.get(f"/api/scans/{name}/images/cam0-a00.jpg?{query}")
+            assert reply.status == 500 and reply.content_type == "application/json", query
+            error = (await reply.json())["error"]
+            assert error["type"] == "ImageUnreadable" and "cam0-a00.jpg does not decode" in error["message"]
+        # the other images are served as before
+        assert (await client.get(f"/api/scans/{name}/images/cam1-a00.jpg?size=thumb")).status == 200
+    finally:
+        await client.close()
+
+
 @pytest.mark.parametrize("method, path, kwargs, status", [
     ("GET", "/api/scans/..%2F..%2Fetc/navigate?vertex=1", {}, 404),
     ("GET", "/api/scans/{name}/images/..%2Fmanifest.json", {}, 404),

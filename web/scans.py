@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import structlog
 from aiohttp import web
 
 from analysis.navigate import NavigationError, Navigator
@@ -34,6 +35,8 @@ from daemon.records.atomic import StoreError
 from daemon.records.manifest import ImageStatus, Manifest, ManifestError
 from daemon.records.store import ScanStore
 from web import glb, images, keys
+
+log = structlog.get_logger("web.scans")
 
 MIPMAP_LEVELS_HEADER = "Tbp-Mipmap-Levels"
 """Where each mipmap level lies on /body/texture/mipmaps' sheet: JSON [[x, y, width, height], ...]."""
@@ -400,6 +403,9 @@ async def image(request: web.Request) -> web.StreamResponse:
             data = await _off_loop(make)
         except images.ImageRequestError as exc:
             raise json_error(web.HTTPBadRequest, exc) from exc
+        except images.ImageUnreadable as exc:  # damaged in the store: the scan's check names it too
+            log.warning("web_image_unreadable", folder=scan.record.path.name, image=path.name, error=str(exc))
+            raise json_error(web.HTTPInternalServerError, exc) from exc
         _keep(library, scan, key, data)
     return web.Response(body=data, content_type="image/jpeg", headers={"Cache-Control": "private, max-age=3600"})
 
