@@ -178,6 +178,21 @@ def test_unreadable_manifest_is_a_typed_error(tmp_path, rig):
         ScanStore(tmp_path).open(folder.path)
 
 
+@pytest.mark.parametrize("damage", ["cut short", "not an archive", "one array"])
+def test_a_damaged_trace_is_a_typed_error_naming_it(tmp_path, rig, damage):
+    folder = ScanStore(tmp_path).create(rig, scan_id="x", now=NOW)
+    path = asyncio.run(folder.write_trace(np.arange(5.0), np.arange(5.0) * 3))
+    assert ScanStore(tmp_path).open(folder.path).read_trace()["angle_deg"][-1] == 12.0
+    if damage == "cut short":
+        path.write_bytes(path.read_bytes()[:40])  # the zip's directory, at its end, is gone
+    elif damage == "not an archive":
+        path.write_bytes(b"bit rot")
+    else:
+        np.save(path.open("wb"), np.arange(3.0))  # an .npy where the .npz was
+    with pytest.raises(StoreError, match="trace.npz: unreadable"):
+        ScanStore(tmp_path).open(folder.path).read_trace()
+
+
 class FakePhone:
     """pull(phone_path, dest) like PhoneCamera.pull, with injected failures."""
 

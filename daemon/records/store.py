@@ -35,6 +35,7 @@ import re
 import secrets
 import shutil
 import stat
+import zipfile
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
@@ -421,9 +422,12 @@ class ScanFolder:
         if path is None:
             return None
         try:
-            with np.load(path) as data:
+            with path.open("rb") as file:
+                if file.read(4) != b"PK\x03\x04":  # an .npz is a zip archive of .npy arrays
+                    raise ScanFileError(path, "unreadable: not an .npz archive")
+            with np.load(path, allow_pickle=False) as data:
                 return {name: data[name] for name in data.files}
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:  # cut short: a zip without its directory
             raise ScanFileError(path, f"unreadable: {exc}") from exc
 
     def read_mesh(self) -> Any:
