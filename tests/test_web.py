@@ -193,6 +193,26 @@ async def test_an_image_damaged_in_the_store_gets_a_json_error_naming_it(scan_st
         await client.close()
 
 
+@pytest.mark.parametrize("damage", ["cut short", "deleted"])
+async def test_a_damaged_mesh_gets_a_json_409_naming_it_wherever_the_viewer_needs_the_mesh(scan_store, damage):
+    name = folder_of(scan_store)
+    mesh = scan_store / name / "mesh.ply"
+    if damage == "deleted":
+        mesh.unlink()
+    else:
+        mesh.write_bytes(mesh.read_bytes()[: mesh.stat().st_size // 2])
+    client = await client_for(scan_store)
+    try:
+        for method, path, kwargs in (("GET", "navigate?vertex=100", {}), ("GET", "marks", {}),
+                                     ("POST", "marks", {"json": {"name": "naevus", "point_mm": [0, 0, 1000]}})):
+            reply = await client.request(method, f"/api/scans/{name}/{path}", **kwargs)
+            assert reply.status == 409 and reply.content_type == "application/json", (method, path, await reply.text())
+            error = (await reply.json())["error"]
+            assert error["type"] == "ScanFileError" and "mesh.ply" in error["message"], (method, path)
+    finally:
+        await client.close()
+
+
 @pytest.mark.parametrize("method, path, kwargs, status", [
     ("GET", "/api/scans/..%2F..%2Fetc/navigate?vertex=1", {}, 404),
     ("GET", "/api/scans/{name}/images/..%2Fmanifest.json", {}, 404),

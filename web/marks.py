@@ -115,7 +115,8 @@ async def _frame(library: ScanLibrary, name: str) -> BodyFrame | None:
     scan = await library.opened(name)
     if "mesh" not in scan.record.manifest.files:
         return None
-    return await _off_loop(lambda: BodyFrame.of_vertices(np.asarray(scan.mesh_now().vertices)))
+    mesh = await scan.mesh_ready()
+    return await _off_loop(lambda: BodyFrame.of_vertices(np.asarray(mesh.vertices)))
 
 
 def _with_regions(frame: BodyFrame | None, marks: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -68,9 +68,21 @@ class OpenScan:
         self.warming: asyncio.Task[Any] | None = None
 
     async def navigator_ready(self) -> Navigator:
-        """The navigator, built off the loop once (the ray scene takes about a second)."""
+        """The navigator, built off the loop once (the ray scene takes about a second); 409 when
+        the scan's mesh is missing or unreadable."""
         async with self.lock:
-            return await _off_loop(self.navigator_now)
+            try:
+                return await _off_loop(self.navigator_now)
+            except StoreError as exc:
+                raise json_error(web.HTTPConflict, exc) from exc
+
+    async def mesh_ready(self) -> Any:
+        """The scan's mesh, read off the loop once; 409 when it is missing or unreadable."""
+        async with self.lock:
+            try:
+                return await _off_loop(self.mesh_now)
+            except StoreError as exc:
+                raise json_error(web.HTTPConflict, exc) from exc
 
     def mesh_now(self) -> Any:
         if self.mesh is None:
