@@ -44,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from daemon.clinic.dimse import DicomPeerError
     from daemon.clinic.site import Peer, SiteConfigError, ae_title
     from daemon.records.atomic import StoreError
+    from planner.rig import RigConfigError
     from planner.schema.tables import HOST_PORT
 
     started = time.perf_counter()
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
             calling = ae_title(args.calling_aet, "--calling-aet")
         builder = StudyBuilder(args.scan_dir, args.rig)
         instances = deidentified(builder) if args.deidentify else builder.instances()
-    except (ExportError, StoreError, SiteConfigError) as exc:
+    except (ExportError, StoreError, SiteConfigError, RigConfigError) as exc:
         print(f"tbp export: {exc}", file=sys.stderr)
         return 2
     kinds = {k: sum(i.kind == k for i in instances) for k in ("image", "mesh", "mark", "report")}

@@ -33,12 +33,13 @@ def run(args: argparse.Namespace) -> int:
     from analysis.navigate import NavigationError, navigate
     from daemon.logs import configure_logging
     from daemon.records.atomic import StoreError
+    from planner.rig import RigConfigError
 
     configure_logging(level="warning", stream=sys.stderr)
     try:
         answer = navigate(args.scan_dir, point=args.point, vertex=args.vertex, count=args.count,
                           rig_path=args.rig)
-    except (NavigationError, StoreError) as exc:
+    except (NavigationError, StoreError, RigConfigError) as exc:
         print(f"tbp navigate: {exc}", file=sys.stderr)
         return 2
     if args.json:

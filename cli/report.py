@@ -26,11 +26,12 @@ def run(args: argparse.Namespace) -> int:
     from analysis.qa_report import generate_report
     from daemon.logs import configure_logging
     from daemon.records.atomic import StoreError
+    from planner.rig import RigConfigError
 
     configure_logging(level="warning", stream=sys.stderr)
     try:
         print(generate_report(args.scan_dir, rig_path=args.rig))
-    except StoreError as exc:  # not a scan folder, a file missing or unreadable, another rig
+    except (StoreError, RigConfigError) as exc:  # not a scan folder, a file missing or unreadable, another rig
         print(f"tbp report: {exc}", file=sys.stderr)
         return 2
     return 0

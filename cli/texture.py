@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
     from analysis.body_texture import TextureError, write_body
     from daemon.logs import configure_logging
     from daemon.records.atomic import StoreError
+    from planner.rig import RigConfigError
 
     configure_logging(level="warning")
     started = time.perf_counter()
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         path = write_body(args.scan_dir, rig_path=args.rig, texel_mm=args.texel_mm, progress=progress)
-    except (StoreError, TextureError, AtlasError) as exc:  # not a scan folder, no mesh or images, another rig
+    except (StoreError, TextureError, AtlasError, RigConfigError) as exc:  # not a scan folder, no mesh or images, a rig file
         print(f"tbp texture: {exc}", file=sys.stderr)
         return 2
     progress(f"done, {path.stat().st_size / 1e6:.1f} MB")

@@ -195,3 +195,20 @@ def test_a_manifest_that_is_not_one_is_a_typed_error(tmp_path, raw, capsys):
         open_scan(folder)
     assert main(["report", str(folder)]) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("rig_text, problem", [
+    ("phones: [1, 2\n", "not valid YAML"),
+    ("a: b\n", "a: unknown key"),
+    (None, "cannot read"),
+])
+def test_a_broken_rig_file_is_one_named_error_from_every_command_that_reads_a_scan(scan_dir, tmp_path, capsys,
+                                                                                   rig_text, problem):
+    rig = tmp_path / "rig.yaml"
+    if rig_text is not None:
+        rig.write_text(rig_text)
+    for command in (["navigate", str(scan_dir), "--vertex", "0"], ["report", str(scan_dir)], ["texture", str(scan_dir)],
+                    ["export", str(scan_dir), "--out", str(tmp_path / "dicom")]):
+        assert main([*command, "--rig", str(rig)]) == 2, command
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and f"tbp {command[0]}: {rig}: " in err and problem in err, (command, err)
