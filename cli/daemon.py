@@ -96,16 +96,22 @@ def _serve(args: argparse.Namespace) -> int:
         return _real(args, socket_path, group, after_scan, attach)
     import asyncio
 
+    from planner.focus_errors import FocusPlanError
+    from sim.body_errors import BodyError
     from sim.clock import VirtualTimeLoop
     from sim.run import sim_service
 
     with asyncio.Runner(loop_factory=lambda: VirtualTimeLoop(time_scale=args.time_scale)) as runner:
-        return runner.run(sim_service(
-            config=args.rig, store=options.store_root(args), socket_path=socket_path, seed=args.seed,
-            plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
-            subject_path=args.subject, panel=not args.no_panel, qa_report=after_scan, attach=attach,
-            lesion_changes=args.lesion_changes,
-        ))
+        try:
+            return runner.run(sim_service(
+                config=args.rig, store=options.store_root(args), socket_path=socket_path, seed=args.seed,
+                plan_points=args.plan_points, depth_decimation=args.depth_decimation, group=group,
+                subject_path=args.subject, panel=not args.no_panel, qa_report=after_scan, attach=attach,
+                lesion_changes=args.lesion_changes,
+            ))
+        except (RigConfigError, FocusPlanError, BodyError) as exc:  # the rig file, --subject: before serving
+            print(f"tbp daemon: {exc}", file=sys.stderr)
+            return 2
 
 
 def _real(args: argparse.Namespace, socket_path: Path, group: str | None, qa_report: Any, attach: Any) -> int:

@@ -260,7 +260,12 @@ class TsdfFusion:
                 f"and height {cfg.volume_height_mm:g} mm above the floor"
             )
         t1 = time.perf_counter()
-        tmesh = self._vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold)  # type: ignore[attr-defined]
+        try:
+            tmesh = self._vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold)  # type: ignore[attr-defined]
+        except RuntimeError as exc:  # Open3D cannot give an empty mesh its (empty) vertex colours
+            if "shape {0}" not in str(exc):
+                raise
+            raise NoSubject(f"the fused volume holds no surface ({chosen} frames)") from None
         vertices = tmesh.vertex.positions.numpy().astype(np.float64)
         triangles = tmesh.triangle.indices.numpy().astype(np.int64)
         t2 = time.perf_counter()

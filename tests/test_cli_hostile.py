@@ -193,6 +193,19 @@ def test_simulated_scan_with_unusable_input_is_one_line_and_exit_2(tmp_path: Pat
     assert problem in _one_line(capsys)
 
 
+@pytest.mark.parametrize("extra, problem", [(["--subject", "missing.ply"], "no such file"),
+                                            (["--subject", "garbled.ply"], "cannot be read as a mesh"),
+                                            (["--rig", "missing.yaml"], "cannot read")])
+def test_the_simulated_daemon_with_unusable_input_is_one_line_and_exit_2(tmp_path: Path, capsys, extra,
+                                                                        problem) -> None:
+    (tmp_path / "garbled.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
+    extra = [str(tmp_path / e) if e.endswith((".ply", ".yaml")) else e for e in extra]
+    assert tbp(["daemon", "--sim", "--http", "off", "--store", str(tmp_path / "s"),
+                "--socket", str(tmp_path / "control.sock"), *extra]) == 2
+    line = _one_line(capsys)
+    assert line.startswith("tbp daemon: ") and problem in line
+
+
 @pytest.mark.parametrize("text, problem", [
     (None, "cannot read"),
     ("can: {interface: socketcan, channel: can0}\nphones: {}\ndepth_cameras: {}\npanel: null\n", "phones.cam0"),

@@ -170,6 +170,15 @@ def test_an_empty_volume_is_no_subject():
         _fuse(far_away)
 
 
+def test_a_volume_whose_measurements_hold_no_surface_is_no_subject():
+    """Frames that measured something in the volume but fused to no surface (here: weights
+    nowhere reach the threshold; on the rig, scattered specks with nobody standing there):
+    Open3D's extraction raises on an empty mesh, which is the scan's NoSubject."""
+    rig = dataclasses.replace(COARSE, tsdf=dataclasses.replace(COARSE.tsdf, weight_threshold=1e6))
+    with pytest.raises(NoSubject, match="holds no surface"):
+        _fuse(sphere(200.0), rig=rig)
+
+
 def test_a_small_object_is_no_subject():
     with pytest.raises(NoSubject, match="not a person"):
         _fuse(sphere(50.0, centre=(0.0, 0.0, 300.0)))
