@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
                 raise SiteConfigError("--called-aet", "AET", "required with --pacs: the archive's AE title")
             peer = Peer(match["host"].strip("[]"), int(match["port"]), ae_title(args.called_aet, "--called-aet"))
             calling = ae_title(args.calling_aet, "--calling-aet")
+        if problem := options.url_problem("--dicomweb", args.dicomweb):
+            raise SiteConfigError("--dicomweb", "URL", problem.removeprefix("--dicomweb "))
         builder = StudyBuilder(args.scan_dir, args.rig)
         instances = deidentified(builder) if args.deidentify else builder.instances()
     except (ExportError, StoreError, SiteConfigError, RigConfigError) as exc:

@@ -140,6 +140,16 @@ def texel_problem(flag: str, value: float | None) -> str | None:
     return None
 
 
+def url_problem(flag: str, value: str | None) -> str | None:
+    """What is wrong with an archive URL option's value (None: nothing, or not given): the
+    site file's rule, an http:// or https:// URL (planner/schema/tables.py URL)."""
+    from planner.schema.tables import URL
+
+    if value is not None and (len(value) > 2048 or URL.fullmatch(value) is None):
+        return f"{flag} {value[:80]!r}: expected an http:// or https:// URL"
+    return None
+
+
 def lesion_changes(text: str) -> Any:
     """``--lesion-changes SEED``: the seeded LesionChanges (drivers/sim/skin_texture.py)."""
     from drivers.sim.skin_texture import LesionChanges, LesionChangesError

@@ -39,6 +39,9 @@ def run(args: argparse.Namespace) -> int:
     from web.server import WebServer
 
     configure_logging(level=args.log_level, stream=sys.stderr)
+    if problem := options.url_problem("--dicomweb", args.dicomweb):
+        print(f"tbp viewer: {problem}", file=sys.stderr)
+        return 2
     try:
         host, port = parse_listen(args.http)
         access = Access(host, port, read_token(args.http_token_file) if args.http_token_file else None)

@@ -224,3 +224,14 @@ def test_the_real_daemon_with_an_unusable_hardware_file_exits_2_naming_the_key(
     line = _one_line(capsys)
     assert line.startswith("tbp daemon: ") and str(hardware) in line and problem in line
     assert not (tmp_path / "c.sock").exists()  # refused before serving anything
+
+
+@pytest.mark.parametrize("command", [["viewer", "--http", "127.0.0.1:0", "--cache", "{tmp}/cache"],
+                                     ["export", "{tmp}/no-scan"]])
+@pytest.mark.parametrize("url", ["pacs.clinic.example/dicom-web", "ftp://pacs/dicom-web", "http://"])
+def test_an_archive_url_that_is_not_http_is_refused_before_any_work(tmp_path: Path, capsys, command, url) -> None:
+    args = [part.replace("{tmp}", str(tmp_path)) for part in command]
+    assert tbp([*args, "--dicomweb", url]) == 2
+    line = _one_line(capsys)
+    assert line.startswith(f"tbp {command[0]}: --dicomweb") and "http:// or https:// URL" in line
+    assert not (tmp_path / "cache").exists()
