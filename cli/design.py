@@ -35,8 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from analysis.design import DesignOptions, design
+    from cli.outputs import output_problem
     from daemon.logs import configure_logging
-    from planner.design import Constraints, DesignError
+    from planner.design import Constraints, ConstraintValueError, DesignError
     from planner.rig import DEFAULT_RIG_PATH, RigConfigError, load_rig
 
     configure_logging(level="warning", stream=sys.stderr)
@@ -44,19 +45,27 @@ def run(args: argparse.Namespace) -> int:
         print("tbp design: --bodies and --verify-bodies must be >= 0, --plan-points and --verify-points >= 100",
               file=sys.stderr)
         return 2
+    if problem := output_problem("--out", args.out, folder=True):
+        print(f"tbp design: {problem}", file=sys.stderr)
+        return 2
     base_path = args.rig or DEFAULT_RIG_PATH
     try:
         base = load_rig(base_path)
         constraints = Constraints(
-            phones=args.phones or base.n_cameras,
-            ring_radius_mm=args.radius or base.ring_radius_mm,
+            phones=base.n_cameras if args.phones is None else args.phones,
+            ring_radius_mm=base.ring_radius_mm if args.radius is None else args.radius,
             column_height_mm=args.column_height,
             phone_spacing_mm=args.spacing,
         )
         constraints.heights()
+    except ConstraintValueError as exc:
+        flag = {"phones": "--phones", "ring_radius_mm": "--radius", "column_height_mm": "--column-height",
+                "phone_spacing_mm": "--spacing"}.get(exc.name, exc.name)
+        print(f"tbp design: {flag} {exc.value:g}: expected {exc.expected}", file=sys.stderr)
+        return 2
     except (RigConfigError, DesignError) as exc:
         print(f"tbp design: {exc}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(exc, RigConfigError) else 1
 
     def progress(what: str, done: int, total: int) -> None:
         bar = "#" * (20 * done // max(total, 1))

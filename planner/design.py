@@ -38,6 +38,15 @@ class DesignError(ValueError):
     """The constraints leave no design (e.g. more phones than fit in the column)."""
 
 
+class ConstraintValueError(DesignError):
+    """A constraint is not a usable count or length (no phones, a negative or non-finite radius):
+    names the constraint (``name``, a field of :class:`Constraints`), its value and what it must be."""
+
+    def __init__(self, name: str, value: float, expected: str) -> None:
+        self.name, self.value, self.expected = name, value, expected
+        super().__init__(f"{name} {value!r}: expected {expected}")
+
+
 @dataclass(frozen=True)
 class Constraints:
     """What the rig builder fixes: phone count, ring (beam) radius and column height (mm);
@@ -51,6 +60,16 @@ class Constraints:
     lowest_mm: float = 80.0
     tilts_deg: tuple[float, ...] = (-35.0, -25.0, -15.0, 0.0, 15.0, 25.0, 35.0)
     height_step_mm: float = 30.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.phones <= 64:
+            raise ConstraintValueError("phones", self.phones, "1 to 64")
+        for name in ("ring_radius_mm", "column_height_mm", "phone_spacing_mm", "height_step_mm"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConstraintValueError(name, value, "a positive length in mm")
+        if not (math.isfinite(self.lowest_mm) and self.lowest_mm >= 0):
+            raise ConstraintValueError("lowest_mm", self.lowest_mm, "a height in mm, 0 or more")
 
     def heights(self) -> np.ndarray:
         top = self.column_height_mm - 40.0

@@ -11,6 +11,7 @@ import pytest
 from cli import main as tbp
 from planner.design import (
     Constraints,
+    ConstraintValueError,
     DesignError,
     Subject,
     depth_coverage,
@@ -106,3 +107,37 @@ def test_tbp_design_writes_a_loadable_rig_and_a_report(tmp_path, capsys):
         assert (out / name).stat().st_size > 1000
     assert "designed rig: visible" in capsys.readouterr().out
     assert tbp(["design", "--phones", "30", "--out", str(tmp_path / "x")]) == 1
+
+
+@pytest.mark.parametrize("args, problem", [
+    (["--phones", "0"], "--phones 0: expected 1 to 64"),
+    (["--radius", "-5"], "--radius -5: expected a positive length in mm"),
+    (["--radius", "nan"], "--radius nan: expected a positive length in mm"),
+    (["--spacing", "0"], "--spacing 0: expected a positive length in mm"),
+    (["--column-height", "inf"], "--column-height inf: expected a positive length in mm"),
+    (["--out", "{tmp}/a-file/design"], "--out {tmp}/a-file/design: {tmp}/a-file is not a folder"),
+])
+def test_unusable_design_constraints_are_refused_in_one_line_before_any_work(tmp_path, capsys, monkeypatch, args,
+                                                                            problem):
+    import analysis.design
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the search ran before the refusal")
+
+    monkeypatch.setattr(analysis.design, "design", never)
+    (tmp_path / "a-file").write_text("x")
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    out = [] if "--out" in args else ["--out", str(tmp_path / "design")]
+    assert tbp(["design", *args, *out]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"tbp design: {problem.replace('{tmp}', str(tmp_path))}", err
+
+
+@pytest.mark.parametrize("field, value", [("phones", 0), ("phones", 65), ("ring_radius_mm", 0.0),
+                                          ("column_height_mm", float("nan")), ("phone_spacing_mm", -170.0),
+                                          ("lowest_mm", -1.0), ("height_step_mm", float("inf"))])
+def test_constraints_refuse_a_value_that_is_not_a_count_or_length(field, value):
+    given = {"phones": 7, "ring_radius_mm": 450.0, "column_height_mm": 2300.0, field: value}
+    with pytest.raises(ConstraintValueError) as refused:
+        Constraints(**given)
+    assert refused.value.name == field and str(refused.value).startswith(f"{field} {value!r}: expected ")
