@@ -73,6 +73,11 @@ class StudyOptions:
     angles: bool = True
     extremes: bool = False
 
+    def __post_init__(self) -> None:
+        if self.points < 100 or self.calibration_trials < 0 or self.sway_poses < 0:
+            raise ValueError(f"points {self.points} (at least 100), calibration_trials {self.calibration_trials} "
+                             f"and sway_poses {self.sway_poses} (0 or more: 0 skips the study)")
+
 
 def body_seed(corpus_seed: int, index: int) -> int:
     return corpus_seed * 10_007 + index

@@ -45,6 +45,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"tbp evaluate: --bodies and --jobs must be >= 1 and --points >= 100 "
               f"(got {args.bodies}, {args.jobs}, {args.plan_points})", file=sys.stderr)
         return 2
+    if args.calibration_trials < 0 or args.sway_poses < 0:
+        print(f"tbp evaluate: --calibration-trials and --sway-poses must be >= 0 (0 skips the study; "
+              f"got {args.calibration_trials}, {args.sway_poses})", file=sys.stderr)
+        return 2
     from cli.outputs import output_problem
 
     problem = output_problem("--out", args.out, folder=True)

@@ -101,6 +101,21 @@ def test_plan_and_evaluate_refuse_an_output_they_cannot_write_before_any_work(tm
     assert "tbp evaluate: --out" in _one_line(capsys)
 
 
+@pytest.mark.parametrize("flag", ["--calibration-trials", "--sway-poses"])
+def test_evaluate_refuses_a_negative_study_size_before_any_work(tmp_path: Path, capsys,
+                                                                monkeypatch: pytest.MonkeyPatch, flag) -> None:
+    import analysis.evaluation
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the work ran before the refusal")
+
+    monkeypatch.setattr(analysis.evaluation, "run_corpus", never)
+    assert tbp(["evaluate", "--bodies", "1", flag, "-1", "--out", str(tmp_path / "ev")]) == 2
+    assert "--calibration-trials and --sway-poses must be >= 0" in _one_line(capsys)
+    with pytest.raises(ValueError, match="0 or more"):
+        analysis.evaluation.StudyOptions(**{flag.removeprefix("--").replace("-", "_"): -1})
+
+
 def test_scans_on_a_store_that_does_not_exist(tmp_path: Path, capsys) -> None:
     assert tbp(["scans", "--store", str(tmp_path / "nonexistent"), "--check"]) == 2
     assert _one_line(capsys) == f"tbp scans: scan store {tmp_path / 'nonexistent'} does not exist"
