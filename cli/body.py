@@ -33,14 +33,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cli.outputs import output_problem
     from sim.body import Phenotype, generate_body, save_body
     from sim.body_errors import BodyError
 
+    if problem := output_problem("--out", args.out):  # before the body model's seconds of loading
+        print(f"tbp body: {problem}", file=sys.stderr)
+        return 2
     try:
         phenotype = Phenotype.parse(args.phenotype) if args.phenotype is not None else None
         body = generate_body(seed=args.seed, phenotype=phenotype, sway_deg=args.sway, sway_seed=args.sway_seed)
         mesh = body.mesh.copy()
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         save_body(mesh, args.out)
     except BodyError as exc:
         print(f"tbp body: {exc}", file=sys.stderr)
