@@ -85,6 +85,11 @@ def run(args: argparse.Namespace) -> int:
     except (TargetError, RigConfigError) as exc:
         print(f"tbp calibrate: {exc}", file=sys.stderr)
         return 2
+    from cli.outputs import output_problem
+
+    if problem := output_problem("--out", args.out, folder=True):  # before a rotation or a focus sweep
+        print(f"tbp calibrate: {problem}", file=sys.stderr)
+        return 2
     if args.action == "target":
         from analysis.target_prints import write_target_prints
 

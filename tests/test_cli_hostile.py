@@ -84,7 +84,7 @@ def test_reconstruct_refuses_an_output_it_cannot_write_before_any_work(tmp_path:
     assert problem in _one_line(capsys)
 
 
-def test_plan_evaluate_and_body_refuse_an_output_they_cannot_write_before_any_work(tmp_path: Path, capsys,
+def test_commands_refuse_an_output_they_cannot_write_before_any_work(tmp_path: Path, capsys,
                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     import analysis.evaluation
     import planner.plan
@@ -104,6 +104,9 @@ def test_plan_evaluate_and_body_refuse_an_output_they_cannot_write_before_any_wo
     monkeypatch.setattr(sim.body, "generate_body", never)
     assert tbp(["body", "--out", str(tmp_path / "a-file" / "b.ply")]) == 2
     assert _one_line(capsys) == f"tbp body: --out {tmp_path / 'a-file' / 'b.ply'}: {tmp_path / 'a-file'} is not a folder"
+    for action in ([], ["target"], ["focus"]):
+        assert tbp(["calibrate", *action, "--sim", "--out", str(tmp_path / "a-file" / "cal")]) == 2
+        assert _one_line(capsys) == f"tbp calibrate: --out {tmp_path / 'a-file' / 'cal'}: {tmp_path / 'a-file'} is not a folder"
 
 
 @pytest.mark.parametrize("flag", ["--calibration-trials", "--sway-poses"])
