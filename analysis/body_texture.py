@@ -36,7 +36,7 @@ from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
 from analysis.parallax import surface_offsets, sweep_grid
 from analysis.pixels import bilinear, by_image
-from analysis.scan_views import ScanRecord, decoded, open_scan
+from analysis.scan_views import ScanRecord, open_scan, picture_size
 from analysis.texel_views import Samples, candidate_poses, choose_views, runs, squarely, texel_views
 from planner.cores import each, heap_for_large_arrays
 
@@ -83,8 +83,7 @@ def stored_image_size(scan: ScanRecord) -> tuple[int, int]:
     """(width, height) px of the scan's stored images (simulated phones store small ones)."""
     for image in scan.images:
         if scan.image_on_disk(image):
-            size: tuple[int, int] = decoded(scan.path / image.file, header_only=True).size
-            return size
+            return picture_size(scan.path / image.file)
     raise TextureError(f"scan {scan.path}: no verified image on disk to texture from")
 
 

@@ -88,16 +88,25 @@ class ScanRecord:
         return np.asarray(decoded(self.path / image.file), dtype=np.float32)
 
 
-def decoded(path: Path, *, header_only: bool = False) -> Any:
-    """The picture at ``path`` decoded to RGB (a PIL image; with ``header_only``, opened and
-    closed again, its size read from the header); ScanFileError naming the file and the
+def decoded(path: Path) -> Any:
+    """The picture at ``path`` decoded to RGB (a PIL image); ScanFileError naming the file and the
     decoder's reason when it does not decode (cut short, damaged on disk: ``tbp scans --check``
     compares it with its recorded SHA-256)."""
+    return _read_picture(path, lambda picture: picture.convert("RGB"))
+
+
+def picture_size(path: Path) -> tuple[int, int]:
+    """(width, height) px of the picture at ``path`` from its header; ScanFileError as :func:`decoded`."""
+    size: tuple[int, int] = _read_picture(path, lambda picture: picture.size)
+    return size
+
+
+def _read_picture(path: Path, read: Any) -> Any:
     from PIL import Image
 
     try:
         with Image.open(path) as picture:
-            return picture if header_only else picture.convert("RGB")
+            return read(picture)
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
         raise ScanFileError(path, f"the image does not decode ({exc}); tbp scans --check compares it with its "
                             "recorded size and SHA-256") from exc

@@ -46,23 +46,27 @@ def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, 
     return out
 
 
-def kept_visits(root: Path, name: str, *, person_seed: int = 3, lesion_changes: Any = None) -> Visits:
+def kept_visits(root: Path, name: str, *, person_seed: int = 3, lesion_changes: Any = None,
+                render_scale: int = 1) -> Visits:
     """:func:`two_visits` into ``root / name``, kept between runs in ``root / (name + ".pickle")``:
-    scanned again only when the kept scans are gone or their lesion changes differ."""
+    scanned again only when the kept scans are gone or their lesion changes differ. A render
+    scale other than 1 is a name of its own (``name-x2``)."""
+    name = name if render_scale == 1 else f"{name}-x{render_scale}"
     cache = root / f"{name}.pickle"
     if cache.exists():
         visits: Visits = pickle.loads(cache.read_bytes())
         if visits.earlier.exists() and visits.later.exists() and visits.lesion_changes == lesion_changes:
             return visits
-    visits = two_visits(root / name, person_seed=person_seed, lesion_changes=lesion_changes)
+    visits = two_visits(root / name, person_seed=person_seed, lesion_changes=lesion_changes, render_scale=render_scale)
     cache.write_bytes(pickle.dumps(visits))
     return visits
 
 
 def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, depth_decimation: int = 2,
-               lesion_changes: Any = None) -> Visits:
+               lesion_changes: Any = None, render_scale: int = 1) -> Visits:
     """Scan the same simulated adult (one synthetic patient) twice (seeds 1 and 2) into ``store``;
-    QA reports included. ``lesion_changes``: spots grown and new at the second visit."""
+    QA reports included. ``lesion_changes``: spots grown and new at the second visit;
+    ``render_scale``: the simulated phones' pictures that many times finer a side (sim/rig.py)."""
     from analysis.qa_report import generate_report
     from daemon.clinic.patient import ScanSubject
     from sim.body import make_body
@@ -75,6 +79,7 @@ def two_visits(store: Path, *, person_seed: int = 3, plan_points: int = 1500, de
     for seed, subject, changes in ((1, still, None), (2, swayed, lesion_changes)):
         report = run_sim_scan(store=store, seed=seed, plan_points=plan_points, depth_decimation=depth_decimation,
                               subject=subject, panel=False, qa_report=generate_report, lesion_changes=changes,
+                              render_scale=render_scale,
                               patient=ScanSubject.from_args({"patient_id": f"SYN-{person_seed:04d}",
                                                              "patient_name": f"Testperson^Seed{person_seed}"}))
         folders.append(Path(report.folder))

@@ -23,7 +23,8 @@ class ImageRequestError(ValueError):
 
 
 class ImageUnreadable(OSError):
-    """A stored picture does not decode (cut short or damaged on disk)."""
+    """A stored picture does not decode (cut short or damaged on disk); an OSError, as PIL's own
+    are, for the callers that catch those (web/glb.py's preview)."""
 
 
 #: What PIL raises for a file that is not a whole picture.

@@ -12,6 +12,8 @@ gap and the local fit's rms residual the doubt compares).
 
     python -m tests.bench marks    (TBP_MARKS_PERSONS=3,5 for other people, default
                                     3,5,8,11,13,17; TBP_MARKS_COUNT marks per person, default 200;
+                                    TBP_MARKS_SCALE=2 for the phones' pictures twice as fine a
+                                    side, sim/rig.py render_scale, default 1;
                                     TBP_BENCH_DIR keeps the scans between runs)
 """
 
@@ -32,6 +34,7 @@ from tests.web_visits import carry_errors, kept_visits
 
 PERSONS = tuple(int(s) for s in os.environ.get("TBP_MARKS_PERSONS", "3,5,8,11,13,17").split(","))
 COUNT = int(os.environ.get("TBP_MARKS_COUNT", "200"))
+SCALE = int(os.environ.get("TBP_MARKS_SCALE", "1"))
 GOAL_MM = 5.0
 GOAL_SHARE = 0.99
 
@@ -55,7 +58,8 @@ def run() -> None:
         every: list[tuple[np.ndarray, ...]] = []
         for person in PERSONS:
             started = time.perf_counter()
-            visits = kept_visits(root, f"scans-{person}", person_seed=person, lesion_changes=LESION_CHANGES)
+            visits = kept_visits(root, f"scans-{person}", person_seed=person, lesion_changes=LESION_CHANGES,
+                                 render_scale=SCALE)
             ready = time.perf_counter() - started
             carried = carry_errors(visits, count=COUNT)
             error, skin, doubt = carried["error_mm"], carried["skin_error_mm"], carried["in_doubt"]
@@ -70,7 +74,7 @@ def run() -> None:
                       f"{np.round(carried['points'][k]).astype(int).tolist()} mm on the earlier scan")
             every.append((error, skin, doubt))
         error, skin, doubt = (np.concatenate(c) for c in zip(*every))
-        print(_summary(f"all {len(PERSONS)} people", error, skin, doubt))
+        print(_summary(f"all {len(PERSONS)} people (pictures at render scale {SCALE})", error, skin, doubt))
         print(f"goal: >= {100 * GOAL_SHARE:.0f} % within {GOAL_MM:g} mm, every mark beyond in doubt (doubt: the later "
               f"surface's gap above the local fit's rms residual, at least {MarkCarrier.SURFACE_NOISE_MM:g} mm, "
               f"at most {MarkCarrier.SURFACE_DOUBT_MM:g} mm)")
