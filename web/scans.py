@@ -70,19 +70,12 @@ class OpenScan:
     async def navigator_ready(self) -> Navigator:
         """The navigator, built off the loop once (the ray scene takes about a second); 409 when
         the scan's mesh is missing or unreadable."""
-        async with self.lock:
-            try:
-                return await _off_loop(self.navigator_now)
-            except StoreError as exc:
-                raise json_error(web.HTTPConflict, exc) from exc
+        navigator: Navigator = await _from_mesh(self, self.navigator_now)
+        return navigator
 
     async def mesh_ready(self) -> Any:
         """The scan's mesh, read off the loop once; 409 when it is missing or unreadable."""
-        async with self.lock:
-            try:
-                return await _off_loop(self.mesh_now)
-            except StoreError as exc:
-                raise json_error(web.HTTPConflict, exc) from exc
+        return await _from_mesh(self, self.mesh_now)
 
     def mesh_now(self) -> Any:
         if self.mesh is None:
@@ -249,7 +242,7 @@ async def scan_detail(request: web.Request) -> web.Response:
 
 async def _from_mesh(scan: OpenScan, make: Callable[[], Any]) -> Any:
     """What ``make`` builds from the scan's mesh, off the loop under the scan's lock; 409 when the
-    scan has no mesh (it ended before the depth sweep)."""
+    scan has no mesh (it ended before the depth sweep) or its mesh cannot be read."""
     async with scan.lock:
         try:
             return await _off_loop(make)
