@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     from cli.outputs import output_problem
 
-    if problem := output_problem("--out", args.out, folder=True):  # before a rotation or a focus sweep
+    # before a rotation or a focus sweep; nothing made yet (a running daemon may still refuse it)
+    if problem := output_problem("--out", args.out, folder=True, create=False):
         print(f"tbp calibrate: {problem}", file=sys.stderr)
         return 2
     if args.action == "target":

@@ -10,11 +10,13 @@ from pathlib import Path
 
 
 def output_problem(flag: str, path: Path | None, *, folder: bool = False,
-                   suffixes: Sequence[str] = ()) -> str | None:
+                   suffixes: Sequence[str] = (), create: bool = True) -> str | None:
     """Why ``path`` (a file, or a folder with ``folder=True``) cannot be written, or None.
 
     Creates the missing folders on the way (the command would create them anyway) and proves the
-    folder writable with a temporary file, which also holds for root and read-only mounts.
+    folder writable with a temporary file, which also holds for root and read-only mounts. With
+    ``create=False`` nothing is made: the nearest folder that exists on the way is proved
+    writable instead (for a command that may still refuse before it writes).
     """
     if path is None:
         return None
@@ -28,8 +30,9 @@ def output_problem(flag: str, path: Path | None, *, folder: bool = False,
     if blocking is not None and not blocking.is_dir():
         return f"{flag} {path}: {blocking} is not a folder"
     try:
-        target.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=target):
+        if create:
+            target.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=target if create else blocking):
             pass
     except OSError as exc:
         return f"{flag} {path}: cannot write there: {exc.strerror or exc}"

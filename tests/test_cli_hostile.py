@@ -258,3 +258,15 @@ def test_an_archive_url_that_is_not_http_is_refused_before_any_work(tmp_path: Pa
     line = _one_line(capsys)
     assert line.startswith(f"tbp {command[0]}: --dicomweb") and "http:// or https:// URL" in line
     assert not (tmp_path / "cache").exists()
+
+
+def test_an_output_check_that_may_still_be_refused_makes_nothing(tmp_path: Path) -> None:
+    from cli.outputs import output_problem
+
+    out = tmp_path / "new" / "cal"
+    assert output_problem("--out", out, folder=True, create=False) is None
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "a-file").write_text("x")
+    assert output_problem("--out", tmp_path / "a-file" / "cal", folder=True, create=False) == (
+        f"--out {tmp_path / 'a-file' / 'cal'}: {tmp_path / 'a-file'} is not a folder")
+    assert output_problem("--out", out, folder=True) is None and out.is_dir()
