@@ -327,8 +327,8 @@ def measure(folder: Path, seed: int) -> dict[str, float]:
     lesion_breakdown(distance, disc[held], samples.best_mm_px[where], at["distance"][where], _squarest_angle(samples, where),
                      from_edge, from_hole)
     for name, value, bands in (("the chart's edge", from_edge, EDGE_BANDS_MM), ("the mesh's open edge", from_hole, HOLE_BANDS_MM)):
-        cells = ", ".join(f"{low:g}-{high:g}: {100 * (ideal[(value >= low) & (value < high)] <= MATCH_MM).mean():.0f} %"
-                          for low, high in zip(bands[:-1], bands[1:]) if ((value >= low) & (value < high)).any())
+        cells = ", ".join(f"{low:g}-{high:g}: {100 * (ideal[inside] <= MATCH_MM).mean():.0f} %"
+                          for low, high, inside in _bands(value, bands))
         print(f"    the detector on the albedo, by mm from {name} (found): {cells}")
 
     # resolution: each triangle's skin area over its atlas area -> mm per texel on the skin
@@ -414,14 +414,17 @@ def lesion_breakdown(distance: np.ndarray, disc: np.ndarray, mm_px: np.ndarray, 
               ("mm from the mesh's open edge (a hole)", from_hole_mm, HOLE_BANDS_MM))
     for name, value, edges in splits:
         cells = []
-        for low, high in zip(edges[:-1], edges[1:]):
-            inside = (value >= low) & (value < high)
-            if not inside.any():
-                continue
+        for low, high, inside in _bands(value, edges):
             d = distance[inside]
             cells.append(f"{low:g}-{high:g}: {inside.sum()} {100 * (d <= MATCH_MM).mean():.0f}/"
                          f"{100 * ((d > MATCH_MM) & (d <= 3.0)).mean():.0f}/{100 * (d > 3.0).mean():.0f}")
         print(f"    by {name} (n found/off/undetected %): " + "; ".join(cells))
+
+
+def _bands(value: np.ndarray, edges: Any) -> list[tuple[float, float, np.ndarray]]:
+    """Each band [low, high) of ``edges`` that holds a value (K,): low, high and which (K,) bool."""
+    bands = [(low, high, (value >= low) & (value < high)) for low, high in zip(edges[:-1], edges[1:])]
+    return [(low, high, inside) for low, high, inside in bands if inside.any()]
 
 
 def _from_open_edge(atlas: Any, points: np.ndarray) -> np.ndarray:
