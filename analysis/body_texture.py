@@ -3,15 +3,11 @@
 Every texel of the mesh's atlas (analysis/atlas.py) takes its colour from the images that show
 its skin point best, blended across seams (analysis/texel_views.py). Each image's gain (per colour
 channel) and the light's falloff with the incidence are fitted by least squares where images
-share skin (analysis/exposure.py) and divided out before blending. Where the scan's surface is
-off the skin, images seen from different sides disagree about where a spot is on it; each texel
-is sampled at the offset along the surface's normal at which its images agree
-(analysis/parallax.py), so small lesions stay in place and unsmeared. Images are read one at a
+share skin (analysis/exposure.py) and divided out before blending. Images are read one at a
 time on each thread and samples blended in bounded blocks, so memory grows with the samples
 (about 22 bytes each, 32-bit) and not with copies of them. Where a core is spare (a command run
 by hand, or the daemon's compute worker after a scan, in STORING: daemon/offload/worker.py
-on_every_core) the atlas, the view choice, the image sampling, the parallax sweep and the blend
-run two blocks or images at once (planner/cores.py), with the same result as one.
+on_every_core) the atlas, the view choice, the image sampling and the blend run two blocks or images at once (planner/cores.py), with the same result as one.
 
 The file is a glTF binary (metres, as glTF wants; the scan's mm divided by 1000) with one mesh,
 its texture coordinates and a JPEG atlas, written into the scan folder through the store.
@@ -19,7 +15,6 @@ its texture coordinates and a JPEG atlas, written into the scan folder through t
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import math
 import time
@@ -34,7 +29,6 @@ from PIL import Image
 from analysis.atlas import Atlas, seam_gutters, unwrap
 from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
-from analysis.parallax import surface_offsets, sweep_grid
 from analysis.pixels import bilinear, by_image
 from analysis.scan_views import ScanRecord, open_scan, picture_size
 from analysis.texel_views import Samples, candidate_poses, choose_views, runs, squarely, texel_views
@@ -64,8 +58,7 @@ class TextureError(ValueError):
 @dataclass(frozen=True)
 class BodyTexture:
     """The textured body: atlas, texture (H, W, 3) uint8, per-texel samples, the images'
-    exposure, each texel's offset (T,) mm along the surface's outward normal where the images
-    were sampled (analysis/parallax.py), where the time went (seconds per step), and the gutter
+    exposure, where the time went (seconds per step), and the gutter
     texels that hold the skin continuing over their chart's edge (analysis/atlas.py
     seam_gutters): (G, 2) row, column and (G, 3) mm the surface point each was taken from."""
 
@@ -73,7 +66,6 @@ class BodyTexture:
     texture: np.ndarray
     samples: Samples
     exposure: Exposure
-    offset_mm: np.ndarray
     seconds: dict[str, float]
     gutter_rc: np.ndarray
     gutter_point: np.ndarray
@@ -193,20 +185,16 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     per_face = candidate_poses(nav, vertices, faces, size)
     lap("candidates")
     smooth = smooth_face_normals(vertices, faces)
-    samples, swept = texel_views(nav, atlas, normals, smooth, per_face, size, sweep=sweep_grid(atlas))
+    samples = texel_views(nav, atlas, normals, smooth, per_face, size)
     lap("views")
     say(f"{len(samples.pose)} image samples from {np.count_nonzero(np.bincount(samples.pose))} images")
-    fit = _overlapping(samples, 2 * MAX_EQUATIONS)
-    colours = sample_images(scan, fit)
+    colours = sample_images(scan, samples)
     lap("sample")
-    exposure = fit_exposure(fit.texel, fit.pose, fit.incidence, colours, fit.weight, scan.rig.n_poses)
-    del colours, fit
+    fit = _overlapping(samples, 2 * MAX_EQUATIONS)
+    exposure = fit_exposure(samples.texel[fit], samples.pose[fit], samples.incidence[fit], colours[fit],
+                            samples.weight[fit], scan.rig.n_poses)
+    del fit
     lap("exposure")
-    outward = -smooth
-    offset = surface_offsets(nav, atlas, swept.texel, swept.pose, swept.weight, swept.incidence, exposure, outward, size)
-    del swept
-    samples, colours = _sample_moved(scan, nav, samples, atlas, offset, outward, size)
-    lap("parallax")
     colour, seen = blend(samples, colours, exposure, len(atlas.texel_rc))
     del colours
     texture = np.zeros((*atlas.shape, 3), dtype=np.uint8)
@@ -218,48 +206,22 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
     lap("blend")
     texture, gutter_rc, gutter_point = seam_gutters(atlas, texture, filled, nav.scene.closest_faces)
     lap("gutters")
-    return BodyTexture(atlas, texture, samples, exposure, offset, seconds, gutter_rc, gutter_point)
+    return BodyTexture(atlas, texture, samples, exposure, seconds, gutter_rc, gutter_point)
 
 
-def _overlapping(samples: Samples, equations: int) -> Samples:
-    """The samples the exposure fit reads: those of a random share (fixed seed) of the texels
-    two or more images texture, holding about ``equations`` overlaps (all when they hold fewer),
-    so the fit reads the colours of a bounded number of samples whatever the atlas' size."""
+def _overlapping(samples: Samples, equations: int) -> np.ndarray:
+    """The indices of the samples the exposure fit reads: those of a random share (fixed seed) of
+    the texels two or more images texture, holding about ``equations`` overlaps (all of them when
+    they hold fewer), so the fit's size is bounded whatever the atlas' size."""
     starts, counts = runs(samples.texel)
     shared = np.flatnonzero(counts >= 2)
     total = int((counts[shared] - 1).sum())
-    if total <= equations:
-        return samples
-    group = shared[np.sort(np.random.default_rng(0).choice(len(shared), len(shared) * equations // total, replace=False))]
-    size = counts[group]
-    index = np.repeat(starts[group] - (np.cumsum(size) - size), size) + np.arange(size.sum())
-    return dataclasses.replace(samples, texel=samples.texel[index], pose=samples.pose[index], u=samples.u[index],
-                               v=samples.v[index], weight=samples.weight[index], incidence=samples.incidence[index])
-
-
-def _sample_moved(scan: ScanRecord, nav: Navigator, samples: Samples, atlas: Atlas, offset: np.ndarray,
-                  outward: np.ndarray, image_size: tuple[int, int]) -> tuple[Samples, np.ndarray]:
-    """The samples with their pixels where each texel's point is moved by its offset (T,) mm
-    along its triangle's outward normal (F, 3), and their colours (K, 3) float32 there; each
-    image's samples projected at once through its own camera, images two at a time where a core
-    is spare."""
-    optics = nav.scan.rig.optics
-    scale = image_size[0] / optics.image_width_px
-    u, v = np.empty_like(samples.u), np.empty_like(samples.v)
-    colours = np.empty((len(samples.pose), 3), dtype=np.float32)
-    poses = nav.poses
-
-    def move(group: tuple[int, np.ndarray]) -> None:
-        p, mine = group
-        texel = samples.texel[mine]
-        rel = atlas.texel_point[texel] + offset[texel, None] * outward[atlas.texel_face[texel]] - poses.centres[p]
-        x, y, z = (rel @ np.stack([poses.right[p], poses.down[p], poses.forward[p]], axis=1)).T
-        u[mine] = (optics.focal_length_px * x / z + optics.image_width_px / 2.0) * scale
-        v[mine] = (optics.focal_length_px * y / z + optics.image_height_px / 2.0) * scale
-        colours[mine] = bilinear(scan.pixels_at(p), u[mine], v[mine])
-
-    each(move, by_image(samples.pose), name="sample-moved")
-    return dataclasses.replace(samples, u=u, v=v), colours
+    if total > equations:
+        shared = shared[np.sort(np.random.default_rng(0).choice(len(shared), len(shared) * equations // total,
+                                                                replace=False))]
+    size = counts[shared]
+    index: np.ndarray = np.repeat(starts[shared] - (np.cumsum(size) - size), size) + np.arange(size.sum())
+    return index
 
 
 def glb_bytes(body: BodyTexture, *, quality: int = JPEG_QUALITY) -> bytes:

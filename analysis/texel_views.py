@@ -40,15 +40,10 @@ CANDIDATE_SLACK = 0.05
 MAX_BLEND = 4
 #: Images more than MAX_BLEND a triangle's corners offer its texels.
 CANDIDATE_EXTRA = 2
-#: The parallax sweep's texels compare every candidate image within this of their best (a
-#: triangle's candidates reach no further), at most this many.
-SWEEP_MARGIN = BLEND_MARGIN + CANDIDATE_SLACK
-SWEEP_MOST = MAX_BLEND + CANDIDATE_EXTRA
-#: Where a texel's images are combined (the blend, the parallax sweep) each weighs its weight
-#: times its incidence (cos of the angle between its ray and the skin's normal) to this power:
-#: where the surface is off the skin by d an image puts a spot d tan(angle) from its place, and
-#: an oblique image holds the skin foreshortened, so the image that sees the skin most squarely
-#: leads.
+#: Where a texel's images are combined each weighs its blend weight times its incidence (cos of
+#: the angle between its ray and the skin's normal) to this power: where the surface is off the
+#: skin by d an image puts a spot d tan(angle) from its place, and an oblique image holds the skin
+#: foreshortened, so the image that sees the skin most squarely leads.
 SQUARE_POWER = 4
 #: Texels per pass of the view choice (bounds its temporary arrays).
 TEXEL_BLOCK = 150_000
@@ -109,37 +104,25 @@ def choose_views(nav: Navigator, points: np.ndarray, normals: np.ndarray, image_
 
 
 def texel_views(nav: Navigator, atlas: Atlas, normals: np.ndarray, smooth_normals: np.ndarray, candidates: Any,
-                image_size: tuple[int, int], sweep: np.ndarray | None = None) -> tuple[Samples, Samples]:
+                image_size: tuple[int, int]) -> Samples:
     """:func:`choose_views` of every texel of the atlas, testing only its triangle's candidate
-    poses, and the sweep's views: those of the texels ``sweep`` (T,) bool marks (None: none)
-    with every candidate image within SWEEP_MARGIN of the best, at most SWEEP_MOST, weighted
-    by the same fall-off over that margin. The parallax sweep (analysis/parallax.py) compares
-    them: more images, from further apart, than a texel blends, so a texel one image textures
-    still has its offset measured. normals: (F, 3) inward unit normals of the triangles (texels
-    of a zero-area one stay unseen); smooth_normals: (F, 3) those the incidence is measured
-    against; candidates: (F, P) sparse CSR whose non-zeros are each triangle's candidate poses
-    (:func:`candidate_poses`)."""
+    poses. normals: (F, 3) inward unit normals of the triangles (texels of a zero-area one stay
+    unseen); smooth_normals: (F, 3) those the incidence is measured against; candidates: (F, P)
+    sparse CSR whose non-zeros are each triangle's candidate poses (:func:`candidate_poses`)."""
     if not candidates.has_sorted_indices:
         candidates = candidates.sorted_indices()
     picked = _Picked(nav, len(atlas.texel_point), image_size)
-    swept = _Picked(nav, len(atlas.texel_point), image_size)
     facing = np.linalg.norm(normals, axis=1) > 0
-    wide = np.zeros(len(atlas.texel_point), dtype=bool) if sweep is None else sweep
 
     def block(start: int) -> None:
         face = atlas.texel_face[start:start + TEXEL_BLOCK]
         on = np.flatnonzero(facing[face])
         points = atlas.texel_point[start:start + TEXEL_BLOCK][on]
-        mine = wide[start:start + TEXEL_BLOCK][on]
-        margin = np.where(mine, SWEEP_MARGIN, BLEND_MARGIN)
-        pairs = _candidate_pairs(nav, points, normals[face[on]], candidates, face[on], margin)
+        pairs = _candidate_pairs(nav, points, normals[face[on]], candidates, face[on], BLEND_MARGIN)
         picked.add(start, pairs, points, smooth_normals[face[on]], BLEND_MARGIN, MAX_BLEND, on)
-        if mine.any():
-            keep = np.flatnonzero(mine[pairs.point])
-            swept.add(start, pairs.take(keep), points, smooth_normals[face[on]], SWEEP_MARGIN, SWEEP_MOST, on)
 
     each(block, range(0, len(atlas.texel_point), TEXEL_BLOCK), name="texel-views")
-    return picked.samples(), swept.samples()
+    return picked.samples()
 
 
 def squarely(weight: np.ndarray, incidence: np.ndarray) -> np.ndarray:
@@ -278,10 +261,10 @@ def _visible_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray) -> _
 
 
 def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, candidates: Any,
-                     face: np.ndarray, margin: float | np.ndarray) -> _Pairs:
+                     face: np.ndarray, margin: float) -> _Pairs:
     """The visible pairs of points (Q, 3) mm, inward normals (Q, 3), with the available
     candidate poses of their triangles face (Q,) (candidates: (F, P) CSR, sorted indices) that
-    cost less than ``margin`` (one for all, or (Q,) one per point) above the point's best: the
+    cost less than ``margin`` above the point's best: the
     frustum, facing and occlusion tests of planner.visibility and the cost of planner.cost, pair
     by pair. Occlusion rays go first to
     each point's cheapest pair; where that one is seen, pairs ``margin`` or more above it cannot
@@ -300,9 +283,9 @@ def _candidate_pairs(nav: Navigator, points: np.ndarray, normals: np.ndarray, ca
 
 
 def _unoccluded(nav: Navigator, points: np.ndarray, point: np.ndarray, pose: np.ndarray, cost: np.ndarray,
-                margin: float | np.ndarray, epsilon_mm: float) -> np.ndarray:
+                margin: float, epsilon_mm: float) -> np.ndarray:
     """Indices of the pairs (M,) (grouped by point) that nothing hides and that cost less than
-    ``margin`` (or (Q,) its point's) above their point's cheapest seen pair, the only ones a
+    ``margin`` above their point's cheapest seen pair, the only ones a
     texel can use; the cheapest pair of each point is tested first, the rest only where needed."""
     if not len(point):
         return np.zeros(0, dtype=np.int64)
@@ -313,7 +296,7 @@ def _unoccluded(nav: Navigator, points: np.ndarray, point: np.ndarray, pose: np.
     resolved[point[first]] = seen[first]
     rest = np.ones(len(point), dtype=bool)
     rest[first] = False
-    rest &= ~resolved[point] | (cost - lowest < (margin[point] if np.ndim(margin) else margin))
+    rest &= ~resolved[point] | (cost - lowest < margin)
     test = np.flatnonzero(rest)
     seen[test] = ~nav.scene.occluded(nav.poses.centres[pose[test]], points[point[test]], epsilon_mm)
     return np.flatnonzero(seen)

@@ -47,8 +47,6 @@ from tests.test_web import folder_of
 
 #: The capsule scan's texel here (its images would give 0.9 mm: 2 M texels, 40 s a texture).
 TEST_TEXEL_MM = 3.0
-#: How far out the parallax test moves the scan's surface off the skin (mm).
-SURFACE_OFF_MM = 2.0
 
 
 def _body_like() -> trimesh.Trimesh:
@@ -341,7 +339,7 @@ def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textur
 
     nav, size, normals, smooth, atlas = _unwrapped(textured, 6.0)
     every = sparse.csr_matrix(np.ones((len(nav.mesh.faces), nav.scan.rig.n_poses)))
-    got, _ = texel_views(nav, atlas, normals, smooth, every, size)
+    got = texel_views(nav, atlas, normals, smooth, every, size)
     face = atlas.texel_face
     want = choose_views(nav, atlas.texel_point, normals[face], size, smooth_normals=smooth[face])
     assert (got.best_pose >= 0).mean() > 0.9
@@ -355,35 +353,6 @@ def test_the_texels_take_the_images_the_planners_visibility_and_cost_give(textur
     assert np.all(np.diff(got.texel) >= 0)
     same = np.diff(got.texel) == 0
     assert np.all(got.weight[1:][same] <= got.weight[:-1][same])
-
-
-def test_the_parallax_sweep_compares_more_images_than_a_texel_blends(textured, monkeypatch):
-    """The sweep's texels (a grid, analysis/parallax.py sweep_grid) keep every candidate image
-    within SWEEP_MARGIN of their best: the blended images and more, weights falling to zero over
-    that margin; the blend itself is the same as without a sweep, and no other texel is swept."""
-    from analysis import parallax
-    from analysis import texel_views as views
-    from analysis.parallax import sweep_grid
-
-    monkeypatch.setattr(parallax, "GRID_MM", 8.0)  # every other texel of a 4 mm atlas
-    nav, size, normals, smooth, atlas = _unwrapped(textured, 4.0)
-    grid = sweep_grid(atlas)
-    assert 0 < grid.mean() < 0.5
-    candidates = views.candidate_poses(nav, np.asarray(nav.mesh.vertices, dtype=float), np.asarray(nav.mesh.faces), size)
-    plain, _ = texel_views(nav, atlas, normals, smooth, candidates, size)
-    blend, swept = texel_views(nav, atlas, normals, smooth, candidates, size, sweep=grid)
-    assert np.array_equal(plain.texel, blend.texel) and np.array_equal(plain.pose, blend.pose)
-    assert np.array_equal(plain.weight, blend.weight)
-    assert len(swept.texel) and grid[swept.texel].all()
-    on_grid = grid[blend.texel]
-    key_blend = set(zip(blend.texel[on_grid].tolist(), blend.pose[on_grid].tolist()))
-    key_swept = set(zip(swept.texel.tolist(), swept.pose.tolist()))
-    # each ranks its images by its own weights (falling over its own margin): nearly the same first ones
-    assert len(key_blend - key_swept) < 1e-3 * len(key_blend) and len(key_swept) > 1.2 * len(key_blend)
-    per_texel = np.bincount(swept.texel)
-    assert per_texel.max() <= views.SWEEP_MOST
-    assert np.mean(per_texel[per_texel > 0] >= 2) > np.mean(np.bincount(blend.texel[on_grid])[per_texel > 0] >= 2)
-    assert 0 < swept.weight.min() and swept.weight.max() <= 1.0
 
 
 def test_images_seeing_the_skin_squarely_lead_the_blend():
@@ -418,7 +387,7 @@ def test_tbp_texture_writes_the_body_and_names_what_is_wrong(textured, tmp_path,
     out, err = capsys.readouterr()
     assert out.strip() == str(copy / "body.glb") and "atlas" in err
     steps = next(line for line in err.splitlines() if "steps: " in line)  # where the time went, step by step
-    assert all(f"{name} " in steps for name in ("atlas", "views", "parallax", "blend", "gutters"))
+    assert all(f"{name} " in steps for name in ("atlas", "views", "sample", "exposure", "blend", "gutters"))
     assert trimesh.load(io.BytesIO((copy / "body.glb").read_bytes()), file_type="glb").geometry
     assert main(["texture", str(tmp_path / "nothing")]) == 2
     assert "nothing" in capsys.readouterr().err
@@ -482,16 +451,15 @@ def test_two_threads_texture_the_same_body_as_one_in_many_blocks(textured, body,
         threaded.append(name)
         return real_each(work, items, name=name)
 
-    for module in ("analysis.atlas", "analysis.texel_views", "analysis.body_texture", "analysis.parallax"):
+    for module in ("analysis.atlas", "analysis.texel_views", "analysis.body_texture"):
         monkeypatch.setattr(f"{module}.each", counted)
     twin = texture_scan(open_scan(textured), texel_mm=TEST_TEXEL_MM)
-    assert {"rasterise", "texel-views", "sample", "parallax", "sample-moved", "blend"} <= set(threaded)
+    assert {"rasterise", "texel-views", "sample", "blend"} <= set(threaded)
     assert len(twin.atlas.texel_rc) > 10 * 3_000
     assert np.array_equal(twin.atlas.texel_rc, body.atlas.texel_rc)
     assert np.array_equal(twin.atlas.texel_point, body.atlas.texel_point)
     for name in ("texel", "pose", "u", "v", "weight", "incidence", "best_pose"):
         assert np.array_equal(getattr(twin.samples, name), getattr(body.samples, name)), name
-    assert np.array_equal(twin.offset_mm, body.offset_mm)
     assert np.array_equal(twin.texture, body.texture)
 
 
@@ -547,56 +515,3 @@ def test_the_glb_carries_the_atlas_texture_coordinates_as_gltf_reads_them(textur
     cols = np.minimum((centres[:, 0] * picture.shape[1]).astype(int), picture.shape[1] - 1)
     expected = body.texture[rows, cols].astype(float)
     assert np.median(np.abs(picture[rows, cols] - expected)) < 4.0  # JPEG
-
-
-@pytest.fixture(scope="module")
-def off_the_skin(textured, tmp_path_factory):
-    """The textured scan with its mesh moved SURFACE_OFF_MM out along the vertex normals, as a
-    coarse TSDF leaves a surface off the skin, and its body textured again."""
-    folder = tmp_path_factory.mktemp("off-the-skin") / textured.name
-    shutil.copytree(textured, folder)
-    mesh = trimesh.load(folder / "mesh.ply", process=False)
-    trimesh.Trimesh(mesh.vertices + SURFACE_OFF_MM * mesh.vertex_normals, mesh.faces,
-                    process=False).export(folder / "mesh.ply")
-    return texture_scan(open_scan(folder), texel_mm=TEST_TEXEL_MM)
-
-
-def test_the_images_are_sampled_where_they_agree_on_the_skin_not_where_the_tsdf_surface_is(off_the_skin):
-    """A surface 2 mm off the capsule's skin: the offsets along the normal at which the images
-    agree (analysis/parallax.py) take most of that out."""
-    from planner.visibility import RayScene
-    from tests.daemon_rigs import capsule_subject
-
-    body = off_the_skin
-    atlas, samples = body.atlas, body.samples
-    skin = capsule_subject()
-    closest, face = RayScene(skin).closest_faces(atlas.texel_point)
-    signed = np.einsum("ij,ij->i", atlas.texel_point - closest, skin.face_normals[face])  # + outside
-    sharp = samples.best_sharp & (np.abs(signed) < 5.0)
-    assert sharp.mean() > 0.5
-    assert np.median(signed[sharp]) == pytest.approx(SURFACE_OFF_MM, abs=0.5)
-    moved = signed + body.offset_mm
-    assert np.median(np.abs(moved[sharp])) < 0.5 * np.median(np.abs(signed[sharp]))
-    assert np.abs(np.median(moved[sharp])) < 0.25 * np.abs(np.median(signed[sharp]))
-
-
-def test_the_offset_follows_a_lesion_whose_skin_is_off_the_surface_by_more_than_the_skin_around(monkeypatch):
-    """The TSDF surface's distance from the skin changes over millimetres: where a lesion's own
-    texture says it lies 1.5 mm out while the faint texture around says 1 mm in, its offset is
-    the lesion's (the broad estimate alone, averaged over centimetres, is near the skin around's)."""
-    from analysis import parallax
-
-    cell_mm = 2.0
-    shape = (40, 40)
-    offsets = parallax.OFFSETS_MM[:, None, None]
-    true = np.full(shape, -1.0)
-    weight = np.full(shape, 0.02)  # faint pigment: a shallow cost curve
-    true[19:22, 19:22] = 1.5  # a 6 mm lesion
-    weight[19:22, 19:22] = 1.0
-    cost = (weight * (offsets - true) ** 2).astype(np.float32)
-    seen = np.ones(shape, dtype=np.float32)
-    field = parallax.offset_field(cost, seen, cell_mm)
-    assert field[20, 20] == pytest.approx(1.5, abs=0.25)
-    assert field[5, 5] == pytest.approx(-1.0, abs=0.1)
-    monkeypatch.setattr(parallax, "LOCAL_TRUST", 1e9)
-    assert abs(parallax.offset_field(cost, seen, cell_mm)[20, 20] - 1.5) > 0.75
