@@ -7,7 +7,8 @@ share skin (analysis/exposure.py) and divided out before blending. Images are re
 time on each thread and samples blended in bounded blocks, so memory grows with the samples
 (about 22 bytes each, 32-bit) and not with copies of them. Where a core is spare (a command run
 by hand, or the daemon's compute worker after a scan, in STORING: daemon/offload/worker.py
-on_every_core) the atlas, the view choice, the image sampling and the blend run two blocks or images at once (planner/cores.py), with the same result as one.
+on_every_core) the atlas, the view choice, the image sampling and the blend run two blocks or
+images at once (planner/cores.py), with the same result as one.
 
 The file is a glTF binary (metres, as glTF wants; the scan's mm divided by 1000) with one mesh,
 its texture coordinates and a JPEG atlas, written into the scan folder through the store.
@@ -210,17 +211,18 @@ def texture_scan(scan: ScanRecord, *, texel_mm: float | None = None, max_side: i
 
 
 def _overlapping(samples: Samples, equations: int) -> np.ndarray:
-    """The indices of the samples the exposure fit reads: those of a random share (fixed seed) of
-    the texels two or more images texture, holding about ``equations`` overlaps (all of them when
-    they hold fewer), so the fit's size is bounded whatever the atlas' size."""
+    """The indices of the samples the exposure fit reads: every sample when the texels two or
+    more images texture hold at most ``equations`` overlaps, else those of a random share (fixed
+    seed) of those texels holding about that many, so the fit's size is bounded whatever the
+    atlas' size."""
     starts, counts = runs(samples.texel)
     shared = np.flatnonzero(counts >= 2)
     total = int((counts[shared] - 1).sum())
-    if total > equations:
-        shared = shared[np.sort(np.random.default_rng(0).choice(len(shared), len(shared) * equations // total,
-                                                                replace=False))]
-    size = counts[shared]
-    index: np.ndarray = np.repeat(starts[shared] - (np.cumsum(size) - size), size) + np.arange(size.sum())
+    if total <= equations:
+        return np.arange(len(samples.texel))
+    group = shared[np.sort(np.random.default_rng(0).choice(len(shared), len(shared) * equations // total, replace=False))]
+    size = counts[group]
+    index: np.ndarray = np.repeat(starts[group] - (np.cumsum(size) - size), size) + np.arange(size.sum())
     return index
 
 
