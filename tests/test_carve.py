@@ -126,9 +126,9 @@ def _webbing_cm2(mesh: trimesh.Trimesh, body: trimesh.Trimesh, floor_mm: float) 
 
 @pytest.mark.slow
 def test_the_webbing_of_a_simulated_body_is_carved_and_its_skin_kept(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The TSDF of a simulated adult: uncarved, about 400 cm^2 of its surface lies more than 10 mm
-    off the skin, bridging arms and torso and hands and thighs; carved, under 150 cm^2, and every
-    vertex the TSDF put on the skin (within 1 mm) is still there."""
+    """The TSDF of a simulated adult: uncarved, about 160 cm^2 of its surface lies more than 10 mm
+    off the skin, bridging arms and torso and hands and thighs; carving takes most of it away
+    (about 37 cm^2 left), and every vertex the TSDF put on the skin (within 1 mm) is still there."""
     import planner.tsdf
     from sim.body import make_body
 
@@ -140,8 +140,9 @@ def test_the_webbing_of_a_simulated_body_is_carved_and_its_skin_kept(monkeypatch
     with monkeypatch.context() as patch:
         patch.setattr(planner.tsdf, "carve", lambda vertices, faces, _space: (vertices, faces))
         uncarved = fuse(frames, rig).mesh
-    assert _webbing_cm2(uncarved, body, floor_mm) > 300.0
-    assert _webbing_cm2(carved, body, floor_mm) < 150.0
+    webbing = _webbing_cm2(uncarved, body, floor_mm)
+    assert webbing > 100.0
+    assert _webbing_cm2(carved, body, floor_mm) < 0.35 * webbing
 
     skin = uncarved.vertices[surface_distance(uncarved.vertices, body) < 1.0]
     kept = {tuple(v) for v in carved.vertices}

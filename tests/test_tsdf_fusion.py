@@ -125,7 +125,9 @@ def test_standing_cylinder_is_recovered_and_passes_validation():
     v = result.mesh.vertices
     side = v[(v[:, 2] > 100) & (v[:, 2] < 1600)]
     assert abs(np.hypot(side[:, 0], side[:, 1]).mean() - 150.0) < 1.0
-    assert v[:, 2].max() == pytest.approx(1700.0, abs=4.0)
+    cap = v[(v[:, 2] > 1650) & (np.hypot(v[:, 0], v[:, 1]) < 140.0)]
+    assert np.median(cap[:, 2]) == pytest.approx(1700.0, abs=1.0)
+    assert v[:, 2].max() < 1700.0 + 2 * RIG.tsdf.voxel_mm  # the rim's grazing views raise it a little
     # nothing of the floor survives: what lies on it is the closed base, within the footprint
     on_floor = v[v[:, 2] < RIG.tsdf.floor_clearance_mm]
     assert len(on_floor) > 0 and np.hypot(on_floor[:, 0], on_floor[:, 1]).max() < 160.0
