@@ -46,8 +46,12 @@ log = structlog.get_logger("sim.rig")
 class SimOptions:
     """Knobs of the simulated rig.
 
-    depth_decimation: the simulated depth cameras render at 1/N of the rig's resolution (ray
-        casting 1280 x 720 takes ~0.5 s of CPU a frame; the TSDF fuses at half resolution anyway).
+    depth_decimation: the simulated depth cameras render every Nth pixel of the rig's camera, with
+        its depth noise (ray casting 1280 x 720 takes ~0.5 s of CPU a frame; the TSDF fuses every
+        4th pixel of it at the stored surface's 4 mm voxels). A half-resolution frame still loses
+        a full-resolution pixel's worth of skin along each silhouette (its edge pixels are twice
+        as wide), which keeps narrow gaps from being seen through: the benches that measure the
+        surface against the simulated body scan at N = 1.
     depth_fps: simulated frame rate (the sweep keeps one frame per 3 deg: 10 fps at 30 deg/s).
     depth_kind: the kind of depth camera simulated (drivers/depth/kinds.py): its twin streams.
     lesion_changes: the subject's grown and new spots at this visit (drivers/sim/skin_texture.py;
@@ -108,12 +112,15 @@ class SimWorld:
 
 
 def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> DepthCameraModel:
-    """The rig's depth camera model at 1/decimation resolution (intrinsics scaled alike)."""
+    """The rig's depth camera sampled at every decimation-th pixel: intrinsics scaled alike (pixel
+    centres at integers, so pixel j is the full image's pixel d j), and the full camera's depth
+    noise (its disparity error of ``subpixel_px`` full pixels is 1/d as many of these), not that
+    of a camera whose pixels are d times coarser."""
     d = max(int(decimation), 1)
     return dataclasses.replace(
         model, width_px=model.width_px // d, height_px=model.height_px // d,
         fx_px=model.fx_px / d, fy_px=model.fy_px / d, cx_px=model.cx_px / d, cy_px=model.cy_px / d,
-        fps=fps,
+        subpixel_px=model.subpixel_px / d, fps=fps,
     )
 
 

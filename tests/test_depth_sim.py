@@ -44,6 +44,25 @@ def test_noise_rms_grows_with_depth_squared():
         assert depth.mean() == pytest.approx(distance, abs=0.2)
 
 
+def test_a_camera_sampled_at_every_other_pixel_is_the_same_camera():
+    """The simulator's cheaper depth frames (sim.rig.sim_depth_model): every other pixel of the
+    rig's camera, with that camera's depth noise, not a camera with pixels twice as coarse."""
+    from sim.rig import sim_depth_model
+
+    half = sim_depth_model(MODEL, 2, MODEL.fps)
+    wall_depth = DepthRenderer(DepthScene(wall(1500.0), floor=False), half).render(
+        look_minus_x(), np.random.default_rng(1)).astype(float)
+    expected = 1500.0**2 * MODEL.subpixel_px / (MODEL.fx_px * MODEL.baseline_mm)
+    assert math.sqrt(max(wall_depth.var() - 1 / 12, 0.0)) == pytest.approx(expected, rel=0.1)
+    pose = look_minus_x()
+    ball = sphere(250.0, centre=(-1000.0, 37.0, -21.0))  # off the optical axis
+    full = DepthRenderer(DepthScene(ball, floor=False), MODEL).render(pose, None)[::2, ::2]
+    coarse = DepthRenderer(DepthScene(ball, floor=False), half).render(pose, None)
+    both = (full > 0) & (coarse > 0)
+    assert both.sum() > 0.1 * both.size
+    assert np.abs(full[both].astype(int) - coarse[both]).max() <= 1
+
+
 def test_same_seed_same_frame_other_seed_differs():
     a = _render(wall(1000.0), look_minus_x(), seed=3)
     b = _render(wall(1000.0), look_minus_x(), seed=3)

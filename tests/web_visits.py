@@ -47,17 +47,20 @@ def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, 
 
 
 def kept_visits(root: Path, name: str, *, person_seed: int = 3, lesion_changes: Any = None,
-                render_scale: int = 1) -> Visits:
+                render_scale: int = 1, depth_decimation: int = 2) -> Visits:
     """:func:`two_visits` into ``root / name``, kept between runs in ``root / (name + ".pickle")``:
     scanned again only when the kept scans are gone or their lesion changes differ. A render
-    scale other than 1 is a name of its own (``name-x2``)."""
+    scale other than 1 and a depth decimation other than 2 are names of their own (``name-x2``,
+    ``name-d1``)."""
     name = name if render_scale == 1 else f"{name}-x{render_scale}"
+    name = name if depth_decimation == 2 else f"{name}-d{depth_decimation}"
     cache = root / f"{name}.pickle"
     if cache.exists():
         visits: Visits = pickle.loads(cache.read_bytes())
         if visits.earlier.exists() and visits.later.exists() and visits.lesion_changes == lesion_changes:
             return visits
-    visits = two_visits(root / name, person_seed=person_seed, lesion_changes=lesion_changes, render_scale=render_scale)
+    visits = two_visits(root / name, person_seed=person_seed, lesion_changes=lesion_changes, render_scale=render_scale,
+                        depth_decimation=depth_decimation)
     cache.write_bytes(pickle.dumps(visits))
     return visits
 

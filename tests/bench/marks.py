@@ -1,6 +1,7 @@
 """Lesion marks carried between two visits of simulated people (issue 30's marks goal).
 
-For each person: two simulated scans (tests/web_visits.py two_visits: the second with a new seed,
+For each person: two simulated scans (tests/web_visits.py two_visits, the depth cameras at the
+rig's full resolution: the second with a new seed,
 2 deg postural sway, standing 29 mm and 6 deg elsewhere, spots grown and new as the web bench's
 LESION_CHANGES), then marks at skin points the earlier scan holds sharp, carried to the later
 scan by the shapes and then the pictures (carry_errors). Two distances per mark: from the later
@@ -59,7 +60,7 @@ def run() -> None:
         for person in PERSONS:
             started = time.perf_counter()
             visits = kept_visits(root, f"scans-{person}", person_seed=person, lesion_changes=LESION_CHANGES,
-                                 render_scale=SCALE)
+                                 render_scale=SCALE, depth_decimation=1)  # the depth cameras at the rig's resolution
             ready = time.perf_counter() - started
             carried = carry_errors(visits, count=COUNT)
             error, skin, doubt = carried["error_mm"], carried["skin_error_mm"], carried["in_doubt"]

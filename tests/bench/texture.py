@@ -216,7 +216,8 @@ def _one(seed: int, scale: int, root: Path) -> dict[str, float]:
     from sim.run import run_sim_scan
 
     started = time.perf_counter()
-    report = run_sim_scan(store=root / f"s{seed}x{scale}", seed=seed, panel=False, render_scale=scale)
+    report = run_sim_scan(store=root / f"s{seed}x{scale}", seed=seed, panel=False, render_scale=scale,
+                          depth_decimation=1)  # the depth cameras at the rig's resolution
     print(f"body {seed}, phones at {RENDER_SIZE[0] * scale} x {RENDER_SIZE[1] * scale} px (render scale {scale}): "
           f"simulated scan {report.outcome.value} in {time.perf_counter() - started:.0f} s", flush=True)
     return measure(report.folder, seed)
