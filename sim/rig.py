@@ -28,7 +28,7 @@ from drivers.motor.port import LoopbackCanBus
 from drivers.panel import OperatorPanel
 from drivers.phone.camera import PhoneCamera, TransportFactory
 from drivers.phone.focus import load_focus_calibration
-from drivers.sim.depth import DEPTH_TWINS, DepthScene
+from drivers.sim.depth import DEPTH_TWINS, EDGE_WIDTH_PX, DepthScene
 from drivers.sim.drive import SimulatedDrive
 from drivers.sim.panel import SimulatedPanel
 from drivers.sim.phone import RENDER_SIZE, SimulatedPhone
@@ -47,11 +47,8 @@ class SimOptions:
     """Knobs of the simulated rig.
 
     depth_decimation: the simulated depth cameras render every Nth pixel of the rig's camera, with
-        its depth noise (ray casting 1280 x 720 takes ~0.5 s of CPU a frame; the TSDF fuses every
-        4th pixel of it at the stored surface's 4 mm voxels). A half-resolution frame still loses
-        a full-resolution pixel's worth of skin along each silhouette (its edge pixels are twice
-        as wide), which keeps narrow gaps from being seen through: the benches that measure the
-        surface against the simulated body scan at N = 1.
+        its depth noise and its silhouette edges (ray casting 1280 x 720 takes ~0.5 s of CPU a
+        frame; the TSDF fuses every 4th pixel of it at the stored surface's 4 mm voxels).
     depth_fps: simulated frame rate (the sweep keeps one frame per 3 deg: 10 fps at 30 deg/s).
     depth_kind: the kind of depth camera simulated (drivers/depth/kinds.py): its twin streams.
     lesion_changes: the subject's grown and new spots at this visit (drivers/sim/skin_texture.py;
@@ -124,6 +121,14 @@ def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> Dep
     )
 
 
+def sim_edge_width_px(decimation: int) -> int:
+    """The pixels of a camera sampled at every decimation-th pixel (:func:`sim_depth_model`) that a
+    silhouette edge leaves without depth: the rig camera's EDGE_WIDTH_PX, in the coarser pixels
+    (at least one). With the full camera's width in coarse pixels a half-resolution frame loses
+    twice the skin along each silhouette, and gaps between arms and torso are not seen through."""
+    return max(1, round(EDGE_WIDTH_PX / max(int(decimation), 1)))
+
+
 def default_subject(seed: int) -> Any:
     """The simulated subject for a seed: an adult body from sim/body.py."""
     from sim.body import make_body  # the body model: seconds to import, only without a given subject
@@ -165,7 +170,8 @@ async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *, subject
     twin = DEPTH_TWINS[options.depth_kind]
     world.depth_cameras = [
         twin(cam, model, scene, angle, seed=options.seed * 100 + i,
-             infrared_source=None if stage is None else stage.infrared(cam.id, model))
+             infrared_source=None if stage is None else stage.infrared(cam.id, model),
+             edge_width_px=sim_edge_width_px(options.depth_decimation))
         for i, cam in enumerate(rig.depth_cameras)
     ]
     phones = await _sim_phones(rig, options, world, angle, stage)

@@ -78,11 +78,14 @@ class DepthScene:
 
 
 class DepthRenderer:
-    """Renders depth images (uint16, depth units) of a :class:`DepthScene` for one camera model."""
+    """Renders depth images (uint16, depth units) of a :class:`DepthScene` for one camera model;
+    ``edge_width_px``: the pixels of this model within which a silhouette edge leaves no depth
+    (:func:`silhouette_edges`)."""
 
-    def __init__(self, scene: DepthScene, model: DepthCameraModel) -> None:
+    def __init__(self, scene: DepthScene, model: DepthCameraModel, *, edge_width_px: int = EDGE_WIDTH_PX) -> None:
         self.scene = scene
         self.model = model
+        self.edge_width_px = edge_width_px
         u, v = np.meshgrid(
             np.arange(model.width_px, dtype=np.float32), np.arange(model.height_px, dtype=np.float32)
         )
@@ -124,7 +127,7 @@ class DepthRenderer:
         yield
         valid = np.isfinite(z) & (z >= m.min_range_mm) & (z <= m.max_range_mm)
         valid &= cos_incidence >= math.cos(math.radians(m.grazing_limit_deg))
-        valid &= ~silhouette_edges(z)
+        valid &= ~silhouette_edges(z, self.edge_width_px)
         if rng is not None:
             sigma = np.where(valid, z, 0.0) ** 2 * (m.subpixel_px / (m.fx_px * m.baseline_mm))
             z = z + rng.standard_normal(z.shape) * sigma
@@ -142,8 +145,8 @@ def _finish(steps: Generator[None, None, T]) -> T:
             return result
 
 
-def silhouette_edges(z: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels within EDGE_WIDTH_PX of a depth discontinuity (inf counts as far)."""
+def silhouette_edges(z: np.ndarray, width_px: int = EDGE_WIDTH_PX) -> np.ndarray:
+    """(H, W) bool: pixels within ``width_px`` (at least 1) of a depth discontinuity (inf counts as far)."""
     finite = np.where(np.isfinite(z), z, 1e9)
     jump = np.zeros(z.shape, dtype=bool)
     for axis in (0, 1):
@@ -157,7 +160,7 @@ def silhouette_edges(z: np.ndarray) -> np.ndarray:
             jump[:, 1:] |= step
             jump[:, :-1] |= step
     grown = jump.copy()
-    for _ in range(EDGE_WIDTH_PX - 1):
+    for _ in range(width_px - 1):
         g = grown.copy()
         g[1:] |= grown[:-1]
         g[:-1] |= grown[1:]
@@ -198,6 +201,7 @@ class SimulatedDepthCamera:
         noise: bool = True,
         faults: DepthFaults | None = None,
         infrared_source: Callable[[int, float], np.ndarray] | None = None,
+        edge_width_px: int = EDGE_WIDTH_PX,
     ) -> None:
         self.id = camera.id
         self.infrared = False
@@ -206,7 +210,7 @@ class SimulatedDepthCamera:
         self.camera = camera
         self.model = model
         scene = subject if isinstance(subject, DepthScene) else DepthScene(subject)
-        self.renderer = DepthRenderer(scene, model)
+        self.renderer = DepthRenderer(scene, model, edge_width_px=edge_width_px)
         self.beam_angle_deg = beam_angle_deg
         self.faults = faults or DepthFaults()
         self._rng = np.random.default_rng(seed) if noise else None
@@ -316,11 +320,12 @@ class SimulatedDepthCamera:
 
 class DepthTwin(Protocol):
     """How the simulated rig makes a depth camera kind's twin: the rig camera, its model, the scene
-    it sees, the beam's angle over time, a seed and (for calibration) its infrared pictures."""
+    it sees, the beam's angle over time, a seed, (for calibration) its infrared pictures, and the
+    model's pixels a silhouette edge leaves without depth."""
 
     def __call__(self, camera: DepthCameraConfig, model: DepthCameraModel, subject: DepthScene,
                  beam_angle_deg: Callable[[float], float], *, seed: int,
-                 infrared_source: Callable[[int, float], np.ndarray] | None) -> DepthCamera: ...
+                 infrared_source: Callable[[int, float], np.ndarray] | None, edge_width_px: int) -> DepthCamera: ...
 
 
 DEPTH_TWINS: dict[str, DepthTwin] = {"realsense": SimulatedDepthCamera}
@@ -406,11 +411,12 @@ def record_sweep_frames(
     *,
     seed: int = 0,
     noise: bool = True,
+    edge_width_px: int = EDGE_WIDTH_PX,
 ) -> Iterator[RecordedFrame]:
     """The frames one depth camera streams at ``model.fps`` through the sweep (:func:`sweep_trajectory`),
     from the move's start to the end at rest; frame k is taken k / fps after the start."""
     trajectory = sweep_trajectory(rig)
-    renderer = DepthRenderer(scene, model)
+    renderer = DepthRenderer(scene, model, edge_width_px=edge_width_px)
     rng = np.random.default_rng(seed) if noise else None
     count = int(math.floor(trajectory.end_time * model.fps + 1e-9)) + 1
     for k in range(count):
@@ -430,11 +436,13 @@ def record_sweep(
     noise: bool = True,
     camera_ids: Sequence[str] | None = None,
     source: dict[str, Any] | None = None,
+    edge_width_px: int = EDGE_WIDTH_PX,
 ) -> list[Path]:
     """Record the sweep of every rig depth camera (or those in camera_ids) into ``folder``:
     ``CAMERA.db3`` (RealSense recording, pyrealsense2's recorder) and ``CAMERA.beam.json`` (the
     beam angle of each frame). Camera i's noise seed is ``seed * 100 + i``; source: provenance
-    stored in each beam-angle file. Returns the recordings' paths in rig order."""
+    stored in each beam-angle file; edge_width_px: the model's pixels a silhouette edge leaves
+    without depth. Returns the recordings' paths in rig order."""
     paths = []
     for i, camera in enumerate(rig.depth_cameras):
         if camera_ids is not None and camera.id not in camera_ids:
@@ -444,7 +452,8 @@ def record_sweep(
         with DepthRecorder(path, camera_id=camera.id, width=model.width_px, height=model.height_px,
                            intrinsics=model.intrinsic_matrix, depth_unit_mm=model.depth_unit_mm,
                            fps=model.fps, serial=camera.serial) as recorder:
-            for frame in record_sweep_frames(scene, rig, camera, model, seed=seed * 100 + i, noise=noise):
+            for frame in record_sweep_frames(scene, rig, camera, model, seed=seed * 100 + i, noise=noise,
+                                             edge_width_px=edge_width_px):
                 recorder.write(frame.frame_number, frame.device_ms, frame.depth)
                 rows.append((frame.frame_number, frame.device_ms, frame.beam_angle_deg))
         provenance = {**(source or {}), "simulated": True, "noise_seed": seed * 100 + i if noise else None,
