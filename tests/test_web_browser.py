@@ -124,8 +124,9 @@ def test_a_partial_scan_is_flagged_over_its_body_and_in_the_list_and_its_sharp_s
 def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
     """The same scan stored again as a later visit: the earlier mark is listed as placed on the
     pictures, and Compare shows the mark's best image in both scans side by side. A second mark,
-    where the later scan's surface was made a centimetre too deep (a groove round the round
-    subject), is shown in doubt."""
+    where the later scan's surface was made a centimetre too deep (a dimple of 40 mm radius: a groove
+    all round the capsule lets the local fit slide along its axis to skin the groove missed), is
+    shown in doubt."""
     import shutil
 
     from analysis.marks import MarkBook, new_mark, write_marks
@@ -140,7 +141,7 @@ def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_
     point = mesh.vertices[front_vertex(store / earlier)].tolist()
     back = np.asarray(point) * [-1.0, 1.0, 1.0] + [0.0, 0.0, 450.0]
     back = mesh.vertices[int(np.argmin(np.linalg.norm(mesh.vertices - back, axis=1)))]
-    dented(mesh, back, 40.0, 10.0, ring=True).export(store / later / "mesh.ply")
+    dented(mesh, back, 40.0, 10.0).export(store / later / "mesh.ply")
     write_marks(store / earlier, MarkBook([new_mark("naevus", point), new_mark("lentigo", back.tolist())]))
     write_marks(store / later, MarkBook(previous_scan=earlier))
     with serve_in_thread(store) as url, chromium() as driver:
