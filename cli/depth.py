@@ -124,7 +124,7 @@ def _record(args: argparse.Namespace) -> int:
     from drivers.depth.beam_angles import beam_angles_path, read_beam_angles
     from drivers.sim.depth import DepthScene, record_sweep
     from planner.rig import DEFAULT_RIG_PATH, load_rig
-    from sim.rig import sim_depth_model, sim_edge_width_px
+    from sim.rig import sim_depth_model
 
     rig = load_rig(args.rig or DEFAULT_RIG_PATH)
     if not _cameras_known(args.camera, [c.id for c in rig.depth_cameras]):
@@ -141,8 +141,7 @@ def _record(args: argparse.Namespace) -> int:
 
         subject, body = make_body(seed=args.body_seed), {"body_seed": args.body_seed}
     paths = record_sweep(DepthScene(subject), rig, model, args.out, seed=args.seed, noise=not args.no_noise,
-                         camera_ids=args.camera, source={**body, "decimation": args.decimation},
-                         edge_width_px=sim_edge_width_px(args.decimation))
+                         camera_ids=args.camera, source={**body, "decimation": args.decimation})
     for path in paths:
         angles = read_beam_angles(beam_angles_path(path), path.stem)
         first, last = min(angles.frames), max(angles.frames)

@@ -28,7 +28,7 @@ from drivers.motor.port import LoopbackCanBus
 from drivers.panel import OperatorPanel
 from drivers.phone.camera import PhoneCamera, TransportFactory
 from drivers.phone.focus import load_focus_calibration
-from drivers.sim.depth import DEPTH_TWINS, EDGE_WIDTH_PX, DepthScene
+from drivers.sim.depth import DEPTH_TWINS, DepthScene, SampledDepthModel
 from drivers.sim.drive import SimulatedDrive
 from drivers.sim.panel import SimulatedPanel
 from drivers.sim.phone import RENDER_SIZE, SimulatedPhone
@@ -108,25 +108,21 @@ class SimWorld:
         self.tasks.clear()
 
 
-def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> DepthCameraModel:
+def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> SampledDepthModel:
     """The rig's depth camera sampled at every decimation-th pixel: intrinsics scaled alike (pixel
-    centres at integers, so pixel j is the full image's pixel d j), and the full camera's depth
-    noise (its disparity error of ``subpixel_px`` full pixels is 1/d as many of these), not that
-    of a camera whose pixels are d times coarser."""
+    centres at integers, so pixel j is the full image's pixel d j), the full camera's depth noise
+    (its disparity error of ``subpixel_px`` full pixels is 1/d as many of these) and its
+    silhouette edges (:class:`SampledDepthModel`), not those of a camera whose pixels are d
+    times coarser: with those, a half-resolution frame had twice the noise and lost twice the
+    skin along each silhouette, and gaps between arms and torso were not seen through."""
     d = max(int(decimation), 1)
+    sampled = SampledDepthModel(**{f.name: getattr(model, f.name) for f in dataclasses.fields(DepthCameraModel)},
+                                every_px=d)
     return dataclasses.replace(
-        model, width_px=model.width_px // d, height_px=model.height_px // d,
+        sampled, width_px=model.width_px // d, height_px=model.height_px // d,
         fx_px=model.fx_px / d, fy_px=model.fy_px / d, cx_px=model.cx_px / d, cy_px=model.cy_px / d,
         subpixel_px=model.subpixel_px / d, fps=fps,
     )
-
-
-def sim_edge_width_px(decimation: int) -> int:
-    """The pixels of a camera sampled at every decimation-th pixel (:func:`sim_depth_model`) that a
-    silhouette edge leaves without depth: the rig camera's EDGE_WIDTH_PX, in the coarser pixels
-    (at least one). With the full camera's width in coarse pixels a half-resolution frame loses
-    twice the skin along each silhouette, and gaps between arms and torso are not seen through."""
-    return max(1, round(EDGE_WIDTH_PX / max(int(decimation), 1)))
 
 
 def default_subject(seed: int) -> Any:
@@ -170,8 +166,7 @@ async def build_sim_rig(rig: Rig, options: SimOptions = SimOptions(), *, subject
     twin = DEPTH_TWINS[options.depth_kind]
     world.depth_cameras = [
         twin(cam, model, scene, angle, seed=options.seed * 100 + i,
-             infrared_source=None if stage is None else stage.infrared(cam.id, model),
-             edge_width_px=sim_edge_width_px(options.depth_decimation))
+             infrared_source=None if stage is None else stage.infrared(cam.id, model))
         for i, cam in enumerate(rig.depth_cameras)
     ]
     phones = await _sim_phones(rig, options, world, angle, stage)

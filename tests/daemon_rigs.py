@@ -25,7 +25,7 @@ from daemon.records.store import ScanStore
 from daemon.rig.hardware import RigHardware
 from planner.rig import DEFAULT_RIG_PATH, Rig, load_rig
 from sim.clock import run_virtual
-from sim.rig import sim_depth_model, sim_edge_width_px
+from sim.rig import sim_depth_model
 from tests.daemon_mocks import MockPhone
 
 RIG = load_rig()
@@ -110,8 +110,7 @@ async def build_rig(rig: Rig, seed: int, *, phone: type[MockPhone] = MockPhone,
     world.tasks.append(asyncio.create_task(sim_drive.run()))
     scene = capsule_scene()
     model = sim_depth_model(rig.depth_camera_model, depth_decimation, 10.0)
-    cameras = [SimulatedDepthCamera(c, model, scene, lambda _t: sim_drive.true_angle_deg, seed=seed * 10 + i,
-                                    edge_width_px=sim_edge_width_px(depth_decimation))
+    cameras = [SimulatedDepthCamera(c, model, scene, lambda _t: sim_drive.true_angle_deg, seed=seed * 10 + i)
                for i, c in enumerate(rig.depth_cameras)]
     world.depth_cameras = cameras
 

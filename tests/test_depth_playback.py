@@ -213,7 +213,7 @@ def test_tbp_depth_record_sim_writes_the_sweep_each_camera_saw(tmp_path: Path,
     from cli import main
     from drivers.sim.depth import DepthScene, record_sweep_frames, sweep_trajectory
     from planner.rig import load_rig
-    from sim.rig import sim_depth_model, sim_edge_width_px
+    from sim.rig import sim_depth_model
 
     body = tmp_path / "capsule.ply"
     trimesh.creation.capsule(height=1400.0, radius=170.0, count=[16, 16]).apply_translation([0, 0, 870.0]).export(body)
@@ -229,7 +229,7 @@ def test_tbp_depth_record_sim_writes_the_sweep_each_camera_saw(tmp_path: Path,
     model = sim_depth_model(rig.depth_camera_model, 8, 4.0)
     scene = DepthScene(trimesh.load(body, force="mesh"))
     camera = rig.depth_cameras[1]
-    expected = list(record_sweep_frames(scene, rig, camera, model, seed=301, edge_width_px=sim_edge_width_px(8)))
+    expected = list(record_sweep_frames(scene, rig, camera, model, seed=301))
     frames = asyncio.run(play(BagPlayback(out / "depth1.db3", camera_id="depth1")))
     assert len(frames) == len(expected) == int(sweep_trajectory(rig).end_time * 4) + 1
     for got, want in zip(frames, expected, strict=True):

@@ -48,7 +48,7 @@ def test_a_camera_sampled_at_every_other_pixel_is_the_same_camera():
     """The simulator's cheaper depth frames (sim.rig.sim_depth_model): every other pixel of the
     rig's camera, with that camera's depth noise and its silhouette edges, not a camera with
     pixels twice as coarse."""
-    from sim.rig import sim_depth_model, sim_edge_width_px
+    from sim.rig import sim_depth_model
 
     half = sim_depth_model(MODEL, 2, MODEL.fps)
     wall_depth = DepthRenderer(DepthScene(wall(1500.0), floor=False), half).render(
@@ -58,7 +58,7 @@ def test_a_camera_sampled_at_every_other_pixel_is_the_same_camera():
     pose = look_minus_x()
     ball = sphere(250.0, centre=(-1000.0, 37.0, -21.0))  # off the optical axis
     full = DepthRenderer(DepthScene(ball, floor=False), MODEL).render(pose, None)[::2, ::2]
-    coarse = DepthRenderer(DepthScene(ball, floor=False), half, edge_width_px=sim_edge_width_px(2)).render(pose, None)
+    coarse = DepthRenderer(DepthScene(ball, floor=False), half).render(pose, None)
     both = (full > 0) & (coarse > 0)
     assert both.sum() > 0.1 * both.size
     assert np.abs(full[both].astype(int) - coarse[both]).max() <= 1

@@ -77,15 +77,27 @@ class DepthScene:
         return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
 
 
-class DepthRenderer:
-    """Renders depth images (uint16, depth units) of a :class:`DepthScene` for one camera model;
-    ``edge_width_px``: the pixels of this model within which a silhouette edge leaves no depth
-    (:func:`silhouette_edges`)."""
+@dataclass(frozen=True)
+class SampledDepthModel(DepthCameraModel):
+    """A depth camera's model sampled at every ``every_px``-th pixel (the simulator's cheaper
+    frames, sim.rig.sim_depth_model): the intrinsics and noise are given in the coarser pixels,
+    and a silhouette edge leaves as much skin without depth as the full camera's does."""
 
-    def __init__(self, scene: DepthScene, model: DepthCameraModel, *, edge_width_px: int = EDGE_WIDTH_PX) -> None:
+    every_px: int = 1
+
+    @property
+    def edge_width_px(self) -> int:
+        """EDGE_WIDTH_PX of the full camera, in these pixels (at least one)."""
+        return max(1, round(EDGE_WIDTH_PX / self.every_px))
+
+
+class DepthRenderer:
+    """Renders depth images (uint16, depth units) of a :class:`DepthScene` for one camera model."""
+
+    def __init__(self, scene: DepthScene, model: DepthCameraModel) -> None:
         self.scene = scene
         self.model = model
-        self.edge_width_px = edge_width_px
+        self.edge_width_px = model.edge_width_px if isinstance(model, SampledDepthModel) else EDGE_WIDTH_PX
         u, v = np.meshgrid(
             np.arange(model.width_px, dtype=np.float32), np.arange(model.height_px, dtype=np.float32)
         )
@@ -201,7 +213,6 @@ class SimulatedDepthCamera:
         noise: bool = True,
         faults: DepthFaults | None = None,
         infrared_source: Callable[[int, float], np.ndarray] | None = None,
-        edge_width_px: int = EDGE_WIDTH_PX,
     ) -> None:
         self.id = camera.id
         self.infrared = False
@@ -210,7 +221,7 @@ class SimulatedDepthCamera:
         self.camera = camera
         self.model = model
         scene = subject if isinstance(subject, DepthScene) else DepthScene(subject)
-        self.renderer = DepthRenderer(scene, model, edge_width_px=edge_width_px)
+        self.renderer = DepthRenderer(scene, model)
         self.beam_angle_deg = beam_angle_deg
         self.faults = faults or DepthFaults()
         self._rng = np.random.default_rng(seed) if noise else None
@@ -320,12 +331,11 @@ class SimulatedDepthCamera:
 
 class DepthTwin(Protocol):
     """How the simulated rig makes a depth camera kind's twin: the rig camera, its model, the scene
-    it sees, the beam's angle over time, a seed, (for calibration) its infrared pictures, and the
-    model's pixels a silhouette edge leaves without depth."""
+    it sees, the beam's angle over time, a seed and (for calibration) its infrared pictures."""
 
     def __call__(self, camera: DepthCameraConfig, model: DepthCameraModel, subject: DepthScene,
                  beam_angle_deg: Callable[[float], float], *, seed: int,
-                 infrared_source: Callable[[int, float], np.ndarray] | None, edge_width_px: int) -> DepthCamera: ...
+                 infrared_source: Callable[[int, float], np.ndarray] | None) -> DepthCamera: ...
 
 
 DEPTH_TWINS: dict[str, DepthTwin] = {"realsense": SimulatedDepthCamera}
@@ -411,12 +421,11 @@ def record_sweep_frames(
     *,
     seed: int = 0,
     noise: bool = True,
-    edge_width_px: int = EDGE_WIDTH_PX,
 ) -> Iterator[RecordedFrame]:
     """The frames one depth camera streams at ``model.fps`` through the sweep (:func:`sweep_trajectory`),
     from the move's start to the end at rest; frame k is taken k / fps after the start."""
     trajectory = sweep_trajectory(rig)
-    renderer = DepthRenderer(scene, model, edge_width_px=edge_width_px)
+    renderer = DepthRenderer(scene, model)
     rng = np.random.default_rng(seed) if noise else None
     count = int(math.floor(trajectory.end_time * model.fps + 1e-9)) + 1
     for k in range(count):
@@ -436,13 +445,11 @@ def record_sweep(
     noise: bool = True,
     camera_ids: Sequence[str] | None = None,
     source: dict[str, Any] | None = None,
-    edge_width_px: int = EDGE_WIDTH_PX,
 ) -> list[Path]:
     """Record the sweep of every rig depth camera (or those in camera_ids) into ``folder``:
     ``CAMERA.db3`` (RealSense recording, pyrealsense2's recorder) and ``CAMERA.beam.json`` (the
     beam angle of each frame). Camera i's noise seed is ``seed * 100 + i``; source: provenance
-    stored in each beam-angle file; edge_width_px: the model's pixels a silhouette edge leaves
-    without depth. Returns the recordings' paths in rig order."""
+    stored in each beam-angle file. Returns the recordings' paths in rig order."""
     paths = []
     for i, camera in enumerate(rig.depth_cameras):
         if camera_ids is not None and camera.id not in camera_ids:
@@ -452,8 +459,7 @@ def record_sweep(
         with DepthRecorder(path, camera_id=camera.id, width=model.width_px, height=model.height_px,
                            intrinsics=model.intrinsic_matrix, depth_unit_mm=model.depth_unit_mm,
                            fps=model.fps, serial=camera.serial) as recorder:
-            for frame in record_sweep_frames(scene, rig, camera, model, seed=seed * 100 + i, noise=noise,
-                                             edge_width_px=edge_width_px):
+            for frame in record_sweep_frames(scene, rig, camera, model, seed=seed * 100 + i, noise=noise):
                 recorder.write(frame.frame_number, frame.device_ms, frame.depth)
                 rows.append((frame.frame_number, frame.device_ms, frame.beam_angle_deg))
         provenance = {**(source or {}), "simulated": True, "noise_seed": seed * 100 + i if noise else None,
