@@ -5,9 +5,10 @@ body meshes are aligned as a whole (Open3D point-to-plane ICP from the centroid 
 few turns about the vertical axis; the best fit wins), then every mark is refined on its own
 neighbourhood (ICP on the skin within 300, 200, then 150 mm of the mark, measured along the
 mesh so that the other leg is no neighbour, each fit starting from the last), so a limb that
-moved a few degrees still carries its marks. The carried point is snapped onto the later mesh,
-then, given both scans' pictures, moved along the skin to where the skin looks the same
-(analysis/mark_match.py).
+moved a few degrees still carries its marks. Each fit's step is kept only along the directions
+its patch holds the mark in (:func:`held_step`): along a limb's axis nothing does. The carried
+point is snapped onto the later mesh, then, given both scans' pictures, moved along the skin to
+where the skin looks the same (analysis/mark_match.py).
 
 How far the snap moved it is kept (``surface_gap_mm``), with the local fit's rms residual: where
 the later scan's surface is further from where the fit puts the skin than the two surfaces are
@@ -98,6 +99,42 @@ def _icp(source: Any, target: Any, init: np.ndarray, distance_mm: float, iterati
                                 reg.ICPConvergenceCriteria(max_iteration=iterations))
 
 
+def _evaluate(source: Any, target: Any, transform: np.ndarray, distance_mm: float) -> Any:
+    import open3d as o3d
+
+    return o3d.pipelines.registration.evaluate_registration(source, target, distance_mm, transform)
+
+
+def held_step(before: np.ndarray, after: np.ndarray, point: np.ndarray, patch: np.ndarray, normals: np.ndarray,
+              radius_mm: float, hold_share: float) -> np.ndarray:
+    """(4, 4) the fit ``after`` with its step from ``before`` (both (4, 4)) kept only as far as the
+    patch holds the mark along each direction: the step as a twist about the mark's place under
+    ``before`` (rotation times ``radius_mm``, translation, both mm), its component along each
+    eigenvector of the patch's point-to-plane normal matrix (points (N, 3) and unit normals (N, 3)
+    on the earlier mesh, moved by ``before``) kept whole where the eigenvalue (the stiffness) is at
+    least ``hold_share`` of the largest, scaled by the eigenvalue over that below it: a well-held step
+    is kept, a step along a direction the patch cannot hold is not (degeneracy-aware
+    registration, Zhang, Kaess and Singh 2016)."""
+    from scipy.spatial.transform import Rotation
+
+    rotation, shift = before[:3, :3], before[:3, 3]
+    centre = rotation @ np.asarray(point, dtype=float).reshape(3) + shift
+    p = patch @ rotation.T + shift
+    n = normals @ rotation.T
+    rows = np.hstack([np.cross(p - centre, n) / radius_mm, n])
+    stiffness, axes = np.linalg.eigh(rows.T @ rows / max(len(rows), 1))
+    step = after @ np.linalg.inv(before)
+    twist = np.r_[Rotation.from_matrix(step[:3, :3]).as_rotvec() * radius_mm,
+                  step[:3, :3] @ centre + step[:3, 3] - centre]
+    keep = np.clip(stiffness / max(hold_share * float(stiffness.max()), 1e-12), 0.0, 1.0)
+    twist = axes @ (keep * (axes.T @ twist))
+    turn = Rotation.from_rotvec(twist[:3] / radius_mm).as_matrix()
+    held = np.eye(4)
+    held[:3, :3] = turn
+    held[:3, 3] = centre + twist[3:] - turn @ centre
+    return held @ before
+
+
 class MarkCarrier:
     """Registers an earlier scan's mesh (source) onto a later one's (target) and carries points.
 
@@ -113,6 +150,13 @@ class MarkCarrier:
     """A gap under this is within any scan's surface noise: never doubt on its own."""
     MAX_SWAY_MM = 80.0
     """A mark never moves further than this from where the whole-body fit puts it."""
+    HOLD_SHARE = 0.02
+    """A local fit moves the mark along a direction of its patch's point-to-plane problem only as
+    far as the patch holds it there (:func:`held_step`): a direction whose stiffness is under this
+    share of the stiffest keeps that fraction of the fit's step along it, a direction the patch does
+    not hold at all (along a cylinder's axis) none. Without it, a fit on a nearly cylindrical patch
+    can slide the mark along the axis, away from skin the later scan got wrong, to skin elsewhere,
+    and the mark lands there not in doubt."""
     STAGES = ((300.0, 60.0), (200.0, 20.0), (150.0, 8.0))
     """(neighbourhood radius, correspondence distance) mm of the per-mark fits. Patches under
     about 150 mm are too flat (a back, a thigh) to hold the mark in place along the skin: on two
@@ -122,6 +166,8 @@ class MarkCarrier:
         import open3d as o3d
 
         self.source_fine = _vertex_cloud(source_mesh)
+        self._source_points = np.asarray(self.source_fine.points)
+        self._source_normals = np.asarray(self.source_fine.normals)
         self.target_fine = _cloud(target_mesh, 3.0)
         self._source_tree = o3d.geometry.KDTreeFlann(self.source_fine)
         self._source_graph = _edge_graph(source_mesh)
@@ -161,15 +207,20 @@ class MarkCarrier:
             _, near_target, _ = self._target_tree.search_radius_vector_3d(fit.apply(point)[0], radius + distance)
             if len(near) < 30 or len(near_target) < 30:
                 break
-            result = _icp(self.source_fine.select_by_index(near.tolist()),
-                          self.target_fine.select_by_index(list(near_target)), fit.transform, distance)
+            source = self.source_fine.select_by_index(near.tolist())
+            target = self.target_fine.select_by_index(list(near_target))
+            result = _icp(source, target, fit.transform, distance)
             if result.fitness < self.MIN_FITNESS:
                 break
-            candidate = Registration(np.asarray(result.transformation), float(result.fitness),
-                                     float(result.inlier_rmse))
+            held = held_step(fit.transform, np.asarray(result.transformation), point, self._source_points[near],
+                             self._source_normals[near], radius, self.HOLD_SHARE)
+            result = _evaluate(source, target, held, distance)
+            if result.fitness < self.MIN_FITNESS:
+                break
+            candidate = Registration(held, float(result.fitness), float(result.inlier_rmse))
             if np.linalg.norm(candidate.apply(point) - self.whole.apply(point)) > self.MAX_SWAY_MM:
                 break  # slid onto another limb
-            fit = Registration(np.asarray(result.transformation), float(result.fitness), float(result.inlier_rmse))
+            fit = candidate
         return fit
 
     def carry(self, points: np.ndarray, pictures: PictureMatcher | None = None) -> Carried:

@@ -124,8 +124,7 @@ def test_a_partial_scan_is_flagged_over_its_body_and_in_the_list_and_its_sharp_s
 def test_a_mark_of_the_earlier_scan_shows_on_the_later_one_with_both_images(web_store, tmp_path):
     """The same scan stored again as a later visit: the earlier mark is listed as placed on the
     pictures, and Compare shows the mark's best image in both scans side by side. A second mark,
-    where the later scan's surface was made a centimetre too deep (a dimple of 40 mm radius: a groove
-    all round the capsule lets the local fit slide along its axis to skin the groove missed), is
+    where the later scan's surface was made a centimetre too deep (a dimple of 40 mm radius), is
     shown in doubt."""
     import shutil
 
