@@ -10,8 +10,9 @@ that it is a plausible, fully contained person. The result is a trimesh in mm.
 
 Two surfaces come from one sweep: the planner's (``rig.tsdf.voxel_mm``, extracted as soon as the
 sweep ends, on the path to the capture) and the stored one (:meth:`TsdfFusion.surface`: the same
-frames fused again at ``rig.tsdf.surface_voxel_mm``, finer, while the capture runs), which holds
-the skin closer where limbs are near the body.
+frames fused again at ``rig.tsdf.surface_voxel_mm``, finer, while the capture runs, its vertices
+then moved onto the frames' depth: planner/surface_fit.py), which holds the skin closer where limbs
+are near the body.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from planner.shape_errors import (
     SubjectTouchesBoundary,
     TooFewFrames,
 )
+from planner.surface_fit import fit_to_frames
 from planner.sweep import AngleSpacing, PosedDepth
 
 log = structlog.get_logger(__name__)
@@ -196,14 +198,13 @@ class TsdfFusion:
     Frames are chosen as :func:`fuse` chooses them (per camera, :data:`FRAME_SPACING_DEG` of beam
     rotation apart, empty frames skipped), so each camera's frames must come in time order; the
     cameras may interleave. Each fused frame's decimated depth is kept (:class:`FreeSpace`) to carve
-    the extracted surface, and, where ``rig.tsdf.surface_voxel_mm`` differs from ``voxel_mm``, the
-    frame itself for :meth:`surface`. One fusion is used from one thread at a time (a lock makes
+    the extracted surface, and the frame itself for :meth:`surface`. One fusion is used from one thread at a time (a lock makes
     sure).
     """
 
     def __init__(self, rig: Rig) -> None:
         self.rig = rig
-        self._frames: list[PosedDepth] | None = [] if rig.tsdf.surface_voxel_mm != rig.tsdf.voxel_mm else None
+        self._frames: list[PosedDepth] = []
         self.offered = 0
         self.per_camera: dict[str, int] = {}
         self.integrated = 0
@@ -225,8 +226,7 @@ class TsdfFusion:
                     continue
                 chosen += 1
                 self.per_camera[f.camera_id] = self.per_camera.get(f.camera_id, 0) + 1
-                if self._frames is not None:
-                    self._frames.append(f)
+                self._frames.append(f)
                 if self._vbg is None:
                     self._vbg = _new_grid(self.rig)
                 self.integrated += _integrate_frame(self._vbg, f, self.rig, self._space)
@@ -250,16 +250,25 @@ class TsdfFusion:
     def surface(self, *, validate: bool = True) -> TsdfResult:
         """The stored surface: the frames fused so far, fused again at ``rig.tsdf.surface_voxel_mm``
         (the planner's grid itself when that is its voxel), with the soles left open
-        (:func:`close_openings`). Its timings are the second fusion's; it refuses what
-        :meth:`result` refuses."""
-        if self._frames is None:  # this grid, extracted again with the soles left open
-            with self._lock:
-                return self._extract(validate, close_soles=False)
+        (:func:`close_openings`), its vertices then moved onto the frames' depth
+        (planner/surface_fit.py). Its timings are the second fusion's and the fit's (``fit``); it
+        refuses what :meth:`result` refuses."""
         with self._lock:
             frames = list(self._frames)
-        fine = TsdfFusion(surface_rig(self.rig))
-        fine.add(frames)
-        return fine.surface(validate=validate)
+            if self.rig.tsdf.surface_voxel_mm == self.rig.tsdf.voxel_mm:  # this grid, extracted again
+                extracted = self._extract(validate, close_soles=False)
+        if self.rig.tsdf.surface_voxel_mm != self.rig.tsdf.voxel_mm:
+            fine = TsdfFusion(surface_rig(self.rig))
+            fine.add(frames)
+            with fine._lock:
+                extracted = fine._extract(validate, close_soles=False)
+        started = time.perf_counter()
+        mesh = extracted.mesh
+        vertices = fit_to_frames(np.asarray(mesh.vertices), np.asarray(mesh.faces), frames)
+        fit_s = time.perf_counter() - started
+        timings = {**extracted.timings_s, "fit": fit_s, "total": extracted.timings_s.get("total", 0.0) + fit_s}
+        return TsdfResult(trimesh.Trimesh(vertices, np.asarray(mesh.faces), process=False), extracted.frames_used,
+                          extracted.per_camera, timings)
 
     def _extract(self, validate: bool, *, close_soles: bool = True) -> TsdfResult:
         cfg = self.rig.tsdf

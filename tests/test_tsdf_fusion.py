@@ -9,6 +9,7 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial import cKDTree
 
 from drivers.sim.depth import simulate_sweep
 from planner.mesh_metrics import shape_metrics
@@ -19,6 +20,7 @@ from planner.shape_errors import (
     SubjectTouchesBoundary,
     TooFewFrames,
 )
+from planner.surface_fit import BAND_MM, PASSES
 from planner.tsdf import MIN_FRAMES, TsdfFusion, close_openings, fuse
 from tests.depth_helpers import cylinder, cylinder_sweep, small_rig, sphere
 
@@ -112,9 +114,10 @@ def test_the_stored_surface_is_the_sweep_fused_again_at_its_finer_voxel():
     same.add(frames)
     open_base, closed = same.surface().mesh, same.result().mesh
     assert open_base.vertices[:, 2].min() >= RIG.tsdf.floor_clearance_mm
-    above = closed.vertices[:, 2] > 0.0
     assert len(open_base.vertices) < len(closed.vertices)
-    assert {tuple(p) for p in closed.vertices[above]} >= {tuple(p) for p in open_base.vertices}
+    # its vertices are the closed mesh's, each moved onto the frames along its normal (surface_fit)
+    nearest = cKDTree(closed.vertices[closed.vertices[:, 2] > 0.0]).query(open_base.vertices)[0]
+    assert np.median(nearest) < 1.0 and nearest.max() <= PASSES * BAND_MM, np.percentile(nearest, [50, 100])
 
 
 @pytest.mark.slow
