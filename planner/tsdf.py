@@ -198,8 +198,8 @@ class TsdfFusion:
     Frames are chosen as :func:`fuse` chooses them (per camera, :data:`FRAME_SPACING_DEG` of beam
     rotation apart, empty frames skipped), so each camera's frames must come in time order; the
     cameras may interleave. Each fused frame's decimated depth is kept (:class:`FreeSpace`) to carve
-    the extracted surface, and the frame itself for :meth:`surface`. One fusion is used from one thread at a time (a lock makes
-    sure).
+    the extracted surface, and the frame itself for :meth:`surface`. One fusion is used from one
+    thread at a time (a lock makes sure).
     """
 
     def __init__(self, rig: Rig) -> None:
@@ -253,11 +253,11 @@ class TsdfFusion:
         (:func:`close_openings`), its vertices then moved onto the frames' depth
         (planner/surface_fit.py). Its timings are the second fusion's and the fit's (``fit``); it
         refuses what :meth:`result` refuses."""
+        same_voxel = self.rig.tsdf.surface_voxel_mm == self.rig.tsdf.voxel_mm
         with self._lock:
             frames = list(self._frames)
-            if self.rig.tsdf.surface_voxel_mm == self.rig.tsdf.voxel_mm:  # this grid, extracted again
-                extracted = self._extract(validate, close_soles=False)
-        if self.rig.tsdf.surface_voxel_mm != self.rig.tsdf.voxel_mm:
+            extracted = self._extract(validate, close_soles=False) if same_voxel else None  # this grid again
+        if extracted is None:
             fine = TsdfFusion(surface_rig(self.rig))
             fine.add(frames)
             with fine._lock:
