@@ -143,6 +143,14 @@ def _kernel():  # type: ignore[no-untyped-def]
     return jit(_accumulate)  # type: ignore[no-untyped-call]
 
 
+def warm_up() -> None:
+    """Compile the fit's loop (or load it from numba's cache) now rather than in the first scan's
+    stored surface, for the depth frames' 16-bit depth."""
+    one = np.zeros((1, 3))
+    _kernel()(one, one, np.zeros((1, 1), dtype=np.uint16), 1.0, np.ones(4), np.eye(4), np.ones(6), np.zeros(1),
+              np.zeros(1), np.zeros(1, dtype=np.int64))
+
+
 def fit_to_frames(vertices: np.ndarray, faces: np.ndarray, frames: Sequence[PosedDepth],
                   passes: int = PASSES) -> np.ndarray:
     """(V, 3) the surface's vertices (V, 3) mm moved along their normals onto the skin the

@@ -113,8 +113,8 @@ def _warm_up(log_setup: dict[str, Any], daemon_pid: int) -> None:
     """In the worker: end with the daemon's process (``daemon_pid``), log as the daemon does
     (``log_setup``: :func:`daemon.logs.log_settings`), run as a batch job and import what every
     scan's jobs need, so the first scan's do not (their modules, not the daemon's), and compile
-    the planner's descent loop, the TSDF's carving and the texture's view costs (seconds the
-    first time, from numba's cache after)."""
+    the planner's descent loop, the TSDF's carving, the stored surface's fit to the frames and the
+    texture's view costs (seconds the first time, from numba's cache after)."""
     exit_with(daemon_pid)
     configure_logging(json=log_setup["json"], level=log_setup["level"])
     structlog.contextvars.bind_contextvars(process="compute")
@@ -125,10 +125,11 @@ def _warm_up(log_setup: dict[str, Any], daemon_pid: int) -> None:
 
     import daemon.offload.fusion
     import daemon.offload.planning  # noqa: F401
-    from planner import candidate_costs, carve, refine
+    from planner import candidate_costs, carve, refine, surface_fit
     from planner.rig import load_rig
 
     rig = load_rig()
     refine.warm_up(rig)
     carve.warm_up(rig.depth_camera_model)
+    surface_fit.warm_up()
     candidate_costs.warm_up()
