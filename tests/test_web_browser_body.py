@@ -19,6 +19,7 @@ from selenium.webdriver.common.actions.wheel_input import ScrollOrigin
 from analysis.body_texture import write_body
 from analysis.scan_views import open_scan
 from cli import main
+from tests.bench.texture import delta_e00, srgb_to_lab
 from tests.test_web import folder_of
 from tests.test_web_browser import front_vertex
 from tests.web_browser import canvas_is_blank, chromium, chromium_missing, click_at, serve_in_thread, wait_for
@@ -114,7 +115,12 @@ def test_the_viewer_shows_the_skin_and_the_sharpness_map_one_click_away(web_stor
         wait_for(driver, "window.tbpViewer && window.tbpViewer.textureLevel === 'preview' && window.tbpViewer.error")
         reference = _zoomed_out(driver)
         driver.execute_cdp_cmd("Network.setBlockedURLs", {"urls": []})
-        assert np.abs(_skin_colour(far) - _skin_colour(reference)).max() < 6.0, (_skin_colour(far), _skin_colour(reference))
+        # the two chains filter differently (the server's box filter on the stored sRGB values, the
+        # browser's as its GPU makes them, from a smaller atlas): over this coarse atlas's many chart
+        # borders they differ by 3-4.5 CIEDE2000; a black or misplaced level differs by tens
+        lab = srgb_to_lab(np.array([_skin_colour(far), _skin_colour(reference)]))
+        difference = float(delta_e00(lab[:1], lab[1:])[0])
+        assert difference < 5.0, (_skin_colour(far), _skin_colour(reference), difference)
 
         # the two levels over HTTP: a smaller atlas in the same glTF, and the stored atlas itself
         glb = urlopen(f"{url}/api/scans/{name}/body?texture=preview").read()
