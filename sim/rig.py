@@ -116,13 +116,11 @@ def sim_depth_model(model: DepthCameraModel, decimation: int, fps: float) -> Sam
     times coarser: with those, a half-resolution frame had twice the noise and lost twice the
     skin along each silhouette, and gaps between arms and torso were not seen through."""
     d = max(int(decimation), 1)
-    sampled = SampledDepthModel(**{f.name: getattr(model, f.name) for f in dataclasses.fields(DepthCameraModel)},
-                                every_px=d)
-    return dataclasses.replace(
-        sampled, width_px=model.width_px // d, height_px=model.height_px // d,
-        fx_px=model.fx_px / d, fy_px=model.fy_px / d, cx_px=model.cx_px / d, cy_px=model.cy_px / d,
-        subpixel_px=model.subpixel_px / d, fps=fps,
-    )
+    fields = {f.name: getattr(model, f.name) for f in dataclasses.fields(DepthCameraModel)}
+    fields.update(width_px=model.width_px // d, height_px=model.height_px // d, fx_px=model.fx_px / d,
+                  fy_px=model.fy_px / d, cx_px=model.cx_px / d, cy_px=model.cy_px / d,
+                  subpixel_px=model.subpixel_px / d, fps=fps)
+    return SampledDepthModel(**fields, every_px=d)
 
 
 def default_subject(seed: int) -> Any:

@@ -72,15 +72,15 @@ def test_a_mark_in_a_groove_round_a_scanned_capsule_stays_in_it_and_is_in_doubt(
     groove and is in doubt; a mark elsewhere stays put and is not."""
     from analysis.scan_views import open_scan
     from tests.test_web import folder_of
+    from tests.test_web_browser import front_vertex
+    from tests.web_visits import dented
 
-    mesh = open_scan(web_store / folder_of(web_store)).mesh()
+    scan_dir = web_store / folder_of(web_store)
+    mesh = open_scan(scan_dir).mesh()
     v = np.asarray(mesh.vertices, dtype=float)
-    middle = np.flatnonzero((np.abs(v[:, 2] - np.median(v[:, 2])) < 30) & (np.abs(v[:, 1]) < 20))
-    front = v[middle[np.argmax(v[middle, 0])]]
+    front = v[front_vertex(scan_dir)]
     back = v[np.argmin(np.linalg.norm(v - (front * [-1.0, 1.0, 1.0] + [0.0, 0.0, 450.0]), axis=1))]
-    later = mesh.copy()
-    groove = np.clip(1.0 - ((v[:, 2] - back[2]) / 40.0) ** 2, 0.0, None) ** 2
-    later.vertices = v - 10.0 * groove[:, None] * np.asarray(mesh.vertex_normals)
+    later = dented(mesh, back, 40.0, 10.0, ring=True)
     carried = MarkCarrier(mesh, later).carry(np.array([front, back]))
     assert carried.in_doubt.tolist() == [False, True], (carried.surface_gap_mm, carried.fit_rmse_mm)
     assert np.linalg.norm(carried.points_mm[0] - front) < 1.0, carried.points_mm

@@ -34,11 +34,12 @@ def placed(mesh: Any, shift_mm: tuple[float, float, float], turn_deg: float) -> 
     return moved
 
 
-def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float) -> Any:
+def dented(mesh: Any, centre: np.ndarray, radius_mm: float, depth_mm: float, *, ring: bool = False) -> Any:
     """The mesh pushed in along its normals around ``centre``, ``depth_mm`` there and smoothly
-    less out to ``radius_mm``: skin a scan reconstructed inside the true surface."""
+    less out to ``radius_mm``: skin a scan reconstructed inside the true surface. ``ring``: all
+    round the body at the centre's height (a groove)."""
     vertices = np.asarray(mesh.vertices, dtype=float)
-    offset = vertices - centre
+    offset = vertices[:, 2:] - centre[2:] if ring else vertices - centre
     near = np.clip(1.0 - np.sum(offset**2, axis=1) / radius_mm**2, 0.0, None) ** 2
     out = mesh.copy()
     out.vertices = vertices - depth_mm * near[:, None] * np.asarray(mesh.vertex_normals)
