@@ -16,23 +16,20 @@ the hypervisor gave elsewhere (summed over the CPUs). A garbage collection that 
 as ``gc_pause``.
 
 Where the time went is only visible during the stall. With ``TBP_LOOP_STALL_TRACEBACKS=FILE`` in
-the daemon's environment (a diagnostic for engineers: it starts a timer thread at every sample),
-a stall past ``warn_s`` appends every thread's stack, taken by the interpreter's fault handler
-while the loop is still held (it needs no interpreter lock), to FILE; the ``loop_lag`` line names
-the file, and says as ``loop_frame`` where the loop thread was in that dump (``selectors.py:468 in
-select``: still in its selector's wait, its timer due ``warn_s`` before). The thread holding the
-loop shows there: the loop's own code, or another thread holding the interpreter lock, or a
-system call.
+the daemon's environment (a diagnostic for engineers), a stall past ``warn_s`` appends every
+thread's stack to FILE, taken while the loop is still held, under the interpreter lock
+(daemon/server/stallstacks.py); the ``loop_lag`` line names the file, says as ``loop_frame``
+where the loop thread was (``selectors.py:468 in select``: still in its selector's wait, its
+timer due ``warn_s`` before) and as ``stacks_after_ms`` how long past due the stacks were taken
+(long when a thread held the interpreter lock in C code).
 """
 
 from __future__ import annotations
 
 import asyncio
-import faulthandler
 import gc
 import math
 import os
-import re
 import threading
 import time
 from collections.abc import Callable
@@ -40,6 +37,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import structlog
+
+from daemon.server.stallstacks import StallStacks
 
 log = structlog.get_logger("daemon.server.looplag")
 
@@ -124,23 +123,6 @@ class MachineTimes:
         self._pressure = self._stat = None
 
 
-def loop_frame(dump: str, thread_id: int) -> str | None:
-    """The most recent frame of thread ``thread_id`` in a fault handler's dump of every thread,
-    as ``file:line in function`` (the file's name without its folder); None where the dump does
-    not hold that thread."""
-    header = f"hread 0x{thread_id:016x} (most recent call first):"  # "Thread" or "Current thread"
-    lines = dump.splitlines()
-    for number, line in enumerate(lines[:-1]):
-        if line.endswith(header):
-            frame = lines[number + 1].strip()
-            match = _FRAME.fullmatch(frame)
-            return f"{Path(match['file']).name}:{match['line']} in {match['function']}" if match else frame
-    return None
-
-
-_FRAME = re.compile(r'File "(?P<file>.*)", line (?P<line>\d+) in (?P<function>.*)')
-
-
 def _ms_between(before: float | None, after: float | None) -> float | None:
     return None if before is None or after is None else round((after - before) * 1000, 1)
 
@@ -202,28 +184,32 @@ class LoopLagMonitor:
         loop = asyncio.get_running_loop()
         gc.callbacks.append(self._collection)
         times, machine = ThreadTimes(), MachineTimes()
-        me = threading.get_ident()
         stacks = None
         if self.tracebacks is not None:
-            try:
-                stacks = self.tracebacks.open("a")
-            except OSError as exc:
-                log.error("loop_stall_tracebacks_unwritable", path=str(self.tracebacks), error=str(exc))
+            stacks = StallStacks(self.tracebacks, threading.get_ident())
+            if not stacks.start():
+                stacks = None
+        sample = 0
         try:
             while True:
+                sample += 1
                 before, (cpu0, wait0), (pressure0, steal0) = loop.time(), times.read(), machine.read()
                 process0 = time.process_time()
                 if stacks is not None:
-                    dumped = os.fstat(stacks.fileno()).st_size  # this sample's dump, if any, follows
-                    faulthandler.dump_traceback_later(self.period_s + self.warn_s, file=stacks)
+                    stacks.arm(sample, time.monotonic() + self.period_s + self.warn_s)
                 await asyncio.sleep(self.period_s)
+                if stacks is not None:
+                    stacks.disarm()
                 lag_s = max(loop.time() - before - self.period_s, 0.0)
                 if lag_s > self.warn_s:
                     (cpu1, wait1), (pressure1, steal1) = times.read(), machine.read()
                     process1 = time.process_time()
-                    where: dict[str, str | None] = {}
+                    where: dict[str, str | float | None] = {}
                     if stacks is not None:
-                        where = {"tracebacks": str(self.tracebacks), "loop_frame": self._frame(dumped, me)}
+                        dump = stacks.taken(sample)
+                        where = {"tracebacks": str(self.tracebacks), "loop_frame": dump.loop_frame if dump else None}
+                        if dump is not None:
+                            where["stacks_after_ms"] = dump.after_ms
                     self.record(self.state(), lag_s, cpu_ms=_ms_between(cpu0, cpu1),
                                 runqueue_ms=_ms_between(wait0, wait1), process_cpu_ms=_ms_between(process0, process1),
                                 pressure_ms=_ms_between(pressure0, pressure1), steal_ms=_ms_between(steal0, steal1),
@@ -232,23 +218,10 @@ class LoopLagMonitor:
                     self.record(self.state(), lag_s)
         finally:
             if stacks is not None:
-                faulthandler.cancel_dump_traceback_later()
-                stacks.close()
+                stacks.stop()
             times.close()
             machine.close()
             gc.callbacks.remove(self._collection)
-
-    def _frame(self, offset: int, thread_id: int) -> str | None:
-        """Where the loop thread was in the dump written past ``offset`` of the tracebacks file
-        (:func:`loop_frame`); None without one (the dump's timer thread, itself waiting for a
-        CPU, had not written it yet)."""
-        assert self.tracebacks is not None
-        try:
-            with self.tracebacks.open("rb") as written:
-                written.seek(offset)
-                return loop_frame(written.read().decode(errors="replace"), thread_id)
-        except OSError:
-            return None
 
     def _collection(self, phase: str, info: dict[str, int]) -> None:
         """gc callback: a collection that holds the loop longer than ``warn_s`` is logged as
