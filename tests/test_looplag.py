@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from daemon.jobs.scan import ScanReport
 from daemon.rig.states import ScanOutcome
 from daemon.server.looplag import LoopLagMonitor, MachineTimes
-from daemon.server.stallstacks import format_dump, frame_place
+from daemon.server.stallstacks import format_dump, place
 from sim.loopback import UNIT, machine_caused, set_autogroup_nice, unit_cpu_weight, weight_nice
 
 
@@ -91,7 +91,8 @@ def test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named() -
     first = lines[lines.index("Loop thread 0x00007f0000000001 (most recent call first):") + 1]
     assert first.startswith(f'  File "{__file__}", line ') and first.endswith(
         " in test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named")  # most recent first
-    assert frame_place(here[-1]).startswith("test_looplag.py:")
+    assert place(sys._getframe()).startswith("test_looplag.py:")  # noqa: SLF001
+    assert place(sys._getframe()).endswith(" in test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named")  # noqa: SLF001
 
 
 CHURN = """

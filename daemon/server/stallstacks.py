@@ -27,6 +27,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 from typing import TextIO
 
 import structlog
@@ -49,8 +50,9 @@ class StallDump:
     """How long past the sample's due time the stacks were taken."""
 
 
-def frame_place(frame: traceback.FrameSummary) -> str:
-    return f"{Path(frame.filename).name}:{frame.lineno} in {frame.name}"
+def place(frame: FrameType) -> str:
+    """A frame as ``file:line in function``, the file without its folder."""
+    return f"{Path(frame.f_code.co_filename).name}:{frame.f_lineno} in {frame.f_code.co_name}"
 
 
 def format_dump(stacks: dict[int, traceback.StackSummary], loop_thread: int, header: str) -> str:
@@ -127,12 +129,14 @@ class StallStacks:
                 if self._armed[0] != sample:
                     continue  # the sample ended before the stacks were taken: they show the loop after it
                 after_ms = round((time.monotonic() - due) * 1000, 1)
+                loop_top = frames.get(self.loop_thread)
+                # Kept first, in the few steps the lock allows before the loop's thread may take it
+                # back and ask for this sample's dump.
+                self._taken = StallDump(sample, place(loop_top) if loop_top is not None else None, after_ms)
+                dumped = sample
                 me = threading.get_ident()
                 stacks = {tid: traceback.extract_stack(f) for tid, f in frames.items() if tid != me}
-                del frames
-                loop_stack = stacks.get(self.loop_thread)
-                self._taken = StallDump(sample, frame_place(loop_stack[-1]) if loop_stack else None, after_ms)
-                dumped = sample
+                del frames, loop_top
                 stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
                 self._file.write(format_dump(stacks, self.loop_thread,
                                              f"Loop stall at {stamp}: stacks taken {after_ms} ms past due"))
