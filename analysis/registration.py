@@ -15,7 +15,11 @@ the later scan's surface is further from where the fit puts the skin than the tw
 from each other around the mark (the residual, at least SURFACE_NOISE_MM), or further than
 SURFACE_DOUBT_MM in any case, the later scan did not hold that skin as it held the skin around
 (an occluded gap, between a wrist and a thigh, reconstructed inside the true skin), and the place
-on its surface may not be the same skin point: the mark is in doubt and the viewer says so.
+on its surface may not be the same skin point: the mark is in doubt and the viewer says so. It
+is in doubt too where the two scans' surfaces, the earlier one moved by the mark's fit, lie
+further apart than SURFACE_NOISE_MM around the mark (median over the skin within AROUND_MM of
+it, ``surfaces_apart_mm``): there the skin changed shape between the visits, or one scan missed
+it, and no rigid fit places the mark to the millimetre.
 """
 
 from __future__ import annotations
@@ -147,7 +151,10 @@ class MarkCarrier:
     """A carried mark whose later surface is further than this from where the fit puts the skin
     is in doubt whatever the fit's residual (``./dev bench marks``, docs/web.md)."""
     SURFACE_NOISE_MM = 1.0
-    """A gap under this is within any scan's surface noise: never doubt on its own."""
+    """A gap under this is within any scan's surface noise: never doubt on its own. Two scans'
+    surfaces further apart than this around a mark put it in doubt."""
+    AROUND_MM = 30.0
+    """The skin around a mark (along the skin) whose two surfaces are compared."""
     MAX_SWAY_MM = 80.0
     """A mark never moves further than this from where the whole-body fit puts it."""
     HOLD_SHARE = 0.02
@@ -195,8 +202,9 @@ class MarkCarrier:
                 f"(needs {100 * self.MIN_FITNESS:.0f} %): not the same person, or a scan that missed most of the body")
         return Registration(np.asarray(fine.transformation), float(fine.fitness), float(fine.inlier_rmse))
 
-    def _local(self, point: np.ndarray) -> Registration:
-        """Coarse to fine on shrinking neighbourhoods of the mark, each stage from the last fit."""
+    def _local(self, point: np.ndarray) -> tuple[Registration, np.ndarray]:
+        """Coarse to fine on shrinking neighbourhoods of the mark, each stage from the last fit;
+        and the earlier mesh's points within AROUND_MM of the mark along the skin."""
         from scipy.sparse.csgraph import dijkstra
 
         fit = self.whole
@@ -221,7 +229,7 @@ class MarkCarrier:
             if np.linalg.norm(candidate.apply(point) - self.whole.apply(point)) > self.MAX_SWAY_MM:
                 break  # slid onto another limb
             fit = candidate
-        return fit
+        return fit, self._source_points[along <= self.AROUND_MM]
 
     def carry(self, points: np.ndarray, pictures: PictureMatcher | None = None) -> Carried:
         """(K, 3) points on the earlier mesh -> their places on the later mesh.
@@ -231,14 +239,20 @@ class MarkCarrier:
         import open3d as o3d
 
         points = np.asarray(points, dtype=float).reshape(-1, 3)
-        fits = [self._local(point) for point in points]  # a handful of marks: one local fit each
+        local = [self._local(point) for point in points]  # a handful of marks: one local fit each
+        fits = [fit for fit, _ in local]
         moved = np.array([fit.apply(point)[0] for fit, point in zip(fits, points)]).reshape(-1, 3)
+        around = [fit.apply(near) for fit, near in local]
         score = np.full(len(points), np.nan)
+        apart = np.zeros(len(points))
         if len(points):
+            queries = np.concatenate([moved, *around])
             closest = self._target_scene.compute_closest_points(
-                o3d.core.Tensor(moved.astype(np.float32)))["points"].numpy().astype(float)
-            gap = np.linalg.norm(closest - moved, axis=1)
-            moved = closest
+                o3d.core.Tensor(queries.astype(np.float32)))["points"].numpy().astype(float)
+            distance = np.linalg.norm(closest - queries, axis=1)
+            gap, moved = distance[:len(points)], closest[:len(points)]
+            ends = np.cumsum([len(points)] + [len(near) for near in around])
+            apart = np.array([np.median(distance[a:b]) if b > a else 0.0 for a, b in zip(ends[:-1], ends[1:])])
         else:
             gap = np.zeros(0)
         if pictures is not None:
@@ -246,25 +260,41 @@ class MarkCarrier:
                 match = pictures.refine(point, moved[k], fit.transform[:3, :3])
                 if match is not None:
                     moved[k], score[k] = match.point_mm, match.score
-        return Carried(moved, np.array([fit.rmse_mm for fit in fits]), score, gap)
+        return Carried(moved, np.array([fit.rmse_mm for fit in fits]), score, gap, apart)
 
 
 @dataclass(frozen=True)
 class Carried:
     """Points carried to the later mesh (K, 3) mm, the rmse of each one's local fit (K,) mm, the
-    picture match's score (K,) where the pictures placed it (NaN: placed by the shapes), and how
-    far the later mesh is from where the fit put each point (K,) mm."""
+    picture match's score (K,) where the pictures placed it (NaN: placed by the shapes), how far
+    the later mesh is from where the fit put each point (K,) mm, and how far apart the two
+    scans' surfaces are around it (median over AROUND_MM of skin, the earlier one moved by the
+    point's fit; K,) mm."""
 
     points_mm: np.ndarray
     fit_rmse_mm: np.ndarray
     picture_score: np.ndarray
     surface_gap_mm: np.ndarray
+    surfaces_apart_mm: np.ndarray
 
     @property
-    def in_doubt(self) -> np.ndarray:
+    def surface_departs(self) -> np.ndarray:
         """(K,) bool: the later scan's surface is further from the carried skin than the two
         surfaces are from each other around it (the local fit's rms residual, at least
         SURFACE_NOISE_MM, at most SURFACE_DOUBT_MM): it may not hold that skin."""
         limit = np.clip(self.fit_rmse_mm, MarkCarrier.SURFACE_NOISE_MM, MarkCarrier.SURFACE_DOUBT_MM)
-        doubt: np.ndarray = self.surface_gap_mm > limit
+        departs: np.ndarray = self.surface_gap_mm > limit
+        return departs
+
+    @property
+    def surfaces_part(self) -> np.ndarray:
+        """(K,) bool: the two surfaces around the point are further apart than SURFACE_NOISE_MM:
+        the fit may not place it."""
+        part: np.ndarray = self.surfaces_apart_mm > MarkCarrier.SURFACE_NOISE_MM
+        return part
+
+    @property
+    def in_doubt(self) -> np.ndarray:
+        """(K,) bool: either of the above."""
+        doubt: np.ndarray = self.surface_departs | self.surfaces_part
         return doubt

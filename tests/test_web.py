@@ -454,6 +454,27 @@ def test_a_mark_on_skin_the_later_scan_reconstructed_inside_is_in_doubt():
     assert shallow.in_doubt.tolist() == [True, False, False], (shallow.surface_gap_mm, shallow.fit_rmse_mm)
 
 
+def test_a_mark_where_the_two_scans_surfaces_part_around_it_is_in_doubt():
+    """A broad 3 mm dent (120 mm across) the local fit follows: the later surface is where the
+    fit puts the skin (under the fit's residual), but around the mark the two surfaces lie more
+    than SURFACE_NOISE_MM apart, so no rigid fit places the mark to the millimetre."""
+    import numpy as np
+
+    from analysis.registration import MarkCarrier
+    from sim.body import make_body
+    from tests.web_visits import dented
+
+    earlier = make_body(seed=3)
+    vertices = np.asarray(earlier.vertices)
+    marks = vertices[[int(np.argmax(vertices[:, 0])), int(np.argmin(vertices[:, 0])), int(np.argmax(vertices[:, 2]))]]
+    same = MarkCarrier(earlier, earlier).carry(marks)
+    assert not same.in_doubt.any() and np.all(same.surfaces_apart_mm < 0.1), same.surfaces_apart_mm
+    carried = MarkCarrier(earlier, dented(earlier, marks[0], 120.0, 3.0)).carry(marks)
+    assert carried.surface_departs.tolist() == [False, False, False], (carried.surface_gap_mm, carried.fit_rmse_mm)
+    assert carried.surfaces_apart_mm[0] > 1.3 and np.all(carried.surfaces_apart_mm[1:] < 0.1), carried.surfaces_apart_mm
+    assert carried.surfaces_part.tolist() == carried.in_doubt.tolist() == [True, False, False]
+
+
 def test_token_file_is_checked(tmp_path):
     from web.access import read_token
 

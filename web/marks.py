@@ -66,16 +66,17 @@ class CarriedPair:
 
     carrier: MarkCarrier
     pictures: PictureMatcher
-    done: dict[tuple[float, float, float], tuple[np.ndarray, float, float, float, bool]] = field(default_factory=dict)
+    done: dict[tuple[float, float, float], tuple[Any, ...]] = field(default_factory=dict)
 
-    def carry(self, points: list[tuple[float, float, float]]) -> list[tuple[np.ndarray, float, float, float, bool]]:
-        """(carried point, local fit rmse, picture score or NaN, later surface's gap, in doubt) for
-        each point."""
+    def carry(self, points: list[tuple[float, float, float]]) -> list[tuple[Any, ...]]:
+        """(carried point, local fit rmse, picture score or NaN, later surface's gap, the two
+        surfaces apart around it, the gap puts it in doubt, the surfaces apart do) for each point."""
         new = [p for p in dict.fromkeys(points) if p not in self.done]
         if new:
             carried = self.carrier.carry(np.array(new), self.pictures)
             for key, *place in zip(new, carried.points_mm, carried.fit_rmse_mm, carried.picture_score,
-                                   carried.surface_gap_mm, carried.in_doubt):
+                                   carried.surface_gap_mm, carried.surfaces_apart_mm, carried.surface_departs,
+                                   carried.surfaces_part):
                 self.done[key] = tuple(place)
         return [self.done[p] for p in points]
 
@@ -155,8 +156,10 @@ async def list_marks(request: web.Request) -> web.Response:
                     {**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm), "fit_rmse_mm": float(r),
                      "placed_by": "shape" if np.isnan(score) else "pictures",
                      "picture_score": None if np.isnan(score) else float(score),
-                     "surface_gap_mm": float(gap), "in_doubt": bool(doubt)}
-                    for m, (p, r, score, gap, doubt) in zip(earlier.marks, places)])
+                     "surface_gap_mm": float(gap), "surfaces_apart_mm": float(apart),
+                     "doubt": [why for why, yes in (("surface_gap", departs), ("surfaces_apart", part)) if yes],
+                     "in_doubt": bool(departs or part)}
+                    for m, (p, r, score, gap, apart, departs, part) in zip(earlier.marks, places)])
     return web.json_response(out)
 
 

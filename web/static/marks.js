@@ -86,6 +86,14 @@ export class MarksPane {
       el("span", {}, ...buttons));
   }
 
+  // Why a carried mark is in doubt, in the words of the carrier's two tests (analysis/registration.py).
+  doubt(mark) {
+    const why = [];
+    if (mark.doubt.includes("surface_gap")) why.push(`This scan's surface is ${fmt(mark.surface_gap_mm, 1)} mm from where the body's fit puts this skin (around it, ${fmt(mark.fit_rmse_mm, 1)} mm): it may not hold this spot.`);
+    if (mark.doubt.includes("surfaces_apart")) why.push(`Around this spot the two scans' surfaces are ${fmt(mark.surfaces_apart_mm, 1)} mm apart: the skin changed shape between the visits, or a scan missed it, and the fit may not place this spot.`);
+    return `${why.join(" ")} Check the images before keeping it.`;
+  }
+
   // Marks grouped by body region, in the server's order of regions.
   byRegion(marks) {
     const order = this.data.regions || [];
@@ -151,7 +159,7 @@ export class MarksPane {
     for (const [region, list] of this.byRegion(m.carried)) {
       root.append(el("h3", { class: "region" }, region));
       for (const mark of list) {
-        const doubt = mark.in_doubt ? el("p", { class: "doubt" }, `This scan's surface is ${fmt(mark.surface_gap_mm, 1)} mm from where the body's fit puts this skin (around it, ${fmt(mark.fit_rmse_mm, 1)} mm): it may not hold this spot. Check the images before keeping it.`) : null;
+        const doubt = mark.in_doubt ? el("p", { class: "doubt" }, this.doubt(mark)) : null;
         root.append(this.row(mark, "E", mark.placed_by === "pictures"
           ? `from the earlier scan, placed on the pictures (match ${fmt(mark.picture_score, 2)})` : "from the earlier scan, placed by the body's shape",
         button("Compare", () => this.compare(mark)), " ",
