@@ -186,7 +186,7 @@ class LoopLagMonitor:
         times, machine = ThreadTimes(), MachineTimes()
         stacks = None
         if self.tracebacks is not None:
-            stacks = StallStacks(self.tracebacks, threading.get_ident())
+            stacks = StallStacks(self.tracebacks, threading.get_ident(), loop.time)
             if not stacks.start():
                 stacks = None
         sample = 0
@@ -196,7 +196,7 @@ class LoopLagMonitor:
                 before, (cpu0, wait0), (pressure0, steal0) = loop.time(), times.read(), machine.read()
                 process0 = time.process_time()
                 if stacks is not None:
-                    stacks.arm(sample, time.monotonic() + self.period_s + self.warn_s)
+                    stacks.arm(sample, before + self.period_s + self.warn_s)
                 await asyncio.sleep(self.period_s)
                 if stacks is not None:
                     stacks.disarm()

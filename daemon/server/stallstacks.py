@@ -23,14 +23,16 @@ from __future__ import annotations
 import math
 import sys
 import threading
-import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import TextIO
 
 import structlog
+
+from daemon.utc import utc_stamp
 
 log = structlog.get_logger("daemon.server.stallstacks")
 
@@ -73,9 +75,11 @@ class StallStacks:
     and then :meth:`taken`;
     :meth:`start` and :meth:`stop` bracket the monitor's run."""
 
-    def __init__(self, path: Path, loop_thread: int) -> None:
+    def __init__(self, path: Path, loop_thread: int, clock: Callable[[], float]) -> None:
         self.path = path
         self.loop_thread = loop_thread
+        self.clock = clock
+        """The loop's clock (``loop.time``), which the samples' due times are on."""
         self._armed: tuple[int, float] = (0, math.inf)
         """(sample, due): replaced whole by the loop thread, read whole by the watcher."""
         self._taken: StallDump | None = None
@@ -95,7 +99,7 @@ class StallStacks:
         return True
 
     def arm(self, sample: int, due: float) -> None:
-        """Sample ``sample`` is late once ``time.monotonic()`` passes ``due``."""
+        """Sample ``sample`` is late once the clock passes ``due``."""
         self._armed = (sample, due)
 
     def disarm(self) -> None:
@@ -119,7 +123,7 @@ class StallStacks:
         try:
             while not self._stopping.is_set():
                 sample, due = self._armed
-                wait = due - time.monotonic()
+                wait = due - self.clock()
                 if sample == dumped or wait > 0:
                     # Not yet due: look again at its due time. This stall already dumped, or no
                     # sample armed: look again a while on.
@@ -128,7 +132,7 @@ class StallStacks:
                 frames = sys._current_frames()  # noqa: SLF001 - the interpreter's own snapshot, under its lock
                 if self._armed[0] != sample:
                     continue  # the sample ended before the stacks were taken: they show the loop after it
-                after_ms = round((time.monotonic() - due) * 1000, 1)
+                after_ms = round((self.clock() - due) * 1000, 1)
                 loop_top = frames.get(self.loop_thread)
                 # Kept first, in the few steps the lock allows before the loop's thread may take it
                 # back and ask for this sample's dump.
@@ -137,9 +141,8 @@ class StallStacks:
                 me = threading.get_ident()
                 stacks = {tid: traceback.extract_stack(f) for tid, f in frames.items() if tid != me}
                 del frames, loop_top
-                stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z")
                 self._file.write(format_dump(stacks, self.loop_thread,
-                                             f"Loop stall at {stamp}: stacks taken {after_ms} ms past due"))
+                                             f"Loop stall at {utc_stamp()}: stacks taken {after_ms} ms past due"))
                 self._file.flush()
         except OSError as exc:
             log.error("loop_stall_tracebacks_unwritable", path=str(self.path), error=str(exc))

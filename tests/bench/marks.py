@@ -78,4 +78,5 @@ def run() -> None:
         print(_summary(f"all {len(PERSONS)} people (pictures at render scale {SCALE})", error, skin, doubt))
         print(f"goal: >= {100 * GOAL_SHARE:.0f} % within {GOAL_MM:g} mm, every mark beyond in doubt (doubt: the later "
               f"surface's gap above the local fit's rms residual, at least {MarkCarrier.SURFACE_NOISE_MM:g} mm, "
-              f"at most {MarkCarrier.SURFACE_DOUBT_MM:g} mm)")
+              f"at most {MarkCarrier.SURFACE_DOUBT_MM:g} mm; or the two surfaces more than "
+              f"{MarkCarrier.SURFACE_NOISE_MM:g} mm apart within {MarkCarrier.AROUND_MM:g} mm of the mark)")
