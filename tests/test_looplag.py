@@ -124,9 +124,9 @@ asyncio.run(main())
 
 @pytest.mark.realtime
 def test_stall_dumps_never_crash_the_daemon_however_its_threads_stacks_change(tmp_path: Path) -> None:
-    """The interpreter's fault handler, armed at every sample, read other threads' frames without
-    the interpreter lock and crashed this program within a second (SIGSEGV); the stacks are now
-    taken under the lock."""
+    """The interpreter's fault handler, armed at every sample, reads other threads' frames without
+    the interpreter lock and crashes this program within a second (SIGSEGV); the watcher takes
+    the stacks under the lock."""
     stacks = tmp_path / "loop-stalls.txt"
     run = subprocess.run([sys.executable, "-c", CHURN, str(stacks)], cwd=Path(__file__).parents[1],
                          capture_output=True, text=True, timeout=60)

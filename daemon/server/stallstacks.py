@@ -11,8 +11,8 @@ handler (``faulthandler.dump_traceback_later``) reads other threads' frames with
 and a thread whose stack grows or shrinks meanwhile can crash the process: tests/test_looplag.py
 crashes it in under a second with deep recursion on other threads. The price: while some
 thread holds the lock inside C code, the watcher waits for it too, and the dump shows where
-the threads are once it is released. ``after_ms`` says how long past due the stacks were taken: tens of milliseconds
-there is itself the sign of a thread holding the lock.
+the threads are once it is released. ``after_ms`` says how long past due the stacks were
+taken: tens of milliseconds there is itself the sign of a thread holding the lock.
 
 The watcher wakes about once per ``period + warn_s`` and takes nothing while the loop keeps
 time.
@@ -72,8 +72,7 @@ class StallStacks:
     """Appends every thread's stack to ``path`` while a lag sample of ``loop_thread`` is overdue.
 
     The loop calls :meth:`arm` at the start of each sample, :meth:`disarm` as soon as it is over
-    and then :meth:`taken`;
-    :meth:`start` and :meth:`stop` bracket the monitor's run."""
+    and then :meth:`taken`; :meth:`start` and :meth:`stop` bracket the monitor's run."""
 
     def __init__(self, path: Path, loop_thread: int, clock: Callable[[], float]) -> None:
         self.path = path
