@@ -30,7 +30,7 @@ from PIL import Image
 from analysis.atlas import Atlas, seam_gutters, unwrap
 from analysis.exposure import MAX_EQUATIONS, Exposure, fit_exposure
 from analysis.navigate import Navigator
-from analysis.pixels import bilinear, by_image
+from analysis.pixels import bicubic, by_image
 from analysis.scan_views import ScanRecord, open_scan, picture_size
 from analysis.texel_views import Samples, candidate_poses, choose_views, runs, squarely, texel_views
 from planner.cores import each, heap_for_large_arrays
@@ -101,13 +101,13 @@ def smooth_face_normals(vertices: np.ndarray, faces: np.ndarray, rings: int = SM
 
 
 def sample_images(scan: ScanRecord, samples: Samples) -> np.ndarray:
-    """(K, 3) float32 RGB of every blended pair, bilinear at its pixel; images read one at a
+    """(K, 3) float32 RGB of every blended pair, bicubic at its pixel; images read one at a
     time on each thread (:func:`planner.cores.each`)."""
     colours = np.empty((len(samples.pose), 3), dtype=np.float32)
 
     def sample(group: tuple[int, np.ndarray]) -> None:
         pose, mine = group
-        colours[mine] = bilinear(scan.pixels_at(pose), samples.u[mine], samples.v[mine])
+        colours[mine] = bicubic(scan.pixels_at(pose), samples.u[mine], samples.v[mine])
 
     each(sample, by_image(samples.pose), name="sample")
     return colours

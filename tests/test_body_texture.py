@@ -30,7 +30,6 @@ from analysis.atlas import (
     unwrap,
 )
 from analysis.body_texture import (
-    bilinear,
     choose_views,
     report_and_body,
     smooth_face_normals,
@@ -40,6 +39,7 @@ from analysis.body_texture import (
 )
 from analysis.exposure import FALLOFF_KNOTS, fit_exposure
 from analysis.navigate import Navigator
+from analysis.pixels import bicubic
 from analysis.scan_views import open_scan
 from analysis.texel_views import texel_views
 from cli import main
@@ -236,14 +236,44 @@ def test_rasterising_row_spans_finds_the_texels_of_testing_every_texel_of_the_bo
 
 
 @settings(max_examples=50, deadline=None)
-@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0, 100), st.lists(st.floats(0, 12), min_size=4, max_size=4),
-       st.lists(st.floats(0, 16), min_size=4, max_size=4))
-def test_bilinear_is_exact_on_a_linear_image(a, b, c, us, vs):
+@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(-0.2, 0.2), st.floats(0, 100),
+       st.lists(st.floats(1.5, 11.5), min_size=4, max_size=4), st.lists(st.floats(1.5, 15.5), min_size=4, max_size=4))
+def test_bicubic_is_exact_on_a_quadratic_image_inside_its_edges(a, b, q, c, us, vs):
+    """Keys' cubic reproduces quadratics; the clamp to the 2 x 2 nearest pixels never binds on a
+    surface that is monotonic across them (q small against a, b is not required: the quadratic's
+    value between two pixel centres lies between them unless its turning point is there)."""
     rows, cols = np.mgrid[0:17, 0:13]
     image = (a * (cols + 0.5) + b * (rows + 0.5) + c)[:, :, None]
-    u = np.clip(np.array(us), 0.5, 12.5)
-    v = np.clip(np.array(vs), 0.5, 16.5)
-    assert bilinear(image, u, v)[:, 0] == pytest.approx(a * u + b * v + c, abs=1e-9)
+    u, v = np.array(us), np.array(vs)
+    assert bicubic(image, u, v)[:, 0] == pytest.approx(a * u + b * v + c, abs=1e-9)
+    curved = (q * (cols + 0.5) ** 2 + a * (cols + 0.5) + c)[:, :, None]
+    got = bicubic(curved, u, v)[:, 0]
+    x0 = np.floor(u - 0.5) + 0.5
+    ends = np.stack([q * x0**2 + a * x0 + c, q * (x0 + 1) ** 2 + a * (x0 + 1) + c])
+    want = np.clip(q * u**2 + a * u + c, ends.min(axis=0), ends.max(axis=0))
+    assert got == pytest.approx(want, abs=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(0.5, 12.5), st.floats(0.5, 16.5), st.integers(0, 2**31 - 1))
+def test_bicubic_stays_within_the_nearest_pixels_values(u, v, seed):
+    image = np.random.default_rng(seed).uniform(0, 255, (17, 13, 3)).astype(np.float32)
+    got = bicubic(image, np.array([u]), np.array([v]))[0]
+    x0, y0 = min(int(u - 0.5), 11), min(int(v - 0.5), 15)
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x0 + 1, 12), min(y0 + 1, 16)
+    near = image[[y0, y0, y1, y1], [x0, x1, x0, x1]]
+    assert np.all(got >= near.min(axis=0) - 1e-4) and np.all(got <= near.max(axis=0) + 1e-4)
+
+
+def test_bicubic_keeps_more_of_a_one_pixel_spot_than_the_average_of_its_neighbours():
+    """A dark pixel on bright skin read half a pixel off its centre: bilinear interpolation would
+    give the mean of the spot and its neighbour (half the contrast); the cubic keeps more."""
+    image = np.full((9, 9, 1), 200.0)
+    image[4, 4] = 100.0
+    got = bicubic(image, np.array([5.0]), np.array([4.5]))[0, 0]  # half a pixel right of the spot's centre
+    assert got < 150.0 - 5.0
+    assert bicubic(image, np.array([4.5]), np.array([4.5]))[0, 0] == pytest.approx(100.0)  # exact at the centre
 
 
 @settings(max_examples=15, deadline=None)
