@@ -239,9 +239,9 @@ def test_rasterising_row_spans_finds_the_texels_of_testing_every_texel_of_the_bo
 @given(st.floats(-3, 3), st.floats(-3, 3), st.floats(-0.2, 0.2), st.floats(0, 100),
        st.lists(st.floats(1.5, 11.5), min_size=4, max_size=4), st.lists(st.floats(1.5, 15.5), min_size=4, max_size=4))
 def test_bicubic_is_exact_on_a_quadratic_image_inside_its_edges(a, b, q, c, us, vs):
-    """Keys' cubic reproduces quadratics; the clamp to the 2 x 2 nearest pixels never binds on a
-    surface that is monotonic across them (q small against a, b is not required: the quadratic's
-    value between two pixel centres lies between them unless its turning point is there)."""
+    """Keys' cubic reproduces linear and quadratic images; on a quadratic the value is then
+    clamped to the two nearest pixel centres' values (it passes them only where the curve turns
+    between them)."""
     rows, cols = np.mgrid[0:17, 0:13]
     image = (a * (cols + 0.5) + b * (rows + 0.5) + c)[:, :, None]
     u, v = np.array(us), np.array(vs)

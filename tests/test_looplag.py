@@ -91,8 +91,9 @@ def test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named() -
     first = lines[lines.index("Loop thread 0x00007f0000000001 (most recent call first):") + 1]
     assert first.startswith(f'  File "{__file__}", line ') and first.endswith(
         " in test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named")  # most recent first
-    assert place(sys._getframe()).startswith("test_looplag.py:")  # noqa: SLF001
-    assert place(sys._getframe()).endswith(" in test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named")  # noqa: SLF001
+    me = place(sys._getframe())  # noqa: SLF001
+    assert me.startswith("test_looplag.py:")
+    assert me.endswith(" in test_the_dump_is_in_the_fault_handlers_layout_with_the_loop_thread_named")
 
 
 CHURN = """

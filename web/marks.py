@@ -70,14 +70,16 @@ class CarriedPair:
 
     def carry(self, points: list[tuple[float, float, float]]) -> list[tuple[Any, ...]]:
         """(carried point, local fit rmse, picture score or NaN, later surface's gap, the two
-        surfaces apart around it, the gap puts it in doubt, the surfaces apart do) for each point."""
+        surfaces apart around it, the doubt tests it failed: ``surface_gap``, ``surfaces_apart``)
+        for each point."""
         new = [p for p in dict.fromkeys(points) if p not in self.done]
         if new:
             carried = self.carrier.carry(np.array(new), self.pictures)
-            for key, *place in zip(new, carried.points_mm, carried.fit_rmse_mm, carried.picture_score,
-                                   carried.surface_gap_mm, carried.surfaces_apart_mm, carried.surface_departs,
-                                   carried.surfaces_part):
-                self.done[key] = tuple(place)
+            for key, point, rmse, score, gap, apart, departs, part in zip(
+                    new, carried.points_mm, carried.fit_rmse_mm, carried.picture_score, carried.surface_gap_mm,
+                    carried.surfaces_apart_mm, carried.surface_departs, carried.surfaces_part):
+                doubt = [why for why, failed in (("surface_gap", departs), ("surfaces_apart", part)) if failed]
+                self.done[key] = (point, rmse, score, gap, apart, doubt)
         return [self.done[p] for p in points]
 
 
@@ -156,10 +158,9 @@ async def list_marks(request: web.Request) -> web.Response:
                     {**m.as_dict(), "point_mm": p.tolist(), "from_point_mm": list(m.point_mm), "fit_rmse_mm": float(r),
                      "placed_by": "shape" if np.isnan(score) else "pictures",
                      "picture_score": None if np.isnan(score) else float(score),
-                     "surface_gap_mm": float(gap), "surfaces_apart_mm": float(apart),
-                     "doubt": [why for why, yes in (("surface_gap", departs), ("surfaces_apart", part)) if yes],
-                     "in_doubt": bool(departs or part)}
-                    for m, (p, r, score, gap, apart, departs, part) in zip(earlier.marks, places)])
+                     "surface_gap_mm": float(gap), "surfaces_apart_mm": float(apart), "doubt": doubt,
+                     "in_doubt": bool(doubt)}
+                    for m, (p, r, score, gap, apart, doubt) in zip(earlier.marks, places)])
     return web.json_response(out)
 
 

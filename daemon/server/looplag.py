@@ -207,9 +207,9 @@ class LoopLagMonitor:
                     where: dict[str, str | float | None] = {}
                     if stacks is not None:
                         dump = stacks.taken(sample)
-                        where = {"tracebacks": str(self.tracebacks), "loop_frame": dump.loop_frame if dump else None}
+                        where = {"tracebacks": str(self.tracebacks), "loop_frame": None}
                         if dump is not None:
-                            where["stacks_after_ms"] = dump.after_ms
+                            where.update(loop_frame=dump.loop_frame, stacks_after_ms=dump.after_ms)
                     self.record(self.state(), lag_s, cpu_ms=_ms_between(cpu0, cpu1),
                                 runqueue_ms=_ms_between(wait0, wait1), process_cpu_ms=_ms_between(process0, process1),
                                 pressure_ms=_ms_between(pressure0, pressure1), steal_ms=_ms_between(steal0, steal1),
