@@ -135,6 +135,18 @@ def test_stall_dumps_never_crash_the_daemon_however_its_threads_stacks_change(tm
     assert stacks.read_text().count("Loop thread 0x") >= 5  # the stalls were dumped, not skipped
 
 
+def test_an_unwritable_stall_file_is_logged_and_the_lag_still_measured(tmp_path: Path) -> None:
+    stacks = tmp_path / "no-such-folder" / "loop-stalls.txt"
+    monitor = LoopLagMonitor(lambda: "CAPTURING", period_s=0.01, warn_s=0.05, tracebacks=stacks)
+    with structlog.testing.capture_logs() as logs:
+        _monitored(monitor, hold=True)
+    refused = [e for e in logs if e["event"] == "loop_stall_tracebacks_unwritable"]
+    assert refused and refused[0]["path"] == str(stacks)
+    stalls = [e for e in logs if e["event"] == "loop_lag"]
+    assert stalls and all("tracebacks" not in e for e in stalls)
+    assert monitor.summary()["CAPTURING"]["max_ms"] >= 100.0
+
+
 def test_no_stack_is_taken_while_the_loop_keeps_time(tmp_path: Path) -> None:
     stacks = tmp_path / "loop-stalls.txt"
     _monitored(LoopLagMonitor(lambda: "IDLE", period_s=0.01, warn_s=0.5, tracebacks=stacks), hold=False)
